@@ -1,0 +1,1 @@
+"""Experiment definitions, installed as ``jaxnc.experiments``."""

@@ -1,0 +1,2 @@
+"""jaxnc: JAX-differentiable networked control systems."""
+__version__ = "0.1.0"
