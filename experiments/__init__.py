@@ -1,1 +1,2 @@
-"""Experiment definitions, installed as ``jaxnc.experiments``."""
+"""Experiment definitions, installed as ``jaxnc.experiments``; importing registers them."""
+from . import mecanum  # noqa: F401

@@ -1,0 +1,155 @@
+"""Experiment ``mecanum``: seed 000 (Carbonell et al. 2024), one (N, DP) cell.
+
+Runs the requested cases (SR, DR, DRH, DRHE or all) and the nominal single-rate run
+(SR, N = 1, DP = 0) on the same seeds, normalises J1-J3 to the nominal run as the
+paper does (J4 is normalised by definition), prints the table, writes
+``results.json`` (full configuration, per-metric mean and 95 % interval, unstable
+fraction, version, wall time) and a path-tracking figure like Fig. 4.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxnc import montecarlo
+from jaxnc.experiment import Experiment, Option, register
+from jaxnc.paths import PATHS
+from jaxnc.report import fmt, markdown_table
+from jaxnc.schemes import mecanum as mec
+
+CASE_CHOICES = (*mec.CASES, "all")
+UNSTABLE_CELL = 0.5   # a cell is shown as inf when more than half of its runs are unstable
+
+
+def loop_config(loop: mec.MecanumLoop) -> dict:
+    """JSON-friendly description of a configuration (the path by name)."""
+    def conv(obj):
+        if dataclasses.is_dataclass(obj):
+            if obj.__class__.__name__ == "Path":
+                return {"name": obj.name, "length_m": float(obj.length)}
+            return {f.name: conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        a = np.asarray(obj)
+        return a.tolist() if a.ndim else a.item()
+    return conv(loop)
+
+
+def build_loops(settings: dict) -> dict[str, mec.MecanumLoop]:
+    cases = mec.CASES if settings["case"] == "all" else (settings["case"],)
+    kw = dict(path=settings["path"], sigma=settings["sigma"], delta=settings["delta"])
+    loops = {"SR nominal": mec.mecanum_loop("SR", 1, 0.0, **kw)}
+    for c in cases:
+        loops[c] = mec.mecanum_loop(c, settings["N"], settings["dp"], h=settings["h"] or None, **kw)
+    return loops
+
+
+def _stats(metrics, name):
+    unstable = np.asarray(metrics.unstable)
+    return montecarlo.summarize(np.asarray(getattr(metrics, name), float), unstable)
+
+
+def summarise(results: dict) -> dict:
+    """Per case: absolute summaries and indexes normalised to the nominal SR run."""
+    nom = results["SR nominal"]
+    nom_rate = np.asarray(nom.tx_sc) / np.asarray(nom.l)
+    base = {j: _stats(nom, j).mean for j in ("J1", "J2", "J3")}
+    rate_nom = float(np.mean(nom_rate[~np.asarray(nom.unstable)]))
+    out = {}
+    for name, m in results.items():
+        unstable = np.asarray(m.unstable)
+        rate = np.asarray(m.tx_sc) / np.asarray(m.l)
+        s = {j: _stats(m, j) for j in ("J1", "J2", "J3")}
+        j4 = montecarlo.summarize(rate / rate_nom, unstable)
+        frac = float(np.mean(unstable))
+        cell_unstable = frac > UNSTABLE_CELL
+        norm = {j: (math.inf if cell_unstable else s[j].mean / base[j]) for j in s}
+        out[name] = {
+            "absolute": {j: s[j].to_dict() for j in s},
+            "normalised": {**norm, "J4": math.inf if cell_unstable else j4.mean},
+            "J4": j4.to_dict(),
+            "tx_sc_mean": float(np.mean(m.tx_sc)), "tx_ca_mean": float(np.mean(m.tx_ca)),
+            "unstable_fraction": frac,
+        }
+    return out
+
+
+def table(summary: dict) -> str:
+    rows = []
+    for name, s in summary.items():
+        n = s["normalised"]
+        a = s["absolute"]["J1"]
+        rows.append([name, fmt(n["J1"]), fmt(n["J2"]), fmt(n["J3"]), fmt(n["J4"], 3),
+                     fmt(100 * a["mean"], 2) + " \u00b1 " + fmt(100 * a["ci95"], 2),
+                     f"{100 * s['unstable_fraction']:.1f}"])
+    return markdown_table(["case", "J1", "J2", "J3", "J4", "J1 abs (cm)", "unstable %"], rows)
+
+
+def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    path = next(iter(loops.values())).follower.path
+    ref = np.asarray(path.points)
+    ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.5, label="reference")
+    for name, loop in loops.items():
+        traj = jax.jit(mec.simulate)(loop, key)
+        xy = np.asarray(traj.x[:, 3:5])[: int(traj.l)]
+        ax.plot(xy[:, 0], xy[:, 1], lw=1.2, label=name + (" (unstable)" if bool(traj.bad | ~traj.done) else ""))
+    ax.set_xlabel("X (m)")
+    ax.set_ylabel("Y (m)")
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    f = out / "paths.png"
+    fig.savefig(f, dpi=130)
+    plt.close(fig)
+    return f
+
+
+def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+    t_start = time.perf_counter()
+    loops = build_loops(settings)
+    keys = montecarlo.seed_keys(settings["seed"], seeds)
+    results = {}
+    for name, loop in loops.items():
+        results[name] = mec.Metrics(**montecarlo.run_batched(
+            lambda k, loop=loop: mec.run(loop, k)._asdict(), keys, progress=progress,
+            desc=f"{name:>10} N={loop.N} DP={float(loop.sc.p_loss):.2f} h={loop.h}"))
+    summary = summarise(results)
+    print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}")
+    print("J1-J3 normalised to nominal SR (N=1, DP=0) on the same seeds; J4 = sensor transmission rate / nominal\n")
+    print(table(summary))
+    out.mkdir(parents=True, exist_ok=True)
+    fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)")
+    wall = time.perf_counter() - t_start
+    config = {"settings": settings, "seeds": seeds,
+              "loops": {n: {"case": l.case, "N": l.N, "h": l.h, "steps": l.steps, "config": loop_config(l)}
+                        for n, l in loops.items()}}
+    montecarlo.save_results(out / "results.json", experiment="mecanum", config=config,
+                            results=summary, wall_time_s=wall)
+    print(f"\nwrote {out / 'results.json'} and {fig}  ({wall:.1f} s)")
+    return summary
+
+
+EXPERIMENT = register(Experiment(
+    name="mecanum",
+    description="Seed 000: Mecanum robot, SR/DR/DRH/DRHE at one (N, DP) cell, normalised to nominal SR",
+    options=(
+        Option("case", "choice", "all", "scheme to run", choices=CASE_CHOICES),
+        Option("N", "int", 10, "multiplicity: slow period NT", low=1, high=20),
+        Option("dp", "float", 0.5, "dropout probability DP = p_sc = p_ca", low=0.0, high=0.95),
+        Option("path", "choice", "lissajous", "reference path", choices=tuple(PATHS)),
+        Option("h", "int", 0, "prediction horizon in slow periods (0: the documented default rule)", low=0, high=200),
+        Option("sigma", "floats", mec.PAPER_SIGMA, "PETC sigma(i): 1 or 9 values", low=0.0, high=10.0),
+        Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
+        Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
+    ),
+    run=run,
+))

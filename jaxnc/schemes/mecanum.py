@@ -1,0 +1,340 @@
+"""Closed loops SR, DR, DRH and DRHE of seed 000 (section 4.1), one ``lax.scan`` each.
+
+Timing (fast period T, slow period NT, k the slow index, t = kN the fast instant):
+
+1. The sensor samples z_k = h(xi_t) + n2 and, in DRHE, sends only when the PETC
+   condition (eq. 4) holds; the other cases send every NT. The first sample is
+   always sent (zbar_0 = z_0).
+2. A sent packet is lost with probability p_sc (eq. 5). When it arrives, the remote
+   NUDREKF corrects (eq. 13) and its prediction stage computes h*N estimates and
+   actions from instant t on (section 3.3.1); they are sent as one packet, stamped t.
+3. The controller-to-actuator packet is lost with probability p_ca; otherwise it
+   reaches the actuator after the round-trip delay tau (eq. 6-7) quantised up to
+   whole fast periods. Packets later than tau_max (default NT, so there is never
+   disorder, as the paper arranges) are discarded.
+4. Every fast period the actuator applies the action of its buffer indexed by time
+   stamp and holds the last when the buffer is exhausted (section 2.4); the plant
+   moves (eq. 1) and the remote filter propagates its belief (eq. 11) along the
+   actions it sent.
+
+Cases (section 4.1):
+
+* SR   single rate: the controller runs once per NT and its action is held (h = 1);
+* DR   dual rate: N fast actions per packet (h = 1), hold the last on loss;
+* DRH  dual rate + h-step prediction: h*N actions per packet;
+* DRHE DRH + PETC at the sensor (eq. 4).
+
+The network draws (losses, delays) and the noises are drawn up front from the key,
+per fast instant, so that every case sees the same realisation at the same time
+(common random numbers), whatever N.
+
+A run is *unstable* when the robot leaves a tube of ``max_dev`` (0.5 m) around the
+path, a state becomes non-finite, or it has not reached the end of the path within
+the simulated horizon (1.6 x the nominal path time + 10 s). Its indexes are inf.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import check_int, check_range
+from jaxnc.controllers.actuator import PacketBuffer, current_action, empty_buffer, install
+from jaxnc.controllers.path_following import FollowerState, PathFollower
+from jaxnc.estimators.ekf import Gaussian, ekf_predict
+from jaxnc.estimators.nudrekf import nudrekf_correct, predict_horizon
+from jaxnc.metrics import J1, J2, distance_to_path
+from jaxnc.network import Channel, late, quantise_delay
+from jaxnc.paths import Path, closest_index, get_path
+from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
+from jaxnc.triggers import PetcTrigger, hold_last_sent
+
+CASES = ("SR", "DR", "DRH", "DRHE")
+
+# Paper, section 4.1: delta(i) = 0.1; sigma(i) = 0.1 for the four wheel speeds, 0.05 else.
+PAPER_SIGMA = (0.1, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05, 0.05)
+PAPER_DELTA = (0.1,) * 9
+PAPER_ETA, PAPER_PHI = 0.01, 0.02   # delay distribution, eq. (7), section 4.1
+
+
+def default_h(case: str, N: int, dp: float) -> int:
+    """Prediction horizon h (in slow periods), our reading of section 4.1.
+
+    DRH: h covers every run of consecutive losses with probability >= 1 %
+    (dp^h >= 0.01), bounded so that hN stays in the paper's range [10, 50].
+    DRHE: hN >= 100 (the paper: hN in {100, 156}), and at least the DRH horizon.
+    SR, DR: h = 1.
+    """
+    if case in ("SR", "DR"):
+        return 1
+    h_loss = math.ceil(math.log(0.01) / math.log(dp)) if dp > 0 else 1
+    h_drh = min(max(h_loss, math.ceil(10 / N)), max(1, 50 // N))
+    if case == "DRH":
+        return h_drh
+    return max(math.ceil(100 / N), h_drh)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class MecanumLoop:
+    """Everything one closed-loop run needs. Static: case, N, h, steps; the rest are leaves."""
+
+    plant: Mecanum
+    noise: MecanumNoise            # true process / measurement noise
+    filter_noise: MecanumNoise     # the covariances the NUDREKF assumes
+    follower: PathFollower
+    trigger: PetcTrigger
+    sc: Channel                    # sensor -> controller
+    ca: Channel                    # controller -> actuator (carries the lumped round-trip delay)
+    tau_max: jax.Array             # s; later packets are discarded
+    P0_std: jax.Array              # initial estimation uncertainty (std per state)
+    max_dev: jax.Array = 0.5       # m; leaving this tube around the path = unstable
+    end_tol: jax.Array = 0.05      # m; the path is complete within this of its end
+    case: str = dataclasses.field(default="DRHE", metadata=dict(static=True))
+    N: int = dataclasses.field(default=1, metadata=dict(static=True))
+    h: int = dataclasses.field(default=1, metadata=dict(static=True))
+    steps: int = dataclasses.field(default=100, metadata=dict(static=True))
+
+    def __post_init__(self):
+        if self.case not in CASES:
+            raise ValueError(f"MecanumLoop.case must be one of {', '.join(CASES)}, got {self.case!r}")
+        check_int("MecanumLoop.N", self.N, 1, 100)
+        check_int("MecanumLoop.h", self.h, 1, 1000)
+        check_int("MecanumLoop.steps", self.steps, self.N)
+        if self.steps % self.N:
+            raise ValueError(f"MecanumLoop.steps must be a multiple of N={self.N}, got {self.steps}")
+        check_range("MecanumLoop.tau_max", self.tau_max, 0.0, self.N * self.plant.T + 1e-9, low_open=True)
+
+    @property
+    def horizon(self) -> int:
+        """Actions per packet: h*N."""
+        return self.h * self.N
+
+    @property
+    def Ts(self) -> float:
+        """Controller period: NT for SR, T otherwise."""
+        return self.N * self.plant.T if self.case == "SR" else self.plant.T
+
+    @property
+    def hold(self) -> int:
+        return self.N if self.case == "SR" else 1
+
+
+def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | Path = "lissajous", *,
+                 h: int | None = None, sigma=None, delta=None, eta: float = PAPER_ETA, phi: float = PAPER_PHI,
+                 tau_max: float | None = None, noise: MecanumNoise | None = None,
+                 plant: Mecanum | None = None, follower_kw: dict | None = None,
+                 trigger_temperature: float = 0.0, horizon_s: float | None = None) -> MecanumLoop:
+    """Build a validated configuration with the paper's defaults (section 4.1).
+
+    ``dp`` is the dropout probability of both directions, DP = p_sc = p_ca.
+    """
+    if case not in CASES:
+        raise ValueError(f"case must be one of {', '.join(CASES)}, got {case!r}")
+    check_int("N", N, 1, 100)
+    check_range("dp", dp, 0.0, 1.0, high_open=True)
+    if h is None:
+        h = default_h(case, N, float(dp))
+    check_int("h", h, 1, 1000)
+    plant = plant or Mecanum()
+    noise = noise or MecanumNoise()
+    p = path if isinstance(path, Path) else get_path(path)
+    follower = PathFollower(path=p, **(follower_kw or {}))
+    sigma = np.asarray(PAPER_SIGMA if sigma is None else sigma, np.float32)
+    delta = np.asarray(PAPER_DELTA if delta is None else delta, np.float32)
+    for name, v in (("sigma", sigma), ("delta", delta)):
+        if v.shape not in ((), (OUTPUT_DIM,)):
+            raise ValueError(f"{name} must be a scalar or have {OUTPUT_DIM} entries (one per output), got shape {v.shape}")
+    sigma = np.broadcast_to(sigma, (OUTPUT_DIM,)).copy()
+    delta = np.broadcast_to(delta, (OUTPUT_DIM,)).copy()
+    T = plant.T
+    tau_max = N * T if tau_max is None else tau_max
+    if horizon_s is None:
+        horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0
+    steps = N * math.ceil(horizon_s / (N * T))
+    return MecanumLoop(
+        plant=plant, noise=noise, filter_noise=noise, follower=follower,
+        trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
+        sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
+        P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
+        case=case, N=N, h=h, steps=steps)
+
+
+class Draws(NamedTuple):
+    """Exogenous randomness of one run, per fast instant (common random numbers)."""
+
+    w: jax.Array         # [K, 7] process noise n1
+    v: jax.Array         # [K, 9] measurement noise n2
+    sc_u: jax.Array      # [K] uniforms: sensor packet lost when < p_sc
+    ca_u: jax.Array      # [K] uniforms: actuator packet lost when < p_ca
+    delay_e: jax.Array   # [K] Exponential(1) draws: delay = eta + phi * e
+
+
+def draw(key, steps: int) -> Draws:
+    """All random draws of a run, split per purpose from one key."""
+    kw, kv, ks, kc, kd = jax.random.split(key, 5)
+    return Draws(
+        w=jax.random.normal(kw, (steps, PROCESS_NOISE_DIM)),
+        v=jax.random.normal(kv, (steps, OUTPUT_DIM)),
+        sc_u=jax.random.uniform(ks, (steps,)),
+        ca_u=jax.random.uniform(kc, (steps,)),
+        delay_e=jax.random.exponential(kd, (steps,)))
+
+
+class Trajectory(NamedTuple):
+    """Per fast instant: true state, estimate (remote belief), applied action;
+    per slow instant: sent / received / delivered flags; and run summaries."""
+
+    x: jax.Array          # [K, 6]
+    mean: jax.Array       # [K, 6]
+    u: jax.Array          # [K, 4]
+    sent: jax.Array       # [K/N] sensor transmissions (beta)
+    received: jax.Array   # [K/N] sensor packet reached the controller
+    delivered: jax.Array  # [K/N] control packet reached the actuator
+    l: jax.Array          # fast steps until the path was completed (K if never)
+    done: jax.Array       # bool: path completed
+    bad: jax.Array        # bool: left the tube or non-finite
+
+
+class _Carry(NamedTuple):
+    x: jax.Array
+    z_last: jax.Array
+    belief: Gaussian
+    sent_pkt: PacketBuffer      # the last packet the remote side sent (its belief of the actions)
+    sent_ctrl: FollowerState    # controller states along that packet's horizon, [H+1, ...]
+    act: PacketBuffer           # actuator buffer
+    pending: PacketBuffer       # a packet arriving exactly at the next slow instant
+    pending_ok: jax.Array
+    idx_true: jax.Array
+    done: jax.Array
+    l: jax.Array
+    bad: jax.Array
+
+
+def simulate(loop: MecanumLoop, key) -> Trajectory:
+    """One closed-loop run of ``loop.case``: a ``lax.scan`` over slow periods with the N
+    fast periods inside. Pure function of (loop, key); vmap it over keys."""
+    plant, fol, N, H, K = loop.plant, loop.follower, loop.N, loop.horizon, loop.steps
+    Ts, hold = loop.Ts, loop.hold
+    path = fol.path
+    d = draw(key, K)
+    dtype = jnp.float32
+    w = d.w * loop.noise.process_std()[None, :]
+    v = d.v * loop.noise.measurement_std()[None, :]
+    Qf, Rf = loop.filter_noise.Q(), loop.filter_noise.R()
+    slow = lambda a: a[::N]
+    sc_lost = slow(d.sc_u) < loop.sc.p_loss
+    ca_lost = slow(d.ca_u) < loop.ca.p_loss
+    tau = (loop.ca.eta + loop.ca.phi * slow(d.delay_e)) + (loop.sc.eta + loop.sc.phi * slow(d.delay_e))
+    dsteps = quantise_delay(tau, plant.T)
+    too_late = late(tau, loop.tau_max)
+
+    start = path.points[0]
+    x0 = jnp.concatenate([jnp.zeros(3, dtype), start.astype(dtype), jnp.zeros(1, dtype)])
+    belief0 = Gaussian(x0, jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2))
+    c0 = fol.init()
+    ctrl = lambda m, c: fol(plant, m, c, Ts)
+    end = path.points[-1]
+    n_path = path.points.shape[0]
+
+    def slow_step(c: _Carry, inp):
+        k, w_k, v_k, sc_lost_k, ca_lost_k, d_k, late_k = inp
+        t0 = (k * N).astype(jnp.int32)
+        act = install(c.act, c.pending, c.pending_ok)
+        # 1. sensor, PETC (eq. 3-4)
+        z = plant.measure(c.x, v_k)
+        if loop.case == "DRHE":
+            beta = jnp.where(k == 0, jnp.ones((), dtype), loop.trigger.fires(c.z_last, z))
+        else:
+            beta = jnp.ones((), dtype)
+        z_last = hold_last_sent(beta, z, c.z_last)
+        rec = beta * (1.0 - sc_lost_k.astype(dtype))
+        # 2. remote: correction (eq. 13) and prediction stage (section 3.3.1)
+        corrected = nudrekf_correct(plant, c.belief, z, Rf)
+        i0 = jnp.clip(t0 - c.sent_pkt.stamp, 0, H)
+        c_now = jax.tree.map(lambda a: a[i0], c.sent_ctrl)
+        _, us, cs = predict_horizon(plant, ctrl, corrected.mean, c_now, H, hold, PROCESS_NOISE_DIM)
+        belief = jax.tree.map(lambda a, b: rec * a + (1.0 - rec) * b, corrected, c.belief)
+        new_pkt = PacketBuffer(us, t0)
+        sent_pkt = install(c.sent_pkt, new_pkt, rec)
+        sent_ctrl = jax.tree.map(lambda a, b: jnp.where(rec > 0.5, a, b), cs, c.sent_ctrl)
+        # 3. controller -> actuator: lost, or arrives d_k fast periods later
+        arr = rec * (1.0 - ca_lost_k.astype(dtype)) * (1.0 - late_k.astype(dtype))
+
+        # 4. N fast periods: actuator, plant (eq. 1), remote belief propagation (eq. 11)
+        def fast_step(fc, inp_j):
+            x, belief, act, idx_true, done, l, bad = fc
+            j, w_t = inp_j
+            t = t0 + j
+            act = install(act, new_pkt, arr * (j == d_k).astype(dtype))
+            u = current_action(act, t)
+            x = plant.dynamics(x, u, w_t)
+            belief = ekf_predict(plant.dynamics, belief, current_action(sent_pkt, t), Qf, PROCESS_NOISE_DIM)
+            idx_true, dist = closest_index(path, x[3:5], idx_true, fol.window)
+            at_end = (idx_true >= (9 * n_path) // 10) & (jnp.sum((x[3:5] - end) ** 2) < loop.end_tol ** 2)
+            l = jnp.where(done, l, t + 1)
+            done = done | at_end
+            bad = bad | (dist > loop.max_dev) | ~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(belief.mean))
+            return (x, belief, act, idx_true, done, l, bad), (x, belief.mean, u)
+
+        fc = (c.x, belief, act, c.idx_true, c.done, c.l, c.bad)
+        fc, (xs, means, uapp) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
+        x, belief, act, idx_true, done, l, bad = fc
+        # a packet due exactly at the next slow instant is installed there
+        pending_ok = arr * (d_k >= N).astype(dtype)
+        return (_Carry(x, z_last, belief, sent_pkt, sent_ctrl, act, new_pkt, pending_ok, idx_true, done, l, bad),
+                (xs, means, uapp, beta, rec, arr))
+
+    ctrl_traj0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (H + 1,) + a.shape), c0)
+    carry0 = _Carry(x0, plant.measure(x0, jnp.zeros(OUTPUT_DIM, dtype)), belief0,
+                    empty_buffer(H, INPUT_DIM), ctrl_traj0, empty_buffer(H, INPUT_DIM),
+                    empty_buffer(H, INPUT_DIM), jnp.zeros((), dtype),
+                    jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
+    n_slow = K // N
+    xs_in = (jnp.arange(n_slow), w.reshape(n_slow, N, PROCESS_NOISE_DIM), slow(v), sc_lost, ca_lost, dsteps, too_late)
+    final, (xs, means, us, beta, rec, arr) = jax.lax.scan(slow_step, carry0, xs_in)
+    return Trajectory(
+        x=xs.reshape(K, STATE_DIM), mean=means.reshape(K, STATE_DIM), u=us.reshape(K, INPUT_DIM),
+        sent=beta, received=rec, delivered=arr, l=final.l, done=final.done, bad=final.bad)
+
+
+class Metrics(NamedTuple):
+    """Per-run cost indexes, seed 000 eq. (21)-(24) (J4 is formed against the nominal run)."""
+
+    J1: jax.Array         # mean distance to the path, m
+    J2: jax.Array         # max distance to the path, m
+    J3: jax.Array         # time to complete the path, s
+    tx_sc: jax.Array      # sensor transmissions up to completion
+    tx_ca: jax.Array      # controller transmissions up to completion
+    l: jax.Array          # fast steps to completion
+    unstable: jax.Array   # bool
+
+
+def evaluate(loop: MecanumLoop, traj: Trajectory, block: int = 64) -> Metrics:
+    """Cost indexes of one run; inf when it is unstable."""
+    K, N, T = loop.steps, loop.N, loop.plant.T
+    path = loop.follower.path
+    xy = traj.x[:, 3:5]
+    pad = (-K) % block
+    xyp = jnp.concatenate([xy, jnp.broadcast_to(xy[-1:], (pad, 2))], axis=0).reshape(-1, block, 2)
+    dist = jax.lax.map(lambda b: distance_to_path(path, b), xyp).reshape(-1)[:K]
+    mask = jnp.arange(K) < traj.l
+    unstable = traj.bad | ~traj.done
+    inf = jnp.asarray(jnp.inf, jnp.float32)
+    slow_mask = (jnp.arange(K // N) * N) < traj.l
+    tx_sc = jnp.sum(traj.sent * slow_mask)
+    tx_ca = jnp.sum(traj.received * slow_mask)
+    return Metrics(
+        J1=jnp.where(unstable, inf, J1(dist, mask)),
+        J2=jnp.where(unstable, inf, J2(dist, mask)),
+        J3=jnp.where(unstable, inf, traj.l * T),
+        tx_sc=tx_sc, tx_ca=tx_ca, l=traj.l, unstable=unstable)
+
+
+def run(loop: MecanumLoop, key) -> Metrics:
+    """simulate + evaluate: the per-seed function the Monte-Carlo engine vmaps."""
+    return evaluate(loop, simulate(loop, key))
