@@ -100,7 +100,12 @@ def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
     for name, loop in loops.items():
         traj = jax.jit(mec.simulate)(loop, key)
         xy = np.asarray(traj.x[:, 3:5])[: int(traj.l)]
-        ax.plot(xy[:, 0], xy[:, 1], lw=1.2, label=name + (" (unstable)" if bool(traj.bad | ~traj.done) else ""))
+        unstable = bool(traj.bad | ~traj.done)
+        ax.plot(xy[:, 0], xy[:, 1], ls=":" if unstable else "-", lw=1.2,
+                label=name + (" (unstable)" if unstable else ""))
+    lo, hi = ref.min(axis=0) - 0.6, ref.max(axis=0) + 0.6   # unstable runs leave the frame
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_xlabel("X (m)")
     ax.set_ylabel("Y (m)")
     ax.set_aspect("equal")

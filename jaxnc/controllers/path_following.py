@@ -44,7 +44,8 @@ class PathFollower:
     K_psi: jax.Array = 1.0
     V_ref: jax.Array = 0.2
     L_ref: jax.Array = 0.3
-    window: int = dataclasses.field(default=80, metadata=dict(static=True))
+    window: int = dataclasses.field(default=80, metadata=dict(static=True))   # path points searched ahead
+    back: int = dataclasses.field(default=50, metadata=dict(static=True))     # ... and behind (see pure_pursuit)
 
     def __post_init__(self):
         check_nonneg("PathFollower.Kp", self.Kp)
@@ -53,6 +54,7 @@ class PathFollower:
         check_positive("PathFollower.V_ref", self.V_ref)
         check_positive("PathFollower.L_ref", self.L_ref)
         check_int("PathFollower.window", self.window, 2)
+        check_int("PathFollower.back", self.back, 0)
 
     def init(self) -> FollowerState:
         return FollowerState(jnp.zeros((), jnp.int32), jnp.zeros((3,), jnp.float32))
@@ -60,7 +62,7 @@ class PathFollower:
     def __call__(self, model, mean, state: FollowerState, Ts):
         """One controller evaluation from the estimate ``mean``: returns (u, state)."""
         v_w, idx = pure_pursuit(self.path, mean[3:5], state.idx,
-                                L_ref=self.L_ref, V_ref=self.V_ref, window=self.window)
+                                L_ref=self.L_ref, V_ref=self.V_ref, window=self.window, back=self.back)
         c, s = jnp.cos(mean[5]), jnp.sin(mean[5])
         ref = jnp.stack([c * v_w[0] + s * v_w[1],
                          -s * v_w[0] + c * v_w[1],

@@ -16,9 +16,18 @@ import jax.numpy as jnp
 from jaxnc.paths import Path, closest_index, point_at
 
 
-def pure_pursuit(path: Path, xy, idx_prev, *, L_ref, V_ref, window: int):
-    """Returns ``(v_ref_world[2], idx)``; ``idx`` is the monotone nearest-point index."""
-    idx, _ = closest_index(path, xy, idx_prev, window)
+def pure_pursuit(path: Path, xy, idx_prev, *, L_ref, V_ref, window: int, back: int = 0):
+    """Returns ``(v_ref_world[2], idx)``; ``idx`` is the nearest path index, searched in
+    ``idx_prev - back .. idx_prev + window - 1``.
+
+    ``back > 0`` lets the progress step backwards: the remote side predicts progress
+    along actions that may never have reached the actuator, and a correction must be
+    able to pull the progress back, or the robot would cut across to a point far
+    ahead. It stays local, so the search never jumps to the other branch where the
+    Lissajous curve crosses itself.
+    """
+    start = jnp.maximum(jnp.asarray(idx_prev, jnp.int32) - back, 0)
+    idx, _ = closest_index(path, xy, start, window + back)
     target = point_at(path, path.s[idx] + L_ref)
     d = target - xy
     D = jnp.sqrt(jnp.sum(d * d) + 1e-12)

@@ -14,7 +14,8 @@ small laboratory Mecanum robot and live here, in one place:
 * four beacons at the corners of a 5 m x 5 m room, fixed beacons 2.0 m high,
   mobile beacon 0.3 m high (Marvelmind-like indoor positioning),
 * process noise on each wheel speed 0.2 rad/s (about 1 cm/s of slip and motor
-  loop error) plus 2 mm / 0.003 rad of pose slip per 0.1 s step,
+  loop error) plus 2 mm / 0.003 rad of pose slip per 0.1 s step, at cruise speed;
+  both scale with the commanded wheel speed (none at rest),
 * measurement noise: encoders 0.05 rad/s, yaw (IMU) 0.01 rad, beacon distance
   0.02 m (the +-2 cm accuracy of commercial ultrasonic beacons).
 """
@@ -80,14 +81,18 @@ class Mecanum:
 
         ``w`` is the process noise n1 = (4 wheel-speed errors, X, Y, psi slip).
         """
-        omega = jnp.clip(u, -self.omega_max, self.omega_max) + w[:4]
+        u = jnp.clip(u, -self.omega_max, self.omega_max)
+        # Noise scales with motion (full at the cruise wheel speed 4 rad/s): a robot
+        # at rest neither slips nor jitters.
+        m = jnp.minimum(1.0, jnp.mean(jnp.abs(u)) / 4.0)
+        omega = u + m * w[:4]
         v = self.body_velocity(omega)
         T = self.T
         a = x[5] + v[2] * T
         c, s = jnp.cos(a), jnp.sin(a)
-        X = x[3] + v[0] * T * c - v[1] * T * s + w[4]
-        Y = x[4] + v[0] * T * s + v[1] * T * c + w[5]
-        psi = x[5] + v[2] * T + w[6]
+        X = x[3] + v[0] * T * c - v[1] * T * s + m * w[4]
+        Y = x[4] + v[0] * T * s + v[1] * T * c + m * w[5]
+        psi = x[5] + v[2] * T + m * w[6]
         return jnp.concatenate([v, jnp.stack([X, Y, psi])])
 
     def distances(self, xy):

@@ -59,20 +59,36 @@ CASES = ("SR", "DR", "DRH", "DRHE")
 PAPER_SIGMA = (0.1, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05, 0.05)
 PAPER_DELTA = (0.1,) * 9
 PAPER_ETA, PAPER_PHI = 0.01, 0.02   # delay distribution, eq. (7), section 4.1
+# The filter's wheel-speed process noise (rad/s), 15x the true 0.2 rad/s: the remote
+# side propagates its belief along the actions it *sent*, and a lost control packet
+# leaves the robot doing something else. A filter tuned to the true noise becomes
+# overconfident after a few lost packets and a correction then moves it only part of
+# the way (the robot cuts across the path); this Q keeps corrections decisive and
+# costs nothing in the nominal case (J1 4.24 vs 4.19 cm, 32 seeds).
+FILTER_OMEGA_STD = 3.0
 
 
-def default_h(case: str, N: int, dp: float) -> int:
-    """Prediction horizon h (in slow periods), our reading of section 4.1.
+def default_h(case: str, N: int, dp: float, n_slow: int) -> int:
+    """Prediction horizon h in slow periods: our reading of section 4.1.
 
-    DRH: h covers every run of consecutive losses with probability >= 1 %
-    (dp^h >= 0.01), bounded so that hN stays in the paper's range [10, 50].
-    DRHE: hN >= 100 (the paper: hN in {100, 156}), and at least the DRH horizon.
-    SR, DR: h = 1.
+    The paper asks h*N to cover the longest run of missing data. A slow period
+    delivers nothing with probability q = 1 - (1 - DP)^2 (either direction lost);
+    over n_slow periods the longest such run reaches r with probability about
+    1 - exp(-n_slow (1 - q) q^r) (Erdos-Renyi law of runs). DRH takes h = r + 1 with
+    that probability at 5 %; DRHE, whose sensor is also silent between events, takes
+    at least hN = 100 fast periods as in the paper (hN in {100, 156}). SR and DR: h = 1.
+    The paper's DRH range hN in [10, 50] is smaller: with our kinematic plant,
+    whose held actions drive it straight off the path, that range leaves DRH
+    unstable at DP = 0.5 (see README).
     """
     if case in ("SR", "DR"):
         return 1
-    h_loss = math.ceil(math.log(0.01) / math.log(dp)) if dp > 0 else 1
-    h_drh = min(max(h_loss, math.ceil(10 / N)), max(1, 50 // N))
+    q = 1.0 - (1.0 - dp) ** 2
+    if q > 0:
+        r = math.log(-math.log(0.95) / (n_slow * (1.0 - q))) / math.log(q)
+        h_drh = max(1, math.ceil(r) + 1)
+    else:
+        h_drh = 1
     if case == "DRH":
         return h_drh
     return max(math.ceil(100 / N), h_drh)
@@ -93,7 +109,7 @@ class MecanumLoop:
     tau_max: jax.Array             # s; later packets are discarded
     P0_std: jax.Array              # initial estimation uncertainty (std per state)
     max_dev: jax.Array = 0.5       # m; leaving this tube around the path = unstable
-    end_tol: jax.Array = 0.05      # m; the path is complete within this of its end
+    end_tol: jax.Array = 0.1       # m; the path is complete within this of its end
     case: str = dataclasses.field(default="DRHE", metadata=dict(static=True))
     N: int = dataclasses.field(default=1, metadata=dict(static=True))
     h: int = dataclasses.field(default=1, metadata=dict(static=True))
@@ -127,6 +143,7 @@ class MecanumLoop:
 def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | Path = "lissajous", *,
                  h: int | None = None, sigma=None, delta=None, eta: float = PAPER_ETA, phi: float = PAPER_PHI,
                  tau_max: float | None = None, noise: MecanumNoise | None = None,
+                 filter_noise: MecanumNoise | None = None,
                  plant: Mecanum | None = None, follower_kw: dict | None = None,
                  trigger_temperature: float = 0.0, horizon_s: float | None = None) -> MecanumLoop:
     """Build a validated configuration with the paper's defaults (section 4.1).
@@ -137,13 +154,17 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         raise ValueError(f"case must be one of {', '.join(CASES)}, got {case!r}")
     check_int("N", N, 1, 100)
     check_range("dp", dp, 0.0, 1.0, high_open=True)
-    if h is None:
-        h = default_h(case, N, float(dp))
-    check_int("h", h, 1, 1000)
     plant = plant or Mecanum()
     noise = noise or MecanumNoise()
+    if filter_noise is None:
+        # the filter's design covariances, independent of the true noise (which may be 0)
+        filter_noise = MecanumNoise(omega=FILTER_OMEGA_STD)
     p = path if isinstance(path, Path) else get_path(path)
     follower = PathFollower(path=p, **(follower_kw or {}))
+    if h is None:
+        n_slow = math.ceil(float(p.length) / float(follower.V_ref) / (N * plant.T))
+        h = default_h(case, N, float(dp), n_slow)
+    check_int("h", h, 1, 1000)
     sigma = np.asarray(PAPER_SIGMA if sigma is None else sigma, np.float32)
     delta = np.asarray(PAPER_DELTA if delta is None else delta, np.float32)
     for name, v in (("sigma", sigma), ("delta", delta)):
@@ -157,7 +178,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0
     steps = N * math.ceil(horizon_s / (N * T))
     return MecanumLoop(
-        plant=plant, noise=noise, filter_noise=noise, follower=follower,
+        plant=plant, noise=noise, filter_noise=filter_noise, follower=follower,
         trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
         sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
         P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
@@ -227,11 +248,14 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     v = d.v * loop.noise.measurement_std()[None, :]
     Qf, Rf = loop.filter_noise.Q(), loop.filter_noise.R()
     slow = lambda a: a[::N]
-    sc_lost = slow(d.sc_u) < loop.sc.p_loss
-    ca_lost = slow(d.ca_u) < loop.ca.p_loss
+    # Start-up handshake: the first exchange (k = 0) is delivered, or a PETC sensor
+    # watching a robot at rest would never fire again and the loop would never start.
+    first = jnp.arange(K // N) == 0
+    sc_lost = (slow(d.sc_u) < loop.sc.p_loss) & ~first
+    ca_lost = (slow(d.ca_u) < loop.ca.p_loss) & ~first
     tau = (loop.ca.eta + loop.ca.phi * slow(d.delay_e)) + (loop.sc.eta + loop.sc.phi * slow(d.delay_e))
     dsteps = quantise_delay(tau, plant.T)
-    too_late = late(tau, loop.tau_max)
+    too_late = late(tau, loop.tau_max) & ~first
 
     start = path.points[0]
     x0 = jnp.concatenate([jnp.zeros(3, dtype), start.astype(dtype), jnp.zeros(1, dtype)])

@@ -1,0 +1,141 @@
+"""The ``jaxnc`` command line.
+
+    jaxnc list
+    jaxnc run EXPERIMENT [--seeds N] [--out DIR] [--set KEY=VALUE ...] [--no-progress]
+    jaxnc --version
+
+:func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
+ends by raising ``SystemExit(code)``: 0 on success, 2 for a bad command line or setting
+(one line ``jaxnc: error: <message>`` on stderr, no traceback), 130 on Ctrl-C.  Use
+:func:`run_cli` to get the exit code as a return value instead.  An unexpected exception
+inside an experiment is a bug and propagates with its traceback (exit code 1).
+"""
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import warnings
+
+from jaxnc import __version__
+from jaxnc import experiment as _exp
+from jaxnc.experiment import ConfigError
+
+__all__ = ["main", "run_cli", "build_parser"]
+
+PROG = "jaxnc"
+DEFAULT_SEEDS = 1000
+_SEEDS = _exp.Option("--seeds", "int", DEFAULT_SEEDS, "number of Monte-Carlo seeds", low=1)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but usage errors are one line ``jaxnc: error: ...`` and exit code 2."""
+
+    def error(self, message):                       # noqa: D401 - argparse API
+        sys.stderr.write(f"{PROG}: error: {message} (see '{self.prog} --help')\n")
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description="Monte-Carlo simulation of networked control systems (JAX).")
+    p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    sub.add_parser("list", help="list the experiments and their settings",
+                   description="List the registered experiments, their settings, defaults and ranges.")
+
+    r = sub.add_parser("run", help="run an experiment",
+                       description="Run a registered experiment over many seeds.")
+    r.add_argument("experiment", metavar="EXPERIMENT", help="experiment name (see 'jaxnc list')")
+    r.add_argument("--seeds", default=str(DEFAULT_SEEDS), metavar="N",
+                   help=f"number of Monte-Carlo seeds, an integer >= 1 (default {DEFAULT_SEEDS})")
+    r.add_argument("--out", default=None, metavar="DIR",
+                   help="output directory (default results/EXPERIMENT)")
+    r.add_argument("--set", "-s", dest="settings", action="extend", nargs="+", default=[],
+                   metavar="KEY=VALUE", help="override a setting; repeatable (see 'jaxnc list')")
+    r.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="do not show progress bars")
+    return p
+
+
+def _load_builtin() -> None:
+    """load_builtin, with any warning printed as one line on stderr."""
+    with warnings.catch_warnings(record=True) as caught:
+        _exp.load_builtin()
+    for w in caught:
+        if issubclass(w.category, RuntimeWarning) and str(w.message).startswith("built-in experiments"):
+            sys.stderr.write(f"{PROG}: warning: {' '.join(str(w.message).split())}\n")
+        else:                                   # anything else raised while importing: as usual
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+
+
+def format_experiment(exp: _exp.Experiment) -> str:
+    lines = [f"{exp.name}: {exp.description}"]
+    if not exp.options:
+        lines.append("    (no settings)")
+    width = max((len(o.name) for o in exp.options), default=0)
+    for o in exp.options:
+        lines.append(f"    {o.name:<{width}}  default {o.format_value(o.default)}; "
+                     f"{o.range_text()}. {o.help}")
+    return "\n".join(lines)
+
+
+def _list() -> int:
+    if not _exp.REGISTRY:
+        print("no experiments registered")
+        return 0
+    print("\n\n".join(format_experiment(_exp.REGISTRY[n]) for n in sorted(_exp.REGISTRY)))
+    print("\nrun one with: jaxnc run EXPERIMENT [--seeds N] [--out DIR] [--set KEY=VALUE ...]")
+    return 0
+
+
+def _run(args) -> int:
+    exp = _exp.get_experiment(args.experiment)
+    settings = exp.parse_settings(args.settings)
+    seeds = _SEEDS.parse(args.seeds)
+    out = pathlib.Path(args.out) if args.out is not None else pathlib.Path("results") / exp.name
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"--out: cannot create directory '{out}': {e.strerror or e}") from None
+    exp.run(settings, seeds=seeds, out=out, progress=args.progress)
+    return 0
+
+
+def run_cli(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``) and return the exit code.
+
+    argparse's own ``--help``/``--version``/usage errors raise SystemExit (0 or 2).
+    """
+    args = build_parser().parse_args(argv)
+    try:
+        _load_builtin()
+        if args.command == "list":
+            return _list()
+        return _run(args)
+    except ConfigError as e:
+        msg = " ".join(str(e).split())         # guarantee a single line
+        sys.stderr.write(f"{PROG}: error: {msg}\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write(f"{PROG}: interrupted\n")
+        return 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console-script entry point: runs :func:`run_cli` and raises ``SystemExit(code)``.
+
+    It never returns normally (the ``-> int`` is for ``sys.exit(main())`` wrappers, which
+    therefore also get the right code).
+    """
+    try:
+        code = run_cli(argv)
+    except KeyboardInterrupt:                   # Ctrl-C during argument parsing / imports
+        sys.stderr.write(f"{PROG}: interrupted\n")
+        code = 130
+    sys.stdout.flush()
+    raise SystemExit(code)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,319 @@
+"""Monte-Carlo engine: per-seed keys, chunked ``jit(vmap(fn))`` over seeds, statistics, results files.
+
+One closed-loop run is a pure function ``fn(key) -> pytree of arrays``; a Monte-Carlo study
+is that function mapped over many seeds.  The pieces here are deliberately small:
+
+* :func:`seed_keys` gives seed ``i`` the key ``fold_in(PRNGKey(seed), i)``, so a seed's
+  trajectory never depends on how many seeds are run or how they are batched;
+* :func:`run_batched` maps ``fn`` over the keys in fixed-size chunks (one compilation,
+  bounded memory) and returns numpy arrays;
+* :func:`summarize` reduces one metric to mean / 95 % interval over the *stable* runs,
+  reporting the unstable ones as a fraction (an unstable run is data, not an error);
+* :func:`save_results` / :func:`load_results` write and read the JSON results file
+  atomically, with ``inf``/``nan`` stored as strings (JSON has no infinities).
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+import os
+import pathlib
+import platform as _platform
+import sys
+import tempfile
+import weakref
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxnc import __version__
+
+__all__ = ["seed_keys", "run_batched", "Summary", "summarize", "save_results", "load_results"]
+
+
+# ----------------------------------------------------------------------------- keys
+
+
+def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
+    """Keys for seeds ``start .. start + n - 1``, shape ``(n, 2)`` (raw ``uint32`` keys).
+
+    Seed ``i`` gets ``jax.random.fold_in(jax.random.PRNGKey(seed), i)``: it depends only on
+    ``(seed, i)``, never on ``n`` or ``start``, so ``seed_keys(s, 10)[7]`` and
+    ``seed_keys(s, 5, start=5)[2]`` are bitwise the same key and a seed's trajectory is the
+    same whatever the batch it runs in.
+    """
+    n, start = int(n), int(start)
+    if n < 0 or start < 0:
+        raise ValueError(f"seed_keys: n and start must be >= 0, got n={n}, start={start}")
+    if start + n > 2**32:
+        raise ValueError(f"seed_keys: seed indices must fit in uint32, got start+n={start + n}")
+    base = jax.random.PRNGKey(int(seed))
+    idx = jnp.arange(start, start + n, dtype=jnp.uint32)
+    return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
+
+
+# ----------------------------------------------------------------------------- batched runs
+
+# fn -> jit(vmap(fn)).  Weak keys so that a throw-away lambda (e.g. one per configuration)
+# and everything it closes over can be freed; the compiled wrapper reaches fn only through
+# a weak reference, otherwise the value would keep its own key alive.
+_COMPILED: "weakref.WeakKeyDictionary[Callable, Callable]" = weakref.WeakKeyDictionary()
+
+
+def _compiled(fn: Callable) -> Callable:
+    try:
+        return _COMPILED[fn]
+    except KeyError:
+        pass
+    except TypeError:                       # not hashable / not weak-referenceable: no cache
+        return jax.jit(jax.vmap(fn))
+    try:
+        ref = weakref.ref(fn)
+    except TypeError:
+        return jax.jit(jax.vmap(fn))
+
+    def call(key):
+        f = ref()
+        if f is None:                       # cannot happen while a caller holds fn
+            raise RuntimeError("run_batched: the mapped function was garbage-collected")
+        return f(key)
+
+    compiled = jax.jit(jax.vmap(call))
+    _COMPILED[fn] = compiled
+    return compiled
+
+
+def _to_numpy(tree, keep: int):
+    """Device pytree -> numpy pytree, first ``keep`` rows (drops the padding)."""
+    tree = jax.device_get(tree)
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[:keep], tree)
+
+
+LANES = 16
+
+
+def run_batched(fn: Callable[[jax.Array], Any], keys: jax.Array, *, chunk_size: int = 256,
+                progress: bool = True, desc: str = "seeds"):
+    """Apply ``fn`` (key -> pytree of arrays) to every key; returns the pytree of numpy arrays.
+
+    ``jax.jit(jax.vmap(fn))`` runs on chunks of ``min(chunk_size, len(keys))`` keys (rounded
+    up to a multiple of :data:`LANES`), which
+    bounds device memory; the last chunk is padded to the same size by repeating its last
+    key, so every chunk reuses the one compiled function, and the padding is dropped.  The
+    outputs are moved to host memory chunk by chunk (the next chunk is dispatched before the
+    previous one is fetched, so the device stays busy) and concatenated along axis 0: leaf
+    ``x`` of ``fn``'s output becomes an array of shape ``(len(keys), *x.shape)``.
+
+    Row ``i`` of the result depends only on ``keys[i]``, not on ``chunk_size`` or on the
+    other keys.  The compiled function is cached per ``fn`` object (weakly), so calling
+    again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
+    tqdm bar over seeds (on stderr) labelled ``desc``.
+    """
+    chunk_size = int(chunk_size)
+    if chunk_size < 1:
+        raise ValueError(f"run_batched: chunk_size must be >= 1, got {chunk_size}")
+    keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
+    if keys.ndim < 1:
+        raise ValueError("run_batched: keys must have a leading batch axis")
+    n = int(keys.shape[0])
+    batched = _compiled(fn)
+    if n == 0:
+        spec = jax.ShapeDtypeStruct((1, *keys.shape[1:]), keys.dtype)
+        shapes = jax.eval_shape(batched, spec)
+        return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
+
+    # Pad to a multiple of LANES: XLA's CPU code treats every lane of a batch alike only
+    # when the batch fills whole vector registers (seen: batches of 8 and of 16+ differ
+    # in the last bit), so this keeps a seed's result bit-identical whatever the batch.
+    size = -(-min(chunk_size, n) // LANES) * LANES
+    if not jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
+        keys = np.asarray(keys)            # raw uint32 keys: slice and pad on the host
+    pieces = []
+    pending = None                         # (device output, number of valid rows)
+    with tqdm(total=n, desc=desc, unit="seed", disable=not progress, dynamic_ncols=True) as bar:
+        for lo in range(0, n, size):
+            hi = min(lo + size, n)
+            idx = np.minimum(np.arange(lo, lo + size), n - 1)   # pad by repeating the last key
+            out = batched(keys[idx])                          # asynchronous dispatch
+            if pending is not None:
+                pieces.append(_to_numpy(jax.block_until_ready(pending[0]), pending[1]))
+                bar.update(pending[1])
+            pending = (out, hi - lo)
+        pieces.append(_to_numpy(jax.block_until_ready(pending[0]), pending[1]))
+        bar.update(pending[1])
+    if len(pieces) == 1:
+        return pieces[0]
+    return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0), *pieces)
+
+
+# ----------------------------------------------------------------------------- statistics
+
+
+@dataclasses.dataclass(frozen=True)
+class Summary:
+    """One metric over a Monte-Carlo batch; statistics are over the stable runs only.
+
+    ``mean`` is ``inf`` when no run is stable; ``ci95`` is the half-width of the normal 95 %
+    interval of the mean, ``1.96 * std / sqrt(n_stable)``; ``std`` is the sample standard
+    deviation (``ddof=1``); both are ``nan`` when fewer than two runs are stable.
+    """
+    mean: float
+    ci95: float
+    std: float
+    n: int
+    n_stable: int
+    unstable_fraction: float
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
+    """Summary of ``values`` (one per run) over the runs where ``unstable`` is false.
+
+    A run whose value is not finite (nan/inf) counts as unstable too.  Unstable runs are
+    reported through ``unstable_fraction`` and never raise; if every run is unstable the
+    mean is ``inf``.  With no runs at all, mean and ``unstable_fraction`` are ``nan``.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    u = np.asarray(unstable)
+    if v.shape != u.shape:
+        raise ValueError(f"summarize: values {v.shape} and unstable {u.shape} must have the same shape")
+    v, u = v.reshape(-1), u.reshape(-1).astype(bool)
+    bad = u | ~np.isfinite(v)
+    n = int(v.size)
+    good = v[~bad]
+    k = int(good.size)
+    nan = float("nan")
+    if n == 0:
+        return Summary(mean=nan, ci95=nan, std=nan, n=0, n_stable=0, unstable_fraction=nan)
+    mean = float(np.mean(good)) if k else math.inf
+    std = float(np.std(good, ddof=1)) if k >= 2 else nan
+    ci95 = 1.96 * std / math.sqrt(k) if k >= 2 else nan
+    return Summary(mean=mean, ci95=ci95, std=std, n=n, n_stable=k,
+                   unstable_fraction=(n - k) / n)
+
+
+# ----------------------------------------------------------------------------- results files
+
+_NONFINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def _float(x: float):
+    if math.isnan(x):
+        return "nan"
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return x
+
+
+def _jsonable(obj, where: str = "results"):
+    """Plain JSON types; non-finite floats as the strings "inf"/"-inf"/"nan"."""
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return _float(float(obj))
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item(), where)
+    if isinstance(obj, (np.ndarray, jax.Array)):
+        return _jsonable(np.asarray(obj).tolist(), where)
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v, f"{where}[{k!r}]") for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [_jsonable(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if hasattr(obj, "to_dict") and callable(obj.to_dict):
+        return _jsonable(obj.to_dict(), where)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable({f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}, where)
+    if hasattr(obj, "_asdict"):                                     # NamedTuple
+        return _jsonable(obj._asdict(), where)
+    raise TypeError(f"save_results: {where} of type {type(obj).__name__} is not JSON-serialisable")
+
+
+def _platform_string() -> str:
+    try:
+        devs = jax.devices()
+        kinds = sorted({d.device_kind for d in devs})
+        dev = f"{jax.default_backend()}: {', '.join(kinds)} x{len(devs)}"
+    except Exception as e:                # noqa: BLE001 - the platform line must never fail a save
+        dev = f"unknown backend ({e})"
+    return f"{dev}; {_platform.platform()}; Python {_platform.python_version()}"
+
+
+def save_results(path, *, experiment: str, config: dict, results: dict, wall_time_s: float) -> None:
+    """Write the results JSON file atomically.
+
+    Fields: ``jaxnc_version, experiment, config, results, wall_time_s, created`` (ISO 8601,
+    UTC), ``jax_version, platform``.  numpy scalars/arrays, jax arrays, tuples, paths,
+    dataclasses (``Summary``) and NamedTuples are converted; ``inf``/``-inf``/``nan`` are
+    written as those strings (:func:`load_results` turns them back into floats).  The file
+    is written to a temporary file in the same directory, flushed and fsynced, then moved
+    over ``path`` with ``os.replace``: a reader sees either the old file or the complete
+    new one, and a failure leaves the old file untouched and no temporary file behind.
+    """
+    path = pathlib.Path(path)
+    doc = _jsonable({
+        "jaxnc_version": __version__,
+        "experiment": experiment,
+        "config": config,
+        "results": results,
+        "wall_time_s": float(wall_time_s),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "jax_version": jax.__version__,
+        "platform": _platform_string(),
+    })
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(doc, f, indent=2, allow_nan=False)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)          # mkstemp creates 0600; give a normal file mode
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    if sys.platform != "win32":                # make the rename itself durable
+        try:
+            dfd = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError:
+            pass
+
+
+def _restore(obj):
+    if isinstance(obj, str):
+        return _NONFINITE.get(obj, obj)
+    if isinstance(obj, dict):
+        return {k: _restore(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_restore(v) for v in obj]
+    return obj
+
+
+def load_results(path) -> dict:
+    """Read a file written by :func:`save_results`; the strings "inf"/"-inf"/"nan" become floats.
+
+    (Any string value exactly equal to one of those three is converted, wherever it is.)
+    """
+    with open(path, encoding="utf-8") as f:
+        return _restore(json.load(f))

@@ -1,0 +1,128 @@
+"""Closed loops of seed 000 (SR, DR, DRH, DRHE): determinism, tracking, gradients, errors."""
+import dataclasses
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+import pytest
+
+from jaxnc import montecarlo
+from jaxnc.metrics import distance_to_path
+from jaxnc.plants.mecanum import MecanumNoise
+from jaxnc.schemes import mecanum as mec
+
+SHORT = 8.0  # s of simulated time for the quick tests
+
+
+def test_seed_is_bit_identical_alone_and_in_a_batch_of_100():
+    loop = mec.mecanum_loop("DRHE", 4, 0.3, horizon_s=SHORT, sigma=0.0)
+    fn = lambda k: mec.simulate(loop, k).x
+    keys = montecarlo.seed_keys(3, 100)
+    batch = montecarlo.run_batched(fn, keys, chunk_size=100, progress=False)
+    alone = montecarlo.run_batched(fn, keys[7:8], chunk_size=1, progress=False)
+    np.testing.assert_array_equal(batch[7], alone[0])
+    assert not np.array_equal(batch[7], batch[8])   # different seeds differ
+
+
+def test_noise_free_nominal_loop_tracks_the_path():
+    loop = mec.mecanum_loop("SR", 1, 0.0, path="turn180", noise=MecanumNoise().scaled(0.0))
+    m = jax.jit(mec.run)(loop, jax.random.PRNGKey(0))
+    assert not bool(m.unstable)
+    assert float(m.J1) < 0.03          # mean distance to the path, m
+    assert float(m.J2) < 0.10
+    nominal_time = float(loop.follower.path.length) / 0.2
+    # finishing within end_tol of the end and cutting the turn save a little time
+    assert nominal_time - 2.0 < float(m.J3) < 1.3 * nominal_time
+
+
+def test_dr_and_drh_coincide_without_dropouts():
+    """Section 4.3: 'except when DP = 0, since both approaches coincide' -- exactly so
+    without delay (with delay DRH also bridges the first fast periods of each NT with
+    predicted actions where DR holds its last one)."""
+    kw = dict(horizon_s=SHORT, eta=0.0, phi=0.0)
+    dr = mec.mecanum_loop("DR", 4, 0.0, **kw)
+    drh = mec.mecanum_loop("DRH", 4, 0.0, h=3, **kw)
+    key = jax.random.PRNGKey(1)
+    a = jax.jit(mec.simulate)(dr, key)
+    b = jax.jit(mec.simulate)(drh, key)
+    np.testing.assert_allclose(a.x, b.x, atol=1e-5)
+
+
+def test_single_rate_holds_each_action_for_NT():
+    loop = mec.mecanum_loop("SR", 3, 0.0, horizon_s=SHORT)
+    tr = jax.jit(mec.simulate)(loop, jax.random.PRNGKey(2))
+    u = np.asarray(tr.u)
+    # actions change at most once per NT (the delay shifts the instant, not the rate)
+    changes = np.flatnonzero(np.any(np.diff(u, axis=0) != 0, axis=1))
+    assert len(changes) <= len(u) // 3 + 1
+    assert np.all(np.diff(changes) >= 3)
+
+
+def test_transmissions_J4_ordering():
+    kw = dict(horizon_s=SHORT)
+    keys = montecarlo.seed_keys(0, 8)
+    rate = {}
+    for case in ("SR", "DRH", "DRHE"):
+        N = 1 if case == "SR" else 2
+        loop = mec.mecanum_loop(case, N, 0.0, **kw)
+        tr = montecarlo.run_batched(lambda k, loop=loop: mec.simulate(loop, k).sent, keys, progress=False)
+        rate[case] = tr.sum(axis=1).mean() / loop.steps
+    assert rate["SR"] == pytest.approx(1.0)
+    assert rate["DRH"] == pytest.approx(0.5)          # one packet per NT
+    assert rate["DRHE"] < rate["DRH"]                 # events save transmissions
+
+
+def test_paper_qualitative_stability_at_N6_DP02():
+    """Acceptance: at N = 6, DP = 0.2 SR is unstable (most runs) while DRH is stable."""
+    keys = montecarlo.seed_keys(0, 16)
+    res = {}
+    for case in ("SR", "DRH"):
+        loop = mec.mecanum_loop(case, 6, 0.2)
+        res[case] = montecarlo.run_batched(lambda k, loop=loop: mec.run(loop, k).unstable, keys, progress=False)
+    assert res["SR"].mean() > 0.5
+    assert res["DRH"].mean() == 0.0
+
+
+def test_gradients_of_tracking_cost_are_finite():
+    """d(mean distance)/d(Kp) and d/d(delta) through the straight-through trigger."""
+    base = mec.mecanum_loop("DRHE", 2, 0.2, horizon_s=6.0, sigma=0.0, trigger_temperature=0.05)
+    keys = montecarlo.seed_keys(0, 4)
+
+    def cost(kp, delta):
+        loop = dataclasses.replace(base, follower=dataclasses.replace(base.follower, Kp=kp),
+                                   trigger=dataclasses.replace(base.trigger, delta=delta))
+        def one(k):
+            tr = mec.simulate(loop, k)
+            return jnp.mean(distance_to_path(loop.follower.path, tr.x[:, 3:5]))
+        return jnp.mean(jax.vmap(one)(keys))
+
+    g_kp, g_delta = jax.jit(jax.grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
+    assert np.all(np.isfinite(g_kp)) and np.all(np.isfinite(g_delta))
+    assert np.any(g_kp != 0) and np.any(g_delta != 0)
+
+
+@pytest.mark.parametrize("kw, name", [
+    (dict(case="XX"), "case"),
+    (dict(N=0), "N"),
+    (dict(dp=1.0), "dp"),
+    (dict(dp=-0.1), "dp"),
+    (dict(h=0), "h"),
+    (dict(sigma=[0.1, 0.2]), "sigma"),
+    (dict(delta=-0.1), "delta"),
+    (dict(N=2, tau_max=0.5), "tau_max"),
+])
+def test_bad_configuration_names_the_parameter(kw, name):
+    args = dict(case="DRHE", N=2, dp=0.1) | kw
+    with pytest.raises(ValueError, match=name):
+        mec.mecanum_loop(**args)
+
+
+def test_default_horizon_rule():
+    n = 37
+    assert mec.default_h("DR", 10, 0.5, n) == 1
+    assert mec.default_h("DRH", 10, 0.0, n) == 1
+    h = mec.default_h("DRH", 10, 0.5, n)
+    q = 0.75
+    # the longest run of silent slow periods reaches h with probability <= 5 %
+    assert 1 - np.exp(-n * (1 - q) * q ** (h - 1)) <= 0.05 + 1e-9
+    assert mec.default_h("DRHE", 10, 0.0, n) * 10 >= 100

@@ -1,0 +1,208 @@
+"""Monte-Carlo engine: seed keys, chunked vmap, statistics, atomic results files."""
+import json
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnc import montecarlo as mc
+
+
+# ----------------------------------------------------------------------------- seed_keys
+
+
+def test_seed_keys_independent_of_batch():
+    k10 = np.asarray(mc.seed_keys(0, 10))
+    k100 = np.asarray(mc.seed_keys(0, 100))
+    assert k10.shape == (10, 2) and k100.shape == (100, 2)
+    np.testing.assert_array_equal(k10[7], k100[7])
+    np.testing.assert_array_equal(k10, k100[:10])
+    np.testing.assert_array_equal(np.asarray(mc.seed_keys(0, 5, start=5))[2], k10[7])
+    direct = jax.random.fold_in(jax.random.PRNGKey(0), 7)
+    np.testing.assert_array_equal(k10[7], np.asarray(direct))
+
+
+def test_seed_keys_distinct():
+    k = np.asarray(mc.seed_keys(3, 50))
+    assert len({tuple(r) for r in k}) == 50
+    assert not np.array_equal(np.asarray(mc.seed_keys(4, 50)), k)
+    assert mc.seed_keys(0, 0).shape == (0, 2)
+
+
+# ----------------------------------------------------------------------------- run_batched
+
+
+def _normal_sum(key):
+    return jax.random.normal(key, (3,)).sum()
+
+
+def _walk(key):
+    steps = jax.random.normal(key, (20,))
+
+    def body(x, dx):
+        x = x + dx
+        return x, x
+
+    last, path = jax.lax.scan(body, jnp.zeros(()), steps)
+    return {"last": last, "path": path, "hit": jnp.any(path > 1.0)}
+
+
+@pytest.mark.parametrize("n", [1, 13, 20])
+def test_run_batched_chunk_invariant(n):
+    keys = mc.seed_keys(1, n)
+    ref = np.stack([np.asarray(_normal_sum(k)) for k in keys])
+    for chunk in (1, 7, 256):
+        out = mc.run_batched(_normal_sum, keys, chunk_size=chunk, progress=False)
+        assert isinstance(out, np.ndarray) and out.shape == (n,)
+        np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6)
+
+
+def test_run_batched_pytree_and_scan():
+    n = 23                                  # not divisible by 7 or 5
+    keys = mc.seed_keys(2, n)
+    outs = [mc.run_batched(_walk, keys, chunk_size=c, progress=False) for c in (1, 7, 256)]
+    ref = outs[-1]
+    assert set(ref) == {"last", "path", "hit"}
+    assert ref["last"].shape == (n,) and ref["path"].shape == (n, 20) and ref["hit"].shape == (n,)
+    assert ref["hit"].dtype == np.bool_
+    for o in outs[:-1]:
+        for name in ref:
+            np.testing.assert_allclose(o[name], ref[name], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(ref["last"], ref["path"][:, -1], rtol=1e-6)
+    # row i depends only on key i: a subset of the keys gives the same rows
+    sub = mc.run_batched(_walk, mc.seed_keys(2, 6, start=10), chunk_size=1, progress=False)
+    np.testing.assert_allclose(sub["path"], ref["path"][10:16], rtol=1e-6, atol=1e-6)
+
+
+def test_run_batched_progress_and_empty(capsys):
+    out = mc.run_batched(_normal_sum, mc.seed_keys(0, 5), chunk_size=2, progress=True, desc="test")
+    assert out.shape == (5,)
+    empty = mc.run_batched(_walk, mc.seed_keys(0, 0), progress=False)
+    assert empty["path"].shape == (0, 20)
+    with pytest.raises(ValueError):
+        mc.run_batched(_normal_sum, mc.seed_keys(0, 3), chunk_size=0, progress=False)
+
+
+def test_run_batched_typed_keys():
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(0), i))(jnp.arange(5))
+    out = mc.run_batched(_normal_sum, keys, chunk_size=2, progress=False)
+    ref = np.stack([np.asarray(_normal_sum(k)) for k in keys])
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6)
+
+
+def test_run_batched_compiles_once_per_fn():
+    traces = []
+
+    def fn(key):
+        traces.append(1)
+        return jax.random.uniform(key)
+
+    keys = mc.seed_keys(0, 10)
+    mc.run_batched(fn, keys, chunk_size=4, progress=False)   # 3 chunks, one compilation
+    assert len(traces) == 1
+    mc.run_batched(fn, keys, chunk_size=4, progress=False)   # cached for the same fn
+    assert len(traces) == 1
+
+
+# ----------------------------------------------------------------------------- summarize
+
+
+def test_summarize_excludes_unstable():
+    v = np.array([1.0, 2.0, 3.0, 100.0, 4.0])
+    u = np.array([False, False, False, True, False])
+    s = mc.summarize(v, u)
+    good = np.array([1.0, 2.0, 3.0, 4.0])
+    assert s.n == 5 and s.n_stable == 4
+    assert s.unstable_fraction == pytest.approx(0.2)
+    assert s.mean == pytest.approx(good.mean())
+    assert s.std == pytest.approx(np.std(good, ddof=1))
+    assert s.ci95 == pytest.approx(1.96 * np.std(good, ddof=1) / np.sqrt(4))
+    d = s.to_dict()
+    assert set(d) == {"mean", "ci95", "std", "n", "n_stable", "unstable_fraction"}
+
+
+def test_summarize_all_unstable_is_inf():
+    s = mc.summarize(np.ones(4), np.ones(4, bool))
+    assert s.mean == math.inf and s.n_stable == 0 and s.unstable_fraction == 1.0
+    assert math.isnan(s.ci95)
+
+
+def test_summarize_nonfinite_counts_as_unstable():
+    v = np.array([1.0, np.nan, 3.0, np.inf])
+    s = mc.summarize(v, np.zeros(4, bool))
+    assert s.n_stable == 2 and s.unstable_fraction == 0.5
+    assert s.mean == pytest.approx(2.0) and math.isfinite(s.ci95)
+    one = mc.summarize(np.array([5.0, np.nan]), np.zeros(2, bool))
+    assert one.mean == 5.0 and one.n_stable == 1 and math.isnan(one.ci95)
+
+
+def test_summarize_ci95_random():
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=200)
+    u = rng.random(200) < 0.1
+    s = mc.summarize(v, u)
+    good = v[~u]
+    assert s.ci95 == pytest.approx(1.96 * good.std(ddof=1) / np.sqrt(good.size), rel=1e-12)
+    with pytest.raises(ValueError):
+        mc.summarize(np.ones(3), np.zeros(4, bool))
+
+
+# ----------------------------------------------------------------------------- results files
+
+
+def _results():
+    return {
+        "SR": mc.summarize(np.array([1.0, 2.0]), np.array([False, False])),
+        "DR": {"mean": math.inf, "ratio": -math.inf, "ci95": float("nan"),
+               "n": np.int64(7), "x": np.float32(0.5), "arr": np.array([1.0, np.inf]),
+               "jarr": jnp.arange(3), "flag": np.bool_(True), "t": (1, 2.5)},
+    }
+
+
+def test_save_load_roundtrip(tmp_path):
+    p = tmp_path / "sub" / "results.json"
+    mc.save_results(p, experiment="demo", config={"N": 10, "sigma": (0.1, 0.2)},
+                    results=_results(), wall_time_s=np.float64(1.5))
+    raw = json.loads(p.read_text())        # valid strict JSON
+    assert raw["results"]["DR"]["mean"] == "inf"
+    for key in ("jaxnc_version", "experiment", "config", "results", "wall_time_s", "created",
+                "jax_version", "platform"):
+        assert key in raw
+    d = mc.load_results(p)
+    assert d["experiment"] == "demo" and d["wall_time_s"] == 1.5
+    assert d["jax_version"] == jax.__version__
+    assert d["config"] == {"N": 10, "sigma": [0.1, 0.2]}
+    dr = d["results"]["DR"]
+    assert dr["mean"] == math.inf and dr["ratio"] == -math.inf and math.isnan(dr["ci95"])
+    assert dr["n"] == 7 and dr["x"] == 0.5 and dr["arr"] == [1.0, math.inf]
+    assert dr["jarr"] == [0, 1, 2] and dr["flag"] is True and dr["t"] == [1, 2.5]
+    assert d["results"]["SR"]["mean"] == 1.5 and d["results"]["SR"]["n_stable"] == 2
+    assert os.listdir(p.parent) == ["results.json"]
+
+
+def test_save_is_atomic(tmp_path, monkeypatch):
+    p = tmp_path / "results.json"
+    mc.save_results(p, experiment="old", config={}, results={"a": 1}, wall_time_s=0.0)
+    before = p.read_bytes()
+
+    def broken_dump(obj, fp, **kw):
+        fp.write('{"experiment": "new", "res')
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setattr(json, "dump", broken_dump)
+    with pytest.raises(RuntimeError, match="disk on fire"):
+        mc.save_results(p, experiment="new", config={}, results={"a": 2}, wall_time_s=0.0)
+    assert p.read_bytes() == before
+    assert os.listdir(tmp_path) == ["results.json"]        # no temp file left behind
+    monkeypatch.undo()
+    assert mc.load_results(p)["experiment"] == "old"
+
+
+def test_save_rejects_unserialisable_without_touching_file(tmp_path):
+    p = tmp_path / "results.json"
+    with pytest.raises(TypeError, match="not JSON-serialisable"):
+        mc.save_results(p, experiment="x", config={}, results={"a": object()}, wall_time_s=0.0)
+    assert os.listdir(tmp_path) == []
