@@ -66,6 +66,7 @@ def np_predict(x, P, u, Qn, plant):
     Lw[4, :4] = T * (dv[0] * s + dv[1] * c) + T * (v[0] * c - v[1] * s) * da
     Lw[5, :4] = da
     Lw[3, 4] = Lw[4, 5] = Lw[5, 6] = 1
+    Lw *= min(1.0, np.mean(np.abs(u)) / 4.0)   # noise scales with the commanded wheel speed
     return xn, A @ P @ A.T + Lw @ Qn @ Lw.T
 
 
@@ -74,7 +75,7 @@ def _data(seed=0):
     x = np.array([0.15, -0.05, 0.1, 0.4, -0.3, 0.2])
     A = rng.normal(size=(6, 6)) * 0.05
     P = A @ A.T + 1e-3 * np.eye(6)
-    u = rng.normal(size=4) * 3
+    u = rng.normal(size=4) * 2
     return x, P, u, rng
 
 
