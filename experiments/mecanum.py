@@ -124,9 +124,9 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     results = {}
     for name, loop in loops.items():
-        results[name] = mec.Metrics(**montecarlo.run_batched(
-            lambda k, loop=loop: mec.run(loop, k)._asdict(), keys, progress=progress,
-            desc=f"{name:>10} N={loop.N} DP={float(loop.sc.p_loss):.2f} h={loop.h}"))
+        results[name] = montecarlo.run_batched(
+            lambda k, loop=loop: mec.run(loop, k), keys, progress=progress,
+            desc=f"{name:>10} N={loop.N} DP={float(loop.sc.p_loss):.2f} h={loop.h}")
     summary = summarise(results)
     print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}")
     print("J1-J3 normalised to nominal SR (N=1, DP=0) on the same seeds; J4 = sensor transmission rate / nominal\n")

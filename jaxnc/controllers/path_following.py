@@ -46,6 +46,9 @@ class PathFollower:
     L_ref: jax.Array = 0.3
     window: int = dataclasses.field(default=80, metadata=dict(static=True))   # path points searched ahead
     back: int = dataclasses.field(default=50, metadata=dict(static=True))     # ... and behind (see pure_pursuit)
+    # along a noise-free prediction the robot moves at most omega_max * R * T = 0.1 m
+    # (10 path points) per step: a narrow forward window suffices there
+    window_step: int = dataclasses.field(default=16, metadata=dict(static=True))
 
     def __post_init__(self):
         check_nonneg("PathFollower.Kp", self.Kp)
@@ -55,14 +58,19 @@ class PathFollower:
         check_positive("PathFollower.L_ref", self.L_ref)
         check_int("PathFollower.window", self.window, 2)
         check_int("PathFollower.back", self.back, 0)
+        check_int("PathFollower.window_step", self.window_step, 2)
 
     def init(self) -> FollowerState:
         return FollowerState(jnp.zeros((), jnp.int32), jnp.zeros((3,), jnp.float32))
 
-    def __call__(self, model, mean, state: FollowerState, Ts):
-        """One controller evaluation from the estimate ``mean``: returns (u, state)."""
+    def __call__(self, model, mean, state: FollowerState, Ts, *, narrow: bool = False):
+        """One controller evaluation from the estimate ``mean``: returns (u, state).
+
+        ``narrow=True`` searches the path only ``window_step`` points ahead, for the
+        steps of the prediction stage after the first."""
+        window, back = (self.window_step, 0) if narrow else (self.window, self.back)
         v_w, idx = pure_pursuit(self.path, mean[3:5], state.idx,
-                                L_ref=self.L_ref, V_ref=self.V_ref, window=self.window, back=self.back)
+                                L_ref=self.L_ref, V_ref=self.V_ref, window=window, back=back)
         c, s = jnp.cos(mean[5]), jnp.sin(mean[5])
         ref = jnp.stack([c * v_w[0] + s * v_w[1],
                          -s * v_w[0] + c * v_w[1],

@@ -26,20 +26,24 @@ def _symmetrize(P):
     return 0.5 * (P + P.T)
 
 
+def _mm(a, b):
+    """a @ b for the small matrices of a filter, as a broadcast multiply-sum.
+
+    Under ``vmap`` XLA:CPU runs a batched ``dot_general`` of 6x6 matrices as many tiny
+    GEMM calls; the multiply-sum fuses into one vectorised loop (about 3x faster at
+    1000 seeds). Results equal ``a @ b`` up to summation order.
+    """
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
 def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int) -> Gaussian:
     """One prediction step, eq. (11)-(12): mean = f(mean, u, 0), P = A P A' + L Q L'."""
     w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     mean = f(belief.mean, u, w0)
     A = jax.jacfwd(f, argnums=0)(belief.mean, u, w0)
     L = jax.jacfwd(f, argnums=2)(belief.mean, u, w0)
-    cov = A @ belief.cov @ A.T + L @ Q @ L.T
+    cov = _mm(_mm(A, belief.cov), A.T) + _mm(_mm(L, Q), L.T)
     return Gaussian(mean, _symmetrize(cov))
-
-
-def kalman_gain(P, H, S):
-    """K = P H' S^-1 through a Cholesky solve of the SPD innovation covariance S (eq. 15)."""
-    c = jsl.cho_factor(S, lower=True)
-    return jsl.cho_solve(c, H @ P).T
 
 
 def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
@@ -48,10 +52,11 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     zhat = h(belief.mean, v0)
     H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
     M = jax.jacfwd(h, argnums=1)(belief.mean, v0)
-    Rm = M @ R @ M.T
-    S = H @ belief.cov @ H.T + Rm
-    K = kalman_gain(belief.cov, H, S)
-    mean = belief.mean + K @ (z - zhat)
-    IKH = jnp.eye(belief.mean.shape[0], dtype=belief.cov.dtype) - K @ H
-    cov = IKH @ belief.cov @ IKH.T + K @ Rm @ K.T
+    Rm = _mm(_mm(M, R), M.T)
+    PHt = _mm(belief.cov, H.T)
+    S = _mm(H, PHt) + Rm
+    K = jsl.cho_solve(jsl.cho_factor(S, lower=True), PHt.T).T     # eq. (15)
+    mean = belief.mean + jnp.sum(K * (z - zhat)[None, :], axis=1)
+    IKH = jnp.eye(belief.mean.shape[0], dtype=belief.cov.dtype) - _mm(K, H)
+    cov = _mm(_mm(IKH, belief.cov), IKH.T) + _mm(_mm(K, Rm), K.T)
     return Gaussian(mean, _symmetrize(cov))

@@ -27,7 +27,8 @@ def nudrekf_correct(model, belief: Gaussian, z, R) -> Gaussian:
     return ekf_update(model.measure, belief, z, R, z.shape[0])
 
 
-def predict_horizon(model, controller: Callable, mean, ctrl_state, steps: int, hold: int = 1, noise_dim: int = 0):
+def predict_horizon(model, controller: Callable, mean, ctrl_state, steps: int, hold: int = 1, noise_dim: int = 0,
+                    controller_next: Callable | None = None):
     """Prediction stage of section 3.3.1 (steps 1-5), eq. (17).
 
     Starting from the corrected estimate, evaluate ``controller(mean, ctrl_state) ->
@@ -35,15 +36,20 @@ def predict_horizon(model, controller: Callable, mean, ctrl_state, steps: int, h
     runs every ``hold`` fast periods and its action is held in between (``hold = N``
     gives a single-rate controller at period NT; ``hold = 1`` the dual-rate one).
 
+    ``controller_next``, if given, replaces ``controller`` after the first step: along
+    the noise-free prediction the controller can use cheaper searches (e.g. a narrow
+    path window), while the first step starts from a corrected estimate.
+
     Returns ``(means[steps + 1], actions[steps], ctrl_states)`` where ``ctrl_states``
     has a leading axis of ``steps + 1``: entry j is the controller state at time k + j.
     """
     w0 = jnp.zeros((noise_dim,), mean.dtype)
+    nxt = controller if controller_next is None else controller_next
     u_spec = jax.eval_shape(controller, mean, ctrl_state)[0]
 
     def body(carry, j):
         x, c, u_prev = carry
-        u_new, c_new = controller(x, c)
+        u_new, c_new = jax.lax.cond(j == 0, controller, nxt, x, c) if nxt is not controller else controller(x, c)
         run = (j % hold) == 0
         u = jnp.where(run, u_new, u_prev)
         c = jax.tree.map(lambda a, b: jnp.where(run, a, b), c_new, c)

@@ -262,6 +262,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     belief0 = Gaussian(x0, jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2))
     c0 = fol.init()
     ctrl = lambda m, c: fol(plant, m, c, Ts)
+    ctrl_next = lambda m, c: fol(plant, m, c, Ts, narrow=True)
     end = path.points[-1]
     n_path = path.points.shape[0]
 
@@ -281,7 +282,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
         corrected = nudrekf_correct(plant, c.belief, z, Rf)
         i0 = jnp.clip(t0 - c.sent_pkt.stamp, 0, H)
         c_now = jax.tree.map(lambda a: a[i0], c.sent_ctrl)
-        _, us, cs = predict_horizon(plant, ctrl, corrected.mean, c_now, H, hold, PROCESS_NOISE_DIM)
+        _, us, cs = predict_horizon(plant, ctrl, corrected.mean, c_now, H, hold, PROCESS_NOISE_DIM, ctrl_next)
         belief = jax.tree.map(lambda a, b: rec * a + (1.0 - rec) * b, corrected, c.belief)
         new_pkt = PacketBuffer(us, t0)
         sent_pkt = install(c.sent_pkt, new_pkt, rec)
@@ -338,14 +339,20 @@ class Metrics(NamedTuple):
     unstable: jax.Array   # bool
 
 
-def evaluate(loop: MecanumLoop, traj: Trajectory, block: int = 64) -> Metrics:
-    """Cost indexes of one run; inf when it is unstable."""
-    K, N, T = loop.steps, loop.N, loop.plant.T
-    path = loop.follower.path
+def path_distance(loop: MecanumLoop, traj: Trajectory, block: int = 64):
+    """Distance from the robot to the path at every fast instant (blocks of ``block``
+    instants bound the [instants x segments] memory under vmap)."""
+    K = loop.steps
     xy = traj.x[:, 3:5]
     pad = (-K) % block
     xyp = jnp.concatenate([xy, jnp.broadcast_to(xy[-1:], (pad, 2))], axis=0).reshape(-1, block, 2)
-    dist = jax.lax.map(lambda b: distance_to_path(path, b), xyp).reshape(-1)[:K]
+    return jax.lax.map(lambda b: distance_to_path(loop.follower.path, b), xyp).reshape(-1)[:K]
+
+
+def evaluate(loop: MecanumLoop, traj: Trajectory) -> Metrics:
+    """Cost indexes of one run; inf when it is unstable."""
+    K, N, T = loop.steps, loop.N, loop.plant.T
+    dist = path_distance(loop, traj)
     mask = jnp.arange(K) < traj.l
     unstable = traj.bad | ~traj.done
     inf = jnp.asarray(jnp.inf, jnp.float32)
@@ -357,6 +364,12 @@ def evaluate(loop: MecanumLoop, traj: Trajectory, block: int = 64) -> Metrics:
         J2=jnp.where(unstable, inf, J2(dist, mask)),
         J3=jnp.where(unstable, inf, traj.l * T),
         tx_sc=tx_sc, tx_ca=tx_ca, l=traj.l, unstable=unstable)
+
+
+def tracking_cost(loop: MecanumLoop, key):
+    """Mean distance to the path over the whole horizon: a smooth objective for
+    gradients (no instability mask, no completion time)."""
+    return jnp.mean(path_distance(loop, simulate(loop, key)))
 
 
 def run(loop: MecanumLoop, key) -> Metrics:
