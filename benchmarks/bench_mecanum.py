@@ -104,7 +104,7 @@ def bench_ekf(batches, steps):
     n_np = 20
     t_np = _time(lambda: [numpy_ekf(plant, noise, steps, rng) for _ in range(n_np)], repeat=1)
     np_rate = n_np * steps / t_np
-    rows = [["NumPy per-seed loop (float64)", "-", f"{np_rate:,.0f}", "1.0", "-"]]
+    rows = [["NumPy per-seed loop (float64)", "-", f"{np_rate:,.0f}", "1.0"]]
     f = jax_ekf(plant, noise, steps)
     for B in batches:
         keys = montecarlo.seed_keys(0, B)
@@ -113,8 +113,8 @@ def bench_ekf(batches, steps):
         compile_s = time.perf_counter() - t0
         t = _time(lambda: f(keys))
         rate = B * steps / t
-        rows.append([f"jaxnc EKF jit(vmap(scan)) B={B}", f"{compile_s:.1f}", f"{rate:,.0f}", f"{rate / np_rate:.1f}", "-"])
-    return markdown_table(["EKF steps (6 states, 9 outputs, 30 % drops)", "compile s", "steps/s", "x NumPy", ""], rows)
+        rows.append([f"jaxnc EKF jit(vmap(scan)) B={B}", f"{compile_s:.1f}", f"{rate:,.0f}", f"{rate / np_rate:.1f}"])
+    return markdown_table(["EKF steps (6 states, 9 outputs, 30 % drops)", "compile s", "steps/s", "x NumPy"], rows)
 
 
 def bench_loops(batches):

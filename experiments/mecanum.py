@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from jaxnc import montecarlo
-from jaxnc.experiment import Experiment, Option, register
+from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
@@ -39,11 +39,15 @@ def loop_config(loop: mec.MecanumLoop) -> dict:
 
 
 def build_loops(settings: dict) -> dict[str, mec.MecanumLoop]:
+    """Validated configurations (a bad combination is a ConfigError, before any tracing)."""
     cases = mec.CASES if settings["case"] == "all" else (settings["case"],)
     kw = dict(path=settings["path"], sigma=settings["sigma"], delta=settings["delta"])
-    loops = {"SR nominal": mec.mecanum_loop("SR", 1, 0.0, **kw)}
-    for c in cases:
-        loops[c] = mec.mecanum_loop(c, settings["N"], settings["dp"], h=settings["h"] or None, **kw)
+    try:
+        loops = {"SR nominal": mec.mecanum_loop("SR", 1, 0.0, **kw)}
+        for c in cases:
+            loops[c] = mec.mecanum_loop(c, settings["N"], settings["dp"], h=settings["h"] or None, **kw)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     return loops
 
 
