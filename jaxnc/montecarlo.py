@@ -94,23 +94,20 @@ def _to_numpy(tree, keep: int):
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:keep], tree)
 
 
-LANES = 16
-
-
 def run_batched(fn: Callable[[jax.Array], Any], keys: jax.Array, *, chunk_size: int = 256,
                 progress: bool = True, desc: str = "seeds"):
     """Apply ``fn`` (key -> pytree of arrays) to every key; returns the pytree of numpy arrays.
 
-    ``jax.jit(jax.vmap(fn))`` runs on chunks of ``min(chunk_size, len(keys))`` keys (rounded
-    up to a multiple of :data:`LANES`), which
+    ``jax.jit(jax.vmap(fn))`` runs on chunks of exactly ``chunk_size`` keys, which
     bounds device memory; the last chunk is padded to the same size by repeating its last
     key, so every chunk reuses the one compiled function, and the padding is dropped.  The
     outputs are moved to host memory chunk by chunk (the next chunk is dispatched before the
     previous one is fetched, so the device stays busy) and concatenated along axis 0: leaf
     ``x`` of ``fn``'s output becomes an array of shape ``(len(keys), *x.shape)``.
 
-    Row ``i`` of the result depends only on ``keys[i]``, not on ``chunk_size`` or on the
-    other keys.  The compiled function is cached per ``fn`` object (weakly), so calling
+    Row ``i`` of the result depends only on ``keys[i]`` and ``chunk_size``, not on the other
+    keys or on how many there are: with the same ``chunk_size`` a seed is bit-identical
+    alone or in any batch.  The compiled function is cached per ``fn`` object (weakly), so calling
     again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
     tqdm bar over seeds (on stderr) labelled ``desc``.
     """
@@ -127,10 +124,11 @@ def run_batched(fn: Callable[[jax.Array], Any], keys: jax.Array, *, chunk_size: 
         shapes = jax.eval_shape(batched, spec)
         return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
 
-    # Pad to a multiple of LANES: XLA's CPU code treats every lane of a batch alike only
-    # when the batch fills whole vector registers (seen: batches of 8 and of 16+ differ
-    # in the last bit), so this keeps a seed's result bit-identical whatever the batch.
-    size = -(-min(chunk_size, n) // LANES) * LANES
+    # Every chunk has exactly chunk_size lanes (padded): XLA:CPU's code for a vmapped
+    # loop depends on the batch size (fusion, vector tiling), so a seed is bit-identical
+    # alone or in any batch only if both run through one compiled batch shape. Within
+    # it, a lane's result does not depend on its position or its neighbours (tested).
+    size = chunk_size
     if not jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
         keys = np.asarray(keys)            # raw uint32 keys: slice and pad on the host
     pieces = []

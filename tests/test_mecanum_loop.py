@@ -17,8 +17,8 @@ def test_seed_is_bit_identical_alone_and_in_a_batch_of_100():
     loop = mec.mecanum_loop("DRHE", 4, 0.3, horizon_s=SHORT, sigma=0.0)
     fn = lambda k: mec.simulate(loop, k).x
     keys = montecarlo.seed_keys(3, 100)
-    batch = montecarlo.run_batched(fn, keys, chunk_size=100, progress=False)
-    alone = montecarlo.run_batched(fn, keys[7:8], chunk_size=1, progress=False)
+    batch = montecarlo.run_batched(fn, keys, chunk_size=64, progress=False)      # 2 chunks
+    alone = montecarlo.run_batched(fn, keys[7:8], chunk_size=64, progress=False)
     np.testing.assert_array_equal(batch[7], alone[0])
     assert not np.array_equal(batch[7], batch[8])   # different seeds differ
 
@@ -64,7 +64,8 @@ def test_transmissions_J4_ordering():
     for case in ("SR", "DRH", "DRHE"):
         N = 1 if case == "SR" else 2
         loop = mec.mecanum_loop(case, N, 0.0, **kw)
-        tr = montecarlo.run_batched(lambda k, loop=loop: mec.simulate(loop, k).sent, keys, progress=False)
+        tr = montecarlo.run_batched(lambda k, loop=loop: mec.simulate(loop, k).sent, keys, chunk_size=8,
+                                    progress=False)
         rate[case] = tr.sum(axis=1).mean() / loop.steps
     assert rate["SR"] == pytest.approx(1.0)
     assert rate["DRH"] == pytest.approx(0.5)          # one packet per NT
@@ -77,7 +78,8 @@ def test_paper_qualitative_stability_at_N6_DP02():
     res = {}
     for case in ("SR", "DRH"):
         loop = mec.mecanum_loop(case, 6, 0.2)
-        res[case] = montecarlo.run_batched(lambda k, loop=loop: mec.run(loop, k).unstable, keys, progress=False)
+        res[case] = montecarlo.run_batched(lambda k, loop=loop: mec.run(loop, k).unstable, keys, chunk_size=16,
+                                           progress=False)
     assert res["SR"].mean() > 0.5
     assert res["DRH"].mean() == 0.0
 
