@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 install: $(STAMP)
 
 run: install
-	$(BIN)/jaxnc run mecanum --seeds 100 --set case=all --out results/mecanum
+	$(BIN)/jaxnc run mecanum --seeds 256 --set case=all --out results/mecanum
 
 test: install
 	$(BIN)/python -m pytest -q -n 2 -m "not slow"

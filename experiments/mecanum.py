@@ -87,7 +87,7 @@ def table(summary: dict) -> str:
         n = s["normalised"]
         a = s["absolute"]["J1"]
         rows.append([name, fmt(n["J1"]), fmt(n["J2"]), fmt(n["J3"]), fmt(n["J4"], 3),
-                     fmt(100 * a["mean"], 2) + " \u00b1 " + fmt(100 * a["ci95"], 2),
+                     fmt(100 * a["mean"], 2) + ("" if math.isinf(a["mean"]) else " \u00b1 " + fmt(100 * a["ci95"], 2)),
                      f"{100 * s['unstable_fraction']:.1f}"])
     return markdown_table(["case", "J1", "J2", "J3", "J4", "J1 abs (cm)", "unstable %"], rows)
 
