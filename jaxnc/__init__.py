@@ -1,2 +1,16 @@
-"""jaxnc: JAX-differentiable networked control systems."""
+"""jaxnc: JAX-differentiable, vectorised simulation of networked control systems."""
 __version__ = "0.1.0"
+
+from jaxnc import montecarlo, metrics, paths  # noqa: E402
+from jaxnc.controllers import PacketBuffer, PathFollower, pure_pursuit  # noqa: E402
+from jaxnc.estimators import Gaussian, ekf_predict, ekf_update, nudrekf_correct, predict_horizon  # noqa: E402
+from jaxnc.network import Channel, sample_channel  # noqa: E402
+from jaxnc.plants import Mecanum, MecanumNoise  # noqa: E402
+from jaxnc.triggers import PetcTrigger  # noqa: E402
+
+__all__ = [
+    "__version__", "montecarlo", "metrics", "paths",
+    "Channel", "sample_channel", "PetcTrigger",
+    "Gaussian", "ekf_predict", "ekf_update", "nudrekf_correct", "predict_horizon",
+    "Mecanum", "MecanumNoise", "PathFollower", "PacketBuffer", "pure_pursuit",
+]

@@ -17,7 +17,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
+
+from jaxnc._validate import check_nonneg, check_range
 
 __all__ = [
     "Channel",
@@ -34,20 +35,6 @@ _DTYPE = jnp.float32
 # round-off of delay/T (at most ~1.5 ulp for decimal inputs) while keeping
 # e.g. 0.1000001 / 0.1 (8 ulps above 1) distinguishable from 1.
 _QUANT_RTOL = 2.0**-21
-
-
-def _concrete(v) -> bool:
-    """True for concrete Python/NumPy numbers (validated); False for jax arrays/tracers."""
-    return isinstance(v, (int, float, np.number, np.ndarray))
-
-
-def _check(name: str, v, ok, allowed: str) -> None:
-    if not _concrete(v):
-        return
-    arr = np.asarray(v, dtype=np.float64)
-    if not bool(np.all(ok(arr))):
-        shown = arr.item() if arr.ndim == 0 else arr
-        raise ValueError(f"Channel.{name} must be in {allowed}, got {shown}")
 
 
 @jax.tree_util.register_dataclass
@@ -70,9 +57,9 @@ class Channel:
     phi: float | jax.Array = 0.0
 
     def __post_init__(self):
-        _check("p_loss", self.p_loss, lambda a: (a >= 0.0) & (a < 1.0), "[0, 1)")
-        _check("eta", self.eta, lambda a: (a >= 0.0) & np.isfinite(a), "[0, inf)")
-        _check("phi", self.phi, lambda a: (a >= 0.0) & np.isfinite(a), "[0, inf)")
+        check_range("Channel.p_loss", self.p_loss, 0.0, 1.0, high_open=True)
+        check_nonneg("Channel.eta", self.eta)
+        check_nonneg("Channel.phi", self.phi)
 
 
 class Arrivals(NamedTuple):

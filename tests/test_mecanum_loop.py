@@ -84,15 +84,24 @@ def test_paper_qualitative_stability_at_N6_DP02():
     assert res["DRH"].mean() == 0.0
 
 
-def test_gradients_of_tracking_cost_are_finite():
-    """d(mean distance)/d(Kp) and d/d(delta) through the straight-through trigger."""
-    base = mec.mecanum_loop("DRHE", 2, 0.2, horizon_s=6.0, sigma=0.0, trigger_temperature=0.05)
+@pytest.mark.parametrize("objective", ["J1", "tracking_cost"])
+def test_gradients_of_mean_J1_are_finite(objective):
+    """d(mean J1)/d(Kp) and d/d(delta) through the straight-through trigger (completed runs),
+    and the same for the fixed-horizon smooth objective."""
+    if objective == "J1":
+        base = mec.mecanum_loop("DRHE", 2, 0.2, path="turn180", sigma=0.0, trigger_temperature=0.05)
+        per_seed = lambda loop, k: mec.run(loop, k).J1
+    else:
+        base = mec.mecanum_loop("DRHE", 2, 0.2, horizon_s=6.0, sigma=0.0, trigger_temperature=0.05)
+        per_seed = mec.tracking_cost
     keys = montecarlo.seed_keys(0, 4)
 
     def cost(kp, delta):
         loop = dataclasses.replace(base, follower=dataclasses.replace(base.follower, Kp=kp),
                                    trigger=dataclasses.replace(base.trigger, delta=delta))
-        return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(loop, k))(keys))
+        return jnp.mean(jax.vmap(lambda k: per_seed(loop, k))(keys))
+
+    assert np.isfinite(float(jax.jit(cost)(jnp.full(3, 0.2), jnp.full(9, 0.1))))   # all runs completed
 
     g_kp, g_delta = jax.jit(jax.grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
     assert np.all(np.isfinite(g_kp)) and np.all(np.isfinite(g_delta))
