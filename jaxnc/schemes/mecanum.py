@@ -192,7 +192,8 @@ class Draws(NamedTuple):
     v: jax.Array         # [K, 9] measurement noise n2
     sc_u: jax.Array      # [K] uniforms: sensor packet lost when < p_sc
     ca_u: jax.Array      # [K] uniforms: actuator packet lost when < p_ca
-    delay_e: jax.Array   # [K] Exponential(1) draws: delay = eta + phi * e
+    delay_e: jax.Array   # [K] Exponential(1) draws: ca delay = eta + phi * e
+    delay_sc_e: jax.Array  # [K] independent Exponential(1) draws for the sc delay
 
 
 def draw(key, steps: int) -> Draws:
@@ -203,7 +204,9 @@ def draw(key, steps: int) -> Draws:
         v=jax.random.normal(kv, (steps, OUTPUT_DIM)),
         sc_u=jax.random.uniform(ks, (steps,)),
         ca_u=jax.random.uniform(kc, (steps,)),
-        delay_e=jax.random.exponential(kd, (steps,)))
+        delay_e=jax.random.exponential(kd, (steps,)),
+        # its own stream, folded in so that adding it left the other streams unchanged
+        delay_sc_e=jax.random.exponential(jax.random.fold_in(key, 101), (steps,)))
 
 
 class Trajectory(NamedTuple):
@@ -253,7 +256,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     first = jnp.arange(K // N) == 0
     sc_lost = (slow(d.sc_u) < loop.sc.p_loss) & ~first
     ca_lost = (slow(d.ca_u) < loop.ca.p_loss) & ~first
-    tau = (loop.ca.eta + loop.ca.phi * slow(d.delay_e)) + (loop.sc.eta + loop.sc.phi * slow(d.delay_e))
+    tau = (loop.ca.eta + loop.ca.phi * slow(d.delay_e)) + (loop.sc.eta + loop.sc.phi * slow(d.delay_sc_e))
     dsteps = quantise_delay(tau, plant.T)
     too_late = late(tau, loop.tau_max) & ~first
 
