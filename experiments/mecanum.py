@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
-from jaxnc.paths import PATHS
+from jaxnc.paths import PATHS, Path as RefPath
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
@@ -30,7 +30,7 @@ def loop_config(loop: mec.MecanumLoop) -> dict:
     """JSON-friendly description of a configuration (the path by name)."""
     def conv(obj):
         if dataclasses.is_dataclass(obj):
-            if obj.__class__.__name__ == "Path":
+            if isinstance(obj, RefPath):
                 return {"name": obj.name, "length_m": float(obj.length)}
             return {f.name: conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
         a = np.asarray(obj)

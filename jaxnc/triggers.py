@@ -53,5 +53,8 @@ class PetcTrigger:
 
 
 def hold_last_sent(beta, z, z_last):
-    """zbar_k = beta z_k + (1 - beta) zbar_{k-1}, eq. (3)."""
+    """zbar_k = beta z_k + (1 - beta) zbar_{k-1}, eq. (3).
+
+    With beta a 0/1 float this is an exact select that still passes gradients; the
+    remote side uses it the same way to keep or replace its belief."""
     return beta * z + (1.0 - beta) * z_last

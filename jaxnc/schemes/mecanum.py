@@ -286,7 +286,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
         i0 = jnp.clip(t0 - c.sent_pkt.stamp, 0, H)
         c_now = jax.tree.map(lambda a: a[i0], c.sent_ctrl)
         _, us, cs = predict_horizon(plant, ctrl, corrected.mean, c_now, H, hold, PROCESS_NOISE_DIM, ctrl_next)
-        belief = jax.tree.map(lambda a, b: rec * a + (1.0 - rec) * b, corrected, c.belief)
+        belief = jax.tree.map(lambda a, b: hold_last_sent(rec, a, b), corrected, c.belief)
         new_pkt = PacketBuffer(us, t0)
         sent_pkt = install(c.sent_pkt, new_pkt, rec)
         sent_ctrl = jax.tree.map(lambda a, b: jnp.where(rec > 0.5, a, b), cs, c.sent_ctrl)
