@@ -139,7 +139,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)")
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,
-              "loops": {n: {"case": l.case, "N": l.N, "h": l.h, "steps": l.steps, "config": loop_config(l)}
+              "loops": {n: {"case": l.case, "N": l.N, "h": int(l.h), "steps": l.steps, "config": loop_config(l)}
                         for n, l in loops.items()}}
     montecarlo.save_results(out / "results.json", experiment="mecanum", config=config,
                             results=summary, wall_time_s=wall)

@@ -43,11 +43,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_int, check_range
-from jaxnc.controllers.actuator import PacketBuffer, current_action, empty_buffer, install
 from jaxnc.controllers.path_following import FollowerState, PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
-from jaxnc.estimators.nudrekf import nudrekf_correct, predict_horizon
-from jaxnc.metrics import J1, J2, distance_to_path
+from jaxnc.estimators.nudrekf import PacketChain, advance_chain, exhausted_chain, nudrekf_correct, start_chain
+from jaxnc.metrics import J1, J2, distance_to_path, local_distance
 from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
@@ -66,6 +65,9 @@ PAPER_ETA, PAPER_PHI = 0.01, 0.02   # delay distribution, eq. (7), section 4.1
 # the way (the robot cuts across the path); this Q keeps corrections decisive and
 # costs nothing in the nominal case (J1 4.24 vs 4.19 cm, 32 seeds).
 FILTER_OMEGA_STD = 3.0
+# Path points searched ahead of the robot's progress each fast period: it moves at most
+# omega_max R T = 0.1 m (10 points at the 1 cm spacing) per period.
+TRACK_WINDOW = 32
 
 
 def default_h(case: str, N: int, dp: float, n_slow: int) -> int:
@@ -97,7 +99,12 @@ def default_h(case: str, N: int, dp: float, n_slow: int) -> int:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class MecanumLoop:
-    """Everything one closed-loop run needs. Static: case, N, h, steps; the rest are leaves."""
+    """Everything one closed-loop run needs.
+
+    Static (they shape arrays): N and steps. Everything else is a leaf, the scheme and
+    the horizon h included, so the four cases and every DP of a given N share one
+    compiled program (the grid experiment passes the configuration as an argument).
+    """
 
     plant: Mecanum
     noise: MecanumNoise            # true process / measurement noise
@@ -110,34 +117,48 @@ class MecanumLoop:
     P0_std: jax.Array              # initial estimation uncertainty (std per state)
     max_dev: jax.Array = 0.5       # m; leaving this tube around the path = unstable
     end_tol: jax.Array = 0.1       # m; the path is complete within this of its end
-    case: str = dataclasses.field(default="DRHE", metadata=dict(static=True))
+    scheme: jax.Array = 3          # index into CASES (SR, DR, DRH, DRHE)
+    h: jax.Array = 1               # prediction horizon in slow periods: h*N actions per packet
     N: int = dataclasses.field(default=1, metadata=dict(static=True))
-    h: int = dataclasses.field(default=1, metadata=dict(static=True))
     steps: int = dataclasses.field(default=100, metadata=dict(static=True))
 
     def __post_init__(self):
-        if self.case not in CASES:
-            raise ValueError(f"MecanumLoop.case must be one of {', '.join(CASES)}, got {self.case!r}")
         check_int("MecanumLoop.N", self.N, 1, 100)
-        check_int("MecanumLoop.h", self.h, 1, 1000)
         check_int("MecanumLoop.steps", self.steps, self.N)
         if self.steps % self.N:
             raise ValueError(f"MecanumLoop.steps must be a multiple of N={self.N}, got {self.steps}")
+        check_range("MecanumLoop.scheme", self.scheme, 0, len(CASES) - 1)
+        check_range("MecanumLoop.h", self.h, 1, 1000)
         check_range("MecanumLoop.tau_max", self.tau_max, 0.0, self.N * self.plant.T + 1e-9, low_open=True)
 
     @property
-    def horizon(self) -> int:
+    def case(self) -> str:
+        """The scheme's name (needs a concrete, unbatched ``scheme``)."""
+        return CASES[int(self.scheme)]
+
+    @property
+    def single_rate(self):
+        return jnp.asarray(self.scheme) == 0
+
+    @property
+    def horizon(self):
         """Actions per packet: h*N."""
-        return self.h * self.N
+        return jnp.asarray(self.h, jnp.int32) * self.N
 
     @property
-    def Ts(self) -> float:
+    def Ts(self):
         """Controller period: NT for SR, T otherwise."""
-        return self.N * self.plant.T if self.case == "SR" else self.plant.T
+        return jnp.where(self.single_rate, self.N * self.plant.T, self.plant.T)
 
     @property
-    def hold(self) -> int:
-        return self.N if self.case == "SR" else 1
+    def hold(self):
+        """Fast periods each controller action is held inside a packet: N for SR, else 1."""
+        return jnp.where(self.single_rate, self.N, 1).astype(jnp.int32)
+
+    @property
+    def event_triggered(self):
+        """The sensor uses the PETC condition, eq. (4) (DRHE)."""
+        return jnp.asarray(self.scheme) == 3
 
 
 def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | Path = "lissajous", *,
@@ -182,7 +203,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
         sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
         P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
-        case=case, N=N, h=h, steps=steps)
+        scheme=np.int32(CASES.index(case)), h=np.int32(h), N=N, steps=steps)
 
 
 class Draws(NamedTuple):
@@ -216,6 +237,7 @@ class Trajectory(NamedTuple):
     x: jax.Array          # [K, 6]
     mean: jax.Array       # [K, 6]
     u: jax.Array          # [K, 4]
+    dist: jax.Array       # [K] distance to the path (robot's own branch, metrics.local_distance)
     sent: jax.Array       # [K/N] sensor transmissions (beta)
     received: jax.Array   # [K/N] sensor packet reached the controller
     delivered: jax.Array  # [K/N] control packet reached the actuator
@@ -224,15 +246,23 @@ class Trajectory(NamedTuple):
     bad: jax.Array        # bool: left the tube or non-finite
 
 
+def _keep_or_replace(flag, new, old):
+    """``new`` where the 0/1 float ``flag`` is 1, else ``old``, leaf by leaf: a float
+    blend (so a straight-through trigger gradient passes) or a select for integers."""
+    def leaf(a, b):
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            return hold_last_sent(flag, a, b)
+        return jnp.where(flag > 0.5, a, b)
+    return jax.tree.map(leaf, new, old)
+
+
 class _Carry(NamedTuple):
     x: jax.Array
     z_last: jax.Array
     belief: Gaussian
-    sent_pkt: PacketBuffer      # the last packet the remote side sent (its belief of the actions)
-    sent_ctrl: FollowerState    # controller states along that packet's horizon, [H+1, ...]
-    act: PacketBuffer           # actuator buffer
-    pending: PacketBuffer       # a packet arriving exactly at the next slow instant
-    pending_ok: jax.Array
+    sent: PacketChain           # the last packet the remote side sent (its belief of the actions)
+    act: PacketChain            # the packet the actuator is applying
+    pending_ok: jax.Array       # the last sent packet arrives exactly at the next slow instant
     idx_true: jax.Array
     done: jax.Array
     l: jax.Array
@@ -241,7 +271,14 @@ class _Carry(NamedTuple):
 
 def simulate(loop: MecanumLoop, key) -> Trajectory:
     """One closed-loop run of ``loop.case``: a ``lax.scan`` over slow periods with the N
-    fast periods inside. Pure function of (loop, key); vmap it over keys."""
+    fast periods inside. Pure function of (loop, key); vmap it over keys.
+
+    Packets are carried as prediction chains (:class:`PacketChain`): the remote side's
+    copy of its last sent packet and the actuator's installed packet each advance one
+    fast period at a time and yield the action the packet holds for that instant, so
+    a run costs O(K) controller evaluations whatever h (materialising h*N actions per
+    packet would cost O(K h)); the actions are the same.
+    """
     plant, fol, N, H, K = loop.plant, loop.follower, loop.N, loop.horizon, loop.steps
     Ts, hold = loop.Ts, loop.hold
     path = fol.path
@@ -263,71 +300,67 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     start = path.points[0]
     x0 = jnp.concatenate([jnp.zeros(3, dtype), start.astype(dtype), jnp.zeros(1, dtype)])
     belief0 = Gaussian(x0, jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2))
-    c0 = fol.init()
     ctrl = lambda m, c: fol(plant, m, c, Ts)
     ctrl_next = lambda m, c: fol(plant, m, c, Ts, narrow=True)
+    advance = lambda ch: advance_chain(plant, ctrl_next, ch, H, hold, PROCESS_NOISE_DIM)
     end = path.points[-1]
     n_path = path.points.shape[0]
 
     def slow_step(c: _Carry, inp):
         k, w_k, v_k, sc_lost_k, ca_lost_k, d_k, late_k = inp
-        t0 = (k * N).astype(jnp.int32)
-        act = install(c.act, c.pending, c.pending_ok)
+        # the packet sent at the last slow instant with a delay of exactly N arrives now
+        act = _keep_or_replace(c.pending_ok, c.sent, c.act)
         # 1. sensor, PETC (eq. 3-4)
         z = plant.measure(c.x, v_k)
-        if loop.case == "DRHE":
-            beta = jnp.where(k == 0, jnp.ones((), dtype), loop.trigger.fires(c.z_last, z))
-        else:
-            beta = jnp.ones((), dtype)
+        petc = (k > 0) & loop.event_triggered
+        beta = jnp.where(petc, loop.trigger.fires(c.z_last, z), jnp.ones((), dtype))
         z_last = hold_last_sent(beta, z, c.z_last)
         rec = beta * (1.0 - sc_lost_k.astype(dtype))
-        # 2. remote: correction (eq. 13) and prediction stage (section 3.3.1)
+        # 2. remote: correction (eq. 13) and a new packet (section 3.3.1) that continues
+        #    the controller state its last packet predicted for this instant
         corrected = nudrekf_correct(plant, c.belief, z, Rf)
-        i0 = jnp.clip(t0 - c.sent_pkt.stamp, 0, H)
-        c_now = jax.tree.map(lambda a: a[i0], c.sent_ctrl)
-        _, us, cs = predict_horizon(plant, ctrl, corrected.mean, c_now, H, hold, PROCESS_NOISE_DIM, ctrl_next)
-        belief = jax.tree.map(lambda a, b: hold_last_sent(rec, a, b), corrected, c.belief)
-        new_pkt = PacketBuffer(us, t0)
-        sent_pkt = install(c.sent_pkt, new_pkt, rec)
-        sent_ctrl = jax.tree.map(lambda a, b: jnp.where(rec > 0.5, a, b), cs, c.sent_ctrl)
+        belief = _keep_or_replace(rec, corrected, c.belief)
+        sent = _keep_or_replace(rec, start_chain(ctrl, corrected.mean, c.sent.c_before), c.sent)
         # 3. controller -> actuator: lost, or arrives d_k fast periods later
         arr = rec * (1.0 - ca_lost_k.astype(dtype)) * (1.0 - late_k.astype(dtype))
 
         # 4. N fast periods: actuator, plant (eq. 1), remote belief propagation (eq. 11)
         def fast_step(fc, inp_j):
-            x, belief, act, idx_true, done, l, bad = fc
+            x, belief, sent, act, idx_true, done, l, bad = fc
             j, w_t = inp_j
-            t = t0 + j
-            act = install(act, new_pkt, arr * (j == d_k).astype(dtype))
-            u = current_action(act, t)
+            t = k * N + j
+            act = _keep_or_replace(arr * (j == d_k).astype(dtype), sent, act)
+            u = act.u
             x = plant.dynamics(x, u, w_t)
-            belief = ekf_predict(plant.dynamics, belief, current_action(sent_pkt, t), Qf, PROCESS_NOISE_DIM)
-            idx_true, dist = closest_index(path, x[3:5], idx_true, fol.window)
+            belief = ekf_predict(plant.dynamics, belief, sent.u, Qf, PROCESS_NOISE_DIM)
+            act, sent = advance(act), advance(sent)
+            idx_true, _ = closest_index(path, x[3:5], idx_true, TRACK_WINDOW)
+            dist = local_distance(path, x[3:5], idx_true)
             at_end = (idx_true >= (9 * n_path) // 10) & (jnp.sum((x[3:5] - end) ** 2) < loop.end_tol ** 2)
             l = jnp.where(done, l, t + 1)
             done = done | at_end
             bad = bad | (dist > loop.max_dev) | ~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(belief.mean))
-            return (x, belief, act, idx_true, done, l, bad), (x, belief.mean, u)
+            return (x, belief, sent, act, idx_true, done, l, bad), (x, belief.mean, u, dist)
 
-        fc = (c.x, belief, act, c.idx_true, c.done, c.l, c.bad)
-        fc, (xs, means, uapp) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
-        x, belief, act, idx_true, done, l, bad = fc
-        # a packet due exactly at the next slow instant is installed there
+        fc = (c.x, belief, sent, act, c.idx_true, c.done, c.l, c.bad)
+        fc, (xs, means, uapp, dist) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
+        x, belief, sent, act, idx_true, done, l, bad = fc
         pending_ok = arr * (d_k >= N).astype(dtype)
-        return (_Carry(x, z_last, belief, sent_pkt, sent_ctrl, act, new_pkt, pending_ok, idx_true, done, l, bad),
-                (xs, means, uapp, beta, rec, arr))
+        return (_Carry(x, z_last, belief, sent, act, pending_ok, idx_true, done, l, bad),
+                (xs, means, uapp, dist, beta, rec, arr))
 
-    ctrl_traj0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (H + 1,) + a.shape), c0)
-    carry0 = _Carry(x0, plant.measure(x0, jnp.zeros(OUTPUT_DIM, dtype)), belief0,
-                    empty_buffer(H, INPUT_DIM), ctrl_traj0, empty_buffer(H, INPUT_DIM),
-                    empty_buffer(H, INPUT_DIM), jnp.zeros((), dtype),
-                    jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
+    u0 = jnp.zeros((INPUT_DIM,), dtype)
+    idle = exhausted_chain(x0, u0, fol.init(), H)   # applies zero until the first packet
+    carry0 = _Carry(x0, plant.measure(x0, jnp.zeros(OUTPUT_DIM, dtype)), belief0, idle, idle,
+                    jnp.zeros((), dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
+                    jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
     n_slow = K // N
-    xs_in = (jnp.arange(n_slow), w.reshape(n_slow, N, PROCESS_NOISE_DIM), slow(v), sc_lost, ca_lost, dsteps, too_late)
-    final, (xs, means, us, beta, rec, arr) = jax.lax.scan(slow_step, carry0, xs_in)
+    xs_in = (jnp.arange(n_slow, dtype=jnp.int32), w.reshape(n_slow, N, PROCESS_NOISE_DIM), slow(v),
+             sc_lost, ca_lost, dsteps, too_late)
+    final, (xs, means, us, dist, beta, rec, arr) = jax.lax.scan(slow_step, carry0, xs_in)
     return Trajectory(
         x=xs.reshape(K, STATE_DIM), mean=means.reshape(K, STATE_DIM), u=us.reshape(K, INPUT_DIM),
-        sent=beta, received=rec, delivered=arr, l=final.l, done=final.done, bad=final.bad)
+        dist=dist.reshape(K), sent=beta, received=rec, delivered=arr, l=final.l, done=final.done, bad=final.bad)
 
 
 class Metrics(NamedTuple):
@@ -355,7 +388,7 @@ def path_distance(loop: MecanumLoop, traj: Trajectory, block: int = 64):
 def evaluate(loop: MecanumLoop, traj: Trajectory) -> Metrics:
     """Cost indexes of one run; inf when it is unstable."""
     K, N, T = loop.steps, loop.N, loop.plant.T
-    dist = path_distance(loop, traj)
+    dist = traj.dist
     mask = jnp.arange(K) < traj.l
     unstable = traj.bad | ~traj.done
     inf = jnp.asarray(jnp.inf, jnp.float32)
@@ -372,7 +405,7 @@ def evaluate(loop: MecanumLoop, traj: Trajectory) -> Metrics:
 def tracking_cost(loop: MecanumLoop, key):
     """Mean distance to the path over the whole horizon: a smooth objective for
     gradients (no instability mask, no completion time)."""
-    return jnp.mean(path_distance(loop, simulate(loop, key)))
+    return jnp.mean(simulate(loop, key).dist)
 
 
 def run(loop: MecanumLoop, key) -> Metrics:
