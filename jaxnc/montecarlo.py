@@ -71,19 +71,19 @@ def _compiled(fn: Callable) -> Callable:
     except KeyError:
         pass
     except TypeError:                       # not hashable / not weak-referenceable: no cache
-        return jax.jit(jax.vmap(fn))
+        return jax.jit(jax.vmap(lambda key, args: fn(key, *args), in_axes=(0, None)))
     try:
         ref = weakref.ref(fn)
     except TypeError:
-        return jax.jit(jax.vmap(fn))
+        return jax.jit(jax.vmap(lambda key, args: fn(key, *args), in_axes=(0, None)))
 
-    def call(key):
+    def call(key, args):
         f = ref()
         if f is None:                       # cannot happen while a caller holds fn
             raise RuntimeError("run_batched: the mapped function was garbage-collected")
-        return f(key)
+        return f(key, *args)
 
-    compiled = jax.jit(jax.vmap(call))
+    compiled = jax.jit(jax.vmap(call, in_axes=(0, None)))
     _COMPILED[fn] = compiled
     return compiled
 
@@ -94,9 +94,14 @@ def _to_numpy(tree, keep: int):
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:keep], tree)
 
 
-def run_batched(fn: Callable[[jax.Array], Any], keys: jax.Array, *, chunk_size: int = 256,
+def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), chunk_size: int = 256,
                 progress: bool = True, desc: str = "seeds"):
     """Apply ``fn`` (key -> pytree of arrays) to every key; returns the pytree of numpy arrays.
+
+    ``args`` (a tuple of pytrees) are passed after the key, ``fn(key, *args)``, as
+    arguments of the compiled function, shared by all keys (not batched): calls with
+    different values of the same structure and shapes (e.g. another scheme or dropout
+    probability of one configuration type) reuse one compiled program.
 
     ``jax.jit(jax.vmap(fn))`` runs on chunks of exactly ``chunk_size`` keys, which
     bounds device memory; the last chunk is padded to the same size by repeating its last
@@ -121,7 +126,7 @@ def run_batched(fn: Callable[[jax.Array], Any], keys: jax.Array, *, chunk_size: 
     batched = _compiled(fn)
     if n == 0:
         spec = jax.ShapeDtypeStruct((1, *keys.shape[1:]), keys.dtype)
-        shapes = jax.eval_shape(batched, spec)
+        shapes = jax.eval_shape(batched, spec, args)
         return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
 
     # Every chunk has exactly chunk_size lanes (padded): XLA:CPU's code for a vmapped
@@ -137,7 +142,7 @@ def run_batched(fn: Callable[[jax.Array], Any], keys: jax.Array, *, chunk_size: 
         for lo in range(0, n, size):
             hi = min(lo + size, n)
             idx = np.minimum(np.arange(lo, lo + size), n - 1)   # pad by repeating the last key
-            out = batched(keys[idx])                          # asynchronous dispatch
+            out = batched(keys[idx], args)                    # asynchronous dispatch
             if pending is not None:
                 pieces.append(_to_numpy(jax.block_until_ready(pending[0]), pending[1]))
                 bar.update(pending[1])

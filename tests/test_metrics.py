@@ -117,3 +117,23 @@ def test_ci95():
     assert h == pytest.approx(1.96 * np.std(x, ddof=1) / 2.0)
     m, h = Mx.ci95(np.array([3.0]))
     assert m == 3.0 and np.isnan(h)
+
+
+@pytest.mark.parametrize("name", ["turn180", "lane_change"])
+def test_local_distance_equals_global_near_the_path(name):
+    """Near a path that does not cross itself, the distance to the two segments at
+    the nearest point is the distance to the whole polyline."""
+    from jaxnc.paths import closest_index
+    path = get_path(name)
+    rng = np.random.default_rng(0)
+    i = rng.integers(0, path.M, 200)
+    xy = np.asarray(path.points)[i] + rng.normal(0, 0.05, (200, 2)).astype(np.float32)
+
+    @jax.jit
+    def local(p, i0):
+        idx, _ = closest_index(path, p, jnp.maximum(i0 - 20, 0), 40)
+        return Mx.local_distance(path, p, idx)
+
+    loc = jax.vmap(local)(jnp.asarray(xy), jnp.asarray(i, jnp.int32))
+    glob = Mx.distance_to_path(path, jnp.asarray(xy))
+    np.testing.assert_allclose(loc, glob, atol=2e-6)

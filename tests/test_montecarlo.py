@@ -206,3 +206,14 @@ def test_save_rejects_unserialisable_without_touching_file(tmp_path):
     with pytest.raises(TypeError, match="not JSON-serialisable"):
         mc.save_results(p, experiment="x", config={}, results={"a": object()}, wall_time_s=0.0)
     assert os.listdir(tmp_path) == []
+
+
+def test_run_batched_args_are_runtime_arguments():
+    """Values passed through ``args`` change the result without recompiling."""
+    def fn(key, scale):
+        return scale["a"] * jax.random.normal(key, (3,))
+    keys = mc.seed_keys(0, 5)
+    one = mc.run_batched(fn, keys, args=({"a": jnp.float32(1.0)},), chunk_size=4, progress=False)
+    two = mc.run_batched(fn, keys, args=({"a": jnp.float32(2.0)},), chunk_size=4, progress=False)
+    np.testing.assert_allclose(two, 2.0 * one, rtol=1e-6)
+    assert mc._compiled(fn)._cache_size() == 1

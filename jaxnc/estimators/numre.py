@@ -1,0 +1,117 @@
+"""Non-uniform multi-rate estimator (NUMRE) of seed 003, eq. (9)-(15).
+
+A Kalman filter whose measurement arrives after a time-varying number N of fast
+periods (eq. 9). Between measurements it only predicts; on arrival it corrects with the
+gain K(N) of the lifted model (eq. 10),
+
+    M  = A^N P+ (A^N)^T + We(N),   K(N) = M C^T (C M C^T + V)^{-1},   P+ <- (I - K C) M (.)^T + K V K^T
+
+which is eq. (12) written with the posterior covariance (Joseph form). We(N) is the
+covariance of the lifted process noise sum_c A^{N-1-c} Bw w_{k+c}. For white w it is
+sum_c A^c Bw W Bw^T (A^c)^T (``we_form="white"``, default); eq. (13) as printed,
+(sum_c A^{N-1-c} Bw) W (sum_c ...)^T, is the covariance of a w held constant over the N
+periods (``we_form="eq13"``). Both agree for N = 1.
+
+Tables of A^N and We(N) for N = 1..n_max are built once (numpy, float64) so that a
+traced N just indexes them. :func:`cascade` is the h-step prediction of eq. (14)-(15).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import check_int
+
+__all__ = ["NumreTables", "numre_tables", "numre_gain", "numre_correct", "numre_steady_gain",
+           "NumreBelief", "predict"]
+
+WE_FORMS = ("white", "eq13")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class NumreTables:
+    """A^N and We(N) for N = 0..n_max (index N; N = 0 is the identity / zero), C and V."""
+    AN: jax.Array        # (n_max + 1, n, n)
+    We: jax.Array        # (n_max + 1, n, n)
+    C: jax.Array         # (n,)  single output
+    V: jax.Array         # ()    Cov(v)
+    n_max: int = dataclasses.field(metadata=dict(static=True), default=1)
+
+
+def numre_tables(A, Bw, C, W, V, n_max: int, *, we_form: str = "white", dtype=jnp.float32) -> NumreTables:
+    """Lifted-model tables for eq. (10)-(13). ``W`` is Cov(w): a scalar or a matrix (Bw then a matrix)."""
+    check_int("n_max", n_max, 1)
+    if we_form not in WE_FORMS:
+        raise ValueError(f"we_form must be one of {', '.join(WE_FORMS)}, got {we_form!r}")
+    A = np.asarray(A, float)
+    n = A.shape[0]
+    Bw = np.asarray(Bw, float).reshape(n, -1)
+    W = np.atleast_2d(np.asarray(W, float))
+    Q = Bw @ W @ Bw.T
+    AN = np.zeros((n_max + 1, n, n))
+    We = np.zeros((n_max + 1, n, n))
+    AN[0] = np.eye(n)
+    S = np.zeros_like(Bw)          # sum_c A^c Bw (for eq13)
+    for N in range(1, n_max + 1):
+        AN[N] = A @ AN[N - 1]
+        if we_form == "white":
+            We[N] = A @ We[N - 1] @ A.T + Q
+        else:
+            S = A @ S + Bw
+            We[N] = S @ W @ S.T
+    f = lambda a: jnp.asarray(a, dtype)
+    return NumreTables(f(AN), f(We), f(np.asarray(C, float)), f(float(np.asarray(V))), n_max=n_max)
+
+
+def numre_gain(t: NumreTables, P, N):
+    """Eq. (12): (K(N), prior covariance M) from the previous posterior covariance P."""
+    AN = t.AN[N]
+    M = AN @ P @ AN.T + t.We[N]
+    M = 0.5 * (M + M.T)
+    s = t.C @ M @ t.C + t.V
+    K = M @ t.C / s
+    return K, M
+
+
+def numre_correct(t: NumreTables, x_prior, P, y, N):
+    """Eq. (11)-(12): x(k|k) = x(k|k-N) + K(N) (y_k - C x(k|k-N)); returns (x, P+, K)."""
+    K, M = numre_gain(t, P, N)
+    I_KC = jnp.eye(M.shape[0], dtype=M.dtype) - jnp.outer(K, t.C)
+    P_post = I_KC @ M @ I_KC.T + t.V * jnp.outer(K, K)
+    return x_prior + K * (y - t.C @ x_prior), 0.5 * (P_post + P_post.T), K
+
+
+def numre_steady_gain(t: NumreTables, N: int, iters: int = 2000, P0=None):
+    """K(N) for a constant multiplicity: eq. (12) iterated ``iters`` times (a fixed point)."""
+    n = t.AN.shape[-1]
+    P = jnp.eye(n, dtype=t.AN.dtype) if P0 is None else P0
+
+    def body(_, P):
+        _, M = numre_gain(t, P, N)
+        K = M @ t.C / (t.C @ M @ t.C + t.V)
+        I_KC = jnp.eye(n, dtype=M.dtype) - jnp.outer(K, t.C)
+        P = I_KC @ M @ I_KC.T + t.V * jnp.outer(K, K)
+        return 0.5 * (P + P.T)
+
+    P = jax.lax.fori_loop(0, iters, body, P)
+    return numre_gain(t, P, N)[0]
+
+
+class NumreBelief(NamedTuple):
+    """Prior mean x(k|k_last) propagated with the applied actions, posterior cov at k_last."""
+    x: jax.Array
+    P: jax.Array
+
+
+def predict(A, B, x, us):
+    """Eq. (14): x(k+l|k) for l = 0..len(us), from x(k|k) and the actions u_k..u_{k+l-1}."""
+    def step(x, u):
+        xn = A @ x + B * u
+        return xn, xn
+    _, xs = jax.lax.scan(step, x, us)
+    return jnp.concatenate([x[None], xs], axis=0)

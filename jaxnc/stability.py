@@ -1,0 +1,451 @@
+"""Stochastic stability: Theorem 1 of seed 000 and Kalman filtering with intermittent observations.
+
+Two independent pieces.
+
+**Theorem 1 (seed 000, eq. 18-20, Appendix A).** The NUDREKF prediction error is
+exponentially bounded in mean square, eq. (A.21), if the Jacobians, gains and
+covariances obey the bounds of eq. (18) and the scalar conditions (19)-(20) hold for
+some a1, a2, a3 > 0. Here the bounds are *measured* along simulated trajectories:
+
+* :func:`estimator_pass` re-runs the filter (eq. 11-16, Joseph form) along a given true
+  trajectory with its own Bernoulli arrival process (one sample every N fast steps,
+  lost with probability DP) and, optionally, the PETC condition (eq. 4), recording
+  A_k, L_k, H_k, M_k, K_k, P_{k|k-1}, P_{k|k}, the errors and the flags;
+* :func:`measure_bounds` reduces one record to the constants of eq. (18) (spectral
+  norms / extreme singular values, since H, L, K, M are not square);
+  :func:`worst_case` combines seeds (min of lower bounds, max of upper bounds);
+* :func:`check_theorem1` searches a1, a2, a3 and evaluates (19), (20), eta, nu and the
+  stationary value of the bound; :func:`bound_a21` is the bound (A.21) over k.
+
+Two readings are reported for (19): the inequality *as printed* in the paper, whose
+numerator starts with ``1 - abar^2``, and the one that follows from the proof's own
+requirement c1 < 1 (eq. A.14-A.15), whose numerator starts with ``abar^2 - 1``. They
+agree only when abar = 1; the paper's printed form is easier to satisfy when abar > 1.
+
+**Kalman filtering with intermittent observations** (Sinopoli et al., IEEE TAC 2004).
+With arrivals gamma_k ~ Bernoulli(lambda), E[P_k] stays bounded iff lambda > lambda_c,
+where ``1 - 1/rho(A)^2 = lambda_min <= lambda_c <= lambda_max``; lambda_max is the
+infimum of the lambda for which the modified algebraic Riccati equation (MARE)
+P = A P A' + Q - lambda A P C'(C P C' + R)^-1 C P A' has a solution. The lower bound is
+tight when C is invertible and for scalar systems. :func:`mare_step`,
+:func:`mare_iterate`, :func:`lambda_min`, :func:`lambda_max`, :func:`lyapunov_lower`
+and :func:`random_riccati` (Monte-Carlo of the error covariance) implement it.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import jax.scipy.linalg as jsl
+
+from jaxnc._validate import check_nonneg, check_positive, check_range
+from jaxnc.estimators.ekf import Gaussian, ekf_predict
+
+__all__ = [
+    "FilterRecord", "estimator_pass", "trajectory_inputs", "Bounds", "measure_bounds", "worst_case",
+    "Theorem1Check", "check_theorem1", "bound_a21", "lhs19",
+    "mare_step", "mare_iterate", "lambda_min", "lambda_max", "lyapunov_lower", "random_riccati",
+]
+
+
+# ============================================================================ Theorem 1
+
+
+class FilterRecord(NamedTuple):
+    """What Theorem 1 needs at every fast step k = 0..K-1 of one estimator pass.
+
+    Measurement quantities (H, M, K, P_post) belong to instant k, prediction quantities
+    (A, L, P_pred, err_pred) to the step k -> k+1, as in eq. (11)-(16) and (A.1).
+    """
+
+    A: jax.Array          # [K, n, n]   df/dxi at xi_{k|k}, eq. (12)
+    L: jax.Array          # [K, n, w]   df/dn1, eq. (12)
+    H: jax.Array          # [K, m, n]   dh/dxi at xi_{k|k-1}, eq. (16)
+    M: jax.Array          # [K, m, m]   dh/dn2, eq. (16)
+    K: jax.Array          # [K, n, m]   gain eq. (15) (computed at every step, applied when updated)
+    P_post: jax.Array     # [K, n, n]   P_{k|k}  (= P_{k|k-1} when nothing arrived)
+    P_pred: jax.Array     # [K, n, n]   P_{k+1|k}, eq. (11)
+    err_post: jax.Array   # [K, n]      xi_k - xi_{k|k}
+    err_pred: jax.Array   # [K, n]      xi_{k+1} - xi_{k+1|k}  (the error of eq. A.21)
+    slow: jax.Array       # [K] bool    a sampling instant (k mod N = 0)
+    arrived: jax.Array    # [K] bool    lambda_k: sampling instant and packet not lost
+    gamma: jax.Array      # [K] bool    gamma_k: the PETC condition held (True without a trigger)
+    updated: jax.Array    # [K] bool    gamma_k * lambda_k: the filter corrected
+
+
+def trajectory_inputs(traj):
+    """(xs, us, moving) for :func:`estimator_pass` from a ``schemes.mecanum.Trajectory``.
+
+    ``traj.x[t] = f(traj.x[t-1], traj.u[t], w_t)``, so the pass starts at ``traj.x[0]``
+    and steps with ``traj.u[1:]``: xs has K states, us K - 1 inputs. ``moving`` marks
+    the steps whose applied action is non-zero and that precede the completion of the
+    path (``traj.l``): the motion-scaled process noise of the plant vanishes at rest.
+    """
+    xs, us = traj.x, traj.u[1:]
+    k = jnp.arange(us.shape[0])
+    moving = (jnp.max(jnp.abs(us), axis=-1) > 0) & (k + 1 < traj.l)
+    return xs, us, moving
+
+
+def _correction(model, belief: Gaussian, z, R):
+    """Eq. (13)-(16), Joseph form; also returns H, M and the gain K."""
+    n, m = belief.mean.shape[0], z.shape[0]
+    v0 = jnp.zeros((m,), belief.mean.dtype)
+    zhat = model.measure(belief.mean, v0)
+    H = jax.jacfwd(model.measure, argnums=0)(belief.mean, v0)
+    M = jax.jacfwd(model.measure, argnums=1)(belief.mean, v0)
+    Rm = M @ R @ M.T
+    PHt = belief.cov @ H.T
+    S = H @ PHt + Rm
+    K = jsl.cho_solve(jsl.cho_factor(S, lower=True), PHt.T).T      # eq. (15)
+    mean = belief.mean + K @ (z - zhat)
+    IKH = jnp.eye(n, dtype=belief.cov.dtype) - K @ H
+    cov = IKH @ belief.cov @ IKH.T + K @ Rm @ K.T
+    return Gaussian(mean, 0.5 * (cov + cov.T)), H, M, K
+
+
+def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) -> FilterRecord:
+    """EKF/NUDREKF along a given true trajectory, recording Theorem 1's quantities.
+
+    ``model`` has ``dynamics(x, u, w)`` and ``measure(x, v)``; ``xs`` [K+1, n] are true
+    states with ``xs[k+1] = f(xs[k], us[k], w_k)``; ``us`` [K, p] the applied inputs
+    (known to the filter, as in eq. 11). Every N fast steps the sensor samples
+    z_k = h(xs[k]) + v_k with ``v_k ~ N(0, diag(v_std^2))``; the packet is lost with
+    probability ``dp`` (eq. 5) and, with a ``PetcTrigger``, only sent when eq. (4) holds
+    (the first sample is always sent). The filter corrects (eq. 13) when the sample is
+    sent and arrives, and predicts (eq. 11) every fast step with ``Q`` and ``R`` (the
+    covariances it assumes). The initial estimate is xs[0] + e0 with e0 ~ N(0, P0).
+
+    N and dp may be traced (one compilation serves a whole grid). Randomness: key is
+    split into (initial error, measurement noise, losses).
+    """
+    check_range("estimator_pass.dp", dp, 0.0, 1.0)
+    check_range("estimator_pass.N", N, 1, None)
+    xs, us = jnp.asarray(xs), jnp.asarray(us)
+    dtype = xs.dtype
+    Kn, n = us.shape[0], xs.shape[1]
+    Q, R, P0 = (jnp.asarray(a, dtype) for a in (Q, R, P0))
+    v_std = jnp.asarray(v_std, dtype)
+    m, wdim = R.shape[0], Q.shape[0]
+    k0, kv, kl = jax.random.split(key, 3)
+    e0 = jnp.linalg.cholesky(P0) @ jax.random.normal(k0, (n,), dtype)
+    v = jax.random.normal(kv, (Kn, m), dtype) * v_std[None, :]
+    lost = jax.random.uniform(kl, (Kn,)) < dp
+    ks = jnp.arange(Kn)
+    slow = (ks % N) == 0
+    arrived = slow & ~lost
+
+    def step(c, inp):
+        belief, z_last = c
+        k, x, x_next, u, v_k, slow_k, arr_k = inp
+        z = model.measure(x, v_k)
+        if trigger is None:
+            g = jnp.ones((), bool)
+        else:
+            g = (k == 0) | (trigger.fires(z_last, z) > 0.5)
+        sent = slow_k & g
+        z_last = jnp.where(sent, z, z_last)
+        corrected, H, M, K = _correction(model, belief, z, R)
+        upd = sent & arr_k
+        post = jax.tree.map(lambda a, b: jnp.where(upd, a, b), corrected, belief)
+        w0 = jnp.zeros((wdim,), dtype)
+        A = jax.jacfwd(model.dynamics, argnums=0)(post.mean, u, w0)
+        L = jax.jacfwd(model.dynamics, argnums=2)(post.mean, u, w0)
+        pred = ekf_predict(model.dynamics, post, u, Q, wdim)
+        out = (A, L, H, M, K, post.cov, pred.cov, x - post.mean, x_next - pred.mean, g)
+        return (pred, z_last), out
+
+    z0 = model.measure(xs[0], jnp.zeros((m,), dtype))
+    belief0 = Gaussian(xs[0] + e0, P0)
+    _, outs = jax.lax.scan(step, (belief0, z0), (ks, xs[:-1], xs[1:], us, v, slow, arrived))
+    A, L, H, M, K, P_post, P_pred, err_post, err_pred, g = outs
+    return FilterRecord(A, L, H, M, K, P_post, P_pred, err_post, err_pred, slow, arrived, g & slow,
+                        g & slow & arrived)
+
+
+class Bounds(NamedTuple):
+    """Constants of eq. (18), measured. Matrix inequalities X <= c I for non-square or
+    non-symmetric X are read as ||X||_2 <= c (largest singular value) and c I <= X as
+    sigma_min(X) >= c; for the symmetric P, Q, R they are eigenvalue bounds."""
+
+    abar: jax.Array
+    h_lo: jax.Array
+    h_hi: jax.Array
+    kbar: jax.Array
+    l_lo: jax.Array
+    l_hi: jax.Array
+    mbar: jax.Array
+    p_lo: jax.Array      # min eig P_{k|k}
+    p_hi: jax.Array      # max eig P_{k+1|k}
+    q_lo: jax.Array
+    q_hi: jax.Array
+    rbar: jax.Array
+    lam: jax.Array       # E[lambda_k]: fraction of fast steps with an arrival (<= 1/N)
+    gamma: jax.Array     # average sensor communication rate: fraction of samples sent
+    p_order: jax.Array   # min eig (P_{k|k-1} - P_{k|k}) >= 0 expected (eq. 18, third line)
+
+
+_LOWER = ("h_lo", "l_lo", "p_lo", "q_lo", "p_order")
+_MEAN = ("lam", "gamma")
+
+
+def _smax(X):
+    return jnp.linalg.svd(X, compute_uv=False)[..., 0]
+
+
+def _smin(X):
+    # min(m, n) singular values: sigma_min of a tall H (full column rank) or of a wide L (L L' > 0)
+    return jnp.linalg.svd(X, compute_uv=False)[..., -1]
+
+
+def measure_bounds(rec: FilterRecord, Q, R, mask=None) -> Bounds:
+    """Eq. (18) constants of one record over the steps where ``mask`` holds (all by default).
+
+    Quantities of the correction (H, K, M, P_{k|k}) are taken at sampling instants only;
+    ``lam`` and ``gamma`` are over the masked steps. Pure JAX: vmap it over seeds.
+    """
+    Kn = rec.slow.shape[0]
+    mask = jnp.ones((Kn,), bool) if mask is None else jnp.asarray(mask, bool)
+    ms = mask & rec.slow
+    big = jnp.asarray(jnp.inf, rec.A.dtype)
+    mx = lambda a, w: jnp.max(jnp.where(w, a, -big))
+    mn = lambda a, w: jnp.min(jnp.where(w, a, big))
+    Pe_post = jnp.linalg.eigvalsh(rec.P_post)
+    Pe_pred = jnp.linalg.eigvalsh(rec.P_pred)
+    # P_{k|k} <= P_{k|k-1}: compare the posterior at k with the prediction into k
+    P_prior = jnp.concatenate([rec.P_post[:1], rec.P_pred[:-1]], axis=0)
+    order = jnp.linalg.eigvalsh(P_prior - rec.P_post)[:, 0]
+    qe = jnp.linalg.eigvalsh(jnp.asarray(Q, rec.A.dtype))
+    re = jnp.linalg.eigvalsh(jnp.asarray(R, rec.A.dtype))
+    return Bounds(
+        abar=mx(_smax(rec.A), mask), h_lo=mn(_smin(rec.H), ms), h_hi=mx(_smax(rec.H), ms),
+        kbar=mx(_smax(rec.K), ms), l_lo=mn(_smin(rec.L), mask), l_hi=mx(_smax(rec.L), mask),
+        mbar=mx(_smax(rec.M), ms), p_lo=mn(Pe_post[:, 0], ms | mask), p_hi=mx(Pe_pred[:, -1], mask),
+        q_lo=qe[0], q_hi=qe[-1], rbar=re[-1],
+        lam=jnp.sum(rec.arrived & mask) / jnp.maximum(jnp.sum(mask), 1),
+        gamma=jnp.sum(rec.gamma & ms) / jnp.maximum(jnp.sum(ms), 1),
+        p_order=mn(order, ms))
+
+
+def worst_case(b: Bounds) -> Bounds:
+    """Combine per-seed bounds (leading axis): min of lower bounds, max of upper bounds,
+    mean of the rates lam and gamma. Returns numpy float64 scalars."""
+    out = {}
+    for f in Bounds._fields:
+        a = np.asarray(getattr(b, f), np.float64).reshape(-1)
+        out[f] = float(a.mean() if f in _MEAN else (a.min() if f in _LOWER else a.max()))
+    return Bounds(**out)
+
+
+class Theorem1Check(NamedTuple):
+    """Outcome of the Theorem 1 conditions for given bounds, sigma, delta (all floats/bools)."""
+
+    a1: float
+    a2: float
+    a3: float
+    lam: float               # E[lambda_k] used in (19)
+    lam_max: float           # 1/N
+    lhs19_paper: float       # left side of (19) as printed (numerator 1 - abar^2 + ...)
+    lhs19: float             # left side implied by c1 < 1 (numerator abar^2 - 1 + ...)
+    cond19_paper: bool
+    cond19: bool
+    c1: float                # contraction factor of E[P] in (A.14); < 1 iff cond19
+    mu: float
+    eta: float
+    nu: float
+    cond20: bool
+    holds_paper: bool        # (19) as printed and (20)
+    holds: bool              # (19) from c1 < 1 and (20)
+    stationary: float        # limit of (A.21): nu p_hi (1 - eta) / eta (inf when it does not hold)
+    vacuous: bool            # conditions fail, or the bound exceeds ``scale``
+    reason: str
+
+
+def lhs19(b, sigma, gamma, a1, a2):
+    """Left sides of (19): (as printed, implied by c1 < 1). Broadcasts over a1, a2."""
+    a2b = b.abar ** 2
+    x = (1.0 - gamma) * a2b * (1.0 + a1) * (1.0 + b.kbar * b.h_hi) ** 2 \
+        + (1.0 + 1.0 / a1 + 1.0 / a2) * b.kbar ** 2 * sigma * b.h_hi ** 2
+    return (1.0 - a2b + x) / (gamma * a2b), (a2b - 1.0 + x) / (gamma * a2b)
+
+
+def _eta_nu(b, sigma, delta, a3):
+    mu = b.l_lo ** 2 * b.q_lo / (b.abar ** 2 * b.p_hi + b.l_lo ** 2 * b.q_lo)
+    eta = mu + a3 * mu - a3 - b.kbar * sigma / a3
+    # nu as printed; the paper's "l^2 qbar" is read with the upper bound lbar
+    nu = b.kbar ** 2 * delta / a3 + (b.abar ** 2 * b.kbar ** 2 * b.rbar + b.l_hi ** 2 * b.q_hi) / b.p_hi
+    return mu, eta, nu
+
+
+def check_theorem1(b: Bounds, *, sigma: float, delta: float, N: int, gamma: float | None = None,
+                   lam: float | None = None, scale: float | None = None,
+                   grid=None) -> Theorem1Check:
+    """Search a1, a2, a3 > 0 and check (19), (20) of Theorem 1 (seed 000).
+
+    ``sigma = max sigma(i)``, ``delta = sum delta(i)`` (0, 0 without PETC). ``gamma`` and
+    ``lam`` default to the measured ``b.gamma`` and ``b.lam``. a1, a2 minimise the left side
+    of (19) on a log grid; a3 minimises the stationary bound nu p_hi (1 - eta)/eta among the
+    a3 with 0 < eta <= 1 (with delta = 0 this maximises eta; then the best is
+    a3 = sqrt(kbar sigma / (1 - mu)), eta = mu - 2 sqrt((1 - mu) kbar sigma), included as a
+    candidate; with sigma = delta = 0 the supremum eta -> mu is approached by the smallest
+    grid a3). ``scale``: a value of E||xi~||^2 that any estimate achieves trivially (e.g.
+    the squared size of the workspace); a stationary bound above it is *vacuous*.
+    """
+    check_nonneg("sigma", sigma)
+    check_nonneg("delta", delta)
+    b = Bounds(*(float(np.asarray(v)) for v in b))
+    gamma = b.gamma if gamma is None else float(gamma)
+    lam = b.lam if lam is None else float(lam)
+    check_range("gamma", gamma, 0.0, 1.0, low_open=True)
+    grid = np.logspace(-6, 6, 241) if grid is None else np.asarray(grid, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        a1g, a2g = np.meshgrid(grid, grid, indexing="ij")
+        _, l19 = lhs19(b, sigma, gamma, a1g, a2g)
+        i = np.unravel_index(np.nanargmin(l19), l19.shape)
+        a1, a2 = float(a1g[i]), float(a2g[i])
+        lp, lc = (float(v) for v in lhs19(b, sigma, gamma, a1, a2))
+        lam_max = 1.0 / N
+        ok_lam = lam <= lam_max * (1 + 1e-9)
+        cond19_paper, cond19 = bool(lp < lam and ok_lam), bool(lc < lam and ok_lam)
+        # c1 of (A.14): abar^2 - gamma lam abar^2 + X, with X = gamma abar^2 lhs19 - (abar^2 - 1)
+        c1 = b.abar ** 2 - gamma * lam * b.abar ** 2 + (gamma * b.abar ** 2 * lc - (b.abar ** 2 - 1.0))
+        mu0, _, _ = _eta_nu(b, sigma, delta, 1.0)
+        # eta > 0 needs a3 < mu / (1 - mu), which may be far below the grid: add a relative grid
+        cands = np.concatenate([grid, mu0 / max(1.0 - mu0, 1e-300) * np.logspace(-6, 0, 61, endpoint=False)])
+        if sigma > 0 and mu0 < 1:
+            cands = np.append(cands, np.sqrt(b.kbar * sigma / (1.0 - mu0)))
+        cands = cands[np.isfinite(cands) & (cands > 0)]
+        mu, etas, nus = _eta_nu(b, sigma, delta, cands)
+        feas = (etas > 0) & (etas <= 1) & np.isfinite(nus)
+        stat = np.where(feas, nus * b.p_hi * (1 - etas) / np.where(feas, etas, 1.0), np.inf)
+        j = int(np.argmin(stat)) if feas.any() else int(np.nanargmax(etas))
+    a3, eta, nu = float(cands[j]), float(etas[j]), float(nus[j])
+    cond20 = bool(feas.any())
+    holds_paper, holds = cond19_paper and cond20, cond19 and cond20
+    stationary = float(stat[j]) if holds else np.inf
+    reasons = []
+    if not ok_lam:
+        reasons.append(f"lambda = {lam:.4g} > 1/N = {lam_max:.4g}")
+    if not cond19:
+        reasons.append(f"(19) fails: needs lambda > {lc:.4g} (c1 < 1), have {lam:.4g}")
+    if not cond19_paper:
+        reasons.append(f"(19) as printed fails: needs lambda > {lp:.4g}")
+    if not cond20:
+        reasons.append(f"(20) fails: best eta = {eta:.3g} (mu = {float(mu):.3g}) is not in (0, 1]")
+    vac = not holds
+    if holds and scale is not None and stationary > scale:
+        vac = True
+        reasons.append(f"bound {stationary:.3g} exceeds the trivial scale {scale:.3g}")
+    return Theorem1Check(a1=a1, a2=a2, a3=a3, lam=lam, lam_max=lam_max, lhs19_paper=lp, lhs19=lc,
+                         cond19_paper=cond19_paper, cond19=cond19, c1=float(c1), mu=float(mu), eta=eta, nu=nu,
+                         cond20=cond20, holds_paper=holds_paper, holds=holds, stationary=stationary,
+                         vacuous=bool(vac), reason="; ".join(reasons) if reasons else "conditions hold")
+
+
+def bound_a21(k, *, eta, nu, p_lo, p_hi, e0):
+    """Right side of (A.21) at k (array of ints >= 0):
+
+        (p_hi / p_lo) e0 (1 - eta)^k + nu p_hi sum_{i=1}^{k-1} (1 - eta)^i,
+
+    with e0 = E||xi~_{1|0}||^2; the sum is ((1-eta) - (1-eta)^k) / eta for k >= 1."""
+    k = jnp.asarray(k)
+    r = 1.0 - jnp.asarray(eta)
+    rk = r ** k
+    geo = jnp.where(k >= 2, (r - rk) / jnp.asarray(eta), 0.0)
+    return (p_hi / p_lo) * e0 * rk + nu * p_hi * geo
+
+
+# ============================================================================ intermittent observations
+
+
+def mare_step(P, A, C, Q, R, lam):
+    """Modified Riccati map g_lam(P) = A P A' + Q - lam A P C'(C P C' + R)^-1 C P A'
+    (Sinopoli et al. 2004, eq. 10); lam = 1 is the Kalman filter's Riccati map."""
+    APC = A @ P @ C.T
+    S = C @ P @ C.T + R
+    return A @ P @ A.T + Q - lam * APC @ jnp.linalg.solve(S, APC.T)
+
+
+def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
+    """``steps`` iterations of :func:`mare_step` from P0 (0 by default). Returns (P, change)
+    where change is the relative change of the last iteration (small: converged; non-finite
+    or growing trace: no fixed point, lam below lambda_max)."""
+    A, C, Q, R = (jnp.asarray(a) for a in (A, C, Q, R))
+    P0 = jnp.zeros_like(Q) if P0 is None else jnp.asarray(P0)
+
+    def body(_, c):
+        P, _d = c
+        Pn = mare_step(P, A, C, Q, R, lam)
+        return Pn, jnp.linalg.norm(Pn - P) / jnp.maximum(jnp.linalg.norm(Pn), 1e-30)
+
+    return jax.lax.fori_loop(0, steps, body, (P0, jnp.asarray(jnp.inf, Q.dtype)))
+
+
+def lambda_min(A) -> float:
+    """Lower bound on the critical arrival rate, 1 - 1/max|eig(A)|^2 (0 for a stable A)."""
+    rho = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A, np.float64)))))
+    return max(0.0, 1.0 - 1.0 / rho ** 2)
+
+
+def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: float = 1e12) -> float:
+    """Upper bound lambda_max: the smallest lam for which the MARE iteration from P = 0
+    converges (it is monotone, so it converges iff the MARE has a solution). Bisection on
+    [lambda_min, 1] to ``tol`` in float64 NumPy, an analysis-time computation. Near the
+    threshold the iteration slows down, so the value is an upper estimate within ``tol``
+    plus the effect of the finite ``steps``."""
+    A, C, Q, R = (np.atleast_2d(np.asarray(a, np.float64)) for a in (A, C, Q, R))
+    check_positive("lambda_max.tol", tol)
+
+    def converges(lam):
+        P = np.zeros_like(Q)
+        for _ in range(steps):
+            APC = A @ P @ C.T
+            Pn = A @ P @ A.T + Q - lam * APC @ np.linalg.solve(C @ P @ C.T + R, APC.T)
+            tr = np.trace(Pn)
+            if not np.isfinite(tr) or tr > blowup:
+                return False
+            if np.linalg.norm(Pn - P) <= 1e-10 * np.linalg.norm(Pn):
+                return True
+            P = Pn
+        return False
+
+    lo, hi = lambda_min(A), 1.0
+    if converges(lo + 1e-12) and lo > 0:
+        return lo
+    while hi - lo > tol:
+        mid = 0.5 * (lo + hi)
+        if converges(mid):
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+def lyapunov_lower(A, Q, lam):
+    """Lower bound S on lim E[P_k]: the solution of S = (1 - lam) A S A' + Q (Sinopoli et al.
+    2004, Theorem 4), or inf when (1 - lam) rho(A)^2 >= 1."""
+    from scipy.linalg import solve_discrete_lyapunov
+    A, Q = (np.atleast_2d(np.asarray(a, np.float64)) for a in (A, Q))
+    rho = np.max(np.abs(np.linalg.eigvals(A)))
+    if (1 - lam) * rho ** 2 >= 1:
+        return np.full_like(Q, np.inf)
+    return solve_discrete_lyapunov(np.sqrt(1 - lam) * A, Q)
+
+
+def random_riccati(key, A, C, Q, R, lam, steps: int, P0=None):
+    """Error covariance of the Kalman filter with Bernoulli(lam) arrivals (it does not
+    depend on the measured values): P_{k+1} = A P A' + Q - gamma_k A P C'(C P C' + R)^-1 C P A'.
+    Returns trace(P_k), k = 1..steps. vmap over keys for a Monte-Carlo; lam may be traced.
+    Overflow gives inf: divergence is data."""
+    A, C, Q, R = (jnp.asarray(a) for a in (A, C, Q, R))
+    P0 = Q if P0 is None else jnp.asarray(P0)
+    gam = (jax.random.uniform(key, (steps,)) < lam).astype(Q.dtype)
+
+    def body(P, g):
+        Pn = mare_step(P, A, C, Q, R, g)
+        return Pn, jnp.trace(Pn)
+
+    _, tr = jax.lax.scan(body, P0, gam)
+    return tr

@@ -1,0 +1,139 @@
+"""Seed 004 differential-drive plant, pure pursuit, EKF prediction pattern (Table 1) and scenarios a-e."""
+import math
+
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnc import montecarlo
+from jaxnc.plants.diffdrive import K_MOTOR, TAU_MOTOR, DiffDrive
+from jaxnc.schemes import diffdrive as dd
+
+
+def test_motor_lifted_model_matches_zoh_of_eq26():
+    """Eq. (7): the NT model's wheel speeds equal N steps of G_p(s) discretised with a ZOH at T
+    (python-control), and the fine-grid true plant gives the same (exact ZOH composes)."""
+    plant = DiffDrive()
+    U = np.array([[30.0, -10.0], [45.0, 20.0], [-5.0, 60.0]], np.float32)   # N = 3
+    w0 = np.array([1.0, -2.0], np.float32)
+    x0 = jnp.concatenate([jnp.asarray(w0), jnp.zeros(3)])
+    f = jax.jit(plant.dynamics)(x0, jnp.asarray(U), jnp.zeros(5))
+    ss = control.ss(control.sample_system(control.tf([K_MOTOR], [TAU_MOTOR, 1.0]), plant.T, method="zoh"))
+    for wheel in range(2):
+        x = np.linalg.solve(np.asarray(ss.C), [w0[wheel]])  # initial state giving w0
+        for u in U[:, wheel]:
+            x = np.asarray(ss.A) @ x + np.asarray(ss.B).ravel() * u
+        ref = float((np.asarray(ss.C) @ x)[0])
+        assert abs(float(f[wheel]) - ref) < 1e-4 * max(1.0, abs(ref))
+
+    @jax.jit
+    def fine(x):
+        for j in range(3):
+            for _ in range(plant.sub):
+                x = plant.substep(x, jnp.asarray(U[j]))
+        return x
+    np.testing.assert_allclose(np.asarray(fine(x0))[:2], np.asarray(f)[:2], rtol=1e-4, atol=1e-4)
+
+
+def test_straight_line_kinematics():
+    """Equal wheel speeds w: straight motion at v = r w along the heading (eq. 1-3)."""
+    plant = DiffDrive()
+    w = 5.0
+    u = w / K_MOTOR
+    x = jnp.asarray([w, w, 0.0, 0.0, 0.3])
+    x1 = jax.jit(plant.dynamics)(x, jnp.full((2, 2), u), jnp.zeros(5))
+    d = plant.r * w * 2 * plant.T
+    np.testing.assert_allclose(np.asarray(x1), [w, w, d * math.cos(0.3), d * math.sin(0.3), 0.3], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("theta", [0.3, -0.7, 1.2])
+def test_pure_pursuit_curvature_eq18(theta):
+    """Target at distance L and bearing theta from a robot heading psi: k = 2 sin(theta) / L."""
+    L, psi = 0.25, 0.4
+    path = dd.four_right_angles()
+    # a straight path through the robot towards the target direction
+    a = psi + theta
+    pts = np.stack([np.linspace(0, 2, 401) * math.cos(a), np.linspace(0, 2, 401) * math.sin(a)], 1)
+    from jaxnc.paths import from_waypoints
+    path = from_waypoints(pts, "line", 0.005)
+    pose = jnp.asarray([0.0, 0.0, 0.0, 0.0, psi])
+    (v, om), idx = jax.jit(lambda p: dd.pure_pursuit(path, p, 0, lad=L, v_ref=0.14, window=20))(pose)
+    assert int(idx) == 0
+    np.testing.assert_allclose(float(om) / 0.14, 2 * math.sin(theta) / L, rtol=1e-4)
+
+
+def test_truncated_delay_law():
+    """Delays lie in [eta, tau_max] and their mean is the truncated exponential's (4 sigma)."""
+    eta, phi, tmax, n = dd.DELAY_ETA, dd.DELAY_PHI, dd.TAU_MAX, 20000
+    tau = np.asarray(dd.truncated_delay(jax.random.uniform(jax.random.PRNGKey(3), (n,)), eta, phi, tmax))
+    assert tau.min() >= eta - 1e-7 and tau.max() <= tmax + 1e-7
+    c = tmax - eta
+    mean = eta + phi - c * math.exp(-c / phi) / (1 - math.exp(-c / phi))
+    assert abs(tau.mean() - mean) < 4 * tau.std() / math.sqrt(n)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="scenario"):
+        dd.diffdrive_loop("f")
+    with pytest.raises(ValueError, match="tau_max"):
+        dd.diffdrive_loop("d", tau_max=0.25)      # tau_max >= NT would allow disorder
+    with pytest.raises(ValueError, match="F must be"):
+        dd.diffdrive_loop("e", F=-0.1)
+    with pytest.raises(ValueError, match="h must be"):
+        dd.diffdrive_loop("e", h=0)
+
+
+@pytest.fixture(scope="module")
+def e_traj():
+    loop = dd.diffdrive_loop("e", h=1, F=0.1, horizon_s=8.0)
+    return loop, jax.device_get(jax.jit(dd.simulate)(loop, jax.random.PRNGKey(7)))
+
+
+def test_ekf_h1_prediction_pattern_table1(e_traj):
+    """Table 1 (h = 1): the packet is (xi_{k|k}, xi_{k+1|k}); the first element is the corrected
+    state, the second its one-step prediction f(xi_{k|k}, U_k), and the next correction moves
+    it only slightly."""
+    loop, tr = e_traj
+    est = np.asarray(tr.est)
+    assert est.shape[1:] == (2, 5)
+    # k = 0: the robot at rest at the start, corrected with one noisy sample (3 std at F = 0.1)
+    std = np.asarray(loop.noise.measurement_std())
+    assert np.all(np.abs(est[0, 0] - np.asarray([0, 0, 0, 0, 0])) < 3 * std)
+    f = jax.jit(jax.vmap(lambda s, U: loop.plant.dynamics(s, U, jnp.zeros(5))))
+    np.testing.assert_allclose(np.asarray(f(est[:, 0], tr.u_plan)), est[:, 1], rtol=1e-5, atol=1e-5)
+    # the corrected state follows the truth within a few camera noise std (2 mm at F = 0.1)
+    xs = np.asarray(tr.x)[::loop.N]
+    err = np.linalg.norm(est[:, 0, 2:4] - xs[:, 2:4], axis=1)
+    assert np.median(err) < 3 * 0.002
+    # slight correction: prediction vs next correction, small against the NT displacement (28 mm)
+    corr = np.linalg.norm(est[1:, 0, 2:4] - est[:-1, 1, 2:4], axis=1)
+    assert 0 < np.median(corr) < 0.25 * loop.v_ref * loop.N * loop.plant.T
+
+
+def test_e_packets_carry_h_plus_one_estimates():
+    loop = dd.diffdrive_loop("e", h=3, horizon_s=2.0)
+    tr = jax.jit(dd.simulate)(loop, jax.random.PRNGKey(0))
+    assert tr.est.shape == (loop.n_slow, 4, 5)
+    assert np.all(np.isfinite(np.asarray(tr.est)))
+
+
+@pytest.mark.slow
+def test_scenarios_table2_shape():
+    """Table 2 qualitatively: b and d at least 30 % above a in J1, J3 within 5 %, b-e half the
+    packets; the high-noise run (F = 0.45) completes without instability or crash."""
+    keys = montecarlo.seed_keys(0, 8)
+    res = {}
+    for s in dd.SCENARIOS + ("e_high",):
+        loop = dd.diffdrive_loop("e", F=0.45) if s == "e_high" else dd.diffdrive_loop(s)
+        res[s] = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=8, progress=False)
+    a = res["a"]
+    for s in res:
+        assert not np.any(res[s].unstable), s
+        assert abs(np.mean(res[s].J3) / np.mean(a.J3) - 1) < 0.05, s
+    for s in ("b", "d"):
+        assert np.mean(res[s].J1) > 1.3 * np.mean(a.J1), s
+    for s in ("b", "c", "d", "e"):
+        assert abs(np.mean(res[s].packets) / np.mean(a.packets) - 0.5) < 0.03, s
+    assert np.mean(res["e_high"].J1) > np.mean(res["e"].J1)       # the paper's degradation

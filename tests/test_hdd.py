@@ -1,0 +1,123 @@
+"""Seed 003 HDD plant, triggers, metrics and Cases 1-6 (short runs, few seeds)."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.signal
+
+from jaxnc import montecarlo
+from jaxnc.disturbance import dob_design, dob_init, dob_output, dob_update, rigid_nominal
+from jaxnc.plants import hdd as plant
+from jaxnc.schemes import hdd
+
+
+def test_plant_matches_transfer_function_and_is_tenth_order():
+    """The 10-state realisation equals ZOH(eq. 30, 'sum' reading) x notch(eq. 31) built independently."""
+    A, B, C = plant.plant_matrices("sum")
+    assert A.shape == (10, 10)
+    w = 2 * np.pi * np.array(plant.TABLE2["f_hz"])
+    num = np.array([plant.RIGID_NUM])
+    den = np.array(plant.RIGID_DEN)
+    # rigid * (1 + sum k w^2/(s^2 + 2 zeta w s + w^2)) as one rational function
+    d1 = [1, 2 * 0.03 * w[0], w[0] ** 2]
+    d2 = [1, 2 * 0.01 * w[1], w[1] ** 2]
+    inner_num = np.polyadd(np.polyadd(np.polymul(d1, d2), 0.02 * w[0] ** 2 * np.array(d2)), 0.01 * w[1] ** 2 * np.array(d1))
+    Nc = np.polymul(num, inner_num)
+    # ZOH is linear: sum over the (distinct) poles of ZOH(r/(s - p)) = r (e^{pT} - 1)/p / (z - e^{pT})
+    poles = np.concatenate([np.roots(den), np.roots(d1), np.roots(d2)])
+    res = [np.polyval(Nc, p) / np.prod(np.delete(p - poles, i)) for i, p in enumerate(poles)]
+    f = np.array([100.0, 1000.0, 4000.0, 7000.0, 12000.0])
+    z = np.exp(1j * 2 * np.pi * f * plant.T)
+    zoh = sum(r * (np.exp(p * plant.T) - 1) / p / (z - np.exp(p * plant.T)) for r, p in zip(res, poles))
+    notch = np.ones_like(z)
+    for al, be, wi in zip(plant.TABLE2["alpha"], plant.TABLE2["beta"], w):
+        q = 1 / z
+        notch *= (1 - 2 * al * np.cos(wi * plant.T) * q + al ** 2 * q ** 2) / (1 - 2 * be * np.cos(wi * plant.T) * q + be ** 2 * q ** 2)
+    ref = zoh * notch
+    _, G = plant.frequency_response("sum", f)
+    np.testing.assert_allclose(G, ref, rtol=1e-6)
+    assert np.max(np.abs(np.linalg.eigvals(A))) < 1
+
+
+def test_literal_reading_scales_dc_gain():
+    dc = lambda r: plant.frequency_response(r, [1e-3])[1][0].real
+    assert dc("literal") == pytest.approx(dc("unit") * 0.02 * 0.01, rel=1e-6)
+    wT = 2 * np.pi * np.array(plant.TABLE2["f_hz"]) * plant.T
+    al, be = np.array(plant.TABLE2["alpha"]), np.array(plant.TABLE2["beta"])
+    notch_dc = np.prod((1 - 2 * al * np.cos(wT) + al ** 2) / (1 - 2 * be * np.cos(wT) + be ** 2))
+    assert dc("unit") == pytest.approx(7.153e6 / 1.011e6 * notch_dc, rel=1e-4)
+
+
+def test_augmentation_eq3():
+    Ap, Bp, Cp = plant.plant_matrices()
+    Ad, Bd, Cd = plant.disturbance_matrices()
+    A, B, Bw, C, Cbar = plant.augment(Ap, Bp, Cp, Ad, Bd, Cd)
+    np.testing.assert_array_equal(A[:10, 10:], np.outer(Bp, Cd))
+    np.testing.assert_array_equal(A[10:, :10], 0)
+    # scaled disturbance: same d as eq. (32) (Bd * Cd product unchanged)
+    np.testing.assert_allclose(Bd[1] * Cd[1], 0.1508e-3 * 1e5)
+
+
+def test_dob_recovers_constant_disturbance_on_nominal_model():
+    num, den = rigid_nominal(plant.T)
+    g = num.sum()
+    n = 1500
+    u = np.random.default_rng(0).normal(size=n) * 0.1
+    _, y = scipy.signal.dlsim((np.array([g, 0.0]), den, 1.0), u + 0.3)
+    def step(s, uy):
+        dh = dob_output(d64, s, uy[1])
+        return dob_update(d64, s, uy[0], uy[1]), dh
+    with jax.enable_x64(True):
+        d64 = dob_design(plant.T, 1000.0, dtype=jnp.float64)
+        _, dh = jax.jit(lambda uy: jax.lax.scan(step, dob_init(d64, jnp.float64), uy))(jnp.stack([u, y[:, 0]], 1))
+    np.testing.assert_allclose(np.asarray(dh)[-100:], 0.3, rtol=1e-6)
+
+
+def test_triggers_eq6_eq22():
+    assert bool(hdd.petc_fires(1.0, 1.1, 0.0, 0.0099))
+    assert not bool(hdd.petc_fires(1.0, 1.1, 0.0, 0.0101))
+    assert not bool(hdd.petc_fires(1.0, 1.1, 1.0, 0.0))     # 0.01 < 1.21
+    assert bool(hdd.controller_fires(0.0, 0.5, 0.0, 0.2))
+
+
+def test_metric_formulas():
+    y = jnp.array([0.0, 0.5, 1.0])
+    assert float(hdd.ise(y, 1.0)) == pytest.approx(np.sqrt(1.25))
+    assert float(hdd.isep(y, jnp.array([0.0, 0.0, 1.0]))) == pytest.approx(0.5)
+    assert float(hdd.cc(0.54, 1 / 3)) == pytest.approx(0.36)
+    assert float(hdd.gpi(0.5, 0.2, 0.1)) == pytest.approx(0.45 * 0.5 + 0.45 * 0.2 + 0.01)
+
+
+def test_tts_mrci_m1_is_undecomposed_loop():
+    """Case 1 with m = 1 is the plant in feedback with eq. (33) (python-control reference)."""
+    import control as ct
+    loop = hdd.hdd_loop(1, m=1, h=1, steps=300)
+    y = np.asarray(jax.jit(hdd.simulate)(loop, jax.random.PRNGKey(0)).y)
+    A, B, C = plant.plant_matrices()
+    G = ct.ss(A, B.reshape(-1, 1), C.reshape(1, -1), 0, plant.T)
+    K = ct.tf(hdd.CD_GAIN * np.poly(hdd.CD_ZEROS), np.poly(hdd.CD_POLES), plant.T)
+    _, ref = ct.step_response(ct.feedback(K * G, 1), T=np.arange(300) * plant.T)
+    # float32 simulation of a loop with poles at radius 0.99: a few float32 ulps per step, accumulated
+    np.testing.assert_allclose(y, ref, atol=300 * 300 * np.finfo(np.float32).eps)
+
+
+@pytest.fixture(scope="module")
+def case_metrics():
+    y_tts, ise_tts = hdd.tts_reference()
+    cs = hdd.controller_design().cs
+    keys = montecarlo.seed_keys(0, 8)
+    f = jax.jit(jax.vmap(hdd.run, in_axes=(None, 0, None, None, None)), static_argnums=(4,))
+    return {c: jax.device_get(f(hdd.hdd_loop(c), keys, y_tts, ise_tts, cs)) for c in hdd.CASES}, float(ise_tts)
+
+
+def test_case_orderings(case_metrics):
+    """Acceptance of the issue: the paper's qualitative results, 8 seeds (noise-free cases are
+    deterministic; cases 4-6 differ by far more than their seed-to-seed spread)."""
+    m, ise_tts = case_metrics
+    assert 3.5 < ise_tts < 4.5                                       # paper: 3.75
+    assert m[1].Uc.mean() == 1.0 and m[1].Ua.mean() == 1.0
+    assert m[2].Uc.mean() < 1 and m[2].Ua.mean() < 1 and m[2].NE.mean() > 0
+    assert m[3].NE.mean() < m[2].NE.mean() and m[3].Uc.mean() <= m[2].Uc.mean()
+    assert m[5].Uc.mean() > m[4].Uc.mean() and m[5].Ua.mean() > m[4].Ua.mean()
+    assert m[5].NE.mean() < m[4].NE.mean()
+    assert not any(bool(np.any(v.unstable)) for v in m.values())
