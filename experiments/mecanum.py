@@ -156,7 +156,7 @@ EXPERIMENT = register(Experiment(
         Option("dp", "float", 0.5, "dropout probability DP = p_sc = p_ca", low=0.0, high=0.95),
         Option("path", "choice", "lissajous", "reference path", choices=tuple(PATHS)),
         Option("h", "int", 0, "prediction horizon in slow periods (0: the documented default rule)", low=0, high=200),
-        Option("sigma", "floats", mec.PAPER_SIGMA, "PETC sigma(i): 1 or 9 values", low=0.0, high=10.0),
+        Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),

@@ -22,7 +22,7 @@ from typing import Callable
 __all__ = ["ConfigError", "Option", "Experiment", "REGISTRY", "register", "get_experiment",
            "load_builtin", "KINDS"]
 
-KINDS = ("int", "float", "choice", "floats", "bool")
+KINDS = ("int", "float", "choice", "floats", "ints", "bool")
 _TRUE = ("true", "yes", "on", "1")
 _FALSE = ("false", "no", "off", "0")
 
@@ -44,7 +44,7 @@ class Option:
     """One setting of an experiment.
 
     ``kind`` is ``"int"``, ``"float"``, ``"choice"`` (one of ``choices``), ``"floats"`` (a
-    comma-separated list of floats, parsed to a tuple) or ``"bool"`` (true/false, yes/no,
+    comma-separated list of floats, parsed to a tuple), ``"ints"`` (the same for integers) or ``"bool"`` (true/false, yes/no,
     on/off, 1/0).  ``low``/``high`` are inclusive bounds for int, float and each element of
     floats; ``None`` means unbounded.  Floats must be finite.
     """
@@ -71,8 +71,8 @@ class Option:
             return "one of " + ", ".join(str(c) for c in self.choices)
         if self.kind == "bool":
             return "true or false"
-        what = {"int": "an integer", "float": "a number",
-                "floats": "a comma-separated list of numbers"}[self.kind]
+        what = {"int": "an integer", "float": "a number", "floats": "a comma-separated list of numbers",
+                "ints": "a comma-separated list of integers"}[self.kind]
         lo, hi = self.low, self.high
         if lo is not None and hi is not None:
             return f"{what} in [{_num(lo)}, {_num(hi)}]"
@@ -91,6 +91,11 @@ class Option:
                 return ",".join(f"{float(v):g}" for v in value)
             except TypeError:
                 return f"{float(value):g}"
+        if self.kind == "ints":
+            try:
+                return ",".join(str(int(v)) for v in value)
+            except TypeError:
+                return str(int(value))
         if self.kind == "float":
             return f"{float(value):g}"
         return str(value)
@@ -128,6 +133,20 @@ class Option:
             if not s or any(not p for p in items):
                 raise self._error(text)
             return tuple(self._float(p, text) for p in items)
+        if self.kind == "ints":
+            items = [p.strip() for p in s.split(",")]
+            if not s or any(not p for p in items):
+                raise self._error(text)
+            out = []
+            for p in items:
+                try:
+                    x = int(p, 10)
+                except ValueError:
+                    raise self._error(text) from None
+                if not self._in_range(x):
+                    raise self._error(text)
+                out.append(x)
+            return tuple(out)
         if self.kind == "bool":
             low = s.lower()
             if low in _TRUE:

@@ -44,7 +44,7 @@ from jaxnc._validate import check_nonneg, check_positive, check_range
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
 
 __all__ = [
-    "FilterRecord", "estimator_pass", "trajectory_inputs", "Bounds", "measure_bounds", "worst_case",
+    "FilterRecord", "estimator_pass", "trajectory_inputs", "mecanum_pass", "Bounds", "measure_bounds", "worst_case",
     "Theorem1Check", "check_theorem1", "bound_a21", "lhs19",
     "mare_step", "mare_iterate", "lambda_min", "lambda_max", "lyapunov_lower", "random_riccati",
 ]
@@ -163,6 +163,20 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
     A, L, H, M, K, P_post, P_pred, err_post, err_pred, g = outs
     return FilterRecord(A, L, H, M, K, P_post, P_pred, err_post, err_pred, slow, arrived, g & slow,
                         g & slow & arrived)
+
+
+def mecanum_pass(loop, traj, key, *, N, dp, trigger=None):
+    """:func:`estimator_pass` along a Mecanum closed-loop run with the loop's own filter
+    covariances (``loop.filter_noise``), true measurement noise and initial uncertainty.
+
+    Returns ``(bounds, err2, moving)``: the eq. (18) constants over the moving steps,
+    ||xi_{k+1} - xi_{k+1|k}||^2 per step and the mask. Pure JAX: vmap over (traj, key)."""
+    Qf, Rf = loop.filter_noise.Q(), loop.filter_noise.R()
+    P0 = jnp.diag(jnp.asarray(loop.P0_std, jnp.float32) ** 2)
+    xs, us, moving = trajectory_inputs(traj)
+    rec = estimator_pass(loop.plant, xs, us, key, N=N, dp=dp, Q=Qf, R=Rf,
+                         v_std=loop.noise.measurement_std(), P0=P0, trigger=trigger)
+    return measure_bounds(rec, Qf, Rf, moving), jnp.sum(rec.err_pred ** 2, axis=-1), moving
 
 
 class Bounds(NamedTuple):
@@ -365,7 +379,9 @@ def mare_step(P, A, C, Q, R, lam):
     (Sinopoli et al. 2004, eq. 10); lam = 1 is the Kalman filter's Riccati map."""
     APC = A @ P @ C.T
     S = C @ P @ C.T + R
-    return A @ P @ A.T + Q - lam * APC @ jnp.linalg.solve(S, APC.T)
+    G = A @ P @ A.T + Q - lam * APC @ jnp.linalg.solve(S, APC.T)
+    # symmetrise: the map amplifies round-off in the antisymmetric part until it diverges
+    return 0.5 * (G + G.T)
 
 
 def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
@@ -403,6 +419,7 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
         for _ in range(steps):
             APC = A @ P @ C.T
             Pn = A @ P @ A.T + Q - lam * APC @ np.linalg.solve(C @ P @ C.T + R, APC.T)
+            Pn = 0.5 * (Pn + Pn.T)        # see mare_step
             tr = np.trace(Pn)
             if not np.isfinite(tr) or tr > blowup:
                 return False

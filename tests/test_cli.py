@@ -181,3 +181,12 @@ def test_keyboard_interrupt(tmp_path, capsys):
 def test_run_cli_returns_code(tmp_path):
     assert cli.run_cli(["run", "dummy", "--out", str(tmp_path), "--seeds", "3"]) == 0
     assert cli.run_cli(["run", "dummy", "--set", "N=99"]) == 2
+
+
+def test_ints_option():
+    o = Option("N", "ints", (1, 2), "multiplicities", low=1, high=12)
+    assert o.parse("1, 6,12") == (1, 6, 12)
+    assert o.format_value((1, 6)) == "1,6"
+    for bad in ("1,13", "1.5", "", "1,,2"):
+        with pytest.raises(ConfigError, match=r"N must be a comma-separated list of integers in \[1, 12\]"):
+            o.parse(bad)

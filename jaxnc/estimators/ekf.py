@@ -86,5 +86,5 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int) -> Gaus
         s = jnp.sum(Hi * PHt) + r[i]
         k = PHt / s
         delta = delta + k * (innovation[i] - jnp.sum(Hi * delta))
-        P = P - s * k[:, None] * k[None, :]
+        P = P - (PHt[:, None] * PHt[None, :]) / s   # products commute: exactly symmetric
     return Gaussian(belief.mean + delta, P)

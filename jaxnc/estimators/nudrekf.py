@@ -19,11 +19,17 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc.estimators.ekf import Gaussian, ekf_update
+from jaxnc.estimators.ekf import Gaussian, ekf_update, ekf_update_diag
 
 
 def nudrekf_correct(model, belief: Gaussian, z, R) -> Gaussian:
-    """Correction at an arrival instant, eq. (13)-(16)."""
+    """Correction at an arrival instant, eq. (13)-(16).
+
+    ``R`` is the measurement noise covariance [s, s], or a vector of variances for
+    additive noise with a diagonal covariance (then the update is processed one
+    scalar at a time: same result, no factorisation; see ``ekf_update_diag``)."""
+    if jnp.ndim(R) == 1:
+        return ekf_update_diag(model.measure, belief, z, R, z.shape[0])
     return ekf_update(model.measure, belief, z, R, z.shape[0])
 
 

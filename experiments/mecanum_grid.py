@@ -1,0 +1,407 @@
+"""Experiment ``mecanum-grid``: seed 000 in full -- Tables 1-4 and Figs 7-10.
+
+Every case (SR, DR, DRH, DRHE) x N x DP x path, ``--seeds`` Monte-Carlo runs per
+cell (1000 by default), event parameters of section 4.1 and h by the rule of
+``schemes.mecanum.default_h``.
+
+* **Resumable.** Each cell is written to ``OUT/cells/<path>/N<NN>_<case>_dp<DP>.json``
+  (with its per-seed indexes in a ``.npz`` beside it) atomically, as soon as it is
+  done; a rerun with the same settings computes only the missing cells. A cell file
+  whose configuration differs from the current one is recomputed.
+* **One compiled program per (path, N).** The scheme, h and DP are runtime arguments
+  (``run_batched(..., args=(loop,))``), so the four cases and all DPs of an N share
+  one compilation; compiled programs are also cached on disk under
+  ``OUT/.xla_cache`` so a resumed run does not compile again.
+* **Outputs** (rewritten from all cells at the end, so they are the same however many
+  times the run was interrupted): ``tables_<path>.md`` / ``tables_<path>.csv`` in the
+  paper's layout (rows DP x N in {1, 2, 6, 12}, columns SR/DR/DRH/DRHE, J1-J3
+  normalised to the nominal SR run of the same path, J4 the sensor transmission rate
+  over nominal, inf for unstable cells, "-" where the paper has none), the whole
+  grid as ``grid_<path>.csv``, heat maps ``fig_<path>.png`` (Figs 7-10: each index
+  over (N, DP) for each case), and ``paper_comparison.md`` (Lissajous: ours beside
+  Tables 1-4, cell by cell).
+
+A cell is infinite when more than half of its runs are unstable (``UNSTABLE_CELL``);
+a run is unstable when the robot leaves the 0.5 m tube around the path, a state
+becomes non-finite, or it does not reach the end within 1.6 x the nominal time + 10 s.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxnc import montecarlo
+from jaxnc.experiment import ConfigError, Experiment, Option, register
+from jaxnc.paths import PATHS
+from jaxnc.report import fmt, markdown_table
+from jaxnc.schemes import mecanum as mec
+
+from .mecanum import UNSTABLE_CELL
+
+INF = math.inf
+GRID_N = tuple(range(1, 13))
+GRID_DP = tuple(round(0.1 * i, 1) for i in range(8))
+TABLE_N = (1, 2, 6, 12)
+TABLE_DP = (0.0, 0.2, 0.4, 0.6)
+INDEXES = ("J1", "J2", "J3", "J4")
+
+
+def _paper(rows):
+    """{(dp, N): (SR, DR, DRH, DRHE)} from rows in the paper's order (DP inner, N outer)."""
+    keys = [(dp, n) for n in TABLE_N for dp in TABLE_DP]
+    return dict(zip(keys, rows))
+
+
+_ = None   # "-": no value in the paper (dual-rate cases at N = 1)
+# Seed 000, Tables 1-4 (Lissajous curve), transcribed; inf is the paper's infinity.
+PAPER = {
+    "J1": _paper([
+        (1.00, _, _, _), (1.15, _, _, _), (1.57, _, _, _), (INF, _, _, _),
+        (1.07, 0.83, 0.83, 1.01), (1.80, 0.86, 0.85, 1.10), (INF, 1.08, 0.93, 1.15), (INF, 2.15, 1.03, 1.37),
+        (INF, 0.85, 0.85, 1.03), (INF, 1.12, 0.86, 1.09), (INF, 1.98, 1.19, 1.40), (INF, INF, 1.61, 1.89),
+        (INF, 1.02, 1.02, 1.10), (INF, 1.56, 1.23, 1.28), (INF, 3.32, 1.48, 1.73), (INF, INF, INF, INF)]),
+    "J2": _paper([
+        (1.00, _, _, _), (1.20, _, _, _), (1.40, _, _, _), (INF, _, _, _),
+        (1.10, 0.56, 0.56, 0.58), (2.28, 0.58, 0.57, 0.70), (INF, 1.69, 0.58, 0.81), (INF, 2.80, 0.73, 1.21),
+        (INF, 0.65, 0.65, 0.72), (INF, 1.22, 0.68, 0.84), (INF, 2.90, 1.11, 1.29), (INF, INF, 1.15, 1.53),
+        (INF, 0.68, 0.68, 0.70), (INF, 2.11, 1.17, 1.27), (INF, 3.20, 1.33, 1.55), (INF, INF, INF, INF)]),
+    "J3": _paper([
+        (1.00, _, _, _), (1.01, _, _, _), (1.02, _, _, _), (INF, _, _, _),
+        (1.02, 1.01, 1.01, 1.03), (1.03, 1.02, 1.01, 1.04), (INF, 1.03, 1.02, 1.07), (INF, 1.25, 1.03, 1.08),
+        (INF, 1.03, 1.03, 1.04), (INF, 1.05, 1.03, 1.05), (INF, 1.40, 1.04, 1.07), (INF, INF, 1.04, 1.10),
+        (INF, 1.04, 1.04, 1.05), (INF, 1.14, 1.05, 1.07), (INF, 1.51, 1.05, 1.08), (INF, INF, INF, INF)]),
+    "J4": _paper([
+        (1.000, _, _, _), (1.000, _, _, _), (1.000, _, _, _), (INF, _, _, _),
+        (0.500, 0.500, 0.500, 0.119), (0.500, 0.500, 0.500, 0.124), (INF, 0.500, 0.500, 0.129),
+        (INF, 0.500, 0.500, 0.132),
+        (INF, 0.167, 0.167, 0.099), (INF, 0.167, 0.167, 0.102), (INF, 0.167, 0.167, 0.105),
+        (INF, INF, 0.167, 0.108),
+        (INF, 0.083, 0.083, 0.067), (INF, 0.083, 0.083, 0.068), (INF, 0.083, 0.083, 0.069),
+        (INF, INF, INF, INF)]),
+}
+del _
+
+
+# ----------------------------------------------------------------------------- cells
+
+
+def cell_file(out: Path, path: str, N: int, case: str, dp: float) -> Path:
+    return out / "cells" / path / f"N{N:02d}_{case}_dp{dp:.2f}.json"
+
+
+def _atomic_write(target: Path, write) -> None:
+    """Write through a temporary file in the same directory, then rename (atomic)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix="." + target.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path: str, h: int) -> dict:
+    """What a cell's result depends on; a stored cell is reused only if this matches."""
+    return {"case": case, "N": N, "dp": dp, "path": path, "h": h, "seeds": seeds, "seed": settings["seed"],
+            "chunk": settings["chunk"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
+            "version": _version()}
+
+
+def _version() -> str:
+    from jaxnc import __version__
+    return __version__
+
+
+def _load_cell(f: Path, config: dict) -> dict | None:
+    try:
+        with open(f) as fh:
+            data = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    return data if data.get("config") == config else None
+
+
+def _uniform_dtypes(loop):
+    """float32 / int32 leaves, so that every cell of a (path, N) has the same argument
+    types and reuses one compiled program."""
+    def conv(x):
+        a = np.asarray(x)
+        if a.dtype.kind == "f":
+            return a.astype(np.float32)
+        if a.dtype.kind in "iu":
+            return a.astype(np.int32)
+        return a
+    return jax.tree.map(conv, loop)
+
+
+def _cell_metrics(key, loop):
+    """Per-seed function of the grid (module level: one cached compilation per structure)."""
+    return mec.run(loop, key)
+
+
+def _summary(m: mec.Metrics) -> dict:
+    unstable = np.asarray(m.unstable)
+    rate = np.asarray(m.tx_sc, float) / np.asarray(m.l, float)
+    s = {j: montecarlo.summarize(np.asarray(getattr(m, j), float), unstable).to_dict() for j in ("J1", "J2", "J3")}
+    s["rate_sc"] = montecarlo.summarize(rate, unstable).to_dict()
+    s["tx_sc_mean"] = float(np.mean(m.tx_sc))
+    s["tx_ca_mean"] = float(np.mean(m.tx_ca))
+    s["unstable_fraction"] = float(np.mean(unstable))
+    return s
+
+
+def grid_cells(settings: dict) -> list[tuple[str, int, str, float]]:
+    """(path, N, case, dp) of the requested grid plus each path's nominal SR cell,
+    ordered by (path, N) so a compiled program serves a whole group."""
+    paths = tuple(PATHS) if settings["path"] == "all" else (settings["path"],)
+    cases = mec.CASES if settings["case"] == "all" else (settings["case"],)
+    cells = []
+    for p in paths:
+        group = {(p, 1, "SR", 0.0)}
+        group |= {(p, int(N), c, float(dp)) for N in settings["N"] for c in cases for dp in settings["dp"]}
+        cells += sorted(group, key=lambda c: (c[1], mec.CASES.index(c[2]), c[3]))
+    return cells
+
+
+def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, stop_after: int | None = None) -> dict:
+    """Compute the missing cells (at most ``stop_after`` of them: a controlled
+    interruption, for tests), then write tables and figures from all stored cells."""
+    out = Path(out)
+    cells = grid_cells(settings)
+    keys = montecarlo.seed_keys(settings["seed"], seeds)
+    todo, loops = [], {}
+    for cell in cells:
+        p, N, case, dp = cell
+        try:
+            loop = mec.mecanum_loop(case, N, dp, p, sigma=settings["sigma"], delta=settings["delta"])
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        loops[cell] = loop
+        cfg = _cell_config(settings, seeds, case, N, dp, p, int(loop.h))
+        if _load_cell(cell_file(out, p, N, case, dp), cfg) is None:
+            todo.append((cell, cfg))
+    done_before = len(cells) - len(todo)
+    computed = 0
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(cells), initial=done_before, desc="cells", unit="cell", disable=not progress,
+               dynamic_ncols=True)
+    try:
+        for cell, cfg in todo:
+            if stop_after is not None and computed >= stop_after:
+                break
+            p, N, case, dp = cell
+            bar.set_postfix_str(f"{p} N={N} {case} DP={dp:.1f}")
+            tc = time.perf_counter()
+            m = montecarlo.run_batched(_cell_metrics, keys, args=(_uniform_dtypes(loops[cell]),),
+                                       chunk_size=min(settings["chunk"], seeds), progress=False)
+            wall = time.perf_counter() - tc
+            f = cell_file(out, p, N, case, dp)
+            arrays = {k: np.asarray(getattr(m, k)) for k in m._fields}
+            _atomic_write(f.with_suffix(".npz"), lambda fh: np.savez_compressed(fh, **arrays))
+            record = {"config": cfg, "summary": _summary(m), "wall_time_s": wall}
+            _atomic_write(f, lambda fh: fh.write(json.dumps(record, indent=1).encode()))
+            computed += 1
+            bar.update(1)
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"\ninterrupted: {done_before + computed} of {len(cells)} cells are saved in {out / 'cells'}; "
+              "run the same command again to compute the rest", flush=True)
+        raise SystemExit(130) from None
+    bar.close()
+    elapsed = time.perf_counter() - t0
+    complete = done_before + computed == len(cells)
+    results = collect(out, settings, seeds, cells, loops)
+    written = write_outputs(out, results, settings) if complete else []
+    summary = {"cells": len(cells), "computed": computed, "reused": done_before, "complete": complete,
+               "wall_time_s": elapsed, "files": [str(f) for f in written]}
+    montecarlo.save_results(out / "results.json", experiment="mecanum-grid",
+                            config={"settings": settings, "seeds": seeds}, results=summary, wall_time_s=elapsed)
+    print(f"\n{computed} cells computed, {done_before} reused, in {elapsed:.1f} s"
+          + ("" if complete else f"; {len(cells) - done_before - computed} missing: rerun to finish"))
+    return summary
+
+
+# ----------------------------------------------------------------------------- tables
+
+
+def collect(out: Path, settings: dict, seeds: int, cells, loops) -> dict:
+    """{(path, N, case, dp): summary dict} of the stored cells of this grid."""
+    res = {}
+    for cell in cells:
+        p, N, case, dp = cell
+        cfg = _cell_config(settings, seeds, case, N, dp, p, int(loops[cell].h))
+        data = _load_cell(cell_file(out, p, N, case, dp), cfg)
+        if data is not None:
+            res[cell] = dict(data["summary"], h=int(loops[cell].h))
+    return res
+
+
+def normalised(results: dict, cell) -> dict:
+    """J1-J4 of a cell as in the paper: ratio of means to the nominal SR cell of the
+    path, J4 the ratio of sensor transmission rates; inf for an unstable cell."""
+    p = cell[0]
+    nom = results[(p, 1, "SR", 0.0)]
+    s = results[cell]
+    if s["unstable_fraction"] > UNSTABLE_CELL:
+        return {j: INF for j in INDEXES}
+    out = {j: s[j]["mean"] / nom[j]["mean"] for j in ("J1", "J2", "J3")}
+    out["J4"] = s["rate_sc"]["mean"] / nom["rate_sc"]["mean"]
+    return out
+
+
+def _table_value(results, p, N, case, dp):
+    if N == 1 and case != "SR":
+        return None                      # the paper has "-" there
+    cell = (p, N, case, dp)
+    return normalised(results, cell) if cell in results else None
+
+
+def paper_tables(results: dict, p: str) -> tuple[str, list[list]]:
+    """Markdown (Tables 1-4) and CSV rows for path ``p``."""
+    md, rows = [], []
+    for j in INDEXES:
+        body = []
+        for N in TABLE_N:
+            for dp in TABLE_DP:
+                vals = [_table_value(results, p, N, c, dp) for c in mec.CASES]
+                cells = [fmt(v[j], 3 if j == "J4" else 2) if v is not None else "\u2013" for v in vals]
+                body.append([f"{dp:.1f}", str(N), *cells])
+                rows.append([j, dp, N, *[("" if v is None else v[j]) for v in vals]])
+        md.append(f"**{j}** ({p})\n\n" + markdown_table(["DP", "N", *mec.CASES], body))
+    return "\n\n".join(md), rows
+
+
+def comparison(results: dict, p: str = "lissajous") -> str:
+    """Ours beside the paper's Tables 1-4, cell by cell, with the ratio ours / paper."""
+    parts = []
+    for j in INDEXES:
+        body = []
+        for N in TABLE_N:
+            for dp in TABLE_DP:
+                row = [f"{dp:.1f}", str(N)]
+                for i, c in enumerate(mec.CASES):
+                    ours = _table_value(results, p, N, c, dp)
+                    paper = PAPER[j][(dp, N)][i]
+                    d = 3 if j == "J4" else 2
+                    if ours is None or paper is None:
+                        row.append("\u2013")
+                        continue
+                    o = ours[j]
+                    ratio = "" if (math.isinf(o) or math.isinf(paper)) else f" ({o / paper:.2f}\u00d7)"
+                    row.append(f"{fmt(o, d)} vs {fmt(paper, d)}{ratio}")
+                body.append(row)
+        parts.append(f"**{j}**: ours vs paper (ours / paper)\n\n" + markdown_table(["DP", "N", *mec.CASES], body))
+    return "\n\n".join(parts)
+
+
+def write_outputs(out: Path, results: dict, settings: dict) -> list[Path]:
+    files = []
+    paths = sorted({c[0] for c in results}, key=lambda p: tuple(PATHS).index(p))
+    for p in paths:
+        md, rows = paper_tables(results, p)
+        f = out / f"tables_{p}.md"
+        f.write_text(f"# Seed 000, {p}: Tables 1-4 (J normalised to nominal SR; \u221e unstable)\n\n{md}\n")
+        files.append(f)
+        f = out / f"tables_{p}.csv"
+        with open(f, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["index", "DP", "N", *mec.CASES])
+            w.writerows(rows)
+        files.append(f)
+        f = out / f"grid_{p}.csv"
+        with open(f, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["path", "N", "DP", "case", "h", *INDEXES, "J1_abs_m", "J1_abs_ci95_m", "unstable_fraction"])
+            for cell in sorted((c for c in results if c[0] == p), key=lambda c: (mec.CASES.index(c[2]), c[1], c[3])):
+                s, n = results[cell], normalised(results, cell)
+                w.writerow([p, cell[1], cell[3], cell[2], s["h"], *[n[j] for j in INDEXES],
+                            s["J1"]["mean"], s["J1"]["ci95"], s["unstable_fraction"]])
+        files.append(f)
+        files.append(heatmaps(out, results, p))
+    if "lissajous" in paths:
+        f = out / "paper_comparison.md"
+        f.write_text("# Seed 000, Lissajous: ours vs the paper's Tables 1-4\n\n" + comparison(results) + "\n")
+        files.append(f)
+        print("\n" + paper_tables(results, "lissajous")[0])
+    return files
+
+
+def heatmaps(out: Path, results: dict, p: str) -> Path:
+    """Figs 7-10: each index over (N, DP) for each case; unstable cells dark grey."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    Ns = sorted({c[1] for c in results if c[0] == p})
+    dps = sorted({c[3] for c in results if c[0] == p})
+    fig, axes = plt.subplots(len(INDEXES), len(mec.CASES), figsize=(3.2 * len(mec.CASES), 2.6 * len(INDEXES)),
+                             squeeze=False, constrained_layout=True)
+    norms = {"J1": LogNorm(0.5, 4.0), "J2": LogNorm(0.3, 4.0), "J3": LogNorm(0.9, 1.6), "J4": LogNorm(0.02, 1.0)}
+    for r, j in enumerate(INDEXES):
+        im = None
+        for c, case in enumerate(mec.CASES):
+            ax = axes[r, c]
+            grid = np.full((len(dps), len(Ns)), np.nan)
+            for a, dp in enumerate(dps):
+                for b, N in enumerate(Ns):
+                    if (p, N, case, dp) in results:
+                        grid[a, b] = normalised(results, (p, N, case, dp))[j]
+            unstable = np.isinf(grid)
+            ext = (-0.5, len(Ns) - 0.5, -0.5, len(dps) - 0.5)     # index space: any N / DP lists
+            ax.imshow(np.where(unstable, 1.0, np.nan), cmap="Greys", vmin=0, vmax=1.4, origin="lower",
+                      aspect="auto", extent=ext)
+            im = ax.imshow(np.where(unstable, np.nan, grid), cmap="viridis", norm=norms[j], origin="lower",
+                           aspect="auto", extent=ext)
+            step = max(1, len(Ns) // 6)
+            ax.set_xticks(range(0, len(Ns), step), [str(n) for n in Ns[::step]])
+            ax.set_yticks(range(len(dps)), [f"{d:.1f}" for d in dps], fontsize=7)
+            ax.set_title(f"{j} {case}", fontsize=9)
+            if r == len(INDEXES) - 1:
+                ax.set_xlabel("N")
+            if c == 0:
+                ax.set_ylabel("DP")
+        fig.colorbar(im, ax=axes[r, :].tolist(), shrink=0.9, label=f"{j} (grey: unstable)")
+    fig.suptitle(f"Seed 000, {p}: cost indexes over (N, DP) (Figs 7-10; normalised to nominal SR)")
+    f = out / f"fig_{p}.png"
+    fig.savefig(f, dpi=110)
+    plt.close(fig)
+    return f
+
+
+def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+    # compiled programs persist beside the results: a resumed run does not compile again
+    if jax.config.jax_compilation_cache_dir is None:
+        jax.config.update("jax_compilation_cache_dir", str((Path(out) / ".xla_cache").resolve()))
+    return run_grid(settings, seeds=seeds, out=out, progress=progress)
+
+
+EXPERIMENT = register(Experiment(
+    name="mecanum-grid",
+    description="Seed 000 in full: SR/DR/DRH/DRHE x N x DP x path, Tables 1-4 and Figs 7-10 (resumable)",
+    options=(
+        Option("case", "choice", "all", "schemes to run", choices=(*mec.CASES, "all")),
+        Option("N", "ints", GRID_N, "multiplicities", low=1, high=20),
+        Option("dp", "floats", GRID_DP, "dropout probabilities DP = p_sc = p_ca", low=0.0, high=0.95),
+        Option("path", "choice", "all", "reference path", choices=(*PATHS, "all")),
+        Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
+        Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
+        Option("chunk", "int", 1000, "seeds per compiled batch (memory vs speed)", low=1, high=100_000),
+        Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
+    ),
+    run=run,
+))

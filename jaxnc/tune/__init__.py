@@ -1,0 +1,22 @@
+"""Tuning by gradient and by Monte-Carlo: thresholds (delta, sigma), horizons, PI gains.
+
+* :mod:`jaxnc.tune.estimators` -- gradients through events (sigmoid relaxation,
+  straight-through, score function) and how to pick one;
+* :mod:`jaxnc.tune.gradient` -- :func:`tune`, optax on a Monte-Carlo objective with
+  reparametrised constraints, temperature annealing and a progress bar;
+* :mod:`jaxnc.tune.search` -- grid / random search with common random numbers, the
+  best point with its interval, and hard-trigger evaluation.
+"""
+from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temperature, bernoulli_fires,
+                                   relax_trigger, score_grad, score_surrogate, sigmoid_relaxation,
+                                   straight_through)
+from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, tune, \
+    unconstrain
+from jaxnc.tune.search import SearchResult, evaluate, grid, mean_ci, paired_ci, random_points, search
+
+__all__ = [
+    "ESTIMATORS", "RelaxedPetcTrigger", "annealed_temperature", "bernoulli_fires", "relax_trigger", "score_grad",
+    "score_surrogate", "sigmoid_relaxation", "straight_through",
+    "Interval", "Positive", "TuneHistory", "TuneResult", "Unconstrained", "constrain", "tune", "unconstrain",
+    "SearchResult", "evaluate", "grid", "mean_ci", "paired_ci", "random_points", "search",
+]

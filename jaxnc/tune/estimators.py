@@ -1,0 +1,167 @@
+"""Gradients through event triggers: three estimators and how to pick one.
+
+A trigger fires when a gap g(theta) > 0 (seed 000 eq. 4: g = ||zbar - z||^2 -
+sum_i sigma(i) z(i)^2 + delta(i)); beta = 1[g > 0] is a step function, so its exact
+derivative is zero almost everywhere and d J / d theta of any closed-loop cost J
+built on it carries no information.  jaxnc offers:
+
+=====================  =========================  ===============================  ==================
+estimator              forward pass                gradient                         bias / variance
+=====================  =========================  ===============================  ==================
+``"sigmoid"``          soft: beta = s(g / tau)     exact gradient of the relaxed    biased w.r.t. the
+(:class:`RelaxedPetc   (a fractional "partial       objective J_tau (it *is* the     hard objective by
+Trigger`)              send" blends z into zbar)    objective it optimises): can be  O(tau); no extra
+                                                   checked against finite           variance; bias -> 0
+                                                   differences                      as tau -> 0, but the
+                                                                                    gradient grows stiff
+``"straight_through"`` hard: beta = 1[g > 0]        that of s(g / tau) (backward     biased (the forward
+(``PetcTrigger(tempe   (the exact simulation)       only)                            and backward passes
+rature=tau)``)                                                                      disagree), no extra
+                                                                                    variance; cheap
+``"score"``            hard, thresholds drawn       (J(mu + s e) - J(mu - s e))      unbiased for the
+(:func:`score_grad`,   theta = mu + s e,            e / (2 s), antithetic, i.e. the  Gaussian-smoothed
+:func:`bernoulli_fi    e ~ N(0, I)                  score function of N(mu, s^2 I)   objective E J(mu+se);
+res`)                                               (REINFORCE with a baseline)      variance ~ dim / n;
+                                                                                    needs no gradient of
+                                                                                    the simulation
+=====================  =========================  ===============================  ==================
+
+How to pick.  Start with ``straight_through``: it simulates the exact hard loop, costs
+one backward pass and in practice points the right way for thresholds and gains
+(the tuned result is always re-evaluated with hard triggers anyway).  Use ``sigmoid``
+when you need a gradient that is *exactly* the derivative of something (finite
+difference checks, line searches, second-order methods) and anneal tau towards 0 so
+the relaxed objective approaches the hard one.  Use ``score`` when the simulation is
+not differentiable (integer leaves, hard selects, a black box) or when the biased
+estimators stall on a plateau; it needs many more seeds per step for the same noise,
+since its variance grows with the number of tuned parameters.
+
+The score-function pieces also exist per event: :func:`bernoulli_fires` makes the
+trigger itself random (fires with probability s(g / tau)) and returns log p(beta) so
+that :func:`score_surrogate` turns a cost into a REINFORCE surrogate whose gradient is
+unbiased for d E[J] / d theta (the toy test checks this against a closed form).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaxnc._validate import check_nonneg, check_positive
+
+__all__ = ["ESTIMATORS", "RelaxedPetcTrigger", "relax_trigger", "sigmoid_relaxation", "straight_through",
+           "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
+
+ESTIMATORS = ("straight_through", "sigmoid", "score")
+
+
+def sigmoid_relaxation(gap, temperature):
+    """Soft trigger s(g / tau): forward *and* backward are the sigmoid (biased, smooth)."""
+    return jax.nn.sigmoid(gap / temperature)
+
+
+def straight_through(gap, temperature):
+    """Hard trigger 1[g > 0] forward, the gradient of s(g / tau) backward."""
+    hard = (gap > 0).astype(jnp.result_type(gap))
+    soft = jax.nn.sigmoid(gap / temperature)
+    return hard + (soft - jax.lax.stop_gradient(soft))
+
+
+def annealed_temperature(step, n_steps: int, t0: float, t1: float):
+    """Geometric annealing tau_k = t0 (t1 / t0)^(k / (n - 1)), from t0 at step 0 to t1
+    at the last step: early steps see a wide, low-variance relaxation, late steps one
+    close to the hard trigger."""
+    check_positive("t0", t0)
+    check_positive("t1", t1)
+    frac = jnp.asarray(step, jnp.float32) / max(n_steps - 1, 1)
+    return t0 * (t1 / t0) ** frac
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RelaxedPetcTrigger:
+    """The PETC condition of seed 000 eq. (4) with a *soft* forward pass.
+
+    ``fires`` returns s(gap / temperature) in (0, 1): the closed loop then blends z into
+    zbar (eq. 3) and the measurement into the remote belief by that fraction, which
+    makes the whole run a smooth function of sigma, delta and the gains: its gradient is
+    the exact derivative of the relaxed objective.  A drop-in for
+    :class:`jaxnc.triggers.PetcTrigger` in any loop that calls ``trigger.fires``.
+    """
+
+    sigma: jax.Array
+    delta: jax.Array
+    temperature: jax.Array = 1.0
+
+    def __post_init__(self):
+        check_nonneg("RelaxedPetcTrigger.sigma", self.sigma)
+        check_nonneg("RelaxedPetcTrigger.delta", self.delta)
+        check_positive("RelaxedPetcTrigger.temperature", self.temperature)
+
+    def gap(self, z_last, z):
+        """Left minus right side of eq. (4) (squared norms: finite gradient at z = zbar)."""
+        return jnp.sum((z_last - z) ** 2) - jnp.sum(self.sigma * z * z + self.delta)
+
+    def fires(self, z_last, z):
+        return sigmoid_relaxation(self.gap(z_last, z), jnp.asarray(self.temperature, z.dtype))
+
+
+def relax_trigger(trigger, estimator: str, temperature):
+    """The trigger a loop should use for ``estimator``: ``"sigmoid"`` gives a
+    :class:`RelaxedPetcTrigger`, ``"straight_through"`` the same ``PetcTrigger`` with
+    ``temperature`` > 0, ``"score"`` (and ``"hard"``) the hard trigger."""
+    if estimator == "sigmoid":
+        return RelaxedPetcTrigger(sigma=trigger.sigma, delta=trigger.delta, temperature=temperature)
+    if estimator == "straight_through":
+        return dataclasses.replace(trigger, temperature=temperature)
+    if estimator in ("score", "hard"):
+        return dataclasses.replace(trigger, temperature=0.0) if hasattr(trigger, "temperature") else trigger
+    raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)} or hard, got {estimator!r}")
+
+
+# ----------------------------------------------------------------------------- score function
+
+
+def bernoulli_fires(key, gap, temperature):
+    """Stochastic trigger: beta ~ Bernoulli(p), p = s(gap / tau).
+
+    Returns (beta as a 0/1 float with no gradient, log p(beta)); sum the log-probabilities
+    of a run and pass them to :func:`score_surrogate`."""
+    logit = gap / temperature
+    beta = jax.random.bernoulli(key, jax.nn.sigmoid(jax.lax.stop_gradient(logit))).astype(jnp.result_type(gap))
+    # log p(beta) = beta log s(l) + (1 - beta) log s(-l), stable for large |l|
+    logp = beta * jax.nn.log_sigmoid(logit) + (1.0 - beta) * jax.nn.log_sigmoid(-logit)
+    return jax.lax.stop_gradient(beta), logp
+
+
+def score_surrogate(cost, logp, baseline=0.0):
+    """REINFORCE surrogate: value ``cost``, gradient
+
+        d cost (pathwise part) + (cost - b) d log p(beta),
+
+    an unbiased estimate of d E[cost] / d theta when the baseline b does not depend on
+    this sample (e.g. a running mean, or the mean of the *other* samples)."""
+    adv = jax.lax.stop_gradient(cost - baseline)
+    return cost + adv * (logp - jax.lax.stop_gradient(logp))
+
+
+def score_grad(fn, mean, key, n_pairs: int, scale):
+    """Antithetic Gaussian score-function estimate of d/d mean E_e[fn(mean + scale e, k)].
+
+    ``fn(params, key) -> scalar`` is evaluated with hard triggers (no gradient of the
+    simulation is taken); ``mean`` is a flat vector.  For pair i, e_i ~ N(0, I) and the
+    same seed k_i (common random numbers) are used for +e_i and -e_i; the estimate is
+
+        g = 1/n sum_i (fn(mean + s e_i, k_i) - fn(mean - s e_i, k_i)) e_i / (2 s),
+
+    i.e. REINFORCE with the antithetic partner as baseline: unbiased for the gradient of
+    the smoothed objective, variance O(dim / n).  Returns (mean of all 2n values, g).
+    """
+    ke, kk = jax.random.split(key)
+    eps = jax.random.normal(ke, (n_pairs, mean.shape[0]), mean.dtype)
+    keys = jax.random.split(kk, n_pairs)
+    plus = jax.vmap(lambda e, k: fn(mean + scale * e, k))(eps, keys)
+    minus = jax.vmap(lambda e, k: fn(mean - scale * e, k))(eps, keys)
+    g = jnp.mean(((plus - minus) / (2.0 * scale))[:, None] * eps, axis=0)
+    return 0.5 * (jnp.mean(plus) + jnp.mean(minus)), g

@@ -1,0 +1,189 @@
+"""Gradient tuning with optax on a Monte-Carlo objective.
+
+The user writes a per-seed loss ``loss(params, key, temperature) -> scalar`` where
+``params`` is a dict of arrays in their natural (constrained) units, e.g.
+``{"sigma": [9], "delta": [9]}`` or ``{"Kp": [3], "Ki": [3]}``, and builds the loop from
+them with ``dataclasses.replace`` (never differentiate a whole loop: it has integer
+leaves).  :func:`tune` minimises E_seeds[loss] by stochastic gradient steps:
+
+* constraints by reparametrisation (dynamax style): the optimiser works on raw,
+  unconstrained values; :class:`Positive` maps them through softplus, :class:`Interval`
+  through a sigmoid, so no projection is ever needed;
+* each step draws ``batch`` fresh seeds (``resample=True``, stochastic optimisation) or
+  reuses the same ones (sample-average approximation);
+* the trigger temperature is annealed geometrically from ``temperature[0]`` to
+  ``temperature[1]`` and passed to the loss as a runtime argument (one compilation);
+* ``estimator`` picks how gradients cross the events (see :mod:`jaxnc.tune.estimators`):
+  ``"straight_through"`` and ``"sigmoid"`` differentiate the loss (the loss decides which
+  trigger to build from the temperature), ``"score"`` uses the antithetic Gaussian
+  score function on the raw parameters and never differentiates the simulation;
+* the returned parameters are the average of the raw iterates over the last
+  ``average_tail`` fraction of steps (Polyak-Ruppert averaging, which removes most of
+  the step-to-step noise of a stochastic gradient);
+* a tqdm bar shows the running objective; the history keeps it per step.
+
+The tuned point must then be evaluated with hard triggers on fresh seeds
+(:func:`jaxnc.tune.search.evaluate` does this).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+from tqdm.auto import tqdm
+
+from jaxnc import montecarlo
+from jaxnc._validate import check_int, check_range
+from jaxnc.tune.estimators import ESTIMATORS, annealed_temperature, score_grad
+
+__all__ = ["Positive", "Interval", "Unconstrained", "constrain", "unconstrain", "TuneHistory", "TuneResult", "tune"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Positive:
+    """value = low + softplus(raw): strictly above ``low`` (thresholds, gains)."""
+    low: float = 0.0
+
+    def forward(self, raw):
+        return self.low + jax.nn.softplus(raw)
+
+    def inverse(self, value):
+        v = np.maximum(np.asarray(value, np.float64) - self.low, 1e-6)
+        return np.where(v > 20.0, v, np.log(np.expm1(np.minimum(v, 20.0)))).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Interval:
+    """value = low + (high - low) sigmoid(raw): inside the open interval (low, high)."""
+    low: float
+    high: float
+
+    def __post_init__(self):
+        if not self.high > self.low:
+            raise ValueError(f"Interval: high must be > low, got low={self.low}, high={self.high}")
+
+    def forward(self, raw):
+        return self.low + (self.high - self.low) * jax.nn.sigmoid(raw)
+
+    def inverse(self, value):
+        f = (np.asarray(value, np.float64) - self.low) / (self.high - self.low)
+        f = np.clip(f, 1e-6, 1 - 1e-6)
+        return np.log(f / (1 - f)).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Unconstrained:
+    def forward(self, raw):
+        return raw
+
+    def inverse(self, value):
+        return np.asarray(value, np.float32)
+
+
+def constrain(raw: dict, constraints: dict) -> dict:
+    """Raw (optimiser) values -> parameters in their natural units."""
+    return {k: constraints.get(k, Unconstrained()).forward(v) for k, v in raw.items()}
+
+
+def unconstrain(params: dict, constraints: dict) -> dict:
+    """Parameters -> raw values (numpy float32), the inverse of :func:`constrain`."""
+    unknown = set(constraints) - set(params)
+    if unknown:
+        raise ValueError(f"constraints name parameters that are not tuned: {sorted(unknown)}")
+    return {k: jnp.asarray(constraints.get(k, Unconstrained()).inverse(v)) for k, v in params.items()}
+
+
+class TuneHistory(NamedTuple):
+    """Per optimisation step (numpy arrays)."""
+    objective: np.ndarray     # [steps] mean loss over the step's seeds (at the step's temperature)
+    temperature: np.ndarray   # [steps]
+    grad_norm: np.ndarray     # [steps] norm of the raw-parameter gradient
+    params: dict              # name -> [steps, ...] constrained parameters before the step
+
+
+class TuneResult(NamedTuple):
+    params: dict              # tuned parameters (numpy), natural units
+    history: TuneHistory
+    n_simulations: int        # closed-loop runs used (each one forward [+ one backward] pass)
+    wall_time_s: float
+
+
+def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: int = 50, batch: int = 8,
+         optimizer: optax.GradientTransformation | None = None, estimator: str = "straight_through",
+         temperature: tuple[float, float] = (1.0, 0.1), seed: int = 0, resample: bool = True,
+         score_scale: float = 0.1, average_tail: float = 0.25, progress: bool = True,
+         desc: str = "tune") -> TuneResult:
+    """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
+
+    ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
+    number of simulations).  Seeds come from :func:`jaxnc.montecarlo.seed_keys` with
+    base ``seed``: step k uses seeds ``k*batch ... (k+1)*batch - 1`` (``resample``) or
+    always ``0 ... batch - 1``.  Evaluate the result on a different base seed.
+    """
+    check_int("steps", steps, 1)
+    check_int("batch", batch, 2 if estimator == "score" else 1)
+    check_range("average_tail", average_tail, 0.0, 1.0)
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
+    constraints = dict(constraints or {})
+    optimizer = optimizer or optax.adam(0.05)
+    raw0 = unconstrain({k: np.asarray(v, np.float32) for k, v in init.items()}, constraints)
+    opt_state = optimizer.init(raw0)
+
+    def mean_loss(raw, keys, temp):
+        p = constrain(raw, constraints)
+        return jnp.mean(jax.vmap(lambda k: loss(p, k, temp))(keys))
+
+    if estimator == "score":
+        flat0, unravel = ravel_pytree(raw0)
+        n_pairs = batch // 2
+
+        def value_and_grad(raw, keys, temp):
+            fn = lambda flat, k: loss(constrain(unravel(flat), constraints), k, temp)
+            v, g = score_grad(fn, ravel_pytree(raw)[0], keys[0], n_pairs, score_scale)
+            return v, unravel(g)
+        sims_per_step = 2 * n_pairs
+    else:
+        value_and_grad = jax.value_and_grad(mean_loss)
+        sims_per_step = batch
+
+    @jax.jit
+    def step_fn(raw, opt_state, keys, temp):
+        value, grads = value_and_grad(raw, keys, temp)
+        grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)   # divergence is data
+        updates, opt_state = optimizer.update(grads, opt_state, raw)
+        gnorm = optax.global_norm(grads)
+        return optax.apply_updates(raw, updates), opt_state, value, gnorm
+
+    t0 = time.perf_counter()
+    raw = raw0
+    objs, temps, gnorms, hist = [], [], [], {k: [] for k in raw0}
+    tail_start = steps - max(1, int(round(average_tail * steps))) if average_tail > 0 else steps - 1
+    tail = []
+    with tqdm(total=steps, desc=desc, disable=not progress, dynamic_ncols=True) as bar:
+        for k in range(steps):
+            keys = montecarlo.seed_keys(seed, batch, start=k * batch if resample else 0)
+            temp = float(annealed_temperature(k, steps, *temperature)) if estimator != "score" else 0.0
+            p_now = constrain(raw, constraints)
+            for name in hist:
+                hist[name].append(np.asarray(p_now[name]))
+            raw, opt_state, value, gnorm = step_fn(raw, opt_state, keys, jnp.float32(temp))
+            if k >= tail_start:
+                tail.append(raw)
+            value = float(value)
+            objs.append(value)
+            temps.append(temp)
+            gnorms.append(float(gnorm))
+            bar.set_postfix(objective=f"{value:.4g}", T=f"{temp:.3g}")
+            bar.update(1)
+    raw_final = jax.tree.map(lambda *xs: jnp.mean(jnp.stack(xs), axis=0), *tail)
+    params = {k: np.asarray(v) for k, v in constrain(raw_final, constraints).items()}
+    history = TuneHistory(np.asarray(objs), np.asarray(temps), np.asarray(gnorms),
+                          {k: np.stack(v) for k, v in hist.items()})
+    return TuneResult(params, history, steps * sims_per_step, time.perf_counter() - t0)

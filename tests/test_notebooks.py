@@ -1,0 +1,45 @@
+"""Every notebook in notebooks/ runs top to bottom in its quick mode (JAXNC_QUICK=1).
+
+The code cells are executed in one namespace, parsed with the json module (no Jupyter
+needed), with the Agg backend so figures are drawn but not shown. Notebooks whose quick
+mode is not quick enough for the default suite are listed in SLOW and marked slow.
+"""
+import json
+import os
+import pathlib
+import time
+
+import matplotlib
+import pytest
+
+NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parent.parent / "notebooks").glob("*.ipynb"))
+SLOW = {"quickstart.ipynb"}       # runs 200 seeds x 2 cases; no quick mode yet
+QUICK_LIMIT_S = 120.0
+
+
+def run_notebook(path: pathlib.Path) -> dict:
+    nb = json.loads(path.read_text())
+    ns = {"__name__": "__main__"}
+    for i, cell in enumerate(nb["cells"]):
+        if cell["cell_type"] != "code":
+            continue
+        src = "".join(cell["source"])
+        if src.lstrip().startswith(("%", "!")):
+            continue
+        exec(compile(src, f"{path.name}[cell {i}]", "exec"), ns)
+    return ns
+
+
+@pytest.mark.parametrize("path", [pytest.param(p, id=p.name, marks=[pytest.mark.slow] if p.name in SLOW else [])
+                                  for p in NOTEBOOKS])
+def test_notebook_runs_quick(path, monkeypatch):
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    monkeypatch.setenv("JAXNC_QUICK", "1")
+    monkeypatch.setattr(plt, "show", lambda *a, **k: plt.close("all"))
+    t0 = time.time()
+    ns = run_notebook(path)
+    elapsed = time.time() - t0
+    assert ns, path
+    if path.name not in SLOW:
+        assert elapsed < QUICK_LIMIT_S, f"{path.name} quick mode took {elapsed:.0f} s"
