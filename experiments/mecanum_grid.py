@@ -118,7 +118,7 @@ def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path:
     """What a cell's result depends on; a stored cell is reused only if this matches."""
     return {"case": case, "N": N, "dp": dp, "path": path, "h": h, "seeds": seeds, "seed": settings["seed"],
             "chunk": settings["chunk"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
-            "version": _version()}
+            "devices": len(jax.devices()), "version": _version()}
 
 
 def _version() -> str:
@@ -132,7 +132,9 @@ def _load_cell(f: Path, config: dict) -> dict | None:
             data = json.load(fh)
     except (OSError, ValueError):
         return None
-    return data if data.get("config") == config else None
+    stored = data.get("config") or {}
+    stored.setdefault("devices", 1)          # cells written before the device count was recorded
+    return data if stored == config else None
 
 
 def _uniform_dtypes(loop):
@@ -308,13 +310,68 @@ def comparison(results: dict, p: str = "lissajous") -> str:
     return "\n\n".join(parts)
 
 
+def trend_checks(results: dict, p: str) -> list[tuple[str, bool, list[str]]]:
+    """The paper's qualitative findings (section 4.3), checked on every grid cell of
+    path ``p``: (statement, holds, exceptions). A J1 decrease between neighbouring DPs
+    counts as an exception only when it exceeds the two cells' 95 % intervals."""
+    cells = {c: normalised(results, c) for c in results if c[0] == p}
+    Ns = sorted({c[1] for c in cells})
+    dps = sorted({c[3] for c in cells})
+    get = lambda N, case, dp: cells.get((p, N, case, dp))
+    checks = []
+    ex = [f"N={N} DP={dp:.1f}" for N in Ns if N >= 6 for dp in dps
+          if get(N, "SR", dp) is not None and not math.isinf(get(N, "SR", dp)["J1"])]
+    checks.append(("SR is unstable for N >= 6", not ex, ex))
+    ex = []
+    for N in (n for n in Ns if n >= 2):
+        for dp in (d for d in dps if d >= 0.2 - 1e-9):
+            a, b = get(N, "DR", dp), get(N, "DRH", dp)
+            if a is not None and b is not None and not a["J1"] > b["J1"]:
+                ex.append(f"N={N} DP={dp:.1f}: DR {fmt(a['J1'])} vs DRH {fmt(b['J1'])}")
+    checks.append(("DR is worse (J1) than DRH for DP >= 0.2 at every N >= 2", not ex, ex))
+    ex = []
+    for N in (n for n in Ns if n >= 2):
+        for dp in dps:
+            e, h = get(N, "DRHE", dp), get(N, "DRH", dp)
+            if e is None or math.isinf(e["J4"]):
+                continue
+            if not 0.05 <= e["J4"] <= 0.2 or (h is not None and not e["J4"] < h["J4"]):
+                ex.append(f"N={N} DP={dp:.1f}: DRHE J4 {e['J4']:.3f}, DRH {fmt(h['J4'], 3) if h else '-'}")
+    checks.append(("DRHE J4 is within [0.05, 0.2] and below DRH's (stable cells, N >= 2)", not ex, ex))
+    ex = []
+    for case in mec.CASES:
+        for N in Ns:
+            for d0, d1 in zip(dps, dps[1:]):
+                a, b = (p, N, case, d0), (p, N, case, d1)
+                if a not in cells or b not in cells or math.isinf(cells[a]["J1"]):
+                    continue
+                if math.isinf(cells[b]["J1"]):
+                    continue            # unstable at the higher DP: grows
+                nom = results[(p, 1, "SR", 0.0)]["J1"]["mean"]
+                ci = (results[a]["J1"]["ci95"] + results[b]["J1"]["ci95"]) / nom
+                if cells[b]["J1"] < cells[a]["J1"] - (ci if math.isfinite(ci) else 0.0):
+                    ex.append(f"{case} N={N}: DP {d0:.1f} -> {d1:.1f}: {cells[a]['J1']:.3f} -> {cells[b]['J1']:.3f}")
+    checks.append(("for a fixed case and N, J1 grows with DP (beyond the 95 % intervals)", not ex, ex))
+    return checks
+
+
+def trends_markdown(results: dict, p: str) -> str:
+    lines = [f"**Trends of the paper, {p}**", ""]
+    for statement, holds, ex in trend_checks(results, p):
+        lines.append(f"- {'holds' if holds else 'FAILS'}: {statement}"
+                     + ("" if holds else f" ({len(ex)} exceptions: " + "; ".join(ex[:8])
+                                          + ("; ..." if len(ex) > 8 else "") + ")"))
+    return "\n".join(lines)
+
+
 def write_outputs(out: Path, results: dict, settings: dict) -> list[Path]:
     files = []
     paths = sorted({c[0] for c in results}, key=lambda p: tuple(PATHS).index(p))
     for p in paths:
         md, rows = paper_tables(results, p)
         f = out / f"tables_{p}.md"
-        f.write_text(f"# Seed 000, {p}: Tables 1-4 (J normalised to nominal SR; \u221e unstable)\n\n{md}\n")
+        f.write_text(f"# Seed 000, {p}: Tables 1-4 (J normalised to nominal SR; \u221e unstable)\n\n{md}\n\n"
+                     f"{trends_markdown(results, p)}\n")
         files.append(f)
         f = out / f"tables_{p}.csv"
         with open(f, "w", newline="") as fh:

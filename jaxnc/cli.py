@@ -17,6 +17,8 @@ import pathlib
 import sys
 import warnings
 
+import jax
+
 from jaxnc import __version__
 from jaxnc import experiment as _exp
 from jaxnc.experiment import ConfigError
@@ -26,6 +28,7 @@ __all__ = ["main", "run_cli", "build_parser"]
 PROG = "jaxnc"
 DEFAULT_SEEDS = 1000
 _SEEDS = _exp.Option("--seeds", "int", DEFAULT_SEEDS, "number of Monte-Carlo seeds", low=1)
+_CPU_DEVICES = _exp.Option("--cpu-devices", "int", 1, "CPU devices", low=1, high=256)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -55,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="KEY=VALUE", help="override a setting; repeatable (see 'jaxnc list')")
     r.add_argument("--no-progress", dest="progress", action="store_false",
                    help="do not show progress bars")
+    r.add_argument("--cpu-devices", default=None, metavar="N",
+                   help="split the CPU into N JAX devices and shard the seeds over them "
+                        "(an integer >= 1; default: JAX's, one)")
     return p
 
 
@@ -93,6 +99,12 @@ def _run(args) -> int:
     exp = _exp.get_experiment(args.experiment)
     settings = exp.parse_settings(args.settings)
     seeds = _SEEDS.parse(args.seeds)
+    if args.cpu_devices is not None:
+        n = _CPU_DEVICES.parse(args.cpu_devices)
+        try:
+            jax.config.update("jax_num_cpu_devices", n)
+        except RuntimeError as e:              # the backend was already initialised
+            raise ConfigError(f"--cpu-devices: {e}") from None
     out = pathlib.Path(args.out) if args.out is not None else pathlib.Path("results") / exp.name
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -111,8 +111,14 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     ``x`` of ``fn``'s output becomes an array of shape ``(len(keys), *x.shape)``.
 
     Row ``i`` of the result depends only on ``keys[i]`` and ``chunk_size``, not on the other
-    keys or on how many there are: with the same ``chunk_size`` a seed is bit-identical
-    alone or in any batch.  The compiled function is cached per ``fn`` object (weakly), so calling
+    keys or on how many there are: with the same ``chunk_size`` (and devices) a seed is
+    bit-identical alone or in any batch.
+
+    **Several devices.** With more than one local device (GPUs, or CPU devices from
+    ``jax.config.update("jax_num_cpu_devices", n)`` / ``jaxnc run --cpu-devices n``) each
+    chunk is sharded over them along the seed axis (``jax.sharding``, ``args``
+    replicated); ``chunk_size`` is rounded up to a multiple of the device count. After
+    ``jax.distributed.initialize()`` the same code spans several hosts' devices.  The compiled function is cached per ``fn`` object (weakly), so calling
     again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
     tqdm bar over seeds (on stderr) labelled ``desc``.
     """
@@ -133,7 +139,14 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     # loop depends on the batch size (fusion, vector tiling), so a seed is bit-identical
     # alone or in any batch only if both run through one compiled batch shape. Within
     # it, a lane's result does not depend on its position or its neighbours (tested).
-    size = chunk_size
+    devices = jax.devices()
+    size = -(-chunk_size // len(devices)) * len(devices)
+    if len(devices) > 1:
+        mesh = jax.sharding.Mesh(np.asarray(devices), ("seeds",))
+        place_keys = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
+        args = jax.device_put(args, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    else:
+        place_keys = None
     if not jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
         keys = np.asarray(keys)            # raw uint32 keys: slice and pad on the host
     pieces = []
@@ -142,7 +155,8 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
         for lo in range(0, n, size):
             hi = min(lo + size, n)
             idx = np.minimum(np.arange(lo, lo + size), n - 1)   # pad by repeating the last key
-            out = batched(keys[idx], args)                    # asynchronous dispatch
+            chunk = keys[idx] if place_keys is None else jax.device_put(keys[idx], place_keys)
+            out = batched(chunk, args)                        # asynchronous dispatch
             if pending is not None:
                 pieces.append(_to_numpy(jax.block_until_ready(pending[0]), pending[1]))
                 bar.update(pending[1])

@@ -62,3 +62,30 @@ def test_tables_show_paper_layout_and_infinity():
     assert j4[3:] == ["", np.inf, 0.5, ""]
     cmp = mg.comparison(res)
     assert "1.25 vs 0.85 (1.47\u00d7)" in cmp           # ours vs Table 1 DRH at N = 2, DP = 0.2
+
+
+def test_trend_checks_find_violations():
+    def cell(J1, rate=0.5, unstable=0.0, ci=0.0):
+        return {"J1": {"mean": J1, "ci95": ci}, "J2": {"mean": J1}, "J3": {"mean": 50.0},
+                "rate_sc": {"mean": rate}, "unstable_fraction": unstable, "h": 1}
+    p = "turn180"
+    res = {(p, 1, "SR", 0.0): cell(0.04, rate=1.0)}
+    for dp, j in ((0.0, 0.04), (0.2, 0.05), (0.4, 0.045)):         # DRH: a drop 0.05 -> 0.045
+        res[(p, 6, "SR", dp)] = cell(1.0, unstable=1.0)
+        res[(p, 6, "DR", dp)] = cell(2 * j)
+        res[(p, 6, "DRH", dp)] = cell(j, rate=1 / 6)
+        res[(p, 6, "DRHE", dp)] = cell(1.1 * j, rate=0.1)
+    res[(p, 6, "SR", 0.2)] = cell(0.08)                               # SR stable at N = 6
+    checks = {s: (ok, ex) for s, ok, ex in mg.trend_checks(res, p)}
+    assert checks["SR is unstable for N >= 6"] == (False, ["N=6 DP=0.2"])
+    assert checks["DR is worse (J1) than DRH for DP >= 0.2 at every N >= 2"][0]
+    assert checks["DRHE J4 is within [0.05, 0.2] and below DRH's (stable cells, N >= 2)"][0]
+    ok, ex = checks["for a fixed case and N, J1 grows with DP (beyond the 95 % intervals)"]
+    assert not ok and any(e.startswith("DRH N=6: DP 0.2 -> 0.4") for e in ex)
+    # within the confidence intervals a drop is not a violation
+    for dp in (0.2, 0.4):
+        res[(p, 6, "DRH", dp)]["J1"]["ci95"] = 0.01
+        res[(p, 6, "DRHE", dp)]["J1"]["ci95"] = 0.01
+        res[(p, 6, "DR", dp)]["J1"]["ci95"] = 0.01
+    assert {s: ok for s, ok, _ in mg.trend_checks(res, p)}[
+        "for a fixed case and N, J1 grows with DP (beyond the 95 % intervals)"]

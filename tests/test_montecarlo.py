@@ -217,3 +217,34 @@ def test_run_batched_args_are_runtime_arguments():
     two = mc.run_batched(fn, keys, args=({"a": jnp.float32(2.0)},), chunk_size=4, progress=False)
     np.testing.assert_allclose(two, 2.0 * one, rtol=1e-6)
     assert mc._compiled(fn)._cache_size() == 1
+
+
+_SHARD_SCRIPT = r"""
+import sys, jax, numpy as np
+jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
+from jaxnc import montecarlo as mc
+def fn(key, gain):
+    def step(x, w):
+        x = 0.9 * x + gain * w
+        return x, x
+    return jax.lax.scan(step, 0.0, jax.random.normal(key, (50,)))[1]
+out = mc.run_batched(fn, mc.seed_keys(0, 37), args=(np.float32(0.5),), chunk_size=8, progress=False)
+np.save(sys.argv[2], out)
+print(len(jax.devices()))
+"""
+
+
+def test_run_batched_shards_over_devices(tmp_path):
+    """Two CPU devices: every chunk is split over both; same results as one device."""
+    import subprocess
+    import sys
+    outs = []
+    for n in (1, 2):
+        f = tmp_path / f"out{n}.npy"
+        r = subprocess.run([sys.executable, "-c", _SHARD_SCRIPT, str(n), str(f)], capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.strip() == str(n)
+        outs.append(np.load(f))
+    assert outs[0].shape == (37, 50)
+    np.testing.assert_allclose(outs[1], outs[0], rtol=1e-6, atol=1e-7)
