@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc import montecarlo
-from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
+from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.plants.mecanum import Mecanum, MecanumNoise
 from jaxnc.report import markdown_table
 from jaxnc.schemes import mecanum as mec
@@ -77,8 +77,9 @@ def numpy_ekf(plant, noise, steps, rng, p_drop=0.3):
     return x
 
 
-def jax_ekf(plant, noise, steps, p_drop=0.3):
+def jax_ekf(plant, noise, steps, p_drop=0.3, sequential=False):
     Q, R = noise.Q(), noise.R()
+    r = noise.measurement_std() ** 2
 
     def one(key):
         kd, kz = jax.random.split(key)
@@ -89,7 +90,7 @@ def jax_ekf(plant, noise, steps, p_drop=0.3):
             d, v = inp
             b = ekf_predict(plant.dynamics, b, jnp.full(4, 4.0), Q, 7)
             z = plant.measure(b.mean, v)
-            c = ekf_update(plant.measure, b, z, R, 9)
+            c = ekf_update_diag(plant.measure, b, z, r, 9) if sequential else ekf_update(plant.measure, b, z, R, 9)
             return jax.tree.map(lambda a, o: jnp.where(d, o, a), c, b), None
 
         b, _ = jax.lax.scan(step, Gaussian(jnp.zeros(6), jnp.eye(6) * 1e-3), (drop, vz))
@@ -105,52 +106,92 @@ def bench_ekf(batches, steps):
     t_np = _time(lambda: [numpy_ekf(plant, noise, steps, rng) for _ in range(n_np)], repeat=1)
     np_rate = n_np * steps / t_np
     rows = [["NumPy per-seed loop (float64)", "-", f"{np_rate:,.0f}", "1.0"]]
-    f = jax_ekf(plant, noise, steps)
-    for B in batches:
-        keys = montecarlo.seed_keys(0, B)
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(keys))
-        compile_s = time.perf_counter() - t0
-        t = _time(lambda: f(keys))
-        rate = B * steps / t
-        rows.append([f"jaxnc EKF jit(vmap(scan)) B={B}", f"{compile_s:.1f}", f"{rate:,.0f}", f"{rate / np_rate:.1f}"])
-    return markdown_table(["EKF steps (6 states, 9 outputs, 30 % drops)", "compile s", "steps/s", "x NumPy"], rows)
-
-
-def bench_loops(batches):
-    rows = []
-    cells = [("SR", 1, 0.0), ("SR", 10, 0.5), ("DR", 10, 0.5), ("DRH", 10, 0.5), ("DRHE", 10, 0.5)]
-    for case, N, dp in cells:
-        loop = mec.mecanum_loop(case, N, dp)
-        fn = lambda k, loop=loop: mec.run(loop, k)
+    for seq in (False, True):
+        f = jax_ekf(plant, noise, steps, sequential=seq)
+        name = "sequential scalar update" if seq else "Cholesky update"
         for B in batches:
             keys = montecarlo.seed_keys(0, B)
             t0 = time.perf_counter()
-            montecarlo.run_batched(fn, keys, chunk_size=max(B, 16), progress=False)
+            jax.block_until_ready(f(keys))
+            compile_s = time.perf_counter() - t0
+            t = _time(lambda: f(keys))
+            rate = B * steps / t
+            rows.append([f"jaxnc EKF, {name}, B={B}", f"{compile_s:.1f}", f"{rate:,.0f}", f"{rate / np_rate:.1f}"])
+    return markdown_table(["EKF steps (6 states, 9 outputs, 30 % drops)", "compile s", "steps/s", "x NumPy"], rows)
+
+
+def _cell(key, loop):
+    return mec.run(loop, key)
+
+
+def bench_loops(batches):
+    """Closed loops through run_batched with the configuration as a runtime argument:
+    one compilation per N serves every case (the grid experiment's path)."""
+    rows = []
+    cells = [("SR", 1, 0.0), ("SR", 10, 0.5), ("DR", 10, 0.5), ("DRH", 10, 0.5), ("DRHE", 10, 0.5), ("DRHE", 1, 0.5)]
+    for case, N, dp in cells:
+        loop = mec.mecanum_loop(case, N, dp)
+        for B in batches:
+            keys = montecarlo.seed_keys(0, B)
+            run = lambda: montecarlo.run_batched(_cell, keys, args=(loop,), chunk_size=B, progress=False)
+            t0 = time.perf_counter()
+            run()
             first = time.perf_counter() - t0
-            t = _time(lambda: montecarlo.run_batched(fn, keys, chunk_size=max(B, 16), progress=False), repeat=2)
-            rows.append([f"{case} N={N} DP={dp} h={loop.h}", B, f"{first - t:.1f}", f"{t:.2f}",
+            t = _time(run, repeat=2)
+            rows.append([f"{case} N={N} DP={dp} h={int(loop.h)}", B, f"{max(first - t, 0.0):.1f}", f"{t:.2f}",
                          f"{B * loop.steps / t:,.0f}"])
     return markdown_table(["closed loop (Lissajous)", "seeds", "compile s", "run s", "seed-steps/s"], rows)
+
+
+def bench_grad(B=64):
+    """Cost of value_and_grad of a Monte-Carlo objective against the forward pass alone."""
+    import dataclasses
+    loop = mec.mecanum_loop("DRHE", 10, 0.3, trigger_temperature=0.05)
+    keys = montecarlo.seed_keys(0, B)
+
+    def objective(delta, kp):
+        lp = dataclasses.replace(loop, trigger=dataclasses.replace(loop.trigger, delta=delta),
+                                 follower=dataclasses.replace(loop.follower, Kp=kp))
+        return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(lp, k))(keys))
+
+    args = (jnp.asarray(loop.trigger.delta), jnp.asarray(loop.follower.Kp))
+    fwd = jax.jit(objective)
+    both = jax.jit(jax.value_and_grad(objective, argnums=(0, 1)))
+    rows = []
+    for name, f in (("forward", fwd), ("value_and_grad", both)):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        c = time.perf_counter() - t0
+        t = _time(lambda: f(*args))
+        rows.append([name, f"{c:.1f}", f"{t:.2f}"])
+    ratio = float(rows[1][2]) / float(rows[0][2])
+    rows.append(["ratio grad / forward", "", f"{ratio:.2f}"])
+    return markdown_table([f"DRHE N=10 DP=0.3, mean tracking cost over {B} seeds", "compile s", "run s"], rows)
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="smaller batches")
+    ap.add_argument("--full", action="store_true", help="also B = 10 000")
     ap.add_argument("--no-record", action="store_true", help="do not append to RESULTS.md")
+    ap.add_argument("--cpu-devices", type=int, default=1, help="split the CPU into this many JAX devices")
     a = ap.parse_args()
-    batches = [1, 100] if a.quick else [1, 100, 1000]
+    if a.cpu_devices > 1:
+        jax.config.update("jax_num_cpu_devices", a.cpu_devices)
+    batches = [1, 100] if a.quick else ([1, 100, 1000, 10000] if a.full else [1, 100, 1000])
     ekf = bench_ekf(batches, steps=2000)
     print(ekf, flush=True)
     loops = bench_loops(batches)
     print(loops, flush=True)
+    grad = bench_grad()
+    print(grad, flush=True)
     if not a.no_record:
-        cmd = "python benchmarks/bench_mecanum.py" + (" --quick" if a.quick else "")
+        cmd = "python benchmarks/bench_mecanum.py" + " ".join(a for a in sys.argv[1:])
         head = (f"\n## {datetime.date.today()} — `{cmd}`\n\n"
                 f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}; "
                 f"jax {jax.__version__}, backend {jax.default_backend()}, Python {sys.version.split()[0]}\n\n")
         with open(HERE / "RESULTS.md", "a") as f:
-            f.write(head + ekf + "\n\n" + loops + "\n")
+            f.write(head + f"Devices: {len(jax.devices())}\n\n" + ekf + "\n\n" + loops + "\n\n" + grad + "\n")
 
 
 if __name__ == "__main__":

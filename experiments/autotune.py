@@ -125,17 +125,22 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
     for w in weights:
         loss = mecanum_loss_fn(loop, j1_nom, w, settings["estimator"])
         opt = optax.adam(settings["lr"])
-        tr = tune(loss, paper, {"sigma": Positive(), "delta": Positive()}, steps=steps, batch=batch, optimizer=opt,
-                  estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
-                  seed=settings["seed"], progress=progress, desc=f"tune w={w:g}")
         gs = search(grid_fn, grid(s=s_axis, d=d_axis, w=(w,)), grid_keys, progress=progress, desc=f"grid w={w:g}")
         gbest = {"sigma": gs.best_point["s"] * paper["sigma"], "delta": np.full(9, gs.best_point["d"], np.float32)}
+        # "grid": refine the grid's best point by gradient (the grid sees instability, the
+        # gradient does not); the tuned point then used both budgets
+        start = gbest if settings["init"] == "grid" else paper
+        tr = tune(loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]},
+                  {"sigma": Positive(), "delta": Positive()}, steps=steps, batch=batch, optimizer=opt,
+                  estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
+                  seed=settings["seed"], progress=progress, desc=f"tune w={w:g}")
         evs = {name: evaluate(eval_fn, {**p, "w": w}, eval_keys, chunk_size=chunk)
                for name, p in (("paper", paper), ("grid", gbest), ("tuned", tr.params))}
         summ = {n: _summ(e) for n, e in evs.items()}
         diff = {f"tuned-{n}": dict(zip(("mean", "ci95"), paired_ci(evs["tuned"]["loss"], evs[n]["loss"])))
                 for n in ("paper", "grid")}
-        sims = {"paper": 0, "grid": gs.n_simulations, "tuned": tr.n_simulations}
+        sims = {"paper": 0, "grid": gs.n_simulations,
+                "tuned": tr.n_simulations + (gs.n_simulations if settings["init"] == "grid" else 0)}
         results[f"w={w:g}"] = {
             "summary": summ, "paired_differences": diff, "simulations": sims,
             "tuned": {k: v.tolist() for k, v in tr.params.items()},
@@ -349,6 +354,8 @@ register(Experiment(
         Option("t0", "float", 1.0, "initial trigger temperature", low=1e-6, high=1e6),
         Option("t1", "float", 0.1, "final trigger temperature", low=1e-6, high=1e6),
         Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),
+        Option("init", "choice", "paper", "gradient start: the paper's thresholds or the grid's best",
+               choices=("paper", "grid")),
         *COMMON,
     ),
     run=run_mecanum,

@@ -158,7 +158,7 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
         value, grads = value_and_grad(raw, keys, temp)
         grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)   # divergence is data
         updates, opt_state = optimizer.update(grads, opt_state, raw)
-        gnorm = optax.global_norm(grads)
+        gnorm = optax.tree.norm(grads)
         return optax.apply_updates(raw, updates), opt_state, value, gnorm
 
     t0 = time.perf_counter()

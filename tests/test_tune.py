@@ -1,0 +1,202 @@
+"""jaxnc.tune: event-gradient estimators, optax tuning, Monte-Carlo search."""
+import dataclasses
+import math
+import sys
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from jaxnc import montecarlo
+from jaxnc.controllers.pi import pi_step
+from jaxnc.triggers import PetcTrigger, hold_last_sent
+from jaxnc.tune import (Interval, Positive, RelaxedPetcTrigger, bernoulli_fires, constrain, grid, mean_ci,
+                        paired_ci, random_points, relax_trigger, score_grad, score_surrogate, search, tune,
+                        unconstrain)
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
+
+
+# ----------------------------------------------------------------------------- a toy networked loop
+
+
+def toy_cost(params, key, *, steps=60, w=0.5, temperature=0.05):
+    """Scalar plant x+ = 1.02 x + 0.1 u + n, PI control (pi_step) on a PETC-sampled
+    output (RelaxedPetcTrigger, seed 000 eq. 3-4): mean x^2 + w * mean(beta)."""
+    trig = RelaxedPetcTrigger(sigma=params["sigma"], delta=params["delta"], temperature=temperature)
+    dt = params["Kp"].dtype
+    noise = 0.05 * jax.random.normal(key, (steps,), dt)
+
+    def step(c, n):
+        x, zbar, integ = c
+        z = jnp.reshape(x + 0.2, (1,))          # offset: the relative term sigma z^2 matters
+        beta = trig.fires(zbar, z)
+        zbar = hold_last_sent(beta, z, zbar)
+        u, integ = pi_step(params["Kp"], params["Ki"], integ, -(zbar[0] - 0.2), 0.1)
+        x = 1.02 * x + 0.1 * u + n
+        return (x, zbar, integ), (x * x, beta)
+
+    c0 = (jnp.asarray(1.0, dt), jnp.asarray([1.2], dt), jnp.asarray(0.0, dt))
+    _, (x2, beta) = jax.lax.scan(step, c0, noise)
+    return jnp.mean(x2) + w * jnp.mean(beta)
+
+
+def test_relaxed_gradient_matches_central_differences_float64():
+    """d/d(delta, sigma, Kp) of the relaxed objective == central finite differences (rel. err < 1e-2)."""
+    with jax.enable_x64(True):
+        p0 = {"sigma": jnp.asarray([0.05]), "delta": jnp.asarray([0.02]), "Kp": jnp.asarray(2.0),
+              "Ki": jnp.asarray(1.0)}
+        keys = montecarlo.seed_keys(0, 4)
+        f = jax.jit(lambda p: jnp.mean(jax.vmap(lambda k: toy_cost(p, k))(keys)))
+        g = jax.jit(jax.grad(f))(p0)
+        for name in ("delta", "sigma", "Kp"):
+            h = 1e-5 * max(1.0, float(jnp.abs(p0[name]).max()))
+            up = {**p0, name: p0[name] + h}
+            dn = {**p0, name: p0[name] - h}
+            fd = (f(up) - f(dn)) / (2 * h)
+            ad = jnp.sum(g[name])
+            assert abs(float(fd)) > 1e-4, f"{name}: the objective must depend on it"
+            assert abs(float(ad - fd)) / abs(float(fd)) < 1e-2, (name, float(ad), float(fd))
+
+
+def test_relaxed_trigger_approaches_hard_trigger_and_straight_through_is_exact_forward():
+    z_last, z = jnp.asarray([0.0, 1.0]), jnp.asarray([0.5, 1.1])
+    hard = PetcTrigger(sigma=jnp.asarray([0.1, 0.1]), delta=jnp.asarray([0.01, 0.01]))
+    gap = float(hard.gap(z_last, z))
+    assert gap > 0 and float(hard.fires(z_last, z)) == 1.0
+    soft = [float(relax_trigger(hard, "sigmoid", t).fires(z_last, z)) for t in (1.0, 0.1, 0.01)]
+    assert soft[0] < soft[1] < soft[2] and soft[2] > 0.99 and abs(soft[0] - 1 / (1 + math.exp(-gap))) < 1e-6
+    st = relax_trigger(hard, "straight_through", 0.1)
+    assert float(st.fires(z_last, z)) == 1.0
+    dst = jax.grad(lambda d: dataclasses.replace(st, delta=d).fires(z_last, z))(hard.delta)
+    s = 1 / (1 + math.exp(-gap / 0.1))
+    np.testing.assert_allclose(dst, -s * (1 - s) / 0.1 * np.ones(2), rtol=1e-5)
+    with pytest.raises(ValueError, match="temperature"):
+        RelaxedPetcTrigger(sigma=0.1, delta=0.1, temperature=0.0)
+    with pytest.raises(ValueError, match="estimator"):
+        relax_trigger(hard, "magic", 0.1)
+
+
+def test_bernoulli_score_function_is_unbiased_on_a_toy():
+    """E[(beta - c)^2] with beta ~ Bernoulli(s(g(theta)/tau)), g = theta - 0.3: d/dtheta is
+    s'(.)/tau ((1 - c)^2 - c^2) in closed form; REINFORCE with a leave-one-out baseline must
+    match within 4 standard errors, and differ from the zero of the straight-through-free step."""
+    tau, c, theta, n = 0.5, 0.8, 0.1, 20000
+
+    def estimates(theta, key):
+        keys = jax.random.split(key, n)
+        def one(k):
+            beta, logp = bernoulli_fires(k, theta - 0.3, tau)
+            return (beta - c) ** 2, logp
+        costs, _ = jax.vmap(one)(keys)
+        baseline = (jnp.sum(costs) - costs) / (n - 1)        # leave-one-out: independent of sample i
+        def surrogate(th, k, b):
+            beta, logp = bernoulli_fires(k, th - 0.3, tau)
+            return score_surrogate((beta - c) ** 2, logp, b)
+        return jax.vmap(jax.grad(surrogate), in_axes=(None, 0, 0))(theta, keys, baseline)
+
+    g = np.asarray(jax.jit(estimates)(jnp.float32(theta), jax.random.PRNGKey(3)), np.float64)
+    p = 1 / (1 + math.exp(-(theta - 0.3) / tau))
+    exact = p * (1 - p) / tau * ((1 - c) ** 2 - c ** 2)
+    se = g.std(ddof=1) / math.sqrt(n)
+    assert abs(g.mean() - exact) < 4 * se, (g.mean(), exact, se)
+    assert abs(exact) > 10 * se                                # the test can tell a wrong sign / zero
+
+
+def test_gaussian_score_grad_is_unbiased_for_the_smoothed_objective():
+    """f(x) = sum (x - m)^2 + x_0^4: E f(mu + s e) has gradient 2(mu - m) + 4 mu_0^3 + 12 s^2 mu_0."""
+    m = jnp.asarray([0.3, -0.2, 1.0])
+    mu = jnp.asarray([0.5, 0.1, 0.4])
+    s = 0.3
+    f = lambda x, k: jnp.sum((x - m) ** 2) + x[0] ** 4 + 0.0 * jax.random.normal(k)
+    reps = 400
+    gs = jax.jit(jax.vmap(lambda k: score_grad(f, mu, k, 64, s)[1]))(jax.random.split(jax.random.PRNGKey(0), reps))
+    gs = np.asarray(gs, np.float64)
+    exact = np.asarray(2 * (mu - m)) + np.asarray([4 * mu[0] ** 3 + 12 * s ** 2 * mu[0], 0, 0])
+    se = gs.std(axis=0, ddof=1) / math.sqrt(reps)
+    assert np.all(np.abs(gs.mean(axis=0) - exact) < 4 * se + 1e-6), (gs.mean(axis=0), exact, se)
+
+
+def test_reparametrisation_round_trips_and_respects_bounds():
+    cons = {"a": Positive(), "b": Interval(-1.0, 2.0), "c": Positive(low=0.5)}
+    p = {"a": np.asarray([0.01, 1.0, 30.0]), "b": np.asarray(0.7), "c": np.asarray(0.9)}
+    back = constrain(unconstrain(p, cons), cons)
+    for k in p:
+        np.testing.assert_allclose(back[k], p[k], rtol=1e-4)
+    extreme = constrain({"a": jnp.asarray(-50.0), "b": jnp.asarray(50.0), "c": jnp.asarray(-50.0)}, cons)
+    assert float(extreme["a"]) >= 0 and float(extreme["b"]) <= 2.0 and float(extreme["c"]) >= 0.5
+    with pytest.raises(ValueError, match="not tuned"):
+        unconstrain({"a": 1.0}, {"zz": Positive()})
+
+
+@pytest.mark.parametrize("estimator", ["straight_through", "score"])
+def test_tuning_a_noisy_quadratic_recovers_the_optimum(estimator):
+    """loss = (delta - 0.4)^2 + (Kp - 2)^2 * (1 + 0.5 n), n ~ N(0, 1) per seed: the optimum
+    (0.4, 2) must be found within what the averaged stochastic iterates allow."""
+    def loss(p, key, temperature):
+        n = jax.random.normal(key)
+        return (p["delta"] - 0.4) ** 2 + (p["Kp"] - 2.0) ** 2 * (1 + 0.5 * n) + 0.1 * n
+
+    res = tune(loss, {"delta": 0.05, "Kp": 0.5}, {"delta": Positive(), "Kp": Positive()}, steps=300, batch=8,
+               optimizer=optax.adam(0.05), estimator=estimator, progress=False, score_scale=0.05)
+    assert abs(float(res.params["delta"]) - 0.4) < 0.05
+    assert abs(float(res.params["Kp"]) - 2.0) < 0.05
+    assert res.history.objective.shape == (300,) and res.history.objective[-20:].mean() < res.history.objective[:5].mean()
+    assert res.n_simulations == 300 * 8
+    assert res.history.params["Kp"].shape == (300,)
+
+
+def test_grid_search_with_common_random_numbers_finds_the_best_point():
+    """per_seed = (x - 0.62)^2 + y + 3 n (n shared by all candidates via the key): with CRN the
+    noise cancels in comparisons, so the closest grid point wins even with few seeds."""
+    def per_seed(p, key):
+        n = jax.random.normal(key)
+        return (p["x"] - 0.62) ** 2 + p["y"] + 3.0 * n
+
+    pts = grid(x=np.linspace(0, 1, 11), y=(0.0, 0.5))
+    assert len(pts) == 22 and pts[1] == {"x": 0.0, "y": 0.5}
+    keys = montecarlo.seed_keys(0, 16)
+    res = search(per_seed, pts, keys, progress=False)
+    assert res.best_point["y"] == 0.0 and abs(res.best_point["x"] - 0.6) < 1e-6
+    assert res.n_simulations == 22 * 16 and res.values.shape == (22, 16)
+    # the interval of the best mean covers its expectation (0.02^2); paired differences are exact
+    assert abs(res.best_mean - 0.0004) < res.best_ci95 * 2.5
+    d, ci = paired_ci(res.values[res.best], res.values[0])
+    assert abs(d - (0.02 ** 2 - 0.62 ** 2)) < 1e-5 and ci < 1e-5
+
+
+def test_random_points_and_mean_ci():
+    pts = random_points(1, 200, a=(0.01, 1.0, "log"), k=(2, 5, "int"), u=(-1.0, 1.0))
+    a = np.asarray([p["a"] for p in pts])
+    k = np.asarray([p["k"] for p in pts])
+    assert a.min() >= 0.01 and a.max() <= 1.0 and np.median(np.log10(a)) == pytest.approx(-1.0, abs=0.2)
+    assert set(k) == {2, 3, 4, 5} and all(isinstance(p["k"], int) for p in pts)
+    m, ci = mean_ci(np.arange(100.0))
+    assert m == 49.5 and ci == pytest.approx(1.96 * np.arange(100.0).std(ddof=1) / 10)
+    with pytest.raises(ValueError, match="log"):
+        random_points(0, 3, a=(0.0, 1.0, "log"))
+
+
+def test_pi_state_space_matches_the_paper_design():
+    """experiments.autotune.pi_ss == DiscreteSS.from_tf(single_rate_pi) (eq. 30-31)."""
+    from experiments.autotune import pi_ss
+    from jaxnc.design.dualrate import DiscreteSS, single_rate_pi
+    for Ts in (0.1, 0.2):
+        ref = DiscreteSS.from_tf(single_rate_pi(6.0, 0.12, Ts))
+        ours = pi_ss(6.0, 50.0, Ts)
+        for f in ("A", "B", "C", "D"):
+            np.testing.assert_allclose(getattr(ours, f), getattr(ref, f), rtol=1e-6)
+
+
+def test_experiment_options_are_validated_before_tracing():
+    from experiments import autotune  # noqa: F401  (registers)
+    from jaxnc.experiment import ConfigError, get_experiment
+    exp = get_experiment("autotune-mecanum")
+    with pytest.raises(ConfigError, match="estimator"):
+        exp.parse_settings(["estimator=magic"])
+    with pytest.raises(ConfigError, match="dp"):
+        exp.parse_settings(["dp=1.5"])
+    assert get_experiment("autotune-pi").parse_settings(["scenario=a"])["scenario"] == "a"
