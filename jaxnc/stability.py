@@ -205,13 +205,19 @@ _LOWER = ("h_lo", "l_lo", "p_lo", "q_lo", "p_order")
 _MEAN = ("lam", "gamma")
 
 
+def _gram_eigs(X):
+    # singular values^2 of X from the smaller Gram matrix (eigvalsh, not an SVD call)
+    G = jnp.swapaxes(X, -1, -2) @ X if X.shape[-2] >= X.shape[-1] else X @ jnp.swapaxes(X, -1, -2)
+    return jnp.maximum(jnp.linalg.eigvalsh(G), 0.0)
+
+
 def _smax(X):
-    return jnp.linalg.svd(X, compute_uv=False)[..., 0]
+    return jnp.sqrt(_gram_eigs(X)[..., -1])
 
 
 def _smin(X):
-    # min(m, n) singular values: sigma_min of a tall H (full column rank) or of a wide L (L L' > 0)
-    return jnp.linalg.svd(X, compute_uv=False)[..., -1]
+    # sigma_min of a tall H (full column rank) or of a wide L (L L' > 0)
+    return jnp.sqrt(_gram_eigs(X)[..., 0])
 
 
 def measure_bounds(rec: FilterRecord, Q, R, mask=None) -> Bounds:
