@@ -41,7 +41,8 @@ def loop_config(loop: mec.MecanumLoop) -> dict:
 def build_loops(settings: dict) -> dict[str, mec.MecanumLoop]:
     """Validated configurations (a bad combination is a ConfigError, before any tracing)."""
     cases = mec.CASES if settings["case"] == "all" else (settings["case"],)
-    kw = dict(path=settings["path"], sigma=settings["sigma"], delta=settings["delta"])
+    kw = dict(path=settings["path"], sigma=settings["sigma"], delta=settings["delta"],
+              follower_kw=dict(L_ref=settings["L_ref"]))
     try:
         loops = {"SR nominal": mec.mecanum_loop("SR", 1, 0.0, **kw)}
         for c in cases:
@@ -158,6 +159,7 @@ EXPERIMENT = register(Experiment(
         Option("h", "int", 0, "prediction horizon in slow periods (0: the documented default rule)", low=0, high=200),
         Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
+        Option("L_ref", "float", 0.15, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,

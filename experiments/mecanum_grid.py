@@ -118,6 +118,7 @@ def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path:
     """What a cell's result depends on; a stored cell is reused only if this matches."""
     return {"case": case, "N": N, "dp": dp, "path": path, "h": h, "seeds": seeds, "seed": settings["seed"],
             "chunk": settings["chunk"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
+            "L_ref": settings["L_ref"],
             "devices": len(jax.devices()), "version": _version()}
 
 
@@ -189,7 +190,8 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
     for cell in cells:
         p, N, case, dp = cell
         try:
-            loop = mec.mecanum_loop(case, N, dp, p, sigma=settings["sigma"], delta=settings["delta"])
+            loop = mec.mecanum_loop(case, N, dp, p, sigma=settings["sigma"], delta=settings["delta"],
+                                    follower_kw=dict(L_ref=settings["L_ref"]))
         except ValueError as e:
             raise ConfigError(str(e)) from None
         loops[cell] = loop
@@ -457,6 +459,7 @@ EXPERIMENT = register(Experiment(
         Option("path", "choice", "all", "reference path", choices=(*PATHS, "all")),
         Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
+        Option("L_ref", "float", 0.15, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
         Option("chunk", "int", 1000, "seeds per compiled batch (memory vs speed)", low=1, high=100_000),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
