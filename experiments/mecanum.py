@@ -46,7 +46,8 @@ def build_loops(settings: dict) -> dict[str, mec.MecanumLoop]:
     try:
         loops = {"SR nominal": mec.mecanum_loop("SR", 1, 0.0, **kw)}
         for c in cases:
-            loops[c] = mec.mecanum_loop(c, settings["N"], settings["dp"], h=settings["h"] or None, **kw)
+            loops[c] = mec.mecanum_loop(c, settings["N"], settings["dp"], h=settings["h"] or None,
+                                        max_silence=settings["max_silence"], **kw)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     return loops
@@ -160,6 +161,7 @@ EXPERIMENT = register(Experiment(
         Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
         Option("L_ref", "float", 0.15, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
+        Option("max_silence", "int", 0, "DRHE: also send after this many silent slow periods (0 = off, as the paper)", low=0, high=100_000),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,

@@ -133,3 +133,16 @@ def test_default_horizon_rule():
     # the longest run of silent slow periods reaches h with probability <= 5 %
     assert 1 - np.exp(-n * (1 - q) * q ** (h - 1)) <= 0.05 + 1e-9
     assert mec.default_h("DRHE", 10, 0.0, n) * 10 >= 100
+
+
+def test_time_triggered_safety_condition_bounds_sensor_silence():
+    """With thresholds the sensor never crosses, eq. 4 alone sends only the first sample;
+    max_silence = 5 makes it send every 5th slow period."""
+    kw = dict(horizon_s=SHORT, sigma=0.0, delta=1e6)
+    key = jax.random.PRNGKey(4)
+    sim = jax.jit(mec.simulate)
+    silent = sim(mec.mecanum_loop("DRHE", 2, 0.0, **kw), key).sent
+    safe = sim(mec.mecanum_loop("DRHE", 2, 0.0, max_silence=5, **kw), key).sent
+    n = len(safe)
+    assert float(silent.sum()) == 1.0
+    np.testing.assert_array_equal(np.flatnonzero(np.asarray(safe)), np.arange(0, n, 5))

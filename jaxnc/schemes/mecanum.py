@@ -124,6 +124,10 @@ class MecanumLoop:
     max_dev: jax.Array = 0.5       # m; leaving this tube around the path = unstable
     end_tol: jax.Array = 0.1       # m; the path is complete within this of its end
     scheme: jax.Array = 3          # index into CASES (SR, DR, DRH, DRHE)
+    # DRHE only: the sensor also sends when it has been silent for this many slow
+    # periods (a time-triggered safety condition like seed 003 eq. 7; not in seed 000,
+    # whose eq. 4 alone lets a resting robot's sensor fall silent for good). 0 = off.
+    max_silence: jax.Array = 0
     h: jax.Array = 1               # prediction horizon in slow periods: h*N actions per packet
     N: int = dataclasses.field(default=1, metadata=dict(static=True))
     steps: int = dataclasses.field(default=100, metadata=dict(static=True))
@@ -135,6 +139,7 @@ class MecanumLoop:
             raise ValueError(f"MecanumLoop.steps must be a multiple of N={self.N}, got {self.steps}")
         check_range("MecanumLoop.scheme", self.scheme, 0, len(CASES) - 1)
         check_range("MecanumLoop.h", self.h, 1, 1000)
+        check_range("MecanumLoop.max_silence", self.max_silence, 0, 100_000)
         check_range("MecanumLoop.tau_max", self.tau_max, 0.0, self.N * self.plant.T * (1 + 1e-6), low_open=True)
 
     @property
@@ -172,7 +177,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
                  tau_max: float | None = None, noise: MecanumNoise | None = None,
                  filter_noise: MecanumNoise | None = None,
                  plant: Mecanum | None = None, follower_kw: dict | None = None,
-                 trigger_temperature: float = 0.0, horizon_s: float | None = None) -> MecanumLoop:
+                 trigger_temperature: float = 0.0, horizon_s: float | None = None,
+                 max_silence: int = 0) -> MecanumLoop:
     """Build a validated configuration with the paper's defaults (section 4.1).
 
     ``dp`` is the dropout probability of both directions, DP = p_sc = p_ca.
@@ -192,6 +198,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         n_slow = math.ceil(float(p.length) / float(follower.V_ref) / (N * plant.T))
         h = default_h(case, N, float(dp), n_slow)
     check_int("h", h, 1, 1000)
+    check_int("max_silence", max_silence, 0, 100_000)
     sigma = np.asarray(DEFAULT_SIGMA if sigma is None else sigma, np.float32)
     delta = np.asarray(PAPER_DELTA if delta is None else delta, np.float32)
     for name, v in (("sigma", sigma), ("delta", delta)):
@@ -209,7 +216,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
         sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
         P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
-        scheme=np.int32(CASES.index(case)), h=np.int32(h), N=N, steps=steps)
+        scheme=np.int32(CASES.index(case)), h=np.int32(h), max_silence=np.int32(max_silence), N=N, steps=steps)
 
 
 class Draws(NamedTuple):
@@ -265,6 +272,7 @@ def _keep_or_replace(flag, new, old):
 class _Carry(NamedTuple):
     x: jax.Array
     z_last: jax.Array
+    silent: jax.Array           # slow periods since the sensor last sent (int32)
     belief: Gaussian
     sent: PacketChain           # the last packet the remote side sent (its belief of the actions)
     act: PacketChain            # the packet the actuator is applying
@@ -320,8 +328,12 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
         # 1. sensor, PETC (eq. 3-4)
         z = plant.measure(c.x, v_k)
         petc = (k > 0) & loop.event_triggered
-        beta = jnp.where(petc, loop.trigger.fires(c.z_last, z), jnp.ones((), dtype))
+        fires = loop.trigger.fires(c.z_last, z)
+        due = (loop.max_silence > 0) & (c.silent + 1 >= loop.max_silence)   # safety condition
+        fires = jnp.where(due, jnp.ones((), dtype), fires)
+        beta = jnp.where(petc, fires, jnp.ones((), dtype))
         z_last = hold_last_sent(beta, z, c.z_last)
+        silent = jnp.where(beta > 0.5, 0, c.silent + 1).astype(jnp.int32)
         rec = beta * (1.0 - sc_lost_k.astype(dtype))
         # 2. remote: correction (eq. 13) and a new packet (section 3.3.1) that continues
         #    the controller state its last packet predicted for this instant
@@ -355,12 +367,12 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
         fc, (xs, means, uapp, dist) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
         x, belief, sent, act, idx_true, done, l, bad = fc
         pending_ok = arr * (d_k >= N).astype(dtype)
-        return (_Carry(x, z_last, belief, sent, act, pending_ok, idx_true, done, l, bad),
+        return (_Carry(x, z_last, silent, belief, sent, act, pending_ok, idx_true, done, l, bad),
                 (xs, means, uapp, dist, beta, rec, arr))
 
     u0 = jnp.zeros((INPUT_DIM,), dtype)
     idle = exhausted_chain(x0, u0, fol.init(), H)   # applies zero until the first packet
-    carry0 = _Carry(x0, plant.measure(x0, jnp.zeros(OUTPUT_DIM, dtype)), belief0, idle, idle,
+    carry0 = _Carry(x0, plant.measure(x0, jnp.zeros(OUTPUT_DIM, dtype)), jnp.zeros((), jnp.int32), belief0, idle, idle,
                     jnp.zeros((), dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
                     jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
     n_slow = K // N
