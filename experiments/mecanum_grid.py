@@ -45,7 +45,7 @@ from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
-from .mecanum import UNSTABLE_CELL
+from .mecanum import UNSTABLE_CELL, uniform_dtypes
 
 INF = math.inf
 GRID_N = tuple(range(1, 13))
@@ -138,17 +138,7 @@ def _load_cell(f: Path, config: dict) -> dict | None:
     return data if stored == config else None
 
 
-def _uniform_dtypes(loop):
-    """float32 / int32 leaves, so that every cell of a (path, N) has the same argument
-    types and reuses one compiled program."""
-    def conv(x):
-        a = np.asarray(x)
-        if a.dtype.kind == "f":
-            return a.astype(np.float32)
-        if a.dtype.kind in "iu":
-            return a.astype(np.int32)
-        return a
-    return jax.tree.map(conv, loop)
+_uniform_dtypes = uniform_dtypes   # float32 / int32 leaves: one program per (path, N)
 
 
 def _cell_metrics(key, loop):
