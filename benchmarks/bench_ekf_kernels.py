@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxnc.estimators import ekf as old
 from jaxnc.estimators import ekf_batched as new
-from jaxnc.plants.mecanum import Mecanum, MecanumNoise, OUTPUT_DIM, PROCESS_NOISE_DIM
+from jaxnc.plants.mecanum import OUTPUT_DIM, PROCESS_NOISE_DIM, Mecanum, MecanumNoise
 from jaxnc.report import markdown_table
 
 
