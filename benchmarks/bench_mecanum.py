@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc import montecarlo
+from jaxnc.experiments.mecanum import run_seed
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.plants.mecanum import Mecanum, MecanumNoise
 from jaxnc.report import markdown_table
@@ -120,10 +121,6 @@ def bench_ekf(batches, steps):
     return markdown_table(["EKF steps (6 states, 9 outputs, 30 % drops)", "compile s", "steps/s", "x NumPy"], rows)
 
 
-def _cell(key, loop):
-    return mec.run(loop, key)
-
-
 def bench_loops(batches):
     """Closed loops through run_batched with the configuration as a runtime argument:
     one compilation per N serves every case (the grid experiment's path)."""
@@ -133,7 +130,7 @@ def bench_loops(batches):
         loop = mec.mecanum_loop(case, N, dp)
         for B in batches:
             keys = montecarlo.seed_keys(0, B)
-            run = lambda: montecarlo.run_batched(_cell, keys, args=(loop,), chunk_size=B, progress=False)
+            run = lambda: montecarlo.run_batched(run_seed, keys, args=(loop,), chunk_size=B, progress=False)
             t0 = time.perf_counter()
             run()
             first = time.perf_counter() - t0

@@ -51,8 +51,10 @@ def uniform_dtypes(loop):
     return jax.tree.map(conv, loop)
 
 
-def _run_one(key, loop):
-    """Per-seed function (module level: one cached compilation per loop structure)."""
+def run_seed(key, loop):
+    """Per-seed metrics with the configuration as an argument: the function the seed-000
+    experiments hand to ``run_batched(..., args=(loop,))`` (module level, so one compiled
+    program per loop structure is cached and shared)."""
     return mec.run(loop, key)
 
 
@@ -150,7 +152,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     for name, loop in loops.items():
         # the configuration is a runtime argument: the cases of one N share a compilation
         results[name] = montecarlo.run_batched(
-            _run_one, keys, args=(uniform_dtypes(loop),), progress=progress,
+            run_seed, keys, args=(uniform_dtypes(loop),), progress=progress,
             desc=f"{name:>10} N={loop.N} DP={float(loop.sc.p_loss):.2f} h={int(loop.h)}")
     summary = summarise(results)
     print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}")

@@ -45,7 +45,7 @@ from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
-from .mecanum import UNSTABLE_CELL, uniform_dtypes
+from .mecanum import UNSTABLE_CELL, run_seed, uniform_dtypes
 
 INF = math.inf
 GRID_N = tuple(range(1, 13))
@@ -138,14 +138,6 @@ def _load_cell(f: Path, config: dict) -> dict | None:
     return data if stored == config else None
 
 
-_uniform_dtypes = uniform_dtypes   # float32 / int32 leaves: one program per (path, N)
-
-
-def _cell_metrics(key, loop):
-    """Per-seed function of the grid (module level: one cached compilation per structure)."""
-    return mec.run(loop, key)
-
-
 def _summary(m: mec.Metrics) -> dict:
     unstable = np.asarray(m.unstable)
     rate = np.asarray(m.tx_sc, float) / np.asarray(m.l, float)
@@ -200,7 +192,7 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
             p, N, case, dp = cell
             bar.set_postfix_str(f"{p} N={N} {case} DP={dp:.1f}")
             tc = time.perf_counter()
-            m = montecarlo.run_batched(_cell_metrics, keys, args=(_uniform_dtypes(loops[cell]),),
+            m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[cell]),),
                                        chunk_size=min(settings["chunk"], seeds), progress=False)
             wall = time.perf_counter() - tc
             f = cell_file(out, p, N, case, dp)

@@ -24,7 +24,7 @@ import scipy.signal
 
 from jaxnc._validate import check_positive, check_range
 
-__all__ = ["Dob", "DobState", "dob_design", "dob_init", "dob_step", "rigid_nominal"]
+__all__ = ["Dob", "DobState", "dob_design", "dob_init", "dob_output", "dob_update", "rigid_nominal"]
 
 
 @jax.tree_util.register_dataclass

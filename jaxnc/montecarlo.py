@@ -67,14 +67,11 @@ _COMPILED: "weakref.WeakKeyDictionary[Callable, Callable]" = weakref.WeakKeyDict
 
 def _compiled(fn: Callable) -> Callable:
     try:
+        ref = weakref.ref(fn)
         return _COMPILED[fn]
     except KeyError:
         pass
     except TypeError:                       # not hashable / not weak-referenceable: no cache
-        return jax.jit(jax.vmap(lambda key, args: fn(key, *args), in_axes=(0, None)))
-    try:
-        ref = weakref.ref(fn)
-    except TypeError:
         return jax.jit(jax.vmap(lambda key, args: fn(key, *args), in_axes=(0, None)))
 
     def call(key, args):

@@ -4,7 +4,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.linalg
 
 from jaxnc import wifi
 from jaxnc.controllers.hold_lq import dlqr, hold_lq_gain

@@ -1,5 +1,4 @@
 """The seed-000 grid experiment: resumable cell by cell, identical tables after an interruption."""
-import json
 
 import numpy as np
 import pytest

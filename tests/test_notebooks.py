@@ -6,7 +6,6 @@ mode is not quick enough for the default suite are listed in SLOW and marked slo
 long a quick mode takes is measured, not asserted: `pytest --durations`.)
 """
 import json
-import os
 import pathlib
 
 import matplotlib

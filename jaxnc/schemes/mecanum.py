@@ -43,10 +43,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_int, check_range
-from jaxnc.controllers.path_following import FollowerState, PathFollower
+from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
 from jaxnc.estimators.nudrekf import PacketChain, advance_chain, exhausted_chain, nudrekf_correct, start_chain
-from jaxnc.metrics import J1, J2, distance_to_path, local_distance
+from jaxnc.metrics import J1, J2, local_distance
 from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
@@ -394,16 +394,6 @@ class Metrics(NamedTuple):
     tx_ca: jax.Array      # controller transmissions up to completion
     l: jax.Array          # fast steps to completion
     unstable: jax.Array   # bool
-
-
-def path_distance(loop: MecanumLoop, traj: Trajectory, block: int = 64):
-    """Distance from the robot to the path at every fast instant (blocks of ``block``
-    instants bound the [instants x segments] memory under vmap)."""
-    K = loop.steps
-    xy = traj.x[:, 3:5]
-    pad = (-K) % block
-    xyp = jnp.concatenate([xy, jnp.broadcast_to(xy[-1:], (pad, 2))], axis=0).reshape(-1, block, 2)
-    return jax.lax.map(lambda b: distance_to_path(loop.follower.path, b), xyp).reshape(-1)[:K]
 
 
 def evaluate(loop: MecanumLoop, traj: Trajectory) -> Metrics:
