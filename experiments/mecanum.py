@@ -29,6 +29,10 @@ UNSTABLE_CELL = 0.5   # a cell is shown as inf when more than half of its runs a
 def loop_config(loop: mec.MecanumLoop) -> dict:
     """JSON-friendly description of a configuration (the path by name)."""
     def conv(obj):
+        if hasattr(obj, "describe"):          # e.g. the MJX plant: its parameters, not its arrays
+            return obj.describe()
+        if obj is None:
+            return None
         if dataclasses.is_dataclass(obj):
             if isinstance(obj, RefPath):
                 return {"name": obj.name, "length_m": float(obj.length)}
@@ -58,11 +62,25 @@ def run_seed(key, loop):
     return mec.run(loop, key)
 
 
+def true_plant(name: str):
+    """The robot the loops run on: None (the kinematic model itself) or the MJX multibody
+    platform (``plant=mjx``, needs ``pip install 'jaxnc[mjx]'``)."""
+    if name == "kinematic":
+        return None
+    if name == "mjx":
+        from jaxnc.plants import mecanum_mjx
+        try:
+            return mecanum_mjx.mjx_mecanum()
+        except ImportError as e:
+            raise ConfigError(f"plant=mjx: {e}") from None
+    raise ConfigError(f"plant must be 'kinematic' or 'mjx', got {name!r}")
+
+
 def build_loops(settings: dict) -> dict[str, mec.MecanumLoop]:
     """Validated configurations (a bad combination is a ConfigError, before any tracing)."""
     cases = mec.CASES if settings["case"] == "all" else (settings["case"],)
     kw = dict(path=settings["path"], sigma=settings["sigma"], delta=settings["delta"],
-              follower_kw=dict(L_ref=settings["L_ref"]))
+              follower_kw=dict(L_ref=settings["L_ref"]), truth=true_plant(settings.get("plant", "kinematic")))
     try:
         loops = {"SR nominal": mec.mecanum_loop("SR", 1, 0.0, **kw)}
         for c in cases:
@@ -114,6 +132,9 @@ def table(summary: dict) -> str:
     return markdown_table(["case", "J1", "J2", "J3", "J4", "J1 abs (cm)", "unstable %"], rows)
 
 
+_simulate = jax.jit(mec.simulate)   # one compilation per loop structure (N, true plant)
+
+
 def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
     import matplotlib
     matplotlib.use("Agg")
@@ -124,7 +145,7 @@ def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
     ref = np.asarray(path.points)
     ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.5, label="reference")
     for name, loop in loops.items():
-        traj = jax.jit(mec.simulate)(loop, key)
+        traj = _simulate(uniform_dtypes(loop), key)
         xy = np.asarray(traj.x[:, 3:5])[: int(traj.l)]
         unstable = bool(traj.bad | ~traj.done)
         ax.plot(xy[:, 0], xy[:, 1], ls=":" if unstable else "-", lw=1.2,
@@ -152,10 +173,11 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     for name, loop in loops.items():
         # the configuration is a runtime argument: the cases of one N share a compilation
         results[name] = montecarlo.run_batched(
-            run_seed, keys, args=(uniform_dtypes(loop),), progress=progress,
+            run_seed, keys, args=(uniform_dtypes(loop),), progress=progress, chunk_size=min(256, seeds),
             desc=f"{name:>10} N={loop.N} DP={float(loop.sc.p_loss):.2f} h={int(loop.h)}")
     summary = summarise(results)
-    print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}")
+    print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}, "
+          f"plant={settings.get('plant', 'kinematic')}")
     print("J1-J3 normalised to nominal SR (N=1, DP=0) on the same seeds; J4 = sensor transmission rate / nominal\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
@@ -183,6 +205,8 @@ EXPERIMENT = register(Experiment(
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
         Option("L_ref", "float", 0.15, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
         Option("max_silence", "int", 0, "DRHE: also send after this many silent slow periods (0 = off, as the paper)", low=0, high=100_000),
+        Option("plant", "choice", "kinematic", "true plant: the kinematic model, or the MJX multibody robot "
+               "(pip install 'jaxnc[mjx]'; the estimator keeps the kinematic model)", choices=("kinematic", "mjx")),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,

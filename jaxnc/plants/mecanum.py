@@ -95,6 +95,20 @@ class Mecanum:
         psi = x[5] + v[2] * T + m * w[6]
         return jnp.concatenate([v, jnp.stack([X, Y, psi])])
 
+    # -- the true-plant interface of the closed loop (the MJX plant has the same) ----------
+    def init(self, key, x0):
+        """Initial true state: the kinematic state itself (``key`` is unused)."""
+        del key
+        return x0
+
+    def step(self, x, u, w):
+        """One fast period of the true plant: eq. (1)."""
+        return self.dynamics(x, u, w)
+
+    def state(self, x):
+        """The kinematic state (Vx, Vy, W, X, Y, psi) of a true state: itself."""
+        return x
+
     def distances(self, xy):
         """Beacon distances d_i, eq. (2)."""
         dz2 = (self.z_fb - self.z_mb) ** 2

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -129,6 +129,10 @@ class MecanumLoop:
     # whose eq. 4 alone lets a resting robot's sensor fall silent for good). 0 = off.
     max_silence: jax.Array = 0
     h: jax.Array = 1               # prediction horizon in slow periods: h*N actions per packet
+    # The plant the robot really is, when it differs from the model ``plant`` the
+    # estimator and controller use (e.g. jaxnc.plants.mecanum_mjx.MjxMecanum, the
+    # multibody robot of the paper's section 4). None: the kinematic model itself.
+    truth: Any = None
     N: int = dataclasses.field(default=1, metadata=dict(static=True))
     steps: int = dataclasses.field(default=100, metadata=dict(static=True))
 
@@ -141,6 +145,8 @@ class MecanumLoop:
         check_range("MecanumLoop.h", self.h, 1, 1000)
         check_range("MecanumLoop.max_silence", self.max_silence, 0, 100_000)
         check_range("MecanumLoop.tau_max", self.tau_max, 0.0, self.N * self.plant.T * (1 + 1e-6), low_open=True)
+        if self.truth is not None and abs(float(self.truth.T) - float(self.plant.T)) > 1e-9:
+            raise ValueError(f"MecanumLoop.truth must have the model's period T={self.plant.T}, got {self.truth.T}")
 
     @property
     def case(self) -> str:
@@ -178,10 +184,11 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
                  filter_noise: MecanumNoise | None = None,
                  plant: Mecanum | None = None, follower_kw: dict | None = None,
                  trigger_temperature: float = 0.0, horizon_s: float | None = None,
-                 max_silence: int = 0) -> MecanumLoop:
+                 max_silence: int = 0, truth=None) -> MecanumLoop:
     """Build a validated configuration with the paper's defaults (section 4.1).
 
-    ``dp`` is the dropout probability of both directions, DP = p_sc = p_ca.
+    ``dp`` is the dropout probability of both directions, DP = p_sc = p_ca. ``truth``
+    is the true plant when it is not the kinematic model (e.g. ``mjx_mecanum()``).
     """
     if case not in CASES:
         raise ValueError(f"case must be one of {', '.join(CASES)}, got {case!r}")
@@ -216,7 +223,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
         sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
         P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
-        scheme=np.int32(CASES.index(case)), h=np.int32(h), max_silence=np.int32(max_silence), N=N, steps=steps)
+        scheme=np.int32(CASES.index(case)), h=np.int32(h), max_silence=np.int32(max_silence), truth=truth,
+        N=N, steps=steps)
 
 
 class Draws(NamedTuple):
@@ -294,6 +302,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     packet would cost O(K h)); the actions are the same.
     """
     plant, fol, N, H, K = loop.plant, loop.follower, loop.N, loop.horizon, loop.steps
+    truth = plant if loop.truth is None else loop.truth   # the robot; ``plant`` is the model
     Ts, hold = loop.Ts, loop.hold
     path = fol.path
     d = draw(key, K)
@@ -326,7 +335,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
         # the packet sent at the last slow instant with a delay of exactly N arrives now
         act = _keep_or_replace(c.pending_ok, c.sent, c.act)
         # 1. sensor, PETC (eq. 3-4)
-        z = plant.measure(c.x, v_k)
+        z = truth.measure(c.x, v_k)
         petc = (k > 0) & loop.event_triggered
         fires = loop.trigger.fires(c.z_last, z)
         due = (loop.max_silence > 0) & (c.silent + 1 >= loop.max_silence)   # safety condition
@@ -350,18 +359,19 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
             t = k * N + j
             act = _keep_or_replace(arr * (j == d_k).astype(dtype), sent, act)
             u = act.u
-            x = plant.dynamics(x, u, w_t)
+            x = truth.step(x, u, w_t)
+            xv = truth.state(x)
             belief = ekf_predict(plant.dynamics, belief, sent.u, Qf, PROCESS_NOISE_DIM)
             act, sent = advance(act), advance(sent)
-            idx_true, _ = closest_index(path, x[3:5], idx_true, TRACK_WINDOW)
-            dist = local_distance(path, x[3:5], idx_true)
-            at_end = (idx_true >= (9 * n_path) // 10) & (jnp.sum((x[3:5] - end) ** 2) < loop.end_tol ** 2)
+            idx_true, _ = closest_index(path, xv[3:5], idx_true, TRACK_WINDOW)
+            dist = local_distance(path, xv[3:5], idx_true)
+            at_end = (idx_true >= (9 * n_path) // 10) & (jnp.sum((xv[3:5] - end) ** 2) < loop.end_tol ** 2)
             l = jnp.where(done, l, t + 1)
             done = done | at_end
             # only until the path is complete: afterwards the robot may coast off the end
             off = (dist > loop.max_dev) & ~done
-            bad = bad | off | ~jnp.all(jnp.isfinite(x)) | ~jnp.all(jnp.isfinite(belief.mean))
-            return (x, belief, sent, act, idx_true, done, l, bad), (x, belief.mean, u, dist)
+            bad = bad | off | ~jnp.all(jnp.isfinite(xv)) | ~jnp.all(jnp.isfinite(belief.mean))
+            return (x, belief, sent, act, idx_true, done, l, bad), (xv, belief.mean, u, dist)
 
         fc = (c.x, belief, sent, act, c.idx_true, c.done, c.l, c.bad)
         fc, (xs, means, uapp, dist) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
@@ -372,7 +382,9 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
 
     u0 = jnp.zeros((INPUT_DIM,), dtype)
     idle = exhausted_chain(x0, u0, fol.init(), H)   # applies zero until the first packet
-    carry0 = _Carry(x0, plant.measure(x0, jnp.zeros(OUTPUT_DIM, dtype)), jnp.zeros((), jnp.int32), belief0, idle, idle,
+    # the true plant's own stream: adding it left every other draw unchanged
+    s0 = truth.init(jax.random.fold_in(key, 202), x0)
+    carry0 = _Carry(s0, truth.measure(s0, jnp.zeros(OUTPUT_DIM, dtype)), jnp.zeros((), jnp.int32), belief0, idle, idle,
                     jnp.zeros((), dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
                     jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
     n_slow = K // N
