@@ -115,3 +115,21 @@ def test_jaxnc_imports_without_mujoco():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "pip install 'jaxnc[mjx]'" in out.stdout
+
+
+def test_experiment_option_builds_mjx_loops():
+    """``jaxnc run mecanum --set plant=mjx``: every loop (the nominal run included) runs on
+    the MJX robot and the saved configuration describes it by its parameters."""
+    import json
+
+    from jaxnc.experiment import get_experiment
+    from jaxnc.experiments import mecanum as exp
+    from jaxnc.plants.mecanum_mjx import MjxMecanum
+
+    settings = get_experiment("mecanum").parse_settings(["plant=mjx", "case=DRHE"])
+    loops = exp.build_loops(settings)
+    assert set(loops) == {"SR nominal", "DRHE"}
+    assert all(isinstance(l.truth, MjxMecanum) for l in loops.values())
+    cfg = exp.loop_config(loops["DRHE"])
+    assert cfg["truth"]["plant"] == "mjx" and cfg["truth"]["substeps"] == 20
+    json.dumps(cfg)

@@ -46,7 +46,9 @@ Needs the optional extra ``pip install jaxnc[mjx]``; the rest of jaxnc imports w
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import math
 from typing import NamedTuple
 
@@ -59,7 +61,10 @@ from jaxnc.plants.mecanum import Mecanum
 
 try:   # optional extra
     import mujoco
-    from mujoco import mjx
+    # MJX prints "Failed to import warp" when NVIDIA Warp (its GPU backend) is absent:
+    # irrelevant here, and noise in every run's output
+    with contextlib.redirect_stdout(io.StringIO()):
+        from mujoco import mjx
 except ImportError as _err:   # pragma: no cover - exercised when the extra is missing
     mujoco = mjx = None
     _IMPORT_ERROR = _err
