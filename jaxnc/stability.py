@@ -191,7 +191,7 @@ class Bounds(NamedTuple):
     l_lo: jax.Array
     l_hi: jax.Array
     mbar: jax.Array
-    p_lo: jax.Array      # min eig P_{k|k}
+    p_lo: jax.Array      # min eig P_{k|k} (masked steps after a masked step)
     p_hi: jax.Array      # max eig P_{k+1|k}
     q_lo: jax.Array
     q_hi: jax.Array
@@ -205,10 +205,50 @@ _LOWER = ("h_lo", "l_lo", "p_lo", "q_lo", "p_order")
 _MEAN = ("lam", "gamma")
 
 
+def _eigvalsh(S, sweeps: int = 10):
+    """Ascending eigenvalues of small symmetric matrices ``[..., n, n]`` by cyclic Jacobi
+    rotations written in plain XLA ops (``sweeps`` full sweeps; quadratic convergence makes
+    10 ample for the n <= 9 used here).
+
+    Not ``jnp.linalg.eigvalsh``: on CPU, jaxlib 0.10.2 runs a batched ``syevd`` custom call
+    by splitting the batch over XLA's intra-op thread pool and blocking the calling pool
+    thread until the pieces finish (``jax::ParallelBatchMap``). :func:`measure_bounds` has
+    several independent such calls, which XLA runs concurrently; once every pool thread
+    (two on a 2-core machine) is blocked in one, nobody runs the queued pieces and the
+    program deadlocks with the CPU idle (seen in notebooks/stability_bounds.ipynb, full mode).
+    """
+    A = jnp.asarray(S)
+    n = A.shape[-1]
+    A = 0.5 * (A + jnp.swapaxes(A, -1, -2))
+    if n == 1:
+        return A[..., 0]
+    A = jnp.moveaxis(A, (-2, -1), (0, 1))          # [n, n, ...]: rows and columns are leading slices
+    pairs = np.array([(p, q) for p in range(n - 1) for q in range(p + 1, n)], np.int32)
+    pairs = jnp.asarray(np.tile(pairs, (sweeps, 1)))
+
+    def rotate(i, A):       # one rotation in a loop, not unrolled: small programs, quick compiles
+        p, q = pairs[i, 0], pairs[i, 1]
+        app, aqq, apq = A[p, p], A[q, q], A[p, q]
+        nz = apq != 0
+        theta = (aqq - app) / (2 * jnp.where(nz, apq, 1))
+        # t = tan of the angle that zeroes A[p, q], the smaller root (Numerical Recipes 11.1)
+        t = jnp.where(theta >= 0, 1.0, -1.0) / (jnp.abs(theta) + jnp.sqrt(1 + theta * theta))
+        t = jnp.where(nz, t, 0).astype(A.dtype)
+        c = jax.lax.rsqrt(1 + t * t)[None]          # broadcast over a row / column
+        s = t[None] * c
+        Ap, Aq = A[:, p], A[:, q]
+        A = A.at[:, p].set(c * Ap - s * Aq).at[:, q].set(s * Ap + c * Aq)
+        Ap, Aq = A[p], A[q]
+        return A.at[p].set(c * Ap - s * Aq).at[q].set(s * Ap + c * Aq)
+
+    A = jax.lax.fori_loop(0, pairs.shape[0], rotate, A)
+    return jnp.sort(jnp.stack([A[i, i] for i in range(n)], axis=-1), axis=-1)
+
+
 def _gram_eigs(X):
-    # singular values^2 of X from the smaller Gram matrix (eigvalsh, not an SVD call)
+    # singular values^2 of X from the smaller Gram matrix (eigenvalues, not an SVD call)
     G = jnp.swapaxes(X, -1, -2) @ X if X.shape[-2] >= X.shape[-1] else X @ jnp.swapaxes(X, -1, -2)
-    return jnp.maximum(jnp.linalg.eigvalsh(G), 0.0)
+    return jnp.maximum(_eigvalsh(G), 0.0)
 
 
 def _smax(X):
@@ -223,26 +263,30 @@ def _smin(X):
 def measure_bounds(rec: FilterRecord, Q, R, mask=None) -> Bounds:
     """Eq. (18) constants of one record over the steps where ``mask`` holds (all by default).
 
-    Quantities of the correction (H, K, M, P_{k|k}) are taken at sampling instants only;
-    ``lam`` and ``gamma`` are over the masked steps. Pure JAX: vmap it over seeds.
+    Quantities of the correction (H, K, M) are taken at sampling instants only, P_{k|k}
+    (``p_lo``) at masked steps whose previous step is masked too: P_{k|k} carries the
+    prediction over step k-1, and after a step at rest, where the plant's motion-scaled
+    process noise vanishes, its velocity block is exactly 0. ``lam`` and ``gamma`` are
+    over the masked steps. Pure JAX: vmap it over seeds.
     """
     Kn = rec.slow.shape[0]
     mask = jnp.ones((Kn,), bool) if mask is None else jnp.asarray(mask, bool)
     ms = mask & rec.slow
+    after_masked = mask & jnp.concatenate([mask[:1], mask[:-1]])
     big = jnp.asarray(jnp.inf, rec.A.dtype)
     mx = lambda a, w: jnp.max(jnp.where(w, a, -big))
     mn = lambda a, w: jnp.min(jnp.where(w, a, big))
-    Pe_post = jnp.linalg.eigvalsh(rec.P_post)
-    Pe_pred = jnp.linalg.eigvalsh(rec.P_pred)
+    Pe_post = _eigvalsh(rec.P_post)
+    Pe_pred = _eigvalsh(rec.P_pred)
     # P_{k|k} <= P_{k|k-1}: compare the posterior at k with the prediction into k
     P_prior = jnp.concatenate([rec.P_post[:1], rec.P_pred[:-1]], axis=0)
-    order = jnp.linalg.eigvalsh(P_prior - rec.P_post)[:, 0]
-    qe = jnp.linalg.eigvalsh(jnp.asarray(Q, rec.A.dtype))
-    re = jnp.linalg.eigvalsh(jnp.asarray(R, rec.A.dtype))
+    order = _eigvalsh(P_prior - rec.P_post)[:, 0]
+    qe = _eigvalsh(jnp.asarray(Q, rec.A.dtype))
+    re = _eigvalsh(jnp.asarray(R, rec.A.dtype))
     return Bounds(
         abar=mx(_smax(rec.A), mask), h_lo=mn(_smin(rec.H), ms), h_hi=mx(_smax(rec.H), ms),
         kbar=mx(_smax(rec.K), ms), l_lo=mn(_smin(rec.L), mask), l_hi=mx(_smax(rec.L), mask),
-        mbar=mx(_smax(rec.M), ms), p_lo=mn(Pe_post[:, 0], ms | mask), p_hi=mx(Pe_pred[:, -1], mask),
+        mbar=mx(_smax(rec.M), ms), p_lo=mn(Pe_post[:, 0], after_masked), p_hi=mx(Pe_pred[:, -1], mask),
         q_lo=qe[0], q_hi=qe[-1], rbar=re[-1],
         lam=jnp.sum(rec.arrived & mask) / jnp.maximum(jnp.sum(mask), 1),
         gamma=jnp.sum(rec.gamma & ms) / jnp.maximum(jnp.sum(ms), 1),

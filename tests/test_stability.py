@@ -212,3 +212,26 @@ def test_random_riccati_between_lyapunov_and_mare():
         upper = float(jnp.trace(V))
         assert lower < upper
         assert lower - half <= last.mean() <= upper + half
+
+
+def test_eigvalsh_jacobi_against_numpy():
+    """The LAPACK-free symmetric eigenvalues used by measure_bounds (jaxlib 0.10.2's
+    batched CPU eigvalsh can deadlock its thread pool) match NumPy's, including repeated,
+    zero and ill-conditioned spectra."""
+    rng = np.random.default_rng(0)
+    mats = []
+    for n in (1, 2, 3, 6, 9):
+        X = rng.normal(size=(n, n))
+        mats.append((X @ X.T, n))
+        U = np.linalg.qr(rng.normal(size=(n, n)))[0]
+        lam = np.repeat([1e-6, 2.0, 2.0, 0.0, 5.0, 1e3, -1.0, 3.0, 3.0], 1)[:n]
+        mats.append((U @ np.diag(lam) @ U.T, n))
+    with jax.enable_x64(True):
+        for S, n in mats:
+            got = np.asarray(st._eigvalsh(jnp.asarray(S, jnp.float64)))
+            want = np.linalg.eigvalsh(S)
+            np.testing.assert_allclose(got, want, atol=1e-12 * max(1.0, np.abs(want).max()))
+    batch = jnp.asarray(np.stack([m for m, n in mats if n == 6]), jnp.float32)
+    got = np.asarray(jax.jit(st._eigvalsh)(batch))
+    want = np.linalg.eigvalsh(np.asarray(batch, np.float64))
+    np.testing.assert_allclose(got, want, atol=1e-4 * np.abs(want).max())
