@@ -102,7 +102,8 @@ def _summ(ev: dict) -> dict:
 def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
     t_start = time.perf_counter()
     try:
-        loop = mec.mecanum_loop("DRHE", settings["N"], settings["dp"], path=settings["path"])
+        loop = mec.mecanum_loop("DRHE", settings["N"], settings["dp"], path=settings["path"],
+                                max_silence=settings.get("max_silence", 0))
         nominal = mec.mecanum_loop("SR", 1, 0.0, path=settings["path"])
     except ValueError as e:
         raise ConfigError(str(e)) from None
@@ -356,6 +357,8 @@ register(Experiment(
         Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),
         Option("init", "choice", "paper", "gradient start: the paper's thresholds or the grid's best",
                choices=("paper", "grid")),
+        Option("max_silence", "int", 0, "DRHE time-triggered safety condition: the sensor also sends after this "
+               "many silent slow periods (0 = off, as the paper)", low=0, high=100_000),
         *COMMON,
     ),
     run=run_mecanum,

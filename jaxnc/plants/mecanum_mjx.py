@@ -92,7 +92,7 @@ def mecanum_mjcf(R: float = 0.05, Lx: float = 0.15, Ly: float = 0.15, *, chassis
                  wheel_mass: float = 0.25, timestep: float = 0.005, mu_grip: float = 0.8,
                  mu_free: float = 0.005, kv: float = 0.1, tau_max: float = 0.5, dead_zone: float = 0.005,
                  armature: float = 0.002, iterations: int = 10, ls_iterations: int = 20,
-                 cone: str = "elliptic", half_width: float = 0.005, tolerance: float = 1e-8) -> str:
+                 cone: str = "elliptic", half_width: float = 0.005, tolerance: float = 1e-4) -> str:
     """MJCF text of the platform: a chassis on a free joint and four capsule wheels.
 
     The chassis box (0.4 m x 0.34 m x 0.08 m) and the wheels do not collide with
