@@ -183,7 +183,7 @@ def main():
     grad = bench_grad()
     print(grad, flush=True)
     if not a.no_record:
-        cmd = "python benchmarks/bench_mecanum.py" + " ".join(a for a in sys.argv[1:])
+        cmd = "python benchmarks/bench_mecanum.py" + "".join(" " + a for a in sys.argv[1:])
         head = (f"\n## {datetime.date.today()} — `{cmd}`\n\n"
                 f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}; "
                 f"jax {jax.__version__}, backend {jax.default_backend()}, Python {sys.version.split()[0]}\n\n")
