@@ -66,10 +66,9 @@ def bench_c(steps, seeds):
     d0 = mujoco.MjData(m)
     mujoco.mj_forward(m, d0)
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    state0 = np.zeros((seeds, mujoco.mj_stateSize(m, spec)))
     s = np.empty(mujoco.mj_stateSize(m, spec))
     mujoco.mj_getState(m, d0, s, spec)
-    state0[:] = s
+    state0 = np.tile(s, (seeds, 1))
     ctrl = np.broadcast_to(TORQUE, (seeds, steps, m.nu)).copy()
     t = _best(lambda: mujoco.rollout.rollout(m, datas, state0, ctrl))
     rows.append((f"C mujoco.rollout, {nthread} threads", seeds, "-", t, seeds * steps / t))

@@ -31,8 +31,6 @@ def loop_config(loop: mec.MecanumLoop) -> dict:
     def conv(obj):
         if hasattr(obj, "describe"):          # e.g. the MJX plant: its parameters, not its arrays
             return obj.describe()
-        if obj is None:
-            return None
         if dataclasses.is_dataclass(obj):
             if isinstance(obj, RefPath):
                 return {"name": obj.name, "length_m": float(obj.length)}

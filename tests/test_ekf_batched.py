@@ -130,14 +130,21 @@ def test_vmapped_filter_matches_reference_float32_and_is_symmetric():
     assert np.all(np.linalg.eigvalsh(np.asarray(ta.cov[:, -1], float)) > 0)
 
 
+def _grad_inputs():
+    """float64 inputs of the gradient tests (call inside ``jax.enable_x64``): the plant,
+    four seed keys, their initial means, the process noise Q and the measurement variances."""
+    plant, noise = Mecanum(), MecanumNoise()
+    keys = jax.random.split(jax.random.key(2), 4)
+    m0 = jax.vmap(lambda k: _belief(k, jnp.float64).mean)(keys)
+    Q = noise.Q().astype(jnp.float64)
+    r = (noise.measurement_std() ** 2).astype(jnp.float64)
+    return plant, keys, m0, Q, r
+
+
 def test_gradients_through_scan_under_vmap_match_reference_float64():
     """vmap(grad) per seed w.r.t. Q and the initial mean."""
     with jax.enable_x64(True):
-        plant, noise = Mecanum(), MecanumNoise()
-        keys = jax.random.split(jax.random.key(2), 4)
-        m0 = jax.vmap(lambda k: _belief(k, jnp.float64).mean)(keys)
-        Q = noise.Q().astype(jnp.float64)
-        r = (noise.measurement_std() ** 2).astype(jnp.float64)
+        plant, keys, m0, Q, r = _grad_inputs()
         per_seed = {}
         for name, mod in (("new", new), ("old", old)):
             cost = _cost(mod, plant)
@@ -154,11 +161,7 @@ def test_gradients_through_scan_under_vmap_match_reference_float64():
 def test_gradient_of_monte_carlo_mean_matches_reference_float64():
     """grad(mean(vmap)): the cotangent of the shared Q is summed over seeds."""
     with jax.enable_x64(True):
-        plant, noise = Mecanum(), MecanumNoise()
-        keys = jax.random.split(jax.random.key(2), 4)
-        m0 = jax.vmap(lambda k: _belief(k, jnp.float64).mean)(keys)
-        Q = noise.Q().astype(jnp.float64)
-        r = (noise.measurement_std() ** 2).astype(jnp.float64)
+        plant, keys, m0, Q, r = _grad_inputs()
 
         def mc(mod):
             cost = _cost(mod, plant)

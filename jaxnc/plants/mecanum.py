@@ -76,15 +76,21 @@ class Mecanum:
         L = self.Lx + self.Ly
         return jnp.stack([vx - vy - L * w, vx + vy + L * w, vx + vy - L * w, vx - vy + L * w]) / self.R
 
+    def commanded(self, u):
+        """The saturated wheel-speed command and the process-noise scale it implies.
+
+        Noise scales with motion (full at the cruise wheel speed 4 rad/s): a robot at
+        rest neither slips nor jitters.
+        """
+        u = jnp.clip(u, -self.omega_max, self.omega_max)
+        return u, jnp.minimum(1.0, jnp.mean(jnp.abs(u)) / 4.0)
+
     def dynamics(self, x, u, w):
         """xi_k = f(xi_{k-1}, n1_{k-1}, u_{k-1}), eq. (1) and (10).
 
         ``w`` is the process noise n1 = (4 wheel-speed errors, X, Y, psi slip).
         """
-        u = jnp.clip(u, -self.omega_max, self.omega_max)
-        # Noise scales with motion (full at the cruise wheel speed 4 rad/s): a robot
-        # at rest neither slips nor jitters.
-        m = jnp.minimum(1.0, jnp.mean(jnp.abs(u)) / 4.0)
+        u, m = self.commanded(u)
         omega = u + m * w[:4]
         v = self.body_velocity(omega)
         T = self.T

@@ -184,28 +184,21 @@ class MjxMecanum:
         qpos = jnp.zeros(m.nq, jnp.float32)
         qpos = qpos.at[0:3].set(jnp.stack([x0[3], x0[4], jnp.asarray(self.kin.R, jnp.float32)]))
         qpos = qpos.at[3:7].set(jnp.stack([jnp.cos(psi / 2), 0.0 * psi, 0.0 * psi, jnp.sin(psi / 2)]))
-        with jax.numpy_rank_promotion("allow"):     # MJX relies on implicit rank promotion
-            data = self._settle(m, mjx.make_data(m).replace(qpos=qpos), qpos)
-        return MjxState(data, psi, mu, ms)
-
-    @staticmethod
-    def _settle(m, data, qpos):
         # let it settle onto its wheels (no bounce from the contact at t = 0), then put it
         # back at rest exactly at the requested pose
-        data, _ = jax.lax.scan(lambda d, _: (mjx.step(m, d), None), data, None, length=SETTLE_STEPS)
+        data = _physics(m, mjx.make_data(m).replace(qpos=qpos), SETTLE_STEPS)
         qpos = data.qpos.at[0:2].set(qpos[0:2]).at[3:7].set(qpos[3:7]).at[7:].set(0.0)
-        return mjx.forward(m, data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel), time=jnp.zeros_like(data.time)))
+        with jax.numpy_rank_promotion("allow"):     # MJX relies on implicit rank promotion
+            data = mjx.forward(m, data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel),
+                                               time=jnp.zeros_like(data.time)))
+        return MjxState(data, psi, mu, ms)
 
     def step(self, s: MjxState, u, w) -> MjxState:
         """One fast period T: ``substeps`` physics steps with the wheel-speed loop."""
-        m = self._seed_model(s.friction, s.mass_scale)
-        om_max = self.kin.omega_max
-        u = jnp.clip(u, -om_max, om_max)
-        motion = jnp.minimum(1.0, jnp.mean(jnp.abs(u)) / 4.0)     # as the kinematic plant's noise
+        u, motion = self.kin.commanded(u)                # saturation and noise scale of eq. (1)'s plant
         ref = u + motion * w[:4]
         data = s.data.replace(ctrl=ref.astype(s.data.ctrl.dtype))   # the motors' speed references
-        with jax.numpy_rank_promotion("allow"):     # MJX relies on implicit rank promotion
-            data, _ = jax.lax.scan(lambda d, _: (mjx.step(m, d), None), data, None, length=self.substeps)
+        data = _physics(self._seed_model(s.friction, s.mass_scale), data, self.substeps)
         yaw = _yaw(data.qpos[3:7])
         psi = s.psi + _wrap(yaw - s.psi)
         return MjxState(data, psi, s.friction, s.mass_scale)
@@ -245,6 +238,12 @@ class MjxMecanum:
                 "cpr": float(self.cpr), "friction_range": [float(a) for a in np.asarray(self.friction_range)],
                 "mass_range": [float(a) for a in np.asarray(self.mass_range)],
                 "chassis_mass": float(self.model.body_mass[1])}
+
+
+def _physics(m, data, n: int):
+    """``n`` MJX physics steps of model ``m``."""
+    with jax.numpy_rank_promotion("allow"):     # MJX relies on implicit rank promotion
+        return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), data, None, length=n)[0]
 
 
 def _yaw(quat):
