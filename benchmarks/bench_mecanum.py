@@ -172,10 +172,12 @@ def main():
     ap.add_argument("--full", action="store_true", help="also B = 10 000")
     ap.add_argument("--no-record", action="store_true", help="do not append to RESULTS.md")
     ap.add_argument("--cpu-devices", type=int, default=1, help="split the CPU into this many JAX devices")
+    ap.add_argument("--batches", type=int, nargs="+", help="seed counts (overrides --quick/--full), e.g. on a GPU")
+    ap.add_argument("--results", type=Path, default=HERE / "RESULTS.md", help="file the tables are appended to")
     a = ap.parse_args()
     if a.cpu_devices > 1:
         jax.config.update("jax_num_cpu_devices", a.cpu_devices)
-    batches = [1, 100] if a.quick else ([1, 100, 1000, 10000] if a.full else [1, 100, 1000])
+    batches = a.batches or ([1, 100] if a.quick else ([1, 100, 1000, 10000] if a.full else [1, 100, 1000]))
     ekf = bench_ekf(batches, steps=2000)
     print(ekf, flush=True)
     loops = bench_loops(batches)
@@ -187,8 +189,8 @@ def main():
         head = (f"\n## {datetime.date.today()} — `{cmd}`\n\n"
                 f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}; "
                 f"jax {jax.__version__}, backend {jax.default_backend()}, Python {sys.version.split()[0]}\n\n")
-        with open(HERE / "RESULTS.md", "a") as f:
-            f.write(head + f"Devices: {len(jax.devices())}\n\n" + ekf + "\n\n" + loops + "\n\n" + grad + "\n")
+        with open(a.results, "a") as f:
+            f.write(head + f"Devices: {len(jax.devices())} x {jax.devices()[0].device_kind}\n\n" + ekf + "\n\n" + loops + "\n\n" + grad + "\n")
 
 
 if __name__ == "__main__":

@@ -99,7 +99,7 @@ def bench_mjx(steps, batches):
     return rows
 
 
-def bench_study(seeds, seconds):
+def bench_study(seeds, seconds, chunk=256):
     from jaxnc.experiments.mecanum import run_seed, uniform_dtypes
     from jaxnc.plants.mecanum_mjx import mjx_mecanum
     from jaxnc.schemes import mecanum as mec
@@ -107,8 +107,8 @@ def bench_study(seeds, seconds):
     loop = mec.mecanum_loop("DRHE", 10, 0.5, truth=mjx_mecanum(), horizon_s=seconds)
     keys = montecarlo.seed_keys(0, seeds)
     t = time.perf_counter()
-    metrics = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loop),), progress=True,
-                                     desc="DRHE on MJX")
+    metrics = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loop),), chunk_size=chunk,
+                                     progress=True, desc="DRHE on MJX")
     jax.block_until_ready(metrics)
     wall = time.perf_counter() - t
     physics = seeds * loop.steps * loop.truth.substeps
@@ -120,9 +120,13 @@ def main():
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     ap.add_argument("--no-record", action="store_true", help="do not append to RESULTS.md")
     ap.add_argument("--skip-study", action="store_true", help="physics tables only")
+    ap.add_argument("--batches", type=int, nargs="+", help="MJX seed counts (default 1 64 512), e.g. more on a GPU")
+    ap.add_argument("--study-seeds", type=int, help="seeds of the closed-loop study (default 256)")
+    ap.add_argument("--chunk", type=int, default=256, help="seeds per compiled batch in the study (more on a GPU)")
+    ap.add_argument("--results", type=Path, default=HERE / "RESULTS.md", help="file the tables are appended to")
     args = ap.parse_args()
     steps = 50 if args.quick else 200
-    batches = (1, 8) if args.quick else (1, 64, 512)
+    batches = args.batches or ((1, 8) if args.quick else (1, 64, 512))
     c_seeds = 4 if args.quick else 64
     rows = bench_c(steps, c_seeds) + bench_mjx(steps, batches)
     c_rate = rows[0][4]
@@ -132,17 +136,17 @@ def main():
     print(table1)
     table2 = ""
     if not args.skip_study:
-        study = bench_study(8 if args.quick else 256, 10.0 if args.quick else 60.0)
+        study = bench_study(args.study_seeds or (8 if args.quick else 256), 10.0 if args.quick else 60.0, args.chunk)
         table2 = markdown_table(["closed-loop study", "seeds", "wall s (incl. compile)", "physics steps", "steps/s"],
                                 [[r[0], r[1], r[2], f"{r[3]:,}", f"{r[4]:,.0f}"] for r in study])
         print(table2)
     if not args.no_record:
         import mujoco
         cmd = "python benchmarks/bench_mjx.py" + "".join(" " + a for a in sys.argv[1:])
-        with open(HERE / "RESULTS.md", "a") as f:
+        with open(args.results, "a") as f:
             f.write(f"\n## {datetime.date.today()} — `{cmd}`\n\n")
             f.write(f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}; jax {jax.__version__}, "
-                    f"backend {jax.default_backend()}, mujoco {mujoco.__version__}, Python {platform.python_version()}. "
+                    f"backend {jax.default_backend()} ({jax.devices()[0].device_kind}), mujoco {mujoco.__version__}, Python {platform.python_version()}. "
                     f"{steps} physics steps of 5 ms per seed; C is float64, MJX float32.\n\n")
             f.write(table1 + "\n")
             if table2:
