@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from jaxnc import montecarlo
+from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS, Path as RefPath
 from jaxnc.report import fmt, markdown_table
@@ -201,7 +202,7 @@ EXPERIMENT = register(Experiment(
         Option("h", "int", 0, "prediction horizon in slow periods (0: the documented default rule)", low=0, high=200),
         Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
-        Option("L_ref", "float", 0.15, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
+        Option("L_ref", "float", LOOKAHEAD, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
         Option("max_silence", "int", 0, "DRHE: also send after this many silent slow periods (0 = off, as the paper)", low=0, high=100_000),
         Option("plant", "choice", "kinematic", "true plant: the kinematic model, or the MJX multibody robot "
                "(pip install 'jaxnc[mjx]'; the estimator keeps the kinematic model)", choices=("kinematic", "mjx")),

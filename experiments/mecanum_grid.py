@@ -40,6 +40,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxnc import montecarlo
+from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
@@ -392,7 +393,7 @@ def heatmaps(out: Path, results: dict, p: str) -> Path:
     dps = sorted({c[3] for c in results if c[0] == p})
     fig, axes = plt.subplots(len(INDEXES), len(mec.CASES), figsize=(3.2 * len(mec.CASES), 2.6 * len(INDEXES)),
                              squeeze=False, constrained_layout=True)
-    norms = {"J1": LogNorm(0.5, 4.0), "J2": LogNorm(0.3, 4.0), "J3": LogNorm(0.9, 1.6), "J4": LogNorm(0.02, 1.0)}
+    norms = {"J1": LogNorm(0.5, 10.0), "J2": LogNorm(0.3, 10.0), "J3": LogNorm(0.9, 1.6), "J4": LogNorm(0.02, 1.0)}
     for r, j in enumerate(INDEXES):
         im = None
         for c, case in enumerate(mec.CASES):
@@ -441,7 +442,7 @@ EXPERIMENT = register(Experiment(
         Option("path", "choice", "all", "reference path", choices=(*PATHS, "all")),
         Option("sigma", "floats", mec.DEFAULT_SIGMA, "PETC sigma(i): 1 or 9 values (paper 4.1: 0.1 x4, 0.05 x5; see README)", low=0.0, high=10.0),
         Option("delta", "floats", mec.PAPER_DELTA, "PETC delta(i): 1 or 9 values", low=0.0, high=100.0),
-        Option("L_ref", "float", 0.15, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
+        Option("L_ref", "float", LOOKAHEAD, "pure-pursuit look-ahead distance, m", low=0.01, high=2.0),
         Option("chunk", "int", 1000, "seeds per compiled batch (memory vs speed)", low=1, high=100_000),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
