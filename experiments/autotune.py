@@ -65,10 +65,14 @@ def with_thresholds(loop, sigma, delta, estimator="hard", temperature=0.0):
 
 
 def mecanum_loss_fn(loop, j1_nom, w, estimator):
-    """loss(params, key, temperature) for :func:`jaxnc.tune.tune`."""
+    """loss(params, key, temperature) for :func:`jaxnc.tune.tune`. For ``"hybrid"`` it
+    returns (smooth, jump): the stable runs' J1'/J1_nom plus w J4, and the failure charge
+    (tube radius / J1_nom on an unstable run, 0 otherwise); their sum is L_w."""
     def loss(p, key, temperature):
         lt = with_thresholds(loop, p["sigma"], p["delta"], estimator, temperature)
-        j1n, j4, _, _ = mecanum_terms(lt, key, j1_nom)
+        j1n, j4, unstable, _ = mecanum_terms(lt, key, j1_nom)
+        if estimator == "hybrid":
+            return jnp.where(unstable, 0.0, j1n) + w * j4, jnp.where(unstable, j1n, 0.0)
         return j1n + w * j4
     return loss
 
@@ -109,7 +113,8 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         raise ConfigError(str(e)) from None
     weights = settings["weights"]
     steps, batch = settings["steps"], settings["batch"]
-    budget = steps * batch
+    # simulations per gradient step: the hybrid estimator adds batch // 2 antithetic pairs
+    budget = steps * (batch + 2 * max(1, batch // 2) if settings["estimator"] == "hybrid" else batch)
     s_axis = (0.0, 0.25, 0.5, 1.0)
     d_axis = (0.03, 0.1, 0.3, 1.0)
     grid_seeds = max(2, budget // (len(s_axis) * len(d_axis)))
@@ -351,7 +356,7 @@ register(Experiment(
         Option("path", "choice", "lissajous", "reference path", choices=tuple(PATHS)),
         Option("weights", "floats", (1.0, 3.0, 10.0, 30.0), "weights w of J4", low=0.0, high=1e4),
         Option("estimator", "choice", "straight_through", "event-gradient estimator",
-               choices=("straight_through", "sigmoid", "score")),
+               choices=("straight_through", "sigmoid", "score", "hybrid")),
         Option("t0", "float", 1.0, "initial trigger temperature", low=1e-6, high=1e6),
         Option("t1", "float", 0.1, "final trigger temperature", low=1e-6, high=1e6),
         Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),

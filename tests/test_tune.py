@@ -200,3 +200,28 @@ def test_experiment_options_are_validated_before_tracing():
     with pytest.raises(ConfigError, match="dp"):
         exp.parse_settings(["dp=1.5"])
     assert get_experiment("autotune-pi").parse_settings(["scenario=a"])["scenario"] == "a"
+
+
+def test_hybrid_estimator_sees_a_failure_region_that_the_pathwise_gradient_cannot():
+    """Per seed xi ~ N(0, 0.3^2): smooth = (a - 2)^2, jump = 4 if a + xi > 1.5 (a failure
+    charged a constant, no pathwise derivative). The pathwise gradient only sees the
+    quadratic and stops at a = 2; the hybrid estimator adds the score-function gradient
+    of the jump, smoothed by its perturbation scale s, so it minimises
+    (a - 2)^2 + 4 Phi((a - 1.5) / sqrt(0.3^2 + s^2)), whose minimum is computed here."""
+    from scipy.stats import norm
+
+    def loss(p, key, temperature):
+        fail = p["a"] + 0.3 * jax.random.normal(key) > 1.5
+        return (p["a"] - 2.0) ** 2, jnp.where(fail, 4.0, 0.0)
+
+    s = 0.1
+    grid_a = np.linspace(0.0, 3.0, 30001)
+    smoothed = (grid_a - 2) ** 2 + 4 * norm.cdf((grid_a - 1.5) / math.sqrt(0.09 + s ** 2))
+    a_star = grid_a[np.argmin(smoothed)]
+    assert abs(a_star - 2.0) > 0.5                      # the failure term moves the optimum
+    kw = dict(steps=400, batch=8, optimizer=optax.adam(0.02), progress=False, score_scale=s, average_tail=0.5)
+    hyb = tune(loss, {"a": 2.0}, estimator="hybrid", score_pairs=16, **kw)
+    path = tune(lambda p, k, t: sum(loss(p, k, t)), {"a": 2.0}, estimator="straight_through", **kw)
+    assert abs(float(hyb.params["a"]) - a_star) < 0.1, (float(hyb.params["a"]), a_star)
+    assert abs(float(path.params["a"]) - 2.0) < 0.05   # blind to the failures
+    assert hyb.n_simulations == 400 * (8 + 2 * 16)

@@ -1,4 +1,4 @@
-"""Gradients through event triggers: three estimators and how to pick one.
+"""Gradients through event triggers: four estimators and how to pick one.
 
 A trigger fires when a gap g(theta) > 0 (seed 000 eq. 4: g = ||zbar - z||^2 -
 sum_i sigma(i) z(i)^2 + delta(i)); beta = 1[g > 0] is a step function, so its exact
@@ -24,6 +24,12 @@ rature=tau)``)                                                                  
 res`)                                               (REINFORCE with a baseline)      variance ~ dim / n;
                                                                                     needs no gradient of
                                                                                     the simulation
+``"hybrid"``           hard; the loss returns      straight-through gradient of     straight-through's
+(:func:`jaxnc.tune.    (smooth, jump)              smooth + jump, plus the score    bias on the smooth
+tune`)                                             gradient of jump alone           part; the jump part
+                                                   (antithetic pairs)               unbiased for its
+                                                                                    smoothing, variance
+                                                                                    ~ dim / pairs
 =====================  =========================  ===============================  ==================
 
 How to pick.  Start with ``straight_through``: it simulates the exact hard loop, costs
@@ -34,7 +40,10 @@ difference checks, line searches, second-order methods) and anneal tau towards 0
 the relaxed objective approaches the hard one.  Use ``score`` when the simulation is
 not differentiable (integer leaves, hard selects, a black box) or when the biased
 estimators stall on a plateau; it needs many more seeds per step for the same noise,
-since its variance grows with the number of tuned parameters.
+since its variance grows with the number of tuned parameters.  Use ``hybrid`` when the
+objective charges a constant for discrete failures (a run that leaves the tube): the
+pathwise gradient cannot see how the failure probability moves, the score term can,
+and the smooth part keeps its low-variance pathwise gradient.
 
 The score-function pieces also exist per event: :func:`bernoulli_fires` makes the
 trigger itself random (fires with probability s(g / tau)) and returns log p(beta) so
@@ -53,7 +62,7 @@ from jaxnc._validate import check_nonneg, check_positive
 __all__ = ["ESTIMATORS", "RelaxedPetcTrigger", "relax_trigger", "sigmoid_relaxation", "straight_through",
            "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
 
-ESTIMATORS = ("straight_through", "sigmoid", "score")
+ESTIMATORS = ("straight_through", "sigmoid", "score", "hybrid")
 
 
 def sigmoid_relaxation(gap, temperature):
@@ -109,11 +118,12 @@ class RelaxedPetcTrigger:
 
 def relax_trigger(trigger, estimator: str, temperature):
     """The trigger a loop should use for ``estimator``: ``"sigmoid"`` gives a
-    :class:`RelaxedPetcTrigger`, ``"straight_through"`` the same ``PetcTrigger`` with
-    ``temperature`` > 0, ``"score"`` (and ``"hard"``) the hard trigger."""
+    :class:`RelaxedPetcTrigger`, ``"straight_through"`` (and ``"hybrid"``, whose pathwise
+    part is straight-through) the same ``PetcTrigger`` with ``temperature`` > 0,
+    ``"score"`` (and ``"hard"``) the hard trigger."""
     if estimator == "sigmoid":
         return RelaxedPetcTrigger(sigma=trigger.sigma, delta=trigger.delta, temperature=temperature)
-    if estimator == "straight_through":
+    if estimator in ("straight_through", "hybrid"):
         return dataclasses.replace(trigger, temperature=temperature)
     if estimator in ("score", "hard"):
         return dataclasses.replace(trigger, temperature=0.0) if hasattr(trigger, "temperature") else trigger

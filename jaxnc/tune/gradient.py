@@ -17,6 +17,10 @@ leaves).  :func:`tune` minimises E_seeds[loss] by stochastic gradient steps:
   ``"straight_through"`` and ``"sigmoid"`` differentiate the loss (the loss decides which
   trigger to build from the temperature), ``"score"`` uses the antithetic Gaussian
   score function on the raw parameters and never differentiates the simulation;
+  ``"hybrid"`` takes a loss that returns ``(smooth, jump)``: the pathwise
+  (straight-through) gradient of ``smooth + jump`` plus the antithetic score-function
+  gradient of ``jump`` alone, for objectives whose discrete part (a run that fails and
+  is charged a constant) has no pathwise derivative;
 * the returned parameters are the average of the raw iterates over the last
   ``average_tail`` fraction of steps (Polyak-Ruppert averaging, which removes most of
   the step-to-step noise of a stochastic gradient);
@@ -117,17 +121,21 @@ class TuneResult(NamedTuple):
 def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: int = 50, batch: int = 8,
          optimizer: optax.GradientTransformation | None = None, estimator: str = "straight_through",
          temperature: tuple[float, float] = (1.0, 0.1), seed: int = 0, resample: bool = True,
-         score_scale: float = 0.1, average_tail: float = 0.25, progress: bool = True,
-         desc: str = "tune") -> TuneResult:
+         score_scale: float = 0.1, score_pairs: int | None = None, average_tail: float = 0.25,
+         progress: bool = True, desc: str = "tune") -> TuneResult:
     """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
 
     ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
-    number of simulations).  Seeds come from :func:`jaxnc.montecarlo.seed_keys` with
-    base ``seed``: step k uses seeds ``k*batch ... (k+1)*batch - 1`` (``resample``) or
-    always ``0 ... batch - 1``.  Evaluate the result on a different base seed.
+    number of simulations; for ``"hybrid"``: ``batch`` pathwise seeds plus
+    ``score_pairs`` antithetic pairs, default batch // 2, i.e. 2 x batch simulations).
+    Seeds come from :func:`jaxnc.montecarlo.seed_keys` with base ``seed``: step k uses
+    seeds ``k*batch ... (k+1)*batch - 1`` (``resample``) or always ``0 ... batch - 1``.
+    Evaluate the result on a different base seed.
     """
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
+    if score_pairs is not None:
+        check_int("score_pairs", score_pairs, 1)
     check_range("average_tail", average_tail, 0.0, 1.0)
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
@@ -149,6 +157,21 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
             v, g = score_grad(fn, ravel_pytree(raw)[0], keys[0], n_pairs, score_scale)
             return v, unravel(g)
         sims_per_step = 2 * n_pairs
+    elif estimator == "hybrid":
+        n_pairs = score_pairs or max(1, batch // 2)
+
+        def value_and_grad(raw, keys, temp):
+            def total(r):
+                p = constrain(r, constraints)
+                smooth, jump = jax.vmap(lambda k: loss(p, k, temp))(keys)
+                return jnp.mean(smooth + jump)
+            value, g_path = jax.value_and_grad(total)(raw)
+            flat, unravel = ravel_pytree(raw)
+            jump_fn = lambda f, k: loss(constrain(unravel(f), constraints), k, temp)[1]
+            # the pairs' seeds are drawn from the step's first key: independent of the batch
+            _, g_jump = score_grad(jump_fn, flat, jax.random.fold_in(keys[0], 7), n_pairs, score_scale)
+            return value, jax.tree.map(jnp.add, g_path, unravel(g_jump))
+        sims_per_step = batch + 2 * n_pairs
     else:
         value_and_grad = jax.value_and_grad(mean_loss)
         sims_per_step = batch
