@@ -34,7 +34,8 @@ from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import diffdrive as dd
 from jaxnc.schemes import mecanum as mec
-from jaxnc.tune import Positive, evaluate, grid, mean_ci, paired_ci, relax_trigger, search, tune
+from jaxnc.tune import (Positive, evaluate, grid, mean_ci, paired_ci, relax_trigger, search,
+                        simulations_per_step, tune)
 
 EVAL_SEED_OFFSET = 1_000_003   # evaluation seeds never overlap the tuning / grid seeds
 
@@ -107,14 +108,13 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
     t_start = time.perf_counter()
     try:
         loop = mec.mecanum_loop("DRHE", settings["N"], settings["dp"], path=settings["path"],
-                                max_silence=settings.get("max_silence", 0))
+                                max_silence=settings["max_silence"])
         nominal = mec.mecanum_loop("SR", 1, 0.0, path=settings["path"])
     except ValueError as e:
         raise ConfigError(str(e)) from None
     weights = settings["weights"]
     steps, batch = settings["steps"], settings["batch"]
-    # simulations per gradient step: the hybrid estimator adds batch // 2 antithetic pairs
-    budget = steps * (batch + 2 * max(1, batch // 2) if settings["estimator"] == "hybrid" else batch)
+    budget = steps * simulations_per_step(settings["estimator"], batch)   # the grid gets the same
     s_axis = (0.0, 0.25, 0.5, 1.0)
     d_axis = (0.03, 0.1, 0.3, 1.0)
     grid_seeds = max(2, budget // (len(s_axis) * len(d_axis)))

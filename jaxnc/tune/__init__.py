@@ -10,13 +10,14 @@
 from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temperature, bernoulli_fires,
                                    relax_trigger, score_grad, score_surrogate, sigmoid_relaxation,
                                    straight_through)
-from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, tune, \
-    unconstrain
+from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
+    simulations_per_step, tune, unconstrain
 from jaxnc.tune.search import SearchResult, evaluate, grid, mean_ci, paired_ci, random_points, search
 
 __all__ = [
     "ESTIMATORS", "RelaxedPetcTrigger", "annealed_temperature", "bernoulli_fires", "relax_trigger", "score_grad",
     "score_surrogate", "sigmoid_relaxation", "straight_through",
-    "Interval", "Positive", "TuneHistory", "TuneResult", "Unconstrained", "constrain", "tune", "unconstrain",
+    "Interval", "Positive", "TuneHistory", "TuneResult", "Unconstrained", "constrain", "simulations_per_step", "tune",
+    "unconstrain",
     "SearchResult", "evaluate", "grid", "mean_ci", "paired_ci", "random_points", "search",
 ]

@@ -46,7 +46,8 @@ from jaxnc import montecarlo
 from jaxnc._validate import check_int, check_range
 from jaxnc.tune.estimators import ESTIMATORS, annealed_temperature, score_grad
 
-__all__ = ["Positive", "Interval", "Unconstrained", "constrain", "unconstrain", "TuneHistory", "TuneResult", "tune"]
+__all__ = ["Positive", "Interval", "Unconstrained", "constrain", "unconstrain", "TuneHistory", "TuneResult", "tune",
+           "simulations_per_step"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,6 +119,22 @@ class TuneResult(NamedTuple):
     wall_time_s: float
 
 
+def _score_pairs(estimator: str, batch: int, score_pairs: int | None) -> int:
+    """Antithetic pairs per step: batch // 2 for ``"score"``, ``score_pairs`` (default
+    batch // 2, at least 1) for ``"hybrid"``, none for the pathwise estimators."""
+    if estimator == "score":
+        return batch // 2
+    if estimator == "hybrid":
+        return score_pairs or max(1, batch // 2)
+    return 0
+
+
+def simulations_per_step(estimator: str, batch: int, score_pairs: int | None = None) -> int:
+    """Closed-loop runs one step of :func:`tune` costs (for equal-budget comparisons)."""
+    pairs = _score_pairs(estimator, batch, score_pairs)
+    return 2 * pairs if estimator == "score" else batch + 2 * pairs
+
+
 def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: int = 50, batch: int = 8,
          optimizer: optax.GradientTransformation | None = None, estimator: str = "straight_through",
          temperature: tuple[float, float] = (1.0, 0.1), seed: int = 0, resample: bool = True,
@@ -148,18 +165,16 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
         p = constrain(raw, constraints)
         return jnp.mean(jax.vmap(lambda k: loss(p, k, temp))(keys))
 
+    n_pairs = _score_pairs(estimator, batch, score_pairs)
+    sims_per_step = simulations_per_step(estimator, batch, score_pairs)
     if estimator == "score":
         flat0, unravel = ravel_pytree(raw0)
-        n_pairs = batch // 2
 
         def value_and_grad(raw, keys, temp):
             fn = lambda flat, k: loss(constrain(unravel(flat), constraints), k, temp)
             v, g = score_grad(fn, ravel_pytree(raw)[0], keys[0], n_pairs, score_scale)
             return v, unravel(g)
-        sims_per_step = 2 * n_pairs
     elif estimator == "hybrid":
-        n_pairs = score_pairs or max(1, batch // 2)
-
         def value_and_grad(raw, keys, temp):
             def total(r):
                 p = constrain(r, constraints)
@@ -171,10 +186,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
             # the pairs' seeds are drawn from the step's first key: independent of the batch
             _, g_jump = score_grad(jump_fn, flat, jax.random.fold_in(keys[0], 7), n_pairs, score_scale)
             return value, jax.tree.map(jnp.add, g_path, unravel(g_jump))
-        sims_per_step = batch + 2 * n_pairs
     else:
         value_and_grad = jax.value_and_grad(mean_loss)
-        sims_per_step = batch
 
     @jax.jit
     def step_fn(raw, opt_state, keys, temp):
