@@ -8,20 +8,19 @@ JAX version and date. All ratios are measured in the same run (machines are nois
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from _record import record
 from jaxnc import montecarlo
 from jaxnc.experiments.mecanum import run_seed
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
+from jaxnc.estimators.ekf_batched import ekf_filter
 from jaxnc.plants.mecanum import Mecanum, MecanumNoise
 from jaxnc.report import markdown_table
 from jaxnc.schemes import mecanum as mec
@@ -38,9 +37,30 @@ def _time(f, repeat=3):
     return best
 
 
-# -- EKF: NumPy per-seed loop (what one writes by hand) vs jit(vmap(scan)) -------------
-def numpy_ekf(plant, noise, steps, rng, p_drop=0.3):
-    """Per-seed float64 EKF with analytic Jacobians and np.linalg.solve."""
+# -- EKF: NumPy per-seed loop (what one writes by hand) vs jit(vmap(scan)) vs ekf_filter --
+P_DROP = 0.3
+
+
+def ekf_data(plant, noise, B, steps, seed=0):
+    """The filters' input, generated once outside the timings: per seed, wheel commands
+    near 4 rad/s, the true run of the plant with process noise, its noisy measurements
+    and 30 % Bernoulli drops. Returns float32 us (B, K, 4), zs (B, K, 9), valid (B, K)."""
+    def one(key):
+        ku, kw, kv, kd = jax.random.split(key, 4)
+        us = 4.0 + 0.5 * jax.random.normal(ku, (steps, 4))
+        ws = noise.process_std()[None] * jax.random.normal(kw, (steps, 7))
+        vs = noise.measurement_std()[None] * jax.random.normal(kv, (steps, 9))
+
+        def step(x, inp):
+            x = plant.dynamics(x, inp[0], inp[1])
+            return x, plant.measure(x, inp[2])
+        zs = jax.lax.scan(step, jnp.zeros(6), (us, ws, vs))[1]
+        return us, zs, jax.random.uniform(kd, (steps,)) >= P_DROP
+    return jax.jit(jax.vmap(one))(montecarlo.seed_keys(seed, B))
+
+
+def numpy_ekf(plant, noise, us, zs, valid):
+    """One seed's float64 EKF with analytic Jacobians and np.linalg.solve."""
     R, T, L = plant.R, plant.T, plant.Lx + plant.Ly
     b = np.asarray(plant.beacons, float)
     dz2 = (plant.z_fb - plant.z_mb) ** 2
@@ -49,8 +69,7 @@ def numpy_ekf(plant, noise, steps, rng, p_drop=0.3):
     Rm = np.asarray(noise.R(), float)
     x, P = np.zeros(6), np.eye(6) * 1e-3
     Hw = np.array([[1, -1, -L], [1, 1, L], [1, 1, -L], [1, -1, L]]) / R
-    for _ in range(steps):
-        u = np.full(4, 4.0)
+    for u, z, ok in zip(us, zs, valid):
         v = G @ u
         a = x[5] + v[2] * T
         c, s = np.cos(a), np.sin(a)
@@ -61,7 +80,7 @@ def numpy_ekf(plant, noise, steps, rng, p_drop=0.3):
         Lw = np.zeros((6, 4))
         Lw[:3] = G
         P = A @ P @ A.T + Lw @ Q @ Lw.T
-        if rng.random() < p_drop:
+        if not ok:
             continue
         d = np.sqrt(np.sum((b - x[3:5]) ** 2, axis=1) + dz2)
         H = np.zeros((9, 6))
@@ -69,7 +88,6 @@ def numpy_ekf(plant, noise, steps, rng, p_drop=0.3):
         H[4, 5] = 1
         H[5:, 3:5] = (x[3:5] - b) / d[:, None]
         zhat = np.concatenate([Hw @ x[:3], [x[5]], d])
-        z = zhat + rng.normal(size=9) * 0.01
         S = H @ P @ H.T + Rm
         K = np.linalg.solve(S, H @ P).T
         x = x + K @ (z - zhat)
@@ -78,47 +96,68 @@ def numpy_ekf(plant, noise, steps, rng, p_drop=0.3):
     return x
 
 
-def jax_ekf(plant, noise, steps, p_drop=0.3, sequential=False):
+def jax_ekf(plant, noise, sequential=False):
+    """jit(vmap(scan)) of the per-seed ``ekf`` functions (the closed loops' form)."""
     Q, R = noise.Q(), noise.R()
     r = noise.measurement_std() ** 2
 
-    def one(key):
-        kd, kz = jax.random.split(key)
-        drop = jax.random.uniform(kd, (steps,)) < p_drop
-        vz = jax.random.normal(kz, (steps, 9)) * 0.01
-
+    def one(us, zs, valid):
         def step(b, inp):
-            d, v = inp
-            b = ekf_predict(plant.dynamics, b, jnp.full(4, 4.0), Q, 7)
-            z = plant.measure(b.mean, v)
+            u, z, ok = inp
+            b = ekf_predict(plant.dynamics, b, u, Q, 7)
             c = ekf_update_diag(plant.measure, b, z, r, 9) if sequential else ekf_update(plant.measure, b, z, R, 9)
-            return jax.tree.map(lambda a, o: jnp.where(d, o, a), c, b), None
+            return jax.tree.map(lambda a, o: jnp.where(ok, o, a), b, c), None
 
-        b, _ = jax.lax.scan(step, Gaussian(jnp.zeros(6), jnp.eye(6) * 1e-3), (drop, vz))
+        b, _ = jax.lax.scan(step, Gaussian(jnp.zeros(6), jnp.eye(6) * 1e-3), (us, zs, valid))
         return b.mean
 
     return jax.jit(jax.vmap(one))
 
 
+def jax_ekf_filter(plant, noise):
+    """``ekf_batched.ekf_filter``: the whole filter with the seed axis last."""
+    Q, r = noise.Q(), noise.measurement_std() ** 2
+
+    def run(us, zs, valid):
+        B = us.shape[0]
+        b0 = Gaussian(jnp.zeros((B, 6)), jnp.broadcast_to(jnp.eye(6) * 1e-3, (B, 6, 6)))
+        return ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, Q, r, noise_dim=7).mean
+
+    return jax.jit(run)
+
+
 def bench_ekf(batches, steps):
     plant, noise = Mecanum(), MecanumNoise()
-    rng = np.random.default_rng(0)
     n_np = 20
-    t_np = _time(lambda: [numpy_ekf(plant, noise, steps, rng) for _ in range(n_np)], repeat=1)
+    us, zs, valid = (np.asarray(a, np.float64) for a in ekf_data(plant, noise, n_np, steps, seed=1))
+    t_np = _time(lambda: [numpy_ekf(plant, noise, us[i], zs[i], valid[i] > 0) for i in range(n_np)], repeat=1)
     np_rate = n_np * steps / t_np
     rows = [["NumPy per-seed loop (float64)", "-", f"{np_rate:,.0f}", "1.0"]]
-    for seq in (False, True):
-        f = jax_ekf(plant, noise, steps, sequential=seq)
-        name = "sequential scalar update" if seq else "Cholesky update"
-        for B in batches:
-            keys = montecarlo.seed_keys(0, B)
+    # (name, filter, may split the seeds over devices). The Cholesky variant stays on one
+    # device: split over two CPU devices at B = 10 000 its LAPACK calls deadlocked (jax 0.10.2).
+    filters = (("jit(vmap(scan)) of ekf, Cholesky update", jax_ekf(plant, noise, sequential=False), False),
+               ("jit(vmap(scan)) of ekf, sequential scalar update", jax_ekf(plant, noise, sequential=True), True),
+               ("ekf_filter (seed axis last), sequential scalar update", jax_ekf_filter(plant, noise), True))
+    devices = jax.devices()
+    for B in batches:
+        one = ekf_data(plant, noise, B, steps)
+        split = one
+        if len(devices) > 1 and B % len(devices) == 0:          # seeds split over the devices, as run_batched does
+            split = tuple(jax.device_put(a, NamedSharding(Mesh(devices, ("seeds",)), PartitionSpec("seeds")))
+                          for a in one)
+        jax.block_until_ready(split)
+        for name, f, may_split in filters:
+            data = split if may_split else one
+            ndev = len(data[0].sharding.device_set)
+            name = f"{name}, B={B}" + (f", {ndev} devices" if ndev > 1 else "")
             t0 = time.perf_counter()
-            jax.block_until_ready(f(keys))
+            jax.block_until_ready(f(*data))
             compile_s = time.perf_counter() - t0
-            t = _time(lambda: f(keys))
+            t = _time(lambda: f(*data), repeat=2)
             rate = B * steps / t
-            rows.append([f"jaxnc EKF, {name}, B={B}", f"{compile_s:.1f}", f"{rate:,.0f}", f"{rate / np_rate:.1f}"])
-    return markdown_table(["EKF steps (6 states, 9 outputs, 30 % drops)", "compile s", "steps/s", "x NumPy"], rows)
+            rows.append([name, f"{compile_s:.1f}", f"{rate:,.0f}", f"{rate / np_rate:.1f}"])
+    return markdown_table([f"EKF steps (6 states, 9 outputs, 30 % drops, {steps} steps per seed)", "compile s",
+                           "steps/s", "x NumPy"], rows)
 
 
 def bench_loops(batches):
@@ -173,24 +212,23 @@ def main():
     ap.add_argument("--no-record", action="store_true", help="do not append to RESULTS.md")
     ap.add_argument("--cpu-devices", type=int, default=1, help="split the CPU into this many JAX devices")
     ap.add_argument("--batches", type=int, nargs="+", help="seed counts (overrides --quick/--full), e.g. on a GPU")
+    ap.add_argument("--ekf-steps", type=int, default=500, help="steps per seed of the EKF benchmark")
+    ap.add_argument("--only-ekf", action="store_true", help="run the EKF benchmark only")
     ap.add_argument("--results", type=Path, default=HERE / "RESULTS.md", help="file the tables are appended to")
     a = ap.parse_args()
     if a.cpu_devices > 1:
         jax.config.update("jax_num_cpu_devices", a.cpu_devices)
     batches = a.batches or ([1, 100] if a.quick else ([1, 100, 1000, 10000] if a.full else [1, 100, 1000]))
-    ekf = bench_ekf(batches, steps=2000)
+    ekf = bench_ekf(batches, steps=a.ekf_steps)
     print(ekf, flush=True)
-    loops = bench_loops(batches)
-    print(loops, flush=True)
-    grad = bench_grad()
-    print(grad, flush=True)
+    loops = grad = ""
+    if not a.only_ekf:
+        loops = bench_loops(batches)
+        print(loops, flush=True)
+        grad = bench_grad()
+        print(grad, flush=True)
     if not a.no_record:
-        cmd = "python benchmarks/bench_mecanum.py" + "".join(" " + a for a in sys.argv[1:])
-        head = (f"\n## {datetime.date.today()} — `{cmd}`\n\n"
-                f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}; "
-                f"jax {jax.__version__}, backend {jax.default_backend()}, Python {sys.version.split()[0]}\n\n")
-        with open(a.results, "a") as f:
-            f.write(head + f"Devices: {len(jax.devices())} x {jax.devices()[0].device_kind}\n\n" + ekf + "\n\n" + loops + "\n\n" + grad + "\n")
+        record(a.results, [ekf, loops, grad])
 
 
 if __name__ == "__main__":

@@ -17,10 +17,7 @@ Appends the tables to benchmarks/RESULTS.md with the command, machine and date.
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
-import platform
-import sys
 import time
 from pathlib import Path
 
@@ -28,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from _record import record
 from jaxnc import montecarlo
 from jaxnc.report import markdown_table
 
@@ -142,15 +140,8 @@ def main():
         print(table2)
     if not args.no_record:
         import mujoco
-        cmd = "python benchmarks/bench_mjx.py" + "".join(" " + a for a in sys.argv[1:])
-        with open(args.results, "a") as f:
-            f.write(f"\n## {datetime.date.today()} — `{cmd}`\n\n")
-            f.write(f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.platform()}; jax {jax.__version__}, "
-                    f"backend {jax.default_backend()} ({jax.devices()[0].device_kind}), mujoco {mujoco.__version__}, Python {platform.python_version()}. "
-                    f"{steps} physics steps of 5 ms per seed; C is float64, MJX float32.\n\n")
-            f.write(table1 + "\n")
-            if table2:
-                f.write("\n" + table2 + "\n")
+        record(args.results, [table1, table2],
+               f"mujoco {mujoco.__version__}; {steps} physics steps of 5 ms per seed; C is float64, MJX float32.")
 
 
 if __name__ == "__main__":

@@ -1,42 +1,43 @@
-"""EKF predict / diagonal update with batch-last covariance kernels under ``vmap``.
+"""Batched EKF with the seed axis last: a whole-sequence filter and its kernels.
 
-**Experimental; not used by the closed loops.** Measured on a 2-core CPU (issue 9):
-the kernels alone are 1.2-2.2x faster than ``ekf``'s forward pass, gradients are
-unchanged, and whole Mecanum loops gain 1.0-1.2x, because the Jacobians (jacfwd of
-per-seed model code) stay batch-first and XLA copies the axis moves into every
-consumer. Kept, with its tests (marked slow) and ``benchmarks/bench_ekf_kernels.py``,
-as the starting point for batch-last models.
+Why: under ``vmap`` every array is batch-first, e.g. P is (B, 6, 6), and XLA:CPU
+vectorises over the minor axis, which then has length 6. Written *batch-last* (matrix
+indices lead, the seed axis trails, every sum over a matrix index unrolled into
+slices of the leading axes: no ``reduce`` over a non-minor axis, no ``dot_general``),
+each operation is one contiguous, vectorised loop over seeds.
+
+:func:`ekf_filter` is the fast path for filtering many seeds' recorded sequences
+(Monte-Carlo studies of an estimator, issue 9's EKF benchmark): it moves the seed axis
+last once, runs the whole ``lax.scan`` batch-last, Jacobians included (forward-mode
+``jvp`` of the model's own methods on batch-last arrays), and moves it back. On a
+2-core CPU it runs 2-3x the ``jit(vmap(scan))`` of the per-seed ``ekf`` functions at
+1 000-10 000 seeds, 1.6 M steps/s on both cores (``benchmarks/bench_mecanum.py``); at a
+single seed it is slower (use ``ekf`` there). It needs model methods that
+accept trailing batch axes (``x`` of shape (n, B)), as
+:class:`jaxnc.plants.mecanum.Mecanum`'s do; it checks that before tracing.
+
+The closed loops keep the per-seed ``ekf`` under ``vmap``: their controllers,
+triggers and channels are per-seed code, and moving the axis around the EKF alone
+costs what it saves. The drop-in kernels below (``ekf_predict`` and
+``ekf_update_diag`` with ``custom_vmap``) measure that: 1.2-2.2x faster alone, 1.0-1.2x
+in whole Mecanum loops (RESULTS.md, 2026-11-23); kept with their tests.
 
 Drop-in replacements for :func:`jaxnc.estimators.ekf.ekf_predict` and
 :func:`jaxnc.estimators.ekf.ekf_update_diag` (same signatures, same results up to
 float32 summation order; seed 000 eq. 11-16). Callers keep writing per-seed code and
 ``jax.vmap`` it; only the covariance arithmetic changes how it is batched.
 
-Why: under ``vmap`` every array is batch-first, e.g. P is (B, 6, 6), and XLA:CPU
-vectorises over the minor axis, which then has length 6. The covariance arithmetic
-is therefore written once as a *batch-last kernel*: matrix indices lead, any batch
-axes trail, every sum over a matrix index is unrolled into slices of the leading
-axes (no ``reduce`` over a non-minor axis, no ``dot_general``), so with a trailing
-batch axis of length B each operation is a contiguous, vectorised loop over seeds.
-
 How: each kernel is wrapped by :func:`_batch_last`:
 
 * ``jax.custom_batching.custom_vmap``: unbatched, the kernel runs on the per-seed
   arrays (batch shape ``()``). Batched, its rule receives the batch-first operands,
   moves the batch axis last (unbatched operands are broadcast), runs the *same*
-  kernel and moves the axis back. XLA's layout assignment usually turns these
-  moves into layout choices of the ``lax.scan`` carry rather than copies.
+  kernel and moves the axis back.
 * ``jax.custom_vjp`` on the outside (``custom_vmap`` alone supports no reverse mode):
   the residuals are the inputs and the backward pass is ``jax.vjp`` of the same
   function written per seed with array operations (as in ``ekf``), batched by plain
-  ``vmap``: the backward pass costs what it cost before, the forward pass is faster.
-  Reverse mode through a ``lax.scan`` of the filter, ``vmap`` of ``grad`` and ``grad``
-  of a ``vmap`` work; forward mode (``jax.jvp``/``jacfwd`` through these functions)
-  does not (``custom_vjp``).
-
-The Jacobians A = df/dxi, L = df/dn1, H = dh/dxi still come from ``jax.jacfwd`` of the
-model's own per-seed methods, batch-first (a model's code cannot be re-batched
-generically); ``ekf_predict`` takes both of its Jacobians from one ``jacfwd``.
+  ``vmap``. Forward mode (``jax.jvp``/``jacfwd`` through these functions) does not
+  work (``custom_vjp``).
 """
 from __future__ import annotations
 
@@ -48,7 +49,7 @@ from jax.custom_batching import custom_vmap
 
 from jaxnc.estimators.ekf import Gaussian
 
-__all__ = ["Gaussian", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
+__all__ = ["Gaussian", "ekf_filter", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
 
 
 # -- batch-last kernels: matrix indices lead, batch axes (possibly none) trail --------
@@ -129,6 +130,12 @@ def _batch_last(kernel: Callable, compact: Callable) -> Callable:
         out = jax.tree.map(_from_last, out)
         return out, jax.tree.map(lambda _: True, out)
 
+    return _backward_by(forward, compact)
+
+
+def _backward_by(forward: Callable, backward_of: Callable) -> Callable:
+    """``forward`` whose reverse-mode derivative is the ``vjp`` of ``backward_of``, the
+    same function written with array operations (the inputs are the residuals)."""
     @jax.custom_vjp
     def fn(*args):
         return forward(*args)
@@ -137,7 +144,7 @@ def _batch_last(kernel: Callable, compact: Callable) -> Callable:
         return forward(*args), args
 
     def fn_bwd(args, ct):
-        return tuple(jax.vjp(compact, *args)[1](ct))
+        return tuple(jax.vjp(backward_of, *args)[1](ct))
 
     fn.defvjp(fn_fwd, fn_bwd)
     return fn
@@ -197,3 +204,109 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int) -> Gaus
     r = jnp.asarray(r, belief.cov.dtype)
     delta, P = _update_diag(belief.cov, H, innovation, r)
     return Gaussian(belief.mean + delta, P)
+
+
+# -- the whole filter, batch-last ---------------------------------------------------------
+def _reverse_by_compact(kernel: Callable, compact: Callable, in_axes: tuple) -> Callable:
+    """``kernel`` on batch-last arrays, its backward pass the ``vjp`` of ``compact``.
+
+    ``in_axes`` says, per argument, -1 (seed axis last) or None (shared by all seeds).
+    Reverse mode through the unrolled kernels gives the same numbers but compiles
+    minutes instead of seconds (an expression graph of thousands of slices); this
+    backward pass is the per-seed array code under ``vmap``, as for ``ekf``.
+    """
+    return _backward_by(kernel, jax.vmap(compact, in_axes=in_axes, out_axes=-1))
+
+
+_predict_cov_last = _reverse_by_compact(predict_cov, _predict_cov_compact, (-1, -1, -1, None))
+_update_diag_last = _reverse_by_compact(update_diag, _update_diag_compact, (-1, -1, -1, None))
+
+
+def _jacobian(fn, x):
+    """d fn / d x for batch-last ``x`` of shape (n, *batch): (n_out, n, *batch).
+
+    One forward-mode product per input direction (``vmap`` over one-hot tangents on a
+    *leading* axis, so the seed axis stays minor); the model's code sees batch-last
+    arrays only.
+    """
+    n = x.shape[0]
+    basis = jnp.broadcast_to(jnp.eye(n, dtype=x.dtype).reshape((n, n) + (1,) * (x.ndim - 1)), (n,) + x.shape)
+    return jax.vmap(lambda t: jax.jvp(fn, (x,), (t,))[1], out_axes=1)(basis)
+
+
+def _check_model(f, h, n, nu, nw, nv, m, dtype):
+    """Evaluate f and h abstractly on a batch of 2 to fail early with a clear message."""
+    b = 2
+    x, u = jax.ShapeDtypeStruct((n, b), dtype), jax.ShapeDtypeStruct((nu, b), dtype)
+    w, v = jax.ShapeDtypeStruct((nw, b), dtype), jax.ShapeDtypeStruct((nv, b), dtype)
+    for name, fn, args, want in (("f", f, (x, u, w), (n, b)), ("h", h, (x, v), (m, b))):
+        try:
+            out = jax.eval_shape(fn, *args)
+            shape = out.shape
+        except Exception as e:  # noqa: BLE001 -- re-raised with the cause attached
+            raise ValueError(
+                f"ekf_filter: the model function {name} must accept batch-last arrays "
+                f"(x of shape (n, B), every other argument (dim, B)) and broadcast over the trailing "
+                f"axis; calling it on a batch of {b} failed: {e}") from e
+        if shape != want:
+            raise ValueError(f"ekf_filter: the model function {name} returned shape {shape} for a batch of "
+                             f"{b} seeds; expected {want} (batch axis last)")
+
+
+def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r, *,
+               noise_dim: int, return_means: bool = False):
+    """EKF over whole sequences for many seeds, run with the seed axis last (seed 000 eq. 11-16).
+
+    For k = 0 .. K-1: predict with ``us[:, k]`` (eq. 11-12, A = df/dxi, L = df/dn1 at
+    the mean, process noise covariance ``Q``), then, where ``valid[:, k]``, correct with
+    ``zs[:, k]`` by sequential scalar updates with ``R = diag(r)`` (eq. 13-16, as
+    :func:`jaxnc.estimators.ekf.ekf_update_diag`); a dropped measurement leaves the
+    prediction. Equal, up to float32 summation order, to ``vmap`` over seeds of a
+    ``lax.scan`` of ``ekf.ekf_predict`` and ``ekf.ekf_update_diag``; reverse-mode
+    differentiable.
+
+    Args:
+      f: ``f(x, u, w) -> x'`` and ``h``: ``h(x, v) -> z`` (additive ``v``), written for
+        one seed but broadcasting over trailing batch axes: called with ``x`` of shape
+        (n, B), ``u`` (nu, B), ``w`` (noise_dim, B), ``v`` (m, B).
+      belief0: initial beliefs, ``mean`` (B, n), ``cov`` (B, n, n).
+      us: inputs (B, K, nu); zs: measurements (B, K, m); valid: (B, K) booleans.
+      Q: (noise_dim, noise_dim) process noise covariance; r: (m,) measurement variances.
+      noise_dim: dimension of the process noise ``w`` (static).
+      return_means: also return the filtered means (B, K, n) (memory K·n·B).
+
+    Returns:
+      the final beliefs (batch-first), and the means if ``return_means``.
+    """
+    mean0, cov0 = jnp.asarray(belief0.mean), jnp.asarray(belief0.cov)
+    us, zs, valid = jnp.asarray(us), jnp.asarray(zs), jnp.asarray(valid)
+    if mean0.ndim != 2 or cov0.shape != mean0.shape + mean0.shape[-1:]:
+        raise ValueError(f"ekf_filter: belief0 must have mean (B, n) and cov (B, n, n); got {mean0.shape}, {cov0.shape}")
+    B, n = mean0.shape
+    if us.ndim != 3 or zs.ndim != 3 or us.shape[:2] != zs.shape[:2] or us.shape[0] != B or valid.shape != us.shape[:2]:
+        raise ValueError(f"ekf_filter: us (B, K, nu), zs (B, K, m) and valid (B, K) must share B = {B} and K; "
+                         f"got {us.shape}, {zs.shape}, {valid.shape}")
+    m, nu = zs.shape[-1], us.shape[-1]
+    dtype = cov0.dtype
+    Q, r = jnp.asarray(Q, dtype), jnp.asarray(r, dtype)
+    if Q.shape != (noise_dim, noise_dim) or r.shape != (m,):
+        raise ValueError(f"ekf_filter: Q must be ({noise_dim}, {noise_dim}) and r ({m},); got {Q.shape}, {r.shape}")
+    _check_model(f, h, n, nu, noise_dim, m, m, dtype)
+
+    def step(carry, inp):
+        x, P = carry
+        u, z, ok = inp
+        xw = jnp.concatenate([x, jnp.zeros((noise_dim, B), x.dtype)])
+        fxw = lambda a: f(a[:n], u, a[n:])
+        J = _jacobian(fxw, xw)
+        x = fxw(xw)
+        P = _predict_cov_last(P, J[:, :n], J[:, n:], Q)
+        hx = lambda a: h(a, jnp.zeros((m, B), a.dtype))
+        delta, Pc = _update_diag_last(P, _jacobian(hx, x), z - hx(x), r)
+        x, P = jnp.where(ok[None], x + delta, x), jnp.where(ok[None, None], Pc, P)
+        return (x, P), (x if return_means else None)
+
+    xs = (jnp.moveaxis(us, 0, -1), jnp.moveaxis(zs, 0, -1), jnp.moveaxis(valid, 0, -1))
+    (x, P), means = jax.lax.scan(step, (jnp.moveaxis(mean0, 0, -1), jnp.moveaxis(cov0, 0, -1)), xs)
+    final = Gaussian(jnp.moveaxis(x, -1, 0), jnp.moveaxis(P, -1, 0))
+    return (final, jnp.moveaxis(means, -1, 0)) if return_means else final

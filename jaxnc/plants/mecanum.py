@@ -40,7 +40,12 @@ DEFAULT_BEACONS = ((-2.5, -2.5), (2.5, -2.5), (2.5, 2.5), (-2.5, 2.5))
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Mecanum:
-    """Kinematic Mecanum platform sampled at the fast period ``T`` (eq. 1-2, 9)."""
+    """Kinematic Mecanum platform sampled at the fast period ``T`` (eq. 1-2, 9).
+
+    The model methods take one seed's vectors, e.g. ``x`` of shape (6,), or the same
+    with trailing batch axes, (6, B), as :func:`jaxnc.estimators.ekf_batched.ekf_filter`
+    passes them (every input then carries the batch axes).
+    """
 
     R: jax.Array = 0.05
     Lx: jax.Array = 0.15
@@ -83,7 +88,7 @@ class Mecanum:
         rest neither slips nor jitters.
         """
         u = jnp.clip(u, -self.omega_max, self.omega_max)
-        return u, jnp.minimum(1.0, jnp.mean(jnp.abs(u)) / 4.0)
+        return u, jnp.minimum(1.0, jnp.mean(jnp.abs(u), axis=0) / 4.0)
 
     def dynamics(self, x, u, w):
         """xi_k = f(xi_{k-1}, n1_{k-1}, u_{k-1}), eq. (1) and (10).
@@ -91,7 +96,7 @@ class Mecanum:
         ``w`` is the process noise n1 = (4 wheel-speed errors, X, Y, psi slip).
         """
         u, m = self.commanded(u)
-        omega = u + m * w[:4]
+        omega = u + m[None] * w[:4]
         v = self.body_velocity(omega)
         T = self.T
         a = x[5] + v[2] * T
@@ -116,10 +121,11 @@ class Mecanum:
         return x
 
     def distances(self, xy):
-        """Beacon distances d_i, eq. (2)."""
+        """Beacon distances d_i, eq. (2). ``xy`` is (2,) or (2, *batch)."""
         dz2 = (self.z_fb - self.z_mb) ** 2
-        diff = self.beacons - xy[None, :]
-        return jnp.sqrt(jnp.sum(diff * diff, axis=-1) + dz2)
+        b = jnp.reshape(self.beacons, self.beacons.shape + (1,) * (jnp.ndim(xy) - 1))
+        dx, dy = b[:, 0] - xy[0][None], b[:, 1] - xy[1][None]
+        return jnp.sqrt(dx * dx + dy * dy + dz2)
 
     def measure(self, x, v):
         """z = h(xi, n2): encoders (eq. 9 of the state velocities), yaw, eq. (2)."""
