@@ -44,10 +44,10 @@ EVAL_SEED_OFFSET = 1_000_003   # evaluation seeds never overlap the tuning / gri
 
 
 def mecanum_terms(loop: mec.MecanumLoop, key, j1_nom):
-    """Per-seed (J1'/J1_nom, J4, unstable, J1) of seed 000 eq. (21), (24).
+    """Per-seed (J1'/J1_nom, J4, unstable, J1, J2) of seed 000 eq. (21), (22), (24).
 
-    The completion step l and the instability flag carry no gradient; the mean distance
-    and the transmission count do (through the trigger's estimator)."""
+    The completion step l and the instability flag carry no gradient; the mean and
+    maximum distance and the transmission count do (through the trigger's estimator)."""
     traj = mec.simulate(loop, key)
     K, N = loop.steps, loop.N
     l = jax.lax.stop_gradient(traj.l)
@@ -57,7 +57,18 @@ def mecanum_terms(loop: mec.MecanumLoop, key, j1_nom):
     j4 = jnp.sum(traj.sent * slow_mask) / l      # nominal SR sends every fast period: rate 1
     unstable = traj.bad | ~traj.done
     j1p = jnp.where(unstable | ~jnp.isfinite(j1), loop.max_dev, j1)
-    return j1p / j1_nom, j4, unstable, j1
+    j2 = jnp.max(jnp.where(mask > 0, traj.dist, 0.0))
+    return j1p / j1_nom, j4, unstable, j1, j2
+
+
+def near_miss_penalty(j2, unstable, max_dev, r0, charge):
+    """Differentiable stand-in for the failure charge: ``charge`` * ((J2 - r0) / (max_dev - r0))^2
+    for a stable run whose maximum distance J2 exceeds ``r0`` (0 below r0 and for unstable
+    runs, which pay the failure charge itself). Runs that come close to the tube's edge
+    are the precursor of runs that leave it (their share grows with the thresholds), and
+    unlike a failure they have a pathwise gradient."""
+    x = jnp.clip((j2 - r0) / (max_dev - r0), 0.0, 1.0)
+    return jnp.where(unstable | ~jnp.isfinite(j2), 0.0, charge * x * x)
 
 
 def with_thresholds(loop, sigma, delta, estimator="hard", temperature=0.0):
@@ -65,23 +76,32 @@ def with_thresholds(loop, sigma, delta, estimator="hard", temperature=0.0):
     return dataclasses.replace(loop, trigger=relax_trigger(trig, estimator, temperature))
 
 
-def mecanum_loss_fn(loop, j1_nom, w, estimator):
+def mecanum_loss_fn(loop, j1_nom, w, estimator, near_miss=0.0):
     """loss(params, key, temperature) for :func:`jaxnc.tune.tune`. For ``"hybrid"`` it
     returns (smooth, jump): the stable runs' J1'/J1_nom plus w J4, and the failure charge
-    (tube radius / J1_nom on an unstable run, 0 otherwise); their sum is L_w."""
+    (tube radius / J1_nom on an unstable run, 0 otherwise); their sum is L_w.
+
+    ``near_miss`` = r0 > 0 adds the gradient (not the value: p - stop_gradient(p)) of
+    :func:`near_miss_penalty` with the failure charge, so the reported objective stays L_w."""
+    charge = float(loop.max_dev) / j1_nom
+
     def loss(p, key, temperature):
         lt = with_thresholds(loop, p["sigma"], p["delta"], estimator, temperature)
-        j1n, j4, unstable, _ = mecanum_terms(lt, key, j1_nom)
+        j1n, j4, unstable, _, j2 = mecanum_terms(lt, key, j1_nom)
+        smooth = jnp.where(unstable, 0.0, j1n) + w * j4
+        if near_miss > 0:
+            pen = near_miss_penalty(j2, unstable, loop.max_dev, near_miss, charge)
+            smooth = smooth + pen - jax.lax.stop_gradient(pen)
         if estimator == "hybrid":
-            return jnp.where(unstable, 0.0, j1n) + w * j4, jnp.where(unstable, j1n, 0.0)
-        return j1n + w * j4
+            return smooth, jnp.where(unstable, j1n, 0.0)
+        return smooth + jnp.where(unstable, j1n, 0.0)
     return loss
 
 
 def mecanum_eval_fn(loop, j1_nom):
     """per_seed(params, key) with hard triggers: params sigma[9], delta[9], w."""
     def per_seed(p, key):
-        j1n, j4, unstable, j1 = mecanum_terms(with_thresholds(loop, p["sigma"], p["delta"]), key, j1_nom)
+        j1n, j4, unstable, j1, _ = mecanum_terms(with_thresholds(loop, p["sigma"], p["delta"]), key, j1_nom)
         return dict(loss=j1n + p["w"] * j4, J1n=j1n, J4=j4, unstable=unstable, J1=j1)
     return per_seed
 
@@ -90,7 +110,7 @@ def mecanum_grid_fn(loop, j1_nom):
     """per_seed for the grid: sigma = s * paper's sigma pattern, delta(i) = d for all i."""
     sig = jnp.asarray(mec.PAPER_SIGMA, jnp.float32)
     def per_seed(p, key):
-        j1n, j4, _, _ = mecanum_terms(with_thresholds(loop, p["s"] * sig, jnp.full(9, p["d"])), key, j1_nom)
+        j1n, j4, _, _, _ = mecanum_terms(with_thresholds(loop, p["s"] * sig, jnp.full(9, p["d"])), key, j1_nom)
         return j1n + p["w"] * j4
     return per_seed
 
@@ -112,6 +132,8 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         nominal = mec.mecanum_loop("SR", 1, 0.0, path=settings["path"])
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    if settings["near_miss"] >= float(loop.max_dev):
+        raise ConfigError(f"near_miss must lie in [0, max_dev = {float(loop.max_dev):g} m); got {settings['near_miss']}")
     weights = settings["weights"]
     steps, batch = settings["steps"], settings["batch"]
     budget = steps * simulations_per_step(settings["estimator"], batch)   # the grid gets the same
@@ -129,7 +151,7 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
     grid_keys = montecarlo.seed_keys(settings["seed"] + 1, grid_seeds)
     rows, results, histories, front = [], {}, {}, []
     for w in weights:
-        loss = mecanum_loss_fn(loop, j1_nom, w, settings["estimator"])
+        loss = mecanum_loss_fn(loop, j1_nom, w, settings["estimator"], settings["near_miss"])
         opt = optax.adam(settings["lr"])
         gs = search(grid_fn, grid(s=s_axis, d=d_axis, w=(w,)), grid_keys, progress=progress, desc=f"grid w={w:g}")
         gbest = {"sigma": gs.best_point["s"] * paper["sigma"], "delta": np.full(9, gs.best_point["d"], np.float32)}
@@ -364,6 +386,8 @@ register(Experiment(
                choices=("paper", "grid")),
         Option("max_silence", "int", 0, "DRHE time-triggered safety condition: the sensor also sends after this "
                "many silent slow periods (0 = off, as the paper)", low=0, high=100_000),
+        Option("near_miss", "float", 0.0, "gradient only: also penalise stable runs whose maximum distance "
+               "exceeds this many metres (a differentiable precursor of failures; 0 = off)", low=0.0, high=10.0),
         *COMMON,
     ),
     run=run_mecanum,

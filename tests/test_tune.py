@@ -225,3 +225,19 @@ def test_hybrid_estimator_sees_a_failure_region_that_the_pathwise_gradient_canno
     assert abs(float(hyb.params["a"]) - a_star) < 0.1, (float(hyb.params["a"]), a_star)
     assert abs(float(path.params["a"]) - 2.0) < 0.05   # blind to the failures
     assert hyb.n_simulations == 400 * (8 + 2 * 16)
+
+
+def test_near_miss_penalty_ramps_from_r0_to_the_failure_charge_and_adds_only_a_gradient():
+    """autotune-mecanum's near-miss surrogate: 0 up to r0, the failure charge at the tube's
+    edge, 0 for unstable runs (they pay the charge itself); added as p - stop_gradient(p)
+    it leaves the objective's value unchanged and contributes dp/dJ2."""
+    from experiments.autotune import near_miss_penalty
+    pen = lambda j2, bad=False: near_miss_penalty(jnp.float32(j2), jnp.bool_(bad), 0.5, 0.2, 100.0)
+    assert float(pen(0.1)) == 0.0 and float(pen(0.2)) == 0.0
+    np.testing.assert_allclose(float(pen(0.5)), 100.0, rtol=1e-6)
+    np.testing.assert_allclose(float(pen(0.35)), 25.0, rtol=1e-5)      # half-way: charge / 4
+    assert float(pen(0.45, bad=True)) == 0.0 and float(pen(jnp.inf)) == 0.0
+    value_and_grad = jax.value_and_grad(lambda j2: pen(j2) - jax.lax.stop_gradient(pen(j2)))
+    v, g = value_and_grad(jnp.float32(0.35))
+    assert float(v) == 0.0
+    np.testing.assert_allclose(float(g), 2 * 100.0 * 0.5 / 0.3, rtol=1e-5)   # d/dJ2 of charge x^2
