@@ -124,8 +124,8 @@ class Mecanum:
         """Beacon distances d_i, eq. (2). ``xy`` is (2,) or (2, *batch)."""
         dz2 = (self.z_fb - self.z_mb) ** 2
         b = jnp.reshape(self.beacons, self.beacons.shape + (1,) * (jnp.ndim(xy) - 1))
-        dx, dy = b[:, 0] - xy[0][None], b[:, 1] - xy[1][None]
-        return jnp.sqrt(dx * dx + dy * dy + dz2)
+        diff = b - xy[None]                      # (4, 2, *batch); per seed exactly the old (4, 2)
+        return jnp.sqrt(jnp.sum(diff * diff, axis=1) + dz2)
 
     def measure(self, x, v):
         """z = h(xi, n2): encoders (eq. 9 of the state velocities), yaw, eq. (2)."""
