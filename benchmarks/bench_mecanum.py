@@ -139,12 +139,12 @@ def bench_ekf(batches, steps):
                ("jit(vmap(scan)) of ekf, sequential scalar update", jax_ekf(plant, noise, sequential=True), True),
                ("ekf_filter (seed axis last), sequential scalar update", jax_ekf_filter(plant, noise), True))
     devices = jax.devices()
+    seeds = NamedSharding(Mesh(devices, ("seeds",)), PartitionSpec("seeds"))
     for B in batches:
         one = ekf_data(plant, noise, B, steps)
         split = one
         if len(devices) > 1 and B % len(devices) == 0:          # seeds split over the devices, as run_batched does
-            split = tuple(jax.device_put(a, NamedSharding(Mesh(devices, ("seeds",)), PartitionSpec("seeds")))
-                          for a in one)
+            split = tuple(jax.device_put(a, seeds) for a in one)
         jax.block_until_ready(split)
         for name, f, may_split in filters:
             data = split if may_split else one

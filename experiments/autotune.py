@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxnc import montecarlo
+from jaxnc import metrics, montecarlo
 from jaxnc.design.dualrate import DiscreteSS
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
@@ -57,7 +57,7 @@ def mecanum_terms(loop: mec.MecanumLoop, key, j1_nom):
     j4 = jnp.sum(traj.sent * slow_mask) / l      # nominal SR sends every fast period: rate 1
     unstable = traj.bad | ~traj.done
     j1p = jnp.where(unstable | ~jnp.isfinite(j1), loop.max_dev, j1)
-    j2 = jnp.max(jnp.where(mask > 0, traj.dist, 0.0))
+    j2 = metrics.J2(traj.dist, mask > 0)
     return j1p / j1_nom, j4, unstable, j1, j2
 
 

@@ -234,11 +234,11 @@ def _jacobian(fn, x):
     return jax.vmap(lambda t: jax.jvp(fn, (x,), (t,))[1], out_axes=1)(basis)
 
 
-def _check_model(f, h, n, nu, nw, nv, m, dtype):
+def _check_model(f, h, n, nu, nw, m, dtype):
     """Evaluate f and h abstractly on a batch of 2 to fail early with a clear message."""
     b = 2
     x, u = jax.ShapeDtypeStruct((n, b), dtype), jax.ShapeDtypeStruct((nu, b), dtype)
-    w, v = jax.ShapeDtypeStruct((nw, b), dtype), jax.ShapeDtypeStruct((nv, b), dtype)
+    w, v = jax.ShapeDtypeStruct((nw, b), dtype), jax.ShapeDtypeStruct((m, b), dtype)
     for name, fn, args, want in (("f", f, (x, u, w), (n, b)), ("h", h, (x, v), (m, b))):
         try:
             out = jax.eval_shape(fn, *args)
@@ -291,7 +291,7 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
     Q, r = jnp.asarray(Q, dtype), jnp.asarray(r, dtype)
     if Q.shape != (noise_dim, noise_dim) or r.shape != (m,):
         raise ValueError(f"ekf_filter: Q must be ({noise_dim}, {noise_dim}) and r ({m},); got {Q.shape}, {r.shape}")
-    _check_model(f, h, n, nu, noise_dim, m, m, dtype)
+    _check_model(f, h, n, nu, noise_dim, m, dtype)
 
     def step(carry, inp):
         x, P = carry
