@@ -14,7 +14,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from _record import record
 from jaxnc import montecarlo
@@ -139,7 +138,7 @@ def bench_ekf(batches, steps):
                ("jit(vmap(scan)) of ekf, sequential scalar update", jax_ekf(plant, noise, sequential=True), True),
                ("ekf_filter (seed axis last), sequential scalar update", jax_ekf_filter(plant, noise), True))
     devices = jax.devices()
-    seeds = NamedSharding(Mesh(devices, ("seeds",)), PartitionSpec("seeds"))
+    seeds = montecarlo.seed_sharding(devices)
     for B in batches:
         one = ekf_data(plant, noise, B, steps)
         split = one

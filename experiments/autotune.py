@@ -51,13 +51,13 @@ def mecanum_terms(loop: mec.MecanumLoop, key, j1_nom):
     traj = mec.simulate(loop, key)
     K, N = loop.steps, loop.N
     l = jax.lax.stop_gradient(traj.l)
-    mask = (jnp.arange(K) < l).astype(traj.dist.dtype)
-    j1 = jnp.sum(traj.dist * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+    mask = jnp.arange(K) < l
+    j1 = metrics.J1(traj.dist, mask)
     slow_mask = ((jnp.arange(K // N) * N) < l).astype(traj.sent.dtype)
     j4 = jnp.sum(traj.sent * slow_mask) / l      # nominal SR sends every fast period: rate 1
     unstable = traj.bad | ~traj.done
     j1p = jnp.where(unstable | ~jnp.isfinite(j1), loop.max_dev, j1)
-    j2 = metrics.J2(traj.dist, mask > 0)
+    j2 = metrics.J2(traj.dist, mask)
     return j1p / j1_nom, j4, unstable, j1, j2
 
 

@@ -25,7 +25,8 @@ PAPER_TABLE2 = {   # Table 2: J1 (mm, sum over NT instants), J2 (mm), J3 (s)
 
 
 def build_loops(settings: dict) -> dict[str, dd.DiffDriveLoop]:
-    kw = dict(N=settings["N"], lad=settings["lad"], eta=settings["eta"], phi=settings["phi"])
+    kw = dict(N=settings["N"], lad=settings["lad"], eta=settings["eta"], phi=settings["phi"],
+              v_ref=settings["v_ref"])
     try:
         loops = {s: dd.diffdrive_loop(s, h=settings["h"], F=(settings["F"] if s == "e" else None), **kw)
                  for s in dd.SCENARIOS}
@@ -36,13 +37,17 @@ def build_loops(settings: dict) -> dict[str, dd.DiffDriveLoop]:
     return loops
 
 
+NORMALISED = ("J1", "J2", "J1_ref", "J2_ref", "J3")
+
+
 def summarise(results: dict) -> dict:
-    base = {j: montecarlo.summarize(results["a"][j], results["a"]["unstable"]).mean for j in ("J1", "J2", "J3")}
+    base = {j: montecarlo.summarize(results["a"][j], results["a"]["unstable"]).mean for j in NORMALISED}
     out = {}
     for name, m in results.items():
-        s = {j: montecarlo.summarize(m[j], m["unstable"]) for j in ("J1", "J1_mean", "J2", "J3", "packets")}
+        s = {j: montecarlo.summarize(m[j], m["unstable"])
+             for j in ("J1", "J1_mean", "J2", "J1_ref", "J2_ref", "J3", "packets")}
         out[name] = {"absolute": {j: v.to_dict() for j, v in s.items()},
-                     "normalised": {j: s[j].mean / base[j] for j in ("J1", "J2", "J3")},
+                     "normalised": {j: s[j].mean / base[j] for j in NORMALISED},
                      "packets_ratio": s["packets"].mean / float(np.mean(results["a"]["packets"])),
                      "unstable_fraction": float(np.mean(m["unstable"]))}
     return out
@@ -61,6 +66,21 @@ def table(summary: dict) -> str:
                      f"{100 * s['unstable_fraction']:.1f}"])
     return markdown_table(["scenario", "J1 (mm)", "J1/a", "paper", "J2 (mm)", "J2/a", "paper", "J3 (s)", "J3/a",
                            "packets", "pkt/a", "unstable %"], rows)
+
+
+def table_printed(summary: dict) -> str:
+    """Eq. (23)-(24) as printed: distances to the nearest NT sample of the reference trajectory."""
+    rows = []
+    pa = PAPER_TABLE2["a"]
+    for name, s in summary.items():
+        a, n = s["absolute"], s["normalised"]
+        p = PAPER_TABLE2.get(name)
+        cell = lambda j: fmt(a[j]["mean"], 1) + " ± " + fmt(a[j]["ci95"], 1)
+        rows.append([name, cell("J1_ref"), fmt(n["J1_ref"]), f"{p[0]:.1f}" if p else "–",
+                     f"{p[0] / pa[0]:.2f}" if p else "–", cell("J2_ref"), fmt(n["J2_ref"]),
+                     f"{p[1]:.2f}" if p else "–", f"{p[1] / pa[1]:.2f}" if p else "–"])
+    return markdown_table(["scenario", "J1 (mm)", "J1/a", "paper J1", "paper /a", "J2 (mm)", "J2/a", "paper J2",
+                           "paper /a"], rows)
 
 
 def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
@@ -118,6 +138,11 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print("J1 = sum over NT instants of the distance to the path (eq. 23), J2 max (eq. 24), J3 time (eq. 25);"
           " '/a' normalised to scenario a, 'paper' the same ratio from Table 2\n")
     print(table(summary))
+    ref = loops["a"]
+    print(f"\nThe same runs with eq. (23)-(24) as printed: the distance to the nearest NT sample of the reference"
+          f" trajectory (references {1000 * float(ref.v_ref) * ref.N * float(ref.plant.T):.0f} mm apart), not to the"
+          " path; 'paper' Table 2's values\n")
+    print(table_printed(summary))
     out.mkdir(parents=True, exist_ok=True)
     f1, f2 = plot_paths(loops, keys[0], out)
     wall = time.perf_counter() - t0
@@ -145,9 +170,105 @@ EXPERIMENT = register(Experiment(
         Option("F", "float", 0.1, "noise factor of scenario e (paper: 0.1 low, 0.45 high)", low=0.0, high=2.0),
         Option("e_high", "bool", True, "also run scenario e at F = 0.45"),
         Option("lad", "float", dd.LAD, "pure-pursuit look-ahead distance, m", low=0.02, high=1.0),
+        Option("v_ref", "float", dd.V_REF, "reference speed along the path, m/s", low=0.01, high=1.0),
         Option("eta", "float", dd.DELAY_ETA, "delay shift, s (< tau_max = 0.17)", low=0.0, high=0.17),
         Option("phi", "float", dd.DELAY_PHI, "delay scale, s", low=0.0, high=1.0),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,
+))
+
+
+# ----------------------------------------------------------------------------- sensitivity
+
+
+def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+    """Table 2's ratios over the two path-tracking parameters the paper does not give:
+    the reference speed v_ref and the look-ahead distance (a grid), both J1 readings."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = time.perf_counter()
+    keys = montecarlo.seed_keys(settings["seed"], seeds)
+    v_refs, lads = settings["v_refs"], settings["lads"]
+    grid = []
+    bar = _progress([(v, lad) for lad in lads for v in v_refs], progress)
+    for v, lad in bar:
+        loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False))
+        results = {}
+        for name, loop in loops.items():
+            m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=min(64, max(seeds, 1)),
+                                       progress=False)
+            results[name] = {k: np.asarray(v_) for k, v_ in m._asdict().items()}
+        s = summarise(results)
+        grid.append({"v_ref": v, "lad": lad,
+                     "J1_a": s["a"]["absolute"]["J1"]["mean"], "J1_ref_a": s["a"]["absolute"]["J1_ref"]["mean"],
+                     "ratios": {n: {j: s[n]["normalised"][j] for j in ("J1", "J1_ref")} for n in s},
+                     "unstable": {n: s[n]["unstable_fraction"] for n in s}})
+        bar.set_postfix(v_ref=v, lad=lad)
+    paper = {n: PAPER_TABLE2[n][0] / PAPER_TABLE2["a"][0] for n in dd.SCENARIOS}
+    rows = []
+    for g in grid:
+        r = g["ratios"]
+        ok = lambda j: ("yes" if all(r[n][j] >= 1.3 for n in "bd") and all(abs(r[n][j] - 1) <= 0.05 for n in "ce")
+                        else "no")
+        rows.append([f"{g['v_ref']:.3f}", f"{g['lad']:.3f}", fmt(g["J1_a"], 0)]
+                    + [fmt(r[n]["J1"]) for n in "bcde"] + [ok("J1"), fmt(g["J1_ref_a"], 0)]
+                    + [fmt(r[n]["J1_ref"]) for n in "bcde"] + [ok("J1_ref")])
+    tab = markdown_table(["v_ref", "look-ahead", "a: J1", "b/a", "c/a", "d/a", "e/a", "pattern",
+                          "a: J1 printed", "b/a", "c/a", "d/a", "e/a", "pattern"], rows)
+    print(f"\nseed 004 Table 2 sensitivity, {seeds} seeds per cell; J1 to the path, then eq. (23) as printed"
+          " (nearest NT reference point). Paper: b/a 1.60, c/a 0.99, d/a 1.61, e/a 0.99. 'pattern': b, d >= 1.3 a"
+          " and c, e within 5 % of a (issue 4's acceptance)\n")
+    print(tab)
+    out.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(2, len(lads), figsize=(4.2 * len(lads), 6.4), squeeze=False, sharex=True)
+    for row, (j, label) in enumerate((("J1", "J1 to the path"), ("J1_ref", "J1 as printed (NT references)"))):
+        for col, lad in enumerate(lads):
+            ax = axes[row, col]
+            gs = [g for g in grid if g["lad"] == lad]
+            for n, c in zip("bcde", ("C0", "C1", "C2", "C3")):
+                ax.plot([g["v_ref"] for g in gs], [g["ratios"][n][j] for g in gs], "o-", color=c, label=f"{n}/a")
+                ax.axhline(paper[n], color=c, ls=":", lw=0.8)
+            ax.axhspan(0.95, 1.05, color="0.9")
+            ax.set_yscale("log")
+            ax.set_title(f"{label}, look-ahead {lad} m", fontsize=9)
+            if row == 1:
+                ax.set_xlabel("v_ref (m/s)")
+    axes[0, 0].set_ylabel("J1 / J1(a)")
+    axes[1, 0].set_ylabel("J1 / J1(a)")
+    axes[0, -1].legend(fontsize=8)
+    fig.suptitle("dotted: the paper's ratios; grey band: within 5 % of a", fontsize=9)
+    fig.tight_layout()
+    f1 = out / "sensitivity.png"
+    fig.savefig(f1, dpi=120)
+    plt.close(fig)
+    wall = time.perf_counter() - t0
+    montecarlo.save_results(out / "results.json", experiment="diffdrive-sensitivity",
+                            config={"settings": settings, "seeds": seeds, "paper_ratios_J1": paper},
+                            results={"grid": grid}, wall_time_s=wall)
+    print(f"\nwrote {out / 'results.json'}, {f1}  ({wall:.1f} s)")
+    return {"grid": grid}
+
+
+def _progress(cells, progress: bool):
+    from tqdm.auto import tqdm
+    return tqdm(cells, desc="(v_ref, look-ahead)", disable=not progress, dynamic_ncols=True)
+
+
+SENSITIVITY = register(Experiment(
+    name="diffdrive-sensitivity",
+    description="Seed 004: Table 2's J1 ratios over the reference speed and look-ahead (unpublished parameters)",
+    options=(
+        Option("v_refs", "floats", (0.12, 0.13, 0.14, 0.15, 0.16), "reference speeds, m/s", low=0.01, high=1.0),
+        Option("lads", "floats", (0.10, 0.12, 0.15), "look-ahead distances, m", low=0.02, high=1.0),
+        Option("N", "int", 2, "multiplicity", low=2, high=10),
+        Option("h", "int", 1, "prediction horizon of scenario e", low=1, high=50),
+        Option("F", "float", 0.1, "noise factor of scenario e", low=0.0, high=2.0),
+        Option("eta", "float", dd.DELAY_ETA, "delay shift, s", low=0.0, high=0.17),
+        Option("phi", "float", dd.DELAY_PHI, "delay scale, s", low=0.0, high=1.0),
+        Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
+    ),
+    run=run_sensitivity,
 ))

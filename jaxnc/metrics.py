@@ -15,7 +15,7 @@ import numpy as np
 
 from jaxnc.paths import Path
 
-__all__ = ["distance_to_path", "local_distance", "J1", "J2", "J3", "J4", "ci95"]
+__all__ = ["distance_to_path", "distance_to_points", "local_distance", "J1", "J2", "J3", "J4", "ci95"]
 
 _DTYPE = jnp.float32
 
@@ -58,6 +58,18 @@ def distance_to_path(path: Path, xy, chunk: int | None = None) -> jax.Array:
     pos = d2 > 0.0
     dist = jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
     return dist.reshape(lead)
+
+
+def distance_to_points(points, xy) -> jax.Array:
+    """Distance from each point ``xy[n, 2]`` to the nearest of ``points[m, 2]``: the inner
+    min of seed 004 eq. (23)-(24) as printed, whose references are the NT samples of the
+    reference trajectory rather than the path itself.  Dense [n, m]; float32[n]; finite
+    gradient everywhere (safe sqrt)."""
+    xy = jnp.asarray(xy, _DTYPE)
+    q = jnp.asarray(points, _DTYPE)
+    d2 = jnp.min(jnp.sum((xy[:, None, :] - q[None, :, :]) ** 2, axis=-1), axis=1)
+    pos = d2 > 0.0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
 
 
 def _masked(dist, mask):

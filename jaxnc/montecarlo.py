@@ -33,7 +33,7 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "run_batched", "Summary", "summarize", "save_results", "load_results"]
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results"]
 
 
 # ----------------------------------------------------------------------------- keys
@@ -91,6 +91,15 @@ def _to_numpy(tree, keep: int):
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:keep], tree)
 
 
+def seed_sharding(devices=None) -> jax.sharding.NamedSharding:
+    """The sharding :func:`run_batched` gives a chunk of seeds: split along its leading
+    (seed) axis over ``devices`` (default: all of them), a one-axis mesh named "seeds".
+    Its ``.mesh`` with ``PartitionSpec()`` replicates an argument over the same devices."""
+    devices = jax.devices() if devices is None else list(devices)
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("seeds",))
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
+
+
 def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), chunk_size: int = 256,
                 progress: bool = True, desc: str = "seeds"):
     """Apply ``fn`` (key -> pytree of arrays) to every key; returns the pytree of numpy arrays.
@@ -139,9 +148,8 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     devices = jax.devices()
     size = -(-chunk_size // len(devices)) * len(devices)
     if len(devices) > 1:
-        mesh = jax.sharding.Mesh(np.asarray(devices), ("seeds",))
-        place_keys = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
-        args = jax.device_put(args, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+        place_keys = seed_sharding(devices)
+        args = jax.device_put(args, jax.sharding.NamedSharding(place_keys.mesh, jax.sharding.PartitionSpec()))
     else:
         place_keys = None
     if not jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):

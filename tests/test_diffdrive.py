@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from jaxnc import montecarlo
+from jaxnc.metrics import distance_to_points
 from jaxnc.plants.diffdrive import K_MOTOR, TAU_MOTOR, DiffDrive
 from jaxnc.schemes import diffdrive as dd
 
@@ -137,3 +138,26 @@ def test_scenarios_table2_shape():
     for s in ("b", "c", "d", "e"):
         assert abs(np.mean(res[s].packets) / np.mean(a.packets) - 0.5) < 0.03, s
     assert np.mean(res["e_high"].J1) > np.mean(res["e"].J1)       # the paper's degradation
+
+
+def test_printed_eq23_uses_nt_reference_points():
+    """Eq. (23)-(24) as printed: references every v_ref NT along the path (clipped at its end),
+    and the distance to the nearest one, which is zero on a reference and half the spacing
+    midway between two on a straight leg (against numpy)."""
+    loop = dd.diffdrive_loop("c")
+    refs = np.asarray(dd.reference_points(loop))
+    step = float(loop.v_ref) * loop.N * float(loop.plant.T)
+    assert refs.shape == (loop.n_slow + 1, 2)
+    np.testing.assert_allclose(refs[:3], [[0.0, 0.0], [step, 0.0], [2 * step, 0.0]], atol=1e-6)   # first leg: +x
+    np.testing.assert_allclose(refs[-1], dd.STAIRS[-1], atol=1e-5)                              # clipped at the end
+    gaps = np.linalg.norm(np.diff(refs[:10], axis=0), axis=1)
+    np.testing.assert_allclose(gaps, step, rtol=1e-4)
+    rng = np.random.default_rng(0)
+    xy = np.concatenate([refs[[1, 2]], (refs[[1]] + refs[[2]]) / 2, rng.uniform(0, 1.8, (20, 2))]).astype(np.float32)
+    d = np.asarray(jax.jit(distance_to_points)(refs, xy))
+    ref_np = np.min(np.linalg.norm(xy[:, None, :] - refs[None], axis=-1), axis=1)
+    np.testing.assert_allclose(d, ref_np, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(d[:3], [0.0, 0.0, step / 2], atol=1e-6)
+    # the metric: J1_ref >= J1 (a reference point is a point of the path), J2_ref >= J2
+    m = jax.jit(dd.run)(loop, jax.random.PRNGKey(0))
+    assert float(m.J1_ref) >= float(m.J1) > 0 and float(m.J2_ref) >= float(m.J2)

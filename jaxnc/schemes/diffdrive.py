@@ -44,7 +44,7 @@ from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, DualRateState, dualrate_design, pi_controller, \
     single_rate_pi
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
-from jaxnc.metrics import distance_to_path
+from jaxnc.metrics import distance_to_path, distance_to_points
 from jaxnc.network import quantise_delay
 from jaxnc.paths import Path, closest_index, from_waypoints, point_at
 from jaxnc.plants.diffdrive import (K_MOTOR, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, TAU_MOTOR, DiffDrive,
@@ -357,12 +357,29 @@ def simulate(loop: DiffDriveLoop, key) -> Trajectory:
                       l=final.l, done=final.done, bad=final.bad)
 
 
-class Metrics(NamedTuple):
-    """Cost indexes of section 4 on the NT grid (eq. 23-25), and network use."""
+def reference_points(loop: DiffDriveLoop) -> jax.Array:
+    """The reference trajectory sampled every NT, (x̄, ȳ)_k'^{NT} of eq. (23)-(24): the path
+    point at arc length k' v_ref NT for k' = 0 .. n_slow (clipped at the path's end), so
+    consecutive references are v_ref NT apart (28 mm with our defaults)."""
+    s = jnp.arange(loop.n_slow + 1, dtype=jnp.float32) * (loop.v_ref * loop.N * loop.plant.T)
+    return jax.vmap(lambda si: point_at(loop.path, si))(s)
 
-    J1: jax.Array         # eq. (23): sum over NT instants of the distance to the path, mm
+
+class Metrics(NamedTuple):
+    """Cost indexes of section 4 on the NT grid (eq. 23-25), and network use.
+
+    J1, J2 measure the distance to the path itself (the polyline). Eq. (23)-(24) as
+    printed take it to the nearest NT sample of the reference trajectory
+    (:func:`reference_points`); J1_ref, J2_ref are those. Between two references v_ref NT
+    apart a robot exactly on the path is up to half that spacing from the nearest one, so
+    the printed indexes carry a floor that depends on where along the path the robot's
+    NT samples fall (docs/diffdrive.md)."""
+
+    J1: jax.Array         # eq. (23) against the path: sum over NT instants of the distance, mm
     J1_mean: jax.Array    # the same as a mean distance, mm
-    J2: jax.Array         # eq. (24): max distance, mm
+    J2: jax.Array         # eq. (24) against the path: max distance, mm
+    J1_ref: jax.Array     # eq. (23) as printed: distance to the nearest NT reference point, summed, mm
+    J2_ref: jax.Array     # eq. (24) as printed: its maximum, mm
     J3: jax.Array         # eq. (25): time to reach the end, s
     packets: jax.Array    # packets sent (both directions) until the end
     l: jax.Array
@@ -381,9 +398,13 @@ def evaluate(loop: DiffDriveLoop, traj: Trajectory) -> Metrics:
     j1 = jnp.sum(jnp.where(mask, dist, 0.0))
     n = jnp.maximum(jnp.sum(mask), 1)
     j2 = jnp.max(jnp.where(mask, dist, 0.0))
+    dref = distance_to_points(reference_points(loop), xy) * 1000.0
+    j1_ref = jnp.sum(jnp.where(mask, dref, 0.0))
+    j2_ref = jnp.max(jnp.where(mask, dref, 0.0))
     sense = jnp.ceil(traj.l / ns)
     return Metrics(J1=jnp.where(unstable, inf, j1), J1_mean=jnp.where(unstable, inf, j1 / n),
-                   J2=jnp.where(unstable, inf, j2), J3=jnp.where(unstable, inf, traj.l * T),
+                   J2=jnp.where(unstable, inf, j2), J1_ref=jnp.where(unstable, inf, j1_ref),
+                   J2_ref=jnp.where(unstable, inf, j2_ref), J3=jnp.where(unstable, inf, traj.l * T),
                    packets=2.0 * sense, l=traj.l, unstable=unstable)
 
 
