@@ -36,7 +36,8 @@ METRICS = ("Uc", "Ua", "Cc", "ISE", "ISEP", "NE", "GPI")
 
 
 def _common(settings):
-    return dict(reading=settings["reading"], h=settings["h"], k_max=settings["k_max"], m=settings["m"])
+    return dict(reading=settings["reading"], h=settings["h"], k_max=settings["k_max"], m=settings["m"],
+                w_std=settings["w_std"])
 
 
 def build_loops(settings: dict) -> dict[int, hdd.HddLoop]:
@@ -146,8 +147,9 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
         figs.append(plot_case(loop, jax.jit(hdd.simulate)(loop, keys[0]), out, c))
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds, "T": hdd_plant.T, "steps": hdd.STEPS,
-              "noise": {"w_std": hdd_plant.W_STD, "v_std": hdd_plant.V_STD},
-              "filter": {"W": hdd.FILTER_W, "slope_std": hdd.FILTER_SLOPE_STD, "V": hdd.FILTER_V,
+              "noise": {"w_std": settings["w_std"], "v_std": hdd_plant.V_STD},
+              "filter": {"W": max(settings["w_std"], hdd_plant.W_STD) ** 2, "slope_std": hdd.FILTER_SLOPE_STD,
+                         "V": hdd.FILTER_V,
                          "case6_input_std": hdd.FILTER_INPUT_STD},
               "thresholds": {c: {"delta_s=sigma_s": float(l.delta_s), "delta_c=sigma_c": float(l.delta_c)}
                              for c, l in loops.items()}}
@@ -249,6 +251,8 @@ _OPTS = (
     Option("h", "int", hdd.H_DEFAULT, "NUMRE cascade horizon h (fast periods)", low=1, high=1000),
     Option("k_max", "int", 0, "time-triggered safety condition eq. (7), 0 = off", low=0, high=1000),
     Option("m", "int", 2, "MRCI rate ratio m", low=1, high=8),
+    Option("w_std", "float", hdd_plant.W_STD, "std of the noise driving the disturbance (eq. 32), Cases 4-6",
+           low=0.0, high=1e-2),
     Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
 )
 

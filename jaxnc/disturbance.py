@@ -1,9 +1,14 @@
 """Disturbance observer (DOB) of seed 003 section 3.2.2, eq. (16): d_hat = D1(z) u + D2(z) y_hat.
 
-The paper obtains D(z) = [D1, D2] by H-infinity synthesis (eq. 17-18, after [49]). There
-is no H-infinity synthesis solver in our dependencies (python-control's ``hinfsyn`` needs
-slycot), so we implement the standard inverse-model DOB that the synthesis approximates
-(D1 close to -1, D2 close to G^{-1}, both low-pass filtered):
+The paper obtains D(z) = [D1, D2] by H-infinity synthesis (eq. 17-18, after [49]). As
+printed the problem is unweighted, min ||Fl(M, D)||_inf over the map from d to the
+estimation error d - d_hat, and it is solved by D = 0: the plant is strictly proper, so
+whatever D is, d_hat depends on d strictly causally, the error's transfer function is 1 at
+z = infinity, and by the maximum-modulus principle its H-infinity norm is at least 1, which
+D = 0 attains. The design of [49] must weight the error in frequency, and the paper does not
+give the weights; with a solver (python-control's ``hinfsyn`` + slycot) our choice of Q below
+would only become a choice of weights. So we implement the standard inverse-model DOB that a
+weighted synthesis approximates (D1 close to -1, D2 close to G^{-1}, both low-pass filtered):
 
     D1(z) = -Q(z) z^{-1},   D2(z) = Q(z) z^{-1} Gn(z)^{-1},
 
