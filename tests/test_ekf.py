@@ -181,3 +181,38 @@ def test_sequential_update_keeps_covariance_spd_in_float32():
         b = f(b)
     np.testing.assert_array_equal(b.cov, b.cov.T)
     assert np.all(np.linalg.eigvalsh(np.asarray(b.cov, float)) > 0)
+
+
+def test_jacobian_grad_false_holds_the_jacobians_constant():
+    """Same values; the gradient of the predicted covariance w.r.t. the mean vanishes (A, L
+    held constant: P' = A P A' + L Q L' does not depend on it), and w.r.t. the prior
+    covariance it is the exact A' G A either way. The update's H likewise (float64)."""
+    with jax.enable_x64(True):
+        plant = Mecanum()
+        x, P, u, _ = _data(3)
+        Q = jnp.asarray(MecanumNoise().Q(), jnp.float64)
+        b = Gaussian(jnp.asarray(x), jnp.asarray(P))
+        z = plant.measure(b.mean, jnp.zeros(9)) + 0.01
+        G = jnp.asarray(np.random.default_rng(1).normal(size=(6, 6)))      # cotangent of P'
+        for exact in (True, False):
+            pred = lambda b: ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7, jacobian_grad=exact)
+            out = pred(b)
+            np.testing.assert_array_equal(out.mean, ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7).mean)
+            np.testing.assert_array_equal(out.cov, ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7).cov)
+            g = jax.grad(lambda b: jnp.sum(G * pred(b).cov))(b)
+            A = np.asarray(jax.jacfwd(plant.dynamics)(b.mean, jnp.asarray(u), jnp.zeros(7)))
+            Gs = 0.5 * (np.asarray(G) + np.asarray(G).T)                   # the prediction symmetrises P'
+            np.testing.assert_allclose(g.cov, A.T @ Gs @ A, rtol=1e-12, atol=1e-12)
+            if exact:
+                assert np.max(np.abs(g.mean)) > 1e-6        # P' moves with the heading the model is linearised at
+            else:
+                np.testing.assert_array_equal(g.mean, 0.0)
+        r = jnp.full(9, 0.01)
+        for exact in (True, False):
+            upd = lambda m: ekf_update_diag(plant.measure, Gaussian(m, b.cov), z, r, 9,
+                                            jacobian_grad=exact).cov
+            g = jax.grad(lambda m: jnp.sum(G * upd(m)))(b.mean)
+            if exact:
+                assert np.max(np.abs(g)) > 1e-6
+            else:
+                np.testing.assert_array_equal(g, 0.0)

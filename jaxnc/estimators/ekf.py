@@ -36,12 +36,25 @@ def _mm(a, b):
     return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
-def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int) -> Gaussian:
-    """One prediction step, eq. (11)-(12): mean = f(mean, u, 0), P = A P A' + L Q L'."""
+def _at(x, jacobian_grad: bool):
+    """The point a Jacobian is evaluated at: ``x`` itself, or ``x`` with its derivative cut
+    (``jacobian_grad=False``: the Jacobian's value is the same, but gradients treat it as a
+    constant, which drops the second derivatives of the model from reverse mode)."""
+    return x if jacobian_grad else jax.lax.stop_gradient(x)
+
+
+def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian_grad: bool = True) -> Gaussian:
+    """One prediction step, eq. (11)-(12): mean = f(mean, u, 0), P = A P A' + L Q L'.
+
+    ``jacobian_grad=False`` (static) gives the same values, but gradients of anything
+    downstream hold A and L constant: an approximation of the gradient (the covariance's
+    dependence on where the model is linearised is dropped) that makes reverse mode through
+    a closed loop about 2x cheaper (benchmarks/RESULTS.md)."""
     w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     mean = f(belief.mean, u, w0)
-    A = jax.jacfwd(f, argnums=0)(belief.mean, u, w0)
-    L = jax.jacfwd(f, argnums=2)(belief.mean, u, w0)
+    x0, u0 = _at(belief.mean, jacobian_grad), _at(u, jacobian_grad)
+    A = jax.jacfwd(f, argnums=0)(x0, u0, w0)
+    L = jax.jacfwd(f, argnums=2)(x0, u0, w0)
     cov = _mm(_mm(A, belief.cov), A.T) + _mm(_mm(L, Q), L.T)
     return Gaussian(mean, _symmetrize(cov))
 
@@ -62,7 +75,7 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     return Gaussian(mean, _symmetrize(cov))
 
 
-def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int) -> Gaussian:
+def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jacobian_grad: bool = True) -> Gaussian:
     """Correction for additive measurement noise with diagonal covariance ``diag(r)``.
 
     Same result as ``ekf_update`` with ``R = diag(r)`` and ``M = I`` (seed 000 eq.
@@ -73,11 +86,11 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int) -> Gaus
     batch linearised update exactly; no matrix is factorised or inverted, which keeps
     the batched (vmapped) update elementwise and fast. Each scalar step is
     P <- P - (P h')(P h')' / s, an exactly symmetric rank-one downdate (equal to the
-    Joseph form for the optimal gain).
+    Joseph form for the optimal gain). ``jacobian_grad``: as in :func:`ekf_predict`.
     """
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     innovation = z - h(belief.mean, v0)
-    H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
+    H = jax.jacfwd(h, argnums=0)(_at(belief.mean, jacobian_grad), v0)
     P = belief.cov
     delta = jnp.zeros_like(belief.mean)          # correction of the mean so far
     for i in range(z.shape[0]):
