@@ -207,6 +207,10 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
                      "ratios": {n: {j: s[n]["normalised"][j] for j in ("J1", "J1_ref")} for n in s},
                      "unstable": {n: s[n]["unstable_fraction"] for n in s}})
         bar.set_postfix(v_ref=v, lad=lad)
+        out.mkdir(parents=True, exist_ok=True)     # the cells so far, in case the run is interrupted
+        montecarlo.save_results(out / "results.json", experiment="diffdrive-sensitivity",
+                                config={"settings": settings, "seeds": seeds}, results={"grid": grid, "complete": False},
+                                wall_time_s=time.perf_counter() - t0)
     paper = {n: PAPER_TABLE2[n][0] / PAPER_TABLE2["a"][0] for n in dd.SCENARIOS}
     rows = []
     for g in grid:
@@ -247,7 +251,7 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
     wall = time.perf_counter() - t0
     montecarlo.save_results(out / "results.json", experiment="diffdrive-sensitivity",
                             config={"settings": settings, "seeds": seeds, "paper_ratios_J1": paper},
-                            results={"grid": grid}, wall_time_s=wall)
+                            results={"grid": grid, "complete": True}, wall_time_s=wall)
     print(f"\nwrote {out / 'results.json'}, {f1}  ({wall:.1f} s)")
     return {"grid": grid}
 

@@ -161,3 +161,16 @@ def test_printed_eq23_uses_nt_reference_points():
     # the metric: J1_ref >= J1 (a reference point is a point of the path), J2_ref >= J2
     m = jax.jit(dd.run)(loop, jax.random.PRNGKey(0))
     assert float(m.J1_ref) >= float(m.J1) > 0 and float(m.J2_ref) >= float(m.J2)
+
+
+def test_sensitivity_experiment_smoke(tmp_path, capsys):
+    """`diffdrive-sensitivity` on one cell and two seeds: a table row per cell, both J1
+    readings, results.json complete with the ratios of every scenario, and the figure."""
+    from jaxnc.experiments import diffdrive as exp
+    settings = dict(exp.SENSITIVITY.defaults(), v_refs=(0.14,), lads=(0.12,))
+    res = exp.run_sensitivity(settings, seeds=2, out=tmp_path, progress=False)
+    (cell,) = res["grid"]
+    assert set(cell["ratios"]) == set(dd.SCENARIOS) and cell["ratios"]["a"] == {"J1": 1.0, "J1_ref": 1.0}
+    assert "| 0.140 |" in capsys.readouterr().out
+    saved = montecarlo.load_results(tmp_path / "results.json")
+    assert saved["results"]["complete"] is True and (tmp_path / "sensitivity.png").exists()
