@@ -50,6 +50,7 @@ from jaxnc.metrics import J1, J2, local_distance
 from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
+from jaxnc.rows import exponential_rows, normal_rows, uniform_rows
 from jaxnc.triggers import PetcTrigger, hold_last_sent
 
 CASES = ("SR", "DR", "DRH", "DRHE")
@@ -233,27 +234,32 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
 
 
 class Draws(NamedTuple):
-    """Exogenous randomness of one run, per fast instant (common random numbers)."""
+    """Exogenous randomness of one run (common random numbers). The draws are defined per
+    fast instant, so that every N meets the same realisation at the same time; those used
+    only at slow instants are kept at the slow instants alone (``every`` = N, rows 0, N, 2N,
+    ...: :mod:`jaxnc.rows` computes exactly those rows of the per-fast-instant draw)."""
 
     w: jax.Array         # [K, 7] process noise n1
-    v: jax.Array         # [K, 9] measurement noise n2
-    sc_u: jax.Array      # [K] uniforms: sensor packet lost when < p_sc
-    ca_u: jax.Array      # [K] uniforms: actuator packet lost when < p_ca
-    delay_e: jax.Array   # [K] Exponential(1) draws: ca delay = eta + phi * e
-    delay_sc_e: jax.Array  # [K] independent Exponential(1) draws for the sc delay
+    v: jax.Array         # [K/every, 9] measurement noise n2
+    sc_u: jax.Array      # [K/every] uniforms: sensor packet lost when < p_sc
+    ca_u: jax.Array      # [K/every] uniforms: actuator packet lost when < p_ca
+    delay_e: jax.Array   # [K/every] Exponential(1) draws: ca delay = eta + phi * e
+    delay_sc_e: jax.Array  # [K/every] independent Exponential(1) draws for the sc delay
 
 
-def draw(key, steps: int) -> Draws:
-    """All random draws of a run, split per purpose from one key."""
+def draw(key, steps: int, every: int = 1) -> Draws:
+    """All random draws of a run, split per purpose from one key; the slow-instant ones
+    (all but ``w``) at every ``every``-th fast instant, bit for bit the rows of the
+    per-fast-instant draw (``every=1``)."""
     kw, kv, ks, kc, kd = jax.random.split(key, 5)
     return Draws(
         w=jax.random.normal(kw, (steps, PROCESS_NOISE_DIM)),
-        v=jax.random.normal(kv, (steps, OUTPUT_DIM)),
-        sc_u=jax.random.uniform(ks, (steps,)),
-        ca_u=jax.random.uniform(kc, (steps,)),
-        delay_e=jax.random.exponential(kd, (steps,)),
+        v=normal_rows(kv, (steps, OUTPUT_DIM), every),
+        sc_u=uniform_rows(ks, (steps,), every),
+        ca_u=uniform_rows(kc, (steps,), every),
+        delay_e=exponential_rows(kd, (steps,), every),
         # its own stream, folded in so that adding it left the other streams unchanged
-        delay_sc_e=jax.random.exponential(jax.random.fold_in(key, 101), (steps,)))
+        delay_sc_e=exponential_rows(jax.random.fold_in(key, 101), (steps,), every))
 
 
 class Trajectory(NamedTuple):
@@ -310,19 +316,18 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     truth = plant if loop.truth is None else loop.truth   # the robot; ``plant`` is the model
     Ts, hold = loop.Ts, loop.hold
     path = fol.path
-    d = draw(key, K)
+    d = draw(key, K, N)
     dtype = jnp.float32
     w = d.w * loop.noise.process_std()[None, :]
-    v = d.v * loop.noise.measurement_std()[None, :]
+    v = d.v * loop.noise.measurement_std()[None, :]     # slow instants only (draw(..., every=N))
     # additive, independent measurement noises: the correction processes them one by one
     Qf, Rf = loop.filter_noise.Q(), loop.filter_noise.measurement_std() ** 2
-    slow = lambda a: a[::N]
     # Start-up handshake: the first exchange (k = 0) is delivered, or a PETC sensor
     # watching a robot at rest would never fire again and the loop would never start.
     first = jnp.arange(K // N) == 0
-    sc_lost = (slow(d.sc_u) < loop.sc.p_loss) & ~first
-    ca_lost = (slow(d.ca_u) < loop.ca.p_loss) & ~first
-    tau = (loop.ca.eta + loop.ca.phi * slow(d.delay_e)) + (loop.sc.eta + loop.sc.phi * slow(d.delay_sc_e))
+    sc_lost = (d.sc_u < loop.sc.p_loss) & ~first
+    ca_lost = (d.ca_u < loop.ca.p_loss) & ~first
+    tau = (loop.ca.eta + loop.ca.phi * d.delay_e) + (loop.sc.eta + loop.sc.phi * d.delay_sc_e)
     dsteps = quantise_delay(tau, plant.T)
     too_late = late(tau, loop.tau_max) & ~first
 
@@ -394,7 +399,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
                     jnp.zeros((), dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
                     jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
     n_slow = K // N
-    xs_in = (jnp.arange(n_slow, dtype=jnp.int32), w.reshape(n_slow, N, PROCESS_NOISE_DIM), slow(v),
+    xs_in = (jnp.arange(n_slow, dtype=jnp.int32), w.reshape(n_slow, N, PROCESS_NOISE_DIM), v,
              sc_lost, ca_lost, dsteps, too_late)
     final, (xs, means, us, dist, beta, rec, arr) = jax.lax.scan(slow_step, carry0, xs_in)
     return Trajectory(
