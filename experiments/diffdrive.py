@@ -13,6 +13,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from tqdm.auto import tqdm
 
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -193,7 +194,9 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     v_refs, lads = settings["v_refs"], settings["lads"]
     grid = []
-    bar = _progress([(v, lad) for lad in lads for v in v_refs], progress)
+    out.mkdir(parents=True, exist_ok=True)
+    bar = tqdm([(v, lad) for lad in lads for v in v_refs], desc="(v_ref, look-ahead)", disable=not progress,
+               dynamic_ncols=True)
     for v, lad in bar:
         loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False))
         results = {}
@@ -207,7 +210,7 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
                      "ratios": {n: {j: s[n]["normalised"][j] for j in ("J1", "J1_ref")} for n in s},
                      "unstable": {n: s[n]["unstable_fraction"] for n in s}})
         bar.set_postfix(v_ref=v, lad=lad)
-        out.mkdir(parents=True, exist_ok=True)     # the cells so far, in case the run is interrupted
+        # the cells so far, in case the run is interrupted
         montecarlo.save_results(out / "results.json", experiment="diffdrive-sensitivity",
                                 config={"settings": settings, "seeds": seeds}, results={"grid": grid, "complete": False},
                                 wall_time_s=time.perf_counter() - t0)
@@ -226,7 +229,6 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
           " (nearest NT reference point). Paper: b/a 1.60, c/a 0.99, d/a 1.61, e/a 0.99. 'pattern': b, d >= 1.3 a"
           " and c, e within 5 % of a (issue 4's acceptance)\n")
     print(tab)
-    out.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(2, len(lads), figsize=(4.2 * len(lads), 6.4), squeeze=False, sharex=True)
     for row, (j, label) in enumerate((("J1", "J1 to the path"), ("J1_ref", "J1 as printed (NT references)"))):
         for col, lad in enumerate(lads):
@@ -254,11 +256,6 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
                             results={"grid": grid, "complete": True}, wall_time_s=wall)
     print(f"\nwrote {out / 'results.json'}, {f1}  ({wall:.1f} s)")
     return {"grid": grid}
-
-
-def _progress(cells, progress: bool):
-    from tqdm.auto import tqdm
-    return tqdm(cells, desc="(v_ref, look-ahead)", disable=not progress, dynamic_ncols=True)
 
 
 SENSITIVITY = register(Experiment(

@@ -148,7 +148,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds, "T": hdd_plant.T, "steps": hdd.STEPS,
               "noise": {"w_std": settings["w_std"], "v_std": hdd_plant.V_STD},
-              "filter": {"W": max(settings["w_std"], hdd_plant.W_STD) ** 2, "slope_std": hdd.FILTER_SLOPE_STD,
+              "filter": {"W": hdd.filter_disturbance_var(settings["w_std"]), "slope_std": hdd.FILTER_SLOPE_STD,
                          "V": hdd.FILTER_V,
                          "case6_input_std": hdd.FILTER_INPUT_STD},
               "thresholds": {c: {"delta_s=sigma_s": float(l.delta_s), "delta_c=sigma_c": float(l.delta_c)}

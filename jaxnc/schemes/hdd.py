@@ -61,9 +61,16 @@ H_DEFAULT = 64           # cascade horizon h (ours; the paper gives none)
 # floor on the disturbance slope state x1 (eq. 32 drives only x2): without it the
 # filter stops adapting to a ramp. Measurement noise V = (3e-4)^2 even when the
 # simulation has none (Cases 1-3), so K(N) is defined.
-FILTER_W = hdd_plant.W_STD ** 2
 FILTER_SLOPE_STD = 1e-6
 FILTER_V = hdd_plant.V_STD ** 2
+
+
+def filter_disturbance_var(w_std: float) -> float:
+    """Variance of the disturbance noise the filter assumes (Cases 3-5): the true one,
+    floored at the default level so that the filter keeps adapting when the truth has less."""
+    return max(w_std, hdd_plant.W_STD) ** 2
+
+
 # Case 6: the plant-only filter models the unknown disturbance as input noise of this std.
 FILTER_INPUT_STD = 1e-2
 
@@ -150,7 +157,7 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int = H_DEF
         Bw = np.zeros((n, 2))
         Bw[:, 0] = Bw0
         Bw[n - 2, 1] = 1.0
-        W = np.diag([max(w_std, hdd_plant.W_STD) ** 2, FILTER_SLOPE_STD ** 2])
+        W = np.diag([filter_disturbance_var(w_std), FILTER_SLOPE_STD ** 2])
     tables = numre_tables(A, Bw, C, W, FILTER_V, h, we_form=we_form)
     f = lambda a: jnp.asarray(a, jnp.float32)
     return HddLoop(model=model, Af=f(A), Bf=f(B), Cbarf=f(Cbar), tables=tables,
