@@ -115,6 +115,20 @@ def mecanum_grid_fn(loop, j1_nom):
     return per_seed
 
 
+PAPER_D = float(mec.PAPER_DELTA[0])    # the paper's delta(i) are all equal: it lies in the grid's family
+
+
+def from_scales(p):
+    """sigma(i), delta(i) of the two-parameter family the grid searches: sigma = s x the
+    paper's sigma pattern, delta(i) = d for every output (the paper's point is s = 1, d = 0.1)."""
+    return {"sigma": p["s"] * jnp.asarray(mec.PAPER_SIGMA, jnp.float32), "delta": jnp.full(9, p["d"], jnp.float32)}
+
+
+def scales_loss(loss):
+    """A per-output ``loss(params, key, temperature)`` as a loss of the scales (s, d)."""
+    return lambda p, key, temperature: loss(from_scales(p), key, temperature)
+
+
 def _summ(ev: dict) -> dict:
     out = {k: dict(zip(("mean", "ci95"), mean_ci(ev[k]))) for k in ("loss", "J1n", "J4")}
     stable = ~np.asarray(ev["unstable"], bool)
@@ -157,13 +171,24 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         gbest = {"sigma": gs.best_point["s"] * paper["sigma"], "delta": np.full(9, gs.best_point["d"], np.float32)}
         # "grid": refine the grid's best point by gradient (the grid sees instability, the
         # gradient does not); the tuned point then used both budgets
-        start = gbest if settings["init"] == "grid" else paper
-        tr = tune(loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]},
-                  {"sigma": Positive(), "delta": Positive()}, steps=steps, batch=batch, optimizer=opt,
-                  estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
-                  seed=settings["seed"], progress=progress, desc=f"tune w={w:g}")
+        if settings["family"] == "scales":     # the grid's family: sigma = s x paper's pattern, delta(i) = d
+            s0, d0 = (gs.best_point["s"], gs.best_point["d"]) if settings["init"] == "grid" else (1.0, PAPER_D)
+            tr = tune(scales_loss(loss), {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)},
+                      {"s": Positive(), "d": Positive()}, steps=steps, batch=batch, optimizer=opt,
+                      estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
+                      seed=settings["seed"], score_scale=settings["score_scale"], progress=progress,
+                      desc=f"tune w={w:g}")
+            tuned = {k: np.asarray(v) for k, v in from_scales(tr.params).items()}
+        else:
+            start = gbest if settings["init"] == "grid" else paper
+            tr = tune(loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]},
+                      {"sigma": Positive(), "delta": Positive()}, steps=steps, batch=batch, optimizer=opt,
+                      estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
+                      seed=settings["seed"], score_scale=settings["score_scale"], progress=progress,
+                      desc=f"tune w={w:g}")
+            tuned = tr.params
         evs = {name: evaluate(eval_fn, {**p, "w": w}, eval_keys, chunk_size=chunk)
-               for name, p in (("paper", paper), ("grid", gbest), ("tuned", tr.params))}
+               for name, p in (("paper", paper), ("grid", gbest), ("tuned", tuned))}
         summ = {n: _summ(e) for n, e in evs.items()}
         diff = {f"tuned-{n}": dict(zip(("mean", "ci95"), paired_ci(evs["tuned"]["loss"], evs[n]["loss"])))
                 for n in ("paper", "grid")}
@@ -171,7 +196,8 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
                 "tuned": tr.n_simulations + (gs.n_simulations if settings["init"] == "grid" else 0)}
         results[f"w={w:g}"] = {
             "summary": summ, "paired_differences": diff, "simulations": sims,
-            "tuned": {k: v.tolist() for k, v in tr.params.items()},
+            "tuned": {k: np.asarray(v).tolist() for k, v in tuned.items()},
+            **({"tuned_scales": {k: float(v) for k, v in tr.params.items()}} if settings["family"] == "scales" else {}),
             "grid_best": {"sigma_scale": gs.best_point["s"], "delta": gs.best_point["d"],
                           "grid_mean": gs.best_mean, "grid_ci95": gs.best_ci95},
             "tune_wall_s": tr.wall_time_s, "grid_wall_s": gs.wall_time_s,
@@ -382,8 +408,13 @@ register(Experiment(
         Option("t0", "float", 1.0, "initial trigger temperature", low=1e-6, high=1e6),
         Option("t1", "float", 0.1, "final trigger temperature", low=1e-6, high=1e6),
         Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),
+        Option("score_scale", "float", 0.1, "score / hybrid estimators: std of the parameter perturbations "
+               "(raw, softplus space)", low=1e-4, high=10.0),
         Option("init", "choice", "paper", "gradient start: the paper's thresholds or the grid's best",
                choices=("paper", "grid")),
+        Option("family", "choice", "per_output", "gradient parameters: per_output (sigma(i), delta(i), 18 values) "
+               "or scales (s, d: sigma = s x paper's pattern, delta(i) = d; the grid's family)",
+               choices=("per_output", "scales")),
         Option("max_silence", "int", 0, "DRHE time-triggered safety condition: the sensor also sends after this "
                "many silent slow periods (0 = off, as the paper)", low=0, high=100_000),
         Option("near_miss", "float", 0.0, "gradient only: also penalise stable runs whose maximum distance "

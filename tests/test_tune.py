@@ -241,3 +241,24 @@ def test_near_miss_penalty_ramps_from_r0_to_the_failure_charge_and_adds_only_a_g
     v, g = value_and_grad(jnp.float32(0.35))
     assert float(v) == 0.0
     np.testing.assert_allclose(float(g), 2 * 100.0 * 0.5 / 0.3, rtol=1e-5)   # d/dJ2 of charge x^2
+
+
+def test_scales_family_is_the_grids_family_and_contains_the_papers_thresholds():
+    """autotune-mecanum family=scales: sigma = s x the paper's sigma pattern, delta(i) = d;
+    (s, d) = (1, 0.1) is the paper's point, and scales_loss passes exactly those
+    thresholds (and their gradient) to the per-output loss."""
+    from experiments.autotune import PAPER_D, from_scales, scales_loss
+    from jaxnc.experiment import ConfigError, get_experiment
+    from jaxnc.schemes import mecanum as mec
+    p = from_scales({"s": jnp.float32(1.0), "d": jnp.float32(PAPER_D)})
+    np.testing.assert_array_equal(np.asarray(p["sigma"]), np.asarray(mec.PAPER_SIGMA, np.float32))
+    np.testing.assert_array_equal(np.asarray(p["delta"]), np.asarray(mec.PAPER_DELTA, np.float32))
+    per_output = lambda q, key, t: jnp.sum(q["sigma"] ** 2) + 3.0 * jnp.sum(q["delta"])
+    g = jax.grad(lambda q: scales_loss(per_output)(q, None, 0.0))({"s": jnp.float32(2.0), "d": jnp.float32(0.5)})
+    sig = np.asarray(mec.PAPER_SIGMA, np.float32)
+    np.testing.assert_allclose(float(g["s"]), 2 * 2.0 * np.sum(sig ** 2), rtol=1e-6)
+    np.testing.assert_allclose(float(g["d"]), 3.0 * 9, rtol=1e-6)
+    exp = get_experiment("autotune-mecanum")
+    assert exp.parse_settings(["family=scales"])["family"] == "scales"
+    with pytest.raises(ConfigError, match="family"):
+        exp.parse_settings(["family=diagonal"])
