@@ -231,6 +231,8 @@ def main():
     ap.add_argument("--ekf-steps", type=int, default=500, help="steps per seed of the EKF benchmark")
     ap.add_argument("--only-ekf", action="store_true", help="run the EKF benchmark only")
     ap.add_argument("--only-grad", action="store_true", help="run the gradient-cost benchmark only")
+    ap.add_argument("--grad-batches", type=int, nargs="+", default=[64],
+                    help="seed counts of the gradient-cost benchmark (one table each)")
     ap.add_argument("--results", type=Path, default=HERE / "RESULTS.md", help="file the tables are appended to")
     a = ap.parse_args()
     if a.cpu_devices > 1:
@@ -244,7 +246,7 @@ def main():
         loops = bench_loops(batches)
         print(loops, flush=True)
     if not a.only_ekf:
-        grad = bench_grad()
+        grad = "\n\n".join(bench_grad(B) for B in a.grad_batches)
         print(grad, flush=True)
     if not a.no_record:
         record(a.results, [ekf, loops, grad])
