@@ -420,7 +420,7 @@ register(Experiment(
         Option("near_miss", "float", 0.0, "gradient only: also penalise stable runs whose maximum distance "
                "exceeds this many metres (a differentiable precursor of failures; 0 = off)", low=0.0, high=10.0),
         Option("jacobian_grad", "bool", True, "false: gradients hold the EKF Jacobians constant (same simulation, "
-               "about 2x cheaper steps, gradient within ~0.3 %)"),
+               "about 2x cheaper steps, gradient 0.3-4.8 % from exact)"),
         *COMMON,
     ),
     run=run_mecanum,

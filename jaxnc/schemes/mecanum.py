@@ -136,7 +136,7 @@ class MecanumLoop:
     truth: Any = None
     N: int = dataclasses.field(default=1, metadata=dict(static=True))
     # False: gradients hold the EKF's Jacobians constant (values unchanged): reverse mode
-    # about 2x cheaper, gradient of a tracking cost within ~0.3 % (benchmarks/RESULTS.md).
+    # about 2x cheaper, gradient of a tracking cost 0.3-4.8 % from exact (benchmarks/RESULTS.md).
     jacobian_grad: bool = dataclasses.field(default=True, metadata=dict(static=True))
     steps: int = dataclasses.field(default=100, metadata=dict(static=True))
 
