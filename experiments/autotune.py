@@ -106,15 +106,6 @@ def mecanum_eval_fn(loop, j1_nom):
     return per_seed
 
 
-def mecanum_grid_fn(loop, j1_nom):
-    """per_seed for the grid: sigma = s * paper's sigma pattern, delta(i) = d for all i."""
-    sig = jnp.asarray(mec.PAPER_SIGMA, jnp.float32)
-    def per_seed(p, key):
-        j1n, j4, _, _, _ = mecanum_terms(with_thresholds(loop, p["s"] * sig, jnp.full(9, p["d"])), key, j1_nom)
-        return j1n + p["w"] * j4
-    return per_seed
-
-
 PAPER_D = float(mec.PAPER_DELTA[0])    # the paper's delta(i) are all equal: it lies in the grid's family
 
 
@@ -127,6 +118,15 @@ def from_scales(p):
 def scales_loss(loss):
     """A per-output ``loss(params, key, temperature)`` as a loss of the scales (s, d)."""
     return lambda p, key, temperature: loss(from_scales(p), key, temperature)
+
+
+def mecanum_grid_fn(loop, j1_nom):
+    """per_seed for the grid: sigma = s * paper's sigma pattern, delta(i) = d for all i."""
+    def per_seed(p, key):
+        q = from_scales(p)
+        j1n, j4, _, _, _ = mecanum_terms(with_thresholds(loop, q["sigma"], q["delta"]), key, j1_nom)
+        return j1n + p["w"] * j4
+    return per_seed
 
 
 def _summ(ev: dict) -> dict:
@@ -168,25 +168,20 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         loss = mecanum_loss_fn(loop, j1_nom, w, settings["estimator"], settings["near_miss"])
         opt = optax.adam(settings["lr"])
         gs = search(grid_fn, grid(s=s_axis, d=d_axis, w=(w,)), grid_keys, progress=progress, desc=f"grid w={w:g}")
-        gbest = {"sigma": gs.best_point["s"] * paper["sigma"], "delta": np.full(9, gs.best_point["d"], np.float32)}
+        gbest = {k: np.asarray(v) for k, v in from_scales(gs.best_point).items()}
         # "grid": refine the grid's best point by gradient (the grid sees instability, the
         # gradient does not); the tuned point then used both budgets
         if settings["family"] == "scales":     # the grid's family: sigma = s x paper's pattern, delta(i) = d
             s0, d0 = (gs.best_point["s"], gs.best_point["d"]) if settings["init"] == "grid" else (1.0, PAPER_D)
-            tr = tune(scales_loss(loss), {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)},
-                      {"s": Positive(), "d": Positive()}, steps=steps, batch=batch, optimizer=opt,
-                      estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
-                      seed=settings["seed"], score_scale=settings["score_scale"], progress=progress,
-                      desc=f"tune w={w:g}")
-            tuned = {k: np.asarray(v) for k, v in from_scales(tr.params).items()}
+            fn, init = scales_loss(loss), {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)}
         else:
             start = gbest if settings["init"] == "grid" else paper
-            tr = tune(loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]},
-                      {"sigma": Positive(), "delta": Positive()}, steps=steps, batch=batch, optimizer=opt,
-                      estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
-                      seed=settings["seed"], score_scale=settings["score_scale"], progress=progress,
-                      desc=f"tune w={w:g}")
-            tuned = tr.params
+            fn, init = loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]}
+        tr = tune(fn, init, {k: Positive() for k in init}, steps=steps, batch=batch, optimizer=opt,
+                  estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
+                  seed=settings["seed"], score_scale=settings["score_scale"], progress=progress, desc=f"tune w={w:g}")
+        tuned = ({k: np.asarray(v) for k, v in from_scales(tr.params).items()} if settings["family"] == "scales"
+                 else tr.params)
         evs = {name: evaluate(eval_fn, {**p, "w": w}, eval_keys, chunk_size=chunk)
                for name, p in (("paper", paper), ("grid", gbest), ("tuned", tuned))}
         summ = {n: _summ(e) for n, e in evs.items()}
