@@ -174,14 +174,15 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         if settings["family"] == "scales":     # the grid's family: sigma = s x paper's pattern, delta(i) = d
             s0, d0 = (gs.best_point["s"], gs.best_point["d"]) if settings["init"] == "grid" else (1.0, PAPER_D)
             fn, init = scales_loss(loss), {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)}
+            to_thresholds = from_scales
         else:
             start = gbest if settings["init"] == "grid" else paper
             fn, init = loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]}
+            to_thresholds = dict
         tr = tune(fn, init, {k: Positive() for k in init}, steps=steps, batch=batch, optimizer=opt,
                   estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
                   seed=settings["seed"], score_scale=settings["score_scale"], progress=progress, desc=f"tune w={w:g}")
-        tuned = ({k: np.asarray(v) for k, v in from_scales(tr.params).items()} if settings["family"] == "scales"
-                 else tr.params)
+        tuned = {k: np.asarray(v) for k, v in to_thresholds(tr.params).items()}
         evs = {name: evaluate(eval_fn, {**p, "w": w}, eval_keys, chunk_size=chunk)
                for name, p in (("paper", paper), ("grid", gbest), ("tuned", tuned))}
         summ = {n: _summ(e) for n, e in evs.items()}
@@ -191,7 +192,7 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
                 "tuned": tr.n_simulations + (gs.n_simulations if settings["init"] == "grid" else 0)}
         results[f"w={w:g}"] = {
             "summary": summ, "paired_differences": diff, "simulations": sims,
-            "tuned": {k: np.asarray(v).tolist() for k, v in tuned.items()},
+            "tuned": {k: v.tolist() for k, v in tuned.items()},
             **({"tuned_scales": {k: float(v) for k, v in tr.params.items()}} if settings["family"] == "scales" else {}),
             "grid_best": {"sigma_scale": gs.best_point["s"], "delta": gs.best_point["d"],
                           "grid_mean": gs.best_mean, "grid_ci95": gs.best_ci95},
