@@ -54,34 +54,32 @@ def summarise(results: dict) -> dict:
     return out
 
 
-def table(summary: dict) -> str:
+def table(summary: dict, printed: bool = False) -> str:
+    """Table 2 of seed 004 from the runs: J1 (eq. 23), J2 (eq. 24), J3 (eq. 25), packets, each
+    with its ratio to scenario a and the paper's ratio.  ``printed=True``: eq. (23)-(24) as
+    printed (distance to the nearest NT sample of the reference trajectory, J1_ref, J2_ref)
+    beside Table 2's absolute values."""
+    j1, j2 = ("J1_ref", "J2_ref") if printed else ("J1", "J2")
+    pa = PAPER_TABLE2["a"]
     rows = []
     for name, s in summary.items():
         a, n = s["absolute"], s["normalised"]
         p = PAPER_TABLE2.get(name)   # the paper gives no Table 2 row for F = 0.45
-        pa = PAPER_TABLE2["a"]
         cell = lambda j, d=1: fmt(a[j]["mean"], d) + " \u00b1 " + fmt(a[j]["ci95"], d)
-        rows.append([name, cell("J1"), fmt(n["J1"]), f"{p[0] / pa[0]:.2f}" if p else "\u2013",
-                     cell("J2"), fmt(n["J2"]), f"{p[1] / pa[1]:.2f}" if p else "\u2013",
-                     cell("J3", 2), fmt(n["J3"]), fmt(a["packets"]["mean"], 0), fmt(s["packets_ratio"]),
-                     f"{100 * s['unstable_fraction']:.1f}"])
+
+        def paper(i, d):             # the paper's value (printed table only) and its ratio to a
+            return ([f"{p[i]:.{d}f}" if p else "\u2013"] if printed else []) + \
+                [f"{p[i] / pa[i]:.2f}" if p else "\u2013"]
+        row = [name, cell(j1), fmt(n[j1]), *paper(0, 1), cell(j2), fmt(n[j2]), *paper(1, 2)]
+        if not printed:
+            row += [cell("J3", 2), fmt(n["J3"]), fmt(a["packets"]["mean"], 0), fmt(s["packets_ratio"]),
+                    f"{100 * s['unstable_fraction']:.1f}"]
+        rows.append(row)
+    if printed:
+        return markdown_table(["scenario", "J1 (mm)", "J1/a", "paper J1", "paper /a", "J2 (mm)", "J2/a", "paper J2",
+                               "paper /a"], rows)
     return markdown_table(["scenario", "J1 (mm)", "J1/a", "paper", "J2 (mm)", "J2/a", "paper", "J3 (s)", "J3/a",
                            "packets", "pkt/a", "unstable %"], rows)
-
-
-def table_printed(summary: dict) -> str:
-    """Eq. (23)-(24) as printed: distances to the nearest NT sample of the reference trajectory."""
-    rows = []
-    pa = PAPER_TABLE2["a"]
-    for name, s in summary.items():
-        a, n = s["absolute"], s["normalised"]
-        p = PAPER_TABLE2.get(name)
-        cell = lambda j: fmt(a[j]["mean"], 1) + " ± " + fmt(a[j]["ci95"], 1)
-        rows.append([name, cell("J1_ref"), fmt(n["J1_ref"]), f"{p[0]:.1f}" if p else "–",
-                     f"{p[0] / pa[0]:.2f}" if p else "–", cell("J2_ref"), fmt(n["J2_ref"]),
-                     f"{p[1]:.2f}" if p else "–", f"{p[1] / pa[1]:.2f}" if p else "–"])
-    return markdown_table(["scenario", "J1 (mm)", "J1/a", "paper J1", "paper /a", "J2 (mm)", "J2/a", "paper J2",
-                           "paper /a"], rows)
 
 
 def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
@@ -143,7 +141,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print(f"\nThe same runs with eq. (23)-(24) as printed: the distance to the nearest NT sample of the reference"
           f" trajectory (references {1000 * float(ref.v_ref) * ref.N * float(ref.plant.T):.0f} mm apart), not to the"
           " path; 'paper' Table 2's values\n")
-    print(table_printed(summary))
+    print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
     f1, f2 = plot_paths(loops, keys[0], out)
     wall = time.perf_counter() - t0
