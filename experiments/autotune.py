@@ -34,8 +34,8 @@ from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import diffdrive as dd
 from jaxnc.schemes import mecanum as mec
-from jaxnc.tune import (Positive, evaluate, grid, mean_ci, paired_ci, relax_trigger, search,
-                        simulations_per_step, tune)
+from jaxnc.tune import (Interval, Positive, evaluate, grid, halving_schedule, mean_ci, paired_ci, relax_trigger, search,
+                        simulations_per_step, successive_halving, tune)
 
 EVAL_SEED_OFFSET = 1_000_003   # evaluation seeds never overlap the tuning / grid seeds
 
@@ -129,6 +129,17 @@ def mecanum_grid_fn(loop, j1_nom):
     return per_seed
 
 
+def grid_cell(axis, v) -> tuple[float, float]:
+    """The interval between the neighbours of ``v`` on a sorted grid ``axis`` (beyond an end:
+    0 below a zero, else the end's ratio to its neighbour): the trust region in which
+    ``init=coarse`` refines the search's winner."""
+    a = list(axis)
+    i = a.index(v)
+    lo = a[i - 1] if i > 0 else (0.0 if v == 0 else v * a[0] / a[1])
+    hi = a[i + 1] if i < len(a) - 1 else v * a[-1] / a[-2]
+    return float(lo), float(hi)
+
+
 def _summ(ev: dict) -> dict:
     out = {k: dict(zip(("mean", "ci95"), mean_ci(ev[k]))) for k in ("loss", "J1n", "J4")}
     stable = ~np.asarray(ev["unstable"], bool)
@@ -136,6 +147,13 @@ def _summ(ev: dict) -> dict:
     out["J1_cm_stable"] = dict(zip(("mean", "ci95"), mean_ci(100 * j1))) if j1.size else {"mean": math.inf, "ci95": math.nan}
     out["unstable_fraction"] = float(1 - stable.mean())
     return out
+
+
+def check_mecanum(settings: dict) -> None:
+    """Combinations of autotune-mecanum options (checked when the settings are parsed)."""
+    if settings["init"] == "coarse" and settings["family"] != "scales":
+        raise ConfigError("init=coarse refines inside a cell of the grid's two-parameter family: it needs "
+                          "family=scales")
 
 
 def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
@@ -163,6 +181,12 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
     eval_fn = mecanum_eval_fn(loop, j1_nom)
     grid_fn = mecanum_grid_fn(loop, j1_nom)
     grid_keys = montecarlo.seed_keys(settings["seed"] + 1, grid_seeds)
+    # init=coarse splits the grid's budget: half for a successive-halving search over the
+    # grid's points (its own seeds, not the comparison grid's), half the steps to refine
+    n_cand = len(s_axis) * len(d_axis)
+    tune_steps = max(1, steps // 2) if settings["init"] == "coarse" else steps
+    coarse_budget = max(budget // 2, n_cand * math.ceil(math.log2(n_cand)))
+    coarse_keys = montecarlo.seed_keys(settings["seed"] + 2, sum(s for _, s in halving_schedule(n_cand, coarse_budget)))
     rows, results, histories, front = [], {}, {}, []
     for w in weights:
         loss = mecanum_loss_fn(loop, j1_nom, w, settings["estimator"], settings["near_miss"])
@@ -170,16 +194,29 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         gs = search(grid_fn, grid(s=s_axis, d=d_axis, w=(w,)), grid_keys, progress=progress, desc=f"grid w={w:g}")
         gbest = {k: np.asarray(v) for k, v in from_scales(gs.best_point).items()}
         # "grid": refine the grid's best point by gradient (the grid sees instability, the
-        # gradient does not); the tuned point then used both budgets
+        # gradient does not); the tuned point then used both budgets.  "coarse": a two-stage
+        # tuner inside the grid's budget: successive halving over the grid's points on half
+        # the budget picks the start, half the gradient steps refine it.
+        coarse = None
+        if settings["init"] == "coarse":
+            coarse = successive_halving(grid_fn, grid(s=s_axis, d=d_axis, w=(w,)), coarse_keys,
+                                        budget=coarse_budget, progress=progress, desc=f"halving w={w:g}")
+        start_pt = {"grid": gs, "coarse": coarse}.get(settings["init"])
         if settings["family"] == "scales":     # the grid's family: sigma = s x paper's pattern, delta(i) = d
-            s0, d0 = (gs.best_point["s"], gs.best_point["d"]) if settings["init"] == "grid" else (1.0, PAPER_D)
+            s0, d0 = (start_pt.best_point["s"], start_pt.best_point["d"]) if start_pt else (1.0, PAPER_D)
             fn, init = scales_loss(loss), {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)}
+            constraints = {k: Positive() for k in init}
+            if coarse:     # refine inside the grid cell around the search's winner (a trust region)
+                constraints = {"s": Interval(*grid_cell(s_axis, s0)), "d": Interval(*grid_cell(d_axis, d0))}
+                init = {k: np.float32(c.low + np.clip((v - c.low) / (c.high - c.low), 0.01, 0.99) * (c.high - c.low))
+                        for (k, v), c in zip(init.items(), constraints.values())}
             to_thresholds = from_scales
         else:
-            start = gbest if settings["init"] == "grid" else paper
+            start = {k: np.asarray(v) for k, v in from_scales(start_pt.best_point).items()} if start_pt else paper
             fn, init = loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]}
+            constraints = {k: Positive() for k in init}
             to_thresholds = dict
-        tr = tune(fn, init, {k: Positive() for k in init}, steps=steps, batch=batch, optimizer=opt,
+        tr = tune(fn, init, constraints, steps=tune_steps, batch=batch, optimizer=opt,
                   estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
                   seed=settings["seed"], score_scale=settings["score_scale"], progress=progress, desc=f"tune w={w:g}")
         tuned = {k: np.asarray(v) for k, v in to_thresholds(tr.params).items()}
@@ -189,13 +226,15 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         diff = {f"tuned-{n}": dict(zip(("mean", "ci95"), paired_ci(evs["tuned"]["loss"], evs[n]["loss"])))
                 for n in ("paper", "grid")}
         sims = {"paper": 0, "grid": gs.n_simulations,
-                "tuned": tr.n_simulations + (gs.n_simulations if settings["init"] == "grid" else 0)}
+                "tuned": tr.n_simulations + (start_pt.n_simulations if start_pt else 0)}
         results[f"w={w:g}"] = {
             "summary": summ, "paired_differences": diff, "simulations": sims,
             "tuned": {k: v.tolist() for k, v in tuned.items()},
             **({"tuned_scales": {k: float(v) for k, v in tr.params.items()}} if settings["family"] == "scales" else {}),
             "grid_best": {"sigma_scale": gs.best_point["s"], "delta": gs.best_point["d"],
                           "grid_mean": gs.best_mean, "grid_ci95": gs.best_ci95},
+            **({"coarse_best": {"sigma_scale": coarse.best_point["s"], "delta": coarse.best_point["d"],
+                                "simulations": coarse.n_simulations}} if coarse else {}),
             "tune_wall_s": tr.wall_time_s, "grid_wall_s": gs.wall_time_s,
             "history": {"objective": tr.history.objective.tolist(), "temperature": tr.history.temperature.tolist()},
         }
@@ -406,8 +445,10 @@ register(Experiment(
         Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),
         Option("score_scale", "float", 0.1, "score / hybrid estimators: std of the parameter perturbations "
                "(raw, softplus space)", low=1e-4, high=10.0),
-        Option("init", "choice", "paper", "gradient start: the paper's thresholds or the grid's best",
-               choices=("paper", "grid")),
+        Option("init", "choice", "paper", "gradient start: the paper's thresholds, the grid's best (then the "
+               "tuned point used both budgets), or coarse (a two-stage tuner inside the grid's budget: successive "
+               "halving over the grid's points on half the budget picks the start, half the steps refine it)",
+               choices=("paper", "grid", "coarse")),
         Option("family", "choice", "per_output", "gradient parameters: per_output (sigma(i), delta(i), 18 values) "
                "or scales (s, d: sigma = s x paper's pattern, delta(i) = d; the grid's family)",
                choices=("per_output", "scales")),
@@ -420,6 +461,7 @@ register(Experiment(
         *COMMON,
     ),
     run=run_mecanum,
+    check=check_mecanum,
 ))
 
 register(Experiment(

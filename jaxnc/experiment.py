@@ -171,12 +171,15 @@ class Experiment:
     ``run(settings, *, seeds, out, progress) -> dict`` receives the parsed settings (every
     option's default, updated by the user's ``KEY=VALUE`` pairs), the number of Monte-Carlo
     seeds, the output directory (already created) and whether to show progress bars; it
-    prints its own table, writes its own files and returns the results.
+    prints its own table, writes its own files and returns the results.  ``check(settings)``,
+    if given, validates combinations of options (raising :class:`ConfigError`) when the
+    settings are parsed, before anything is built.
     """
     name: str
     description: str
     options: tuple[Option, ...]
     run: Callable[..., dict]
+    check: Callable[[dict], None] | None = None
 
     def __post_init__(self):
         names = [o.name for o in self.options]
@@ -208,6 +211,8 @@ class Experiment:
                 raise ConfigError(f"malformed setting {pair!r}: expected KEY=VALUE")
             opt = self.option(key)
             settings[opt.name] = opt.parse(value)
+        if self.check is not None:
+            self.check(settings)
         return settings
 
 

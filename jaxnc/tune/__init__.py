@@ -12,12 +12,14 @@ from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temp
                                    straight_through)
 from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
     simulations_per_step, tune, unconstrain
-from jaxnc.tune.search import SearchResult, evaluate, grid, mean_ci, paired_ci, random_points, search
+from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, mean_ci, paired_ci, random_points,
+                              search, successive_halving)
 
 __all__ = [
     "ESTIMATORS", "RelaxedPetcTrigger", "annealed_temperature", "bernoulli_fires", "relax_trigger", "score_grad",
     "score_surrogate", "sigmoid_relaxation", "straight_through",
     "Interval", "Positive", "TuneHistory", "TuneResult", "Unconstrained", "constrain", "simulations_per_step", "tune",
     "unconstrain",
-    "SearchResult", "evaluate", "grid", "mean_ci", "paired_ci", "random_points", "search",
+    "SearchResult", "evaluate", "grid", "halving_schedule", "mean_ci", "paired_ci", "random_points", "search",
+    "successive_halving",
 ]

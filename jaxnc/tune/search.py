@@ -25,7 +25,8 @@ import numpy as np
 from jaxnc import montecarlo
 from jaxnc._validate import check_int
 
-__all__ = ["grid", "random_points", "SearchResult", "search", "evaluate", "mean_ci", "paired_ci"]
+__all__ = ["grid", "random_points", "SearchResult", "search", "successive_halving", "evaluate", "mean_ci",
+           "paired_ci"]
 
 
 def grid(**axes) -> list[dict]:
@@ -140,6 +141,64 @@ def search(per_seed: Callable, points: list[dict], keys, *, static: tuple = (), 
     best = int(np.argmin(mean))
     return SearchResult(points, values, mean, ci, best, points[best], float(mean[best]), float(ci[best]),
                         len(points) * n, time.perf_counter() - t0)
+
+
+def halving_schedule(n_points: int, budget: int) -> list[tuple[int, int]]:
+    """(candidates, new seeds per candidate) of each round of :func:`successive_halving`:
+    ceil(log2 n) rounds share the budget equally; each keeps the better half."""
+    check_int("n_points", n_points, 1)
+    rounds = max(1, math.ceil(math.log2(n_points)))
+    check_int("budget", budget, rounds * n_points)    # at least one seed per candidate and round
+    sched, m = [], n_points
+    for _ in range(rounds):
+        sched.append((m, max(1, (budget // rounds) // m)))
+        m = max(1, math.ceil(m / 2))
+    return sched
+
+
+def successive_halving(per_seed: Callable, points: list[dict], keys, *, budget: int, static: tuple = (),
+                       progress: bool = True, desc: str = "halving") -> SearchResult:
+    """Monte-Carlo search that spends its budget where it decides (successive halving,
+    Jamieson & Talwalkar 2016, with common random numbers).
+
+    ``ceil(log2 n)`` rounds share ``budget`` simulations equally.  In each round every
+    surviving candidate runs on the same *new* seeds (taken in order from ``keys``), all
+    survivors are ranked by their mean over every seed they have run, and the better half
+    goes on; the best of the last round is returned.  A grid of the same budget gives every
+    candidate ``budget / n`` seeds; here the final candidates get about
+    ``budget / 2 / log2 n`` each, and the clearly bad ones are dropped after a few seeds.
+    ``values`` is ``[candidates, seeds]`` with NaN where a dropped candidate did not run;
+    ``mean``/``ci95`` are over the seeds each candidate ran.
+    """
+    if not points:
+        raise ValueError("successive_halving: no candidates")
+    sched = halving_schedule(len(points), budget)
+    need = sum(s for _, s in sched)
+    keys = np.asarray(keys) if not hasattr(keys, "shape") else keys
+    if int(keys.shape[0]) < need:
+        raise ValueError(f"successive_halving: needs {need} keys for budget {budget} and {len(points)} "
+                         f"candidates, got {int(keys.shape[0])}")
+    t0 = time.perf_counter()
+    values = np.full((len(points), need), np.nan)
+    alive, used, sims = list(range(len(points))), 0, 0
+    for r, (m, s) in enumerate(sched):
+        res = search(per_seed, [points[i] for i in alive], keys[used:used + s], static=static, progress=False)
+        values[alive, used:used + s] = res.values
+        used, sims = used + s, sims + m * s
+        mean = np.asarray([np.mean(values[i, :used]) for i in alive])
+        mean = np.where(np.isfinite(mean), mean, np.inf)
+        order = np.argsort(mean, kind="stable")
+        alive = [alive[j] for j in order[:max(1, math.ceil(m / 2))]] if r < len(sched) - 1 else [alive[order[0]]]
+        if progress:
+            print(f"\r{desc}: round {r + 1}/{len(sched)}, {m} candidates x {s} seeds", end="", flush=True)
+    if progress:
+        print()
+    stats = np.asarray([mean_ci(row[~np.isnan(row)]) for row in values])   # over the seeds each one ran
+    mean = np.where(np.isfinite(stats[:, 0]), stats[:, 0], np.inf)
+    ci = stats[:, 1]
+    best = alive[0]
+    return SearchResult(points, values, mean, ci, best, points[best], float(mean[best]), float(ci[best]),
+                        sims, time.perf_counter() - t0)
 
 
 def evaluate(per_seed: Callable, params: dict, keys, *, chunk_size: int | None = None, progress: bool = False,
