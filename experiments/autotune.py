@@ -1,12 +1,16 @@
 """Experiments ``autotune-mecanum`` and ``autotune-pi``: tuning by gradient vs by hand vs by grid.
 
-``autotune-mecanum`` (seed 000, DRHE, N = 10, DP = 0.3, Lissajous): tune the 18 PETC
-thresholds sigma(i), delta(i) (softplus-positive) for
+``autotune-mecanum`` (seed 000, DRHE, N = 10, DP = 0.3, Lissajous): tune the PETC
+thresholds sigma(i), delta(i) for
 
     L_w = J1' / J1_nom + w J4,   J1' = J1 of a stable run, the tube radius max_dev if unstable,
 
-at several weights w, by optax with the chosen event-gradient estimator; run a grid search
-over (sigma scale, delta) with the *same number of simulations*; re-evaluate the paper's
+at several weights w.  By default a two-stage tuner (``init=coarse``): successive halving
+over the grid's (sigma scale, delta) points on half the budget, then the score-function
+gradient (optax) refines the winner inside its grid cell on the other half; other settings
+run the gradient alone from the paper's thresholds (``init=paper``), over the 18
+per-output thresholds (``family=per_output``) or with another event-gradient estimator.
+A grid search over (sigma scale, delta) gets the *same number of simulations*; re-evaluate the paper's
 hand-set thresholds (section 4.1), the grid's best and the tuned point with hard triggers
 on fresh seeds; trace the Pareto front J1 vs J4.  J4 is the sensor transmission rate
 relative to nominal SR (N = 1 sends every period, so its rate is exactly 1).
@@ -220,12 +224,16 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
                   estimator=settings["estimator"], temperature=(settings["t0"], settings["t1"]),
                   seed=settings["seed"], score_scale=settings["score_scale"], progress=progress, desc=f"tune w={w:g}")
         tuned = {k: np.asarray(v) for k, v in to_thresholds(tr.params).items()}
-        evs = {name: evaluate(eval_fn, {**p, "w": w}, eval_keys, chunk_size=chunk)
-               for name, p in (("paper", paper), ("grid", gbest), ("tuned", tuned))}
+        # init=coarse also reports the search's winner alone: what the gradient refinement added
+        named = (("paper", paper), ("grid", gbest),
+                 *((("search", {k: np.asarray(v) for k, v in from_scales(coarse.best_point).items()}),)
+                   if coarse else ()), ("tuned", tuned))
+        evs = {name: evaluate(eval_fn, {**p, "w": w}, eval_keys, chunk_size=chunk) for name, p in named}
         summ = {n: _summ(e) for n, e in evs.items()}
         diff = {f"tuned-{n}": dict(zip(("mean", "ci95"), paired_ci(evs["tuned"]["loss"], evs[n]["loss"])))
-                for n in ("paper", "grid")}
+                for n in evs if n != "tuned"}
         sims = {"paper": 0, "grid": gs.n_simulations,
+                **({"search": coarse.n_simulations} if coarse else {}),
                 "tuned": tr.n_simulations + (start_pt.n_simulations if start_pt else 0)}
         results[f"w={w:g}"] = {
             "summary": summ, "paired_differences": diff, "simulations": sims,
@@ -240,7 +248,7 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         }
         histories[w] = tr.history
         front.append((w, summ))
-        for n in ("paper", "grid", "tuned"):
+        for n in evs:
             s = summ[n]
             rows.append([f"{w:g}", n, f"{fmt(s['loss']['mean'], 3)} \u00b1 {fmt(s['loss']['ci95'], 3)}",
                          f"{fmt(s['J1n']['mean'], 3)} \u00b1 {fmt(s['J1n']['ci95'], 3)}",
@@ -438,18 +446,19 @@ register(Experiment(
         Option("dp", "float", 0.3, "dropout probability DP = p_sc = p_ca", low=0.0, high=0.95),
         Option("path", "choice", "lissajous", "reference path", choices=tuple(PATHS)),
         Option("weights", "floats", (1.0, 3.0, 10.0, 30.0), "weights w of J4", low=0.0, high=1e4),
-        Option("estimator", "choice", "straight_through", "event-gradient estimator",
+        Option("estimator", "choice", "score", "event-gradient estimator",
                choices=("straight_through", "sigmoid", "score", "hybrid")),
         Option("t0", "float", 1.0, "initial trigger temperature", low=1e-6, high=1e6),
         Option("t1", "float", 0.1, "final trigger temperature", low=1e-6, high=1e6),
-        Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),
-        Option("score_scale", "float", 0.1, "score / hybrid estimators: std of the parameter perturbations "
+        Option("lr", "float", 0.3, "Adam learning rate (raw space: softplus, or logit for init=coarse)",
+               low=1e-6, high=10.0),
+        Option("score_scale", "float", 0.5, "score / hybrid estimators: std of the parameter perturbations "
                "(raw, softplus space)", low=1e-4, high=10.0),
-        Option("init", "choice", "paper", "gradient start: the paper's thresholds, the grid's best (then the "
+        Option("init", "choice", "coarse", "gradient start: the paper's thresholds, the grid's best (then the "
                "tuned point used both budgets), or coarse (a two-stage tuner inside the grid's budget: successive "
                "halving over the grid's points on half the budget picks the start, half the steps refine it)",
                choices=("paper", "grid", "coarse")),
-        Option("family", "choice", "per_output", "gradient parameters: per_output (sigma(i), delta(i), 18 values) "
+        Option("family", "choice", "scales", "gradient parameters: per_output (sigma(i), delta(i), 18 values) "
                "or scales (s, d: sigma = s x paper's pattern, delta(i) = d; the grid's family)",
                choices=("per_output", "scales")),
         Option("max_silence", "int", 0, "DRHE time-triggered safety condition: the sensor also sends after this "
