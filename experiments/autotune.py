@@ -453,7 +453,7 @@ register(Experiment(
         Option("lr", "float", 0.3, "Adam learning rate (raw space: softplus, or logit for init=coarse)",
                low=1e-6, high=10.0),
         Option("score_scale", "float", 0.5, "score / hybrid estimators: std of the parameter perturbations "
-               "(raw, softplus space)", low=1e-4, high=10.0),
+               "(raw space: softplus, or logit for init=coarse)", low=1e-4, high=10.0),
         Option("init", "choice", "coarse", "gradient start: the paper's thresholds, the grid's best (then the "
                "tuned point used both budgets), or coarse (a two-stage tuner inside the grid's budget: successive "
                "halving over the grid's points on half the budget picks the start, half the steps refine it)",

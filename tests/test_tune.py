@@ -297,9 +297,10 @@ def test_scales_family_is_the_grids_family_and_contains_the_papers_thresholds():
     with pytest.raises(ConfigError, match="family"):
         exp.parse_settings(["family=diagonal"])
     # init=coarse refines inside the grid cell around the search's winner: only in this family
-    assert exp.parse_settings(["init=coarse", "family=scales"])["init"] == "coarse"
+    assert exp.parse_settings([])["init"] == "coarse" and exp.parse_settings([])["family"] == "scales"  # defaults
     with pytest.raises(ConfigError, match="family=scales"):
-        exp.parse_settings(["init=coarse"])
+        exp.parse_settings(["family=per_output"])
+    assert exp.parse_settings(["family=per_output", "init=paper"])["family"] == "per_output"
     from experiments.autotune import grid_cell
     assert grid_cell((0.0, 0.25, 0.5, 1.0), 0.0) == (0.0, 0.25) and grid_cell((0.0, 0.25, 0.5, 1.0), 1.0) == (0.5, 2.0)
     assert grid_cell((0.03, 0.1, 0.3, 1.0), 0.1) == (0.03, 0.3)

@@ -25,8 +25,8 @@ import numpy as np
 from jaxnc import montecarlo
 from jaxnc._validate import check_int
 
-__all__ = ["grid", "random_points", "SearchResult", "search", "successive_halving", "evaluate", "mean_ci",
-           "paired_ci"]
+__all__ = ["grid", "random_points", "SearchResult", "search", "halving_schedule", "successive_halving", "evaluate",
+           "mean_ci", "paired_ci"]
 
 
 def grid(**axes) -> list[dict]:
