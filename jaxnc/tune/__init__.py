@@ -4,8 +4,12 @@
   straight-through, score function) and how to pick one;
 * :mod:`jaxnc.tune.gradient` -- :func:`tune`, optax on a Monte-Carlo objective with
   reparametrised constraints, temperature annealing and a progress bar;
-* :mod:`jaxnc.tune.search` -- grid / random search with common random numbers, the
-  best point with its interval, and hard-trigger evaluation.
+* :mod:`jaxnc.tune.search` -- grid / random search and successive halving with common
+  random numbers, the best point with its interval, and hard-trigger evaluation.
+
+For objectives dominated by rare failures (a PETC loop that can leave its tube), search
+first and refine by gradient inside the winner's neighbourhood: ``autotune-mecanum``'s
+default, docs/tuning.md.
 """
 from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temperature, bernoulli_fires,
                                    relax_trigger, score_grad, score_surrogate, sigmoid_relaxation,
