@@ -144,6 +144,17 @@ def grid_cell(axis, v) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def cell_start(point: dict, s_axis, d_axis) -> tuple[dict, dict]:
+    """Constraints and start of ``init=coarse``'s refinement of a grid point {s, d}: each
+    parameter an :class:`Interval` over its grid cell (:func:`grid_cell`), started at the
+    point, moved 1 % into the cell if it lies on the cell's edge (s = 0), where the logit
+    would be infinite and the gradient zero."""
+    cons = {"s": Interval(*grid_cell(s_axis, point["s"])), "d": Interval(*grid_cell(d_axis, point["d"]))}
+    init = {k: np.float32(c.low + np.clip((point[k] - c.low) / (c.high - c.low), 0.01, 0.99) * (c.high - c.low))
+            for k, c in cons.items()}
+    return cons, init
+
+
 def _summ(ev: dict) -> dict:
     out = {k: dict(zip(("mean", "ci95"), mean_ci(ev[k]))) for k in ("loss", "J1n", "J4")}
     stable = ~np.asarray(ev["unstable"], bool)
@@ -207,14 +218,13 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
                                         budget=coarse_budget, progress=progress, desc=f"halving w={w:g}")
         start_pt = {"grid": gs, "coarse": coarse}.get(settings["init"])
         if settings["family"] == "scales":     # the grid's family: sigma = s x paper's pattern, delta(i) = d
-            s0, d0 = (start_pt.best_point["s"], start_pt.best_point["d"]) if start_pt else (1.0, PAPER_D)
-            fn, init = scales_loss(loss), {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)}
-            constraints = {k: Positive() for k in init}
+            fn, to_thresholds = scales_loss(loss), from_scales
             if coarse:     # refine inside the grid cell around the search's winner (a trust region)
-                constraints = {"s": Interval(*grid_cell(s_axis, s0)), "d": Interval(*grid_cell(d_axis, d0))}
-                init = {k: np.float32(c.low + np.clip((v - c.low) / (c.high - c.low), 0.01, 0.99) * (c.high - c.low))
-                        for (k, v), c in zip(init.items(), constraints.values())}
-            to_thresholds = from_scales
+                constraints, init = cell_start(coarse.best_point, s_axis, d_axis)
+            else:
+                s0, d0 = (start_pt.best_point["s"], start_pt.best_point["d"]) if start_pt else (1.0, PAPER_D)
+                init = {"s": np.float32(max(s0, 1e-3)), "d": np.float32(d0)}
+                constraints = {k: Positive() for k in init}
         else:
             start = {k: np.asarray(v) for k, v in from_scales(start_pt.best_point).items()} if start_pt else paper
             fn, init = loss, {"sigma": np.maximum(start["sigma"], 1e-3), "delta": start["delta"]}

@@ -103,6 +103,25 @@ def _key_first(per_seed: Callable) -> Callable:
     return f
 
 
+_WITH_STATIC: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _with_static(per_seed: Callable, skey: tuple) -> Callable:
+    """``(key, args) -> per_seed({**args, **static}, key)`` for run_batched, one wrapper per
+    function and static values, kept across calls: repeated searches with the same
+    ``per_seed`` (every weight of a study, every round of successive halving) reuse the
+    compilation instead of tracing and compiling a fresh lambda each call."""
+    st = dict(skey)
+    try:
+        cache = _WITH_STATIC.setdefault(per_seed, {})
+        ref = weakref.ref(per_seed)        # the wrapper must not keep its own key alive
+    except TypeError:
+        return lambda key, args: per_seed({**args, **st}, key)
+    if skey not in cache:
+        cache[skey] = lambda key, args: ref()({**args, **st}, key)
+    return cache[skey]
+
+
 def _as_args(point: dict, static: tuple):
     return {k: jnp.asarray(v, jnp.float32) for k, v in point.items() if k not in static}
 
@@ -120,14 +139,10 @@ def search(per_seed: Callable, points: list[dict], keys, *, static: tuple = (), 
     t0 = time.perf_counter()
     n = int(np.asarray(keys).shape[0])
     chunk = chunk_size or n
-    fns = {}
     rows = []
     for i, p in enumerate(points):
-        skey = tuple((k, p[k]) for k in static)
-        if skey not in fns:
-            st = dict(skey)
-            fns[skey] = lambda key, args, st=st: per_seed({**args, **st}, key)
-        rows.append(np.asarray(montecarlo.run_batched(fns[skey], keys, args=(_as_args(p, static),),
+        fn = _with_static(per_seed, tuple((k, p[k]) for k in static))
+        rows.append(np.asarray(montecarlo.run_batched(fn, keys, args=(_as_args(p, static),),
                                                       chunk_size=chunk, progress=False), np.float64))
         if progress:
             print(f"\r{desc}: {i + 1}/{len(points)}", end="", flush=True)
