@@ -12,9 +12,12 @@ import pytest
 
 from jaxnc.estimators import ekf
 from jaxnc.estimators.ekf_batched import ekf_filter
+from jaxnc.estimators.sparsity import EKFStructure, Pattern
 from jaxnc.plants.mecanum import OUTPUT_DIM, PROCESS_NOISE_DIM, Mecanum, MecanumNoise
+from jaxnc.schemes.mecanum import ekf_structure
 
 B, K = 5, 30
+STRUCTURE = ekf_structure(Mecanum())
 TOL64 = 1e-10
 TOL32 = 2e-5
 
@@ -62,11 +65,18 @@ def _ours(plant, b0, us, zs, valid, Q, r):
                       noise_dim=PROCESS_NOISE_DIM, return_means=True)
 
 
+def _ours_structured(plant, b0, us, zs, valid, Q, r):
+    """With the Mecanum Jacobians' sparsity and the diagonal Q as a vector of variances."""
+    return ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, jnp.diag(Q), r,
+                      noise_dim=PROCESS_NOISE_DIM, return_means=True, structure=STRUCTURE)
+
+
+@pytest.mark.parametrize("ours", [_ours, _ours_structured])
 @pytest.mark.parametrize("dtype, tol", [(jnp.float32, TOL32), (jnp.float64, TOL64)])
-def test_filter_matches_vmapped_per_seed_ekf(dtype, tol):
+def test_filter_matches_vmapped_per_seed_ekf(dtype, tol, ours):
     with jax.enable_x64(dtype == jnp.float64):
         args = _data(dtype)
-        (fa, ma), (fb, mb) = jax.jit(_ours)(*args), jax.jit(_reference)(*args)
+        (fa, ma), (fb, mb) = jax.jit(ours)(*args), jax.jit(_reference)(*args)
         assert fa.cov.dtype == dtype and ma.shape == (B, K, 6)
         _close(ma, mb, tol)
         _close(fa.mean, fb.mean, tol)
@@ -76,7 +86,8 @@ def test_filter_matches_vmapped_per_seed_ekf(dtype, tol):
         np.testing.assert_array_equal(np.asarray(fa.cov), np.swapaxes(np.asarray(fa.cov), -1, -2))
 
 
-def test_gradient_matches_vmapped_per_seed_ekf_float64():
+@pytest.mark.parametrize("ours", [_ours, _ours_structured])
+def test_gradient_matches_vmapped_per_seed_ekf_float64(ours):
     """Reverse mode through the batch-last scan: d/dQ-scale of a Monte-Carlo estimation error."""
     with jax.enable_x64(True):
         plant, b0, us, zs, valid, Q, r = _data(jnp.float64)
@@ -84,7 +95,7 @@ def test_gradient_matches_vmapped_per_seed_ekf_float64():
         def loss(run, s):
             means = run(plant, b0, us, zs, valid, Q * s, r)[1]
             return jnp.mean(jnp.sum(means[..., 3:5] ** 2, axis=-1))
-        ga = jax.jit(jax.grad(lambda s: loss(_ours, s)))(1.0)
+        ga = jax.jit(jax.grad(lambda s: loss(ours, s)))(1.0)
         gb = jax.jit(jax.grad(lambda s: loss(_reference, s)))(1.0)
         assert abs(float(gb)) > 1e-8
         np.testing.assert_allclose(float(ga), float(gb), rtol=1e-8)
@@ -106,3 +117,7 @@ def test_inconsistent_shapes_are_refused_before_tracing():
         ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid[:, :-1], Q, r, noise_dim=PROCESS_NOISE_DIM)
     with pytest.raises(ValueError, match="Q must be"):
         ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, Q[:6, :6], r, noise_dim=PROCESS_NOISE_DIM)
+    with pytest.raises(ValueError, match="structure.H"):
+        st = STRUCTURE
+        ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, Q, r, noise_dim=PROCESS_NOISE_DIM,
+                   structure=EKFStructure(st.A, st.L, Pattern.dense(6, 6)))

@@ -14,6 +14,8 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
+from jaxnc.estimators.sparsity import EKFStructure, Pattern, embed, jacobian_columns, take
+
 
 class Gaussian(NamedTuple):
     """Belief N(mean, cov) of the state."""
@@ -43,19 +45,42 @@ def _at(x, jacobian_grad: bool):
     return x if jacobian_grad else jax.lax.stop_gradient(x)
 
 
-def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian_grad: bool = True) -> Gaussian:
+def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian_grad: bool = True,
+                structure: EKFStructure | None = None) -> Gaussian:
     """One prediction step, eq. (11)-(12): mean = f(mean, u, 0), P = A P A' + L Q L'.
+
+    ``Q`` is the process noise covariance (noise_dim, noise_dim), or a vector of
+    variances for a diagonal one (then L Q L' = (L diag(q)) L', one product fewer).
+
+    ``structure`` (static, from :func:`jaxnc.estimators.sparsity.detect_structure`):
+    the Jacobians' sparsity patterns. A and L are then computed only along their
+    nonzero columns, and A P A' only on the block of A's nonzero rows and columns; the
+    skipped terms are exact zeros, so the result is the dense one up to float32
+    summation order. ``None``: dense.
 
     ``jacobian_grad=False`` (static) gives the same values, but gradients of anything
     downstream hold A and L constant: an approximation of the gradient (the covariance's
     dependence on where the model is linearised is dropped) that makes reverse mode through
     a closed loop about 2x cheaper (benchmarks/RESULTS.md)."""
+    n = belief.mean.shape[0]
     w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     mean = f(belief.mean, u, w0)
+    pa, pl = (Pattern.dense(n, n), Pattern.dense(n, noise_dim)) if structure is None else structure[:2]
+    (ra, ca), (rl, cl) = (pa.rows, pa.cols), (pl.rows, pl.cols)
     x0, u0 = _at(belief.mean, jacobian_grad), _at(u, jacobian_grad)
-    A = jax.jacfwd(f, argnums=0)(x0, u0, w0)
-    L = jax.jacfwd(f, argnums=2)(x0, u0, w0)
-    cov = _mm(_mm(A, belief.cov), A.T) + _mm(_mm(L, Q), L.T)
+    # one forward-mode product per live direction of (xi, n1): A's columns, then L's
+    J = jacobian_columns(lambda xw: f(xw[:n], u0, xw[n:]), jnp.concatenate([x0, w0]),
+                         ca + tuple(n + j for j in cl))
+    A = take(J[:, :len(ca)], ra, axis=0)                  # A[ra][:, ca]
+    L = take(J[:, len(ca):], rl, axis=0)                  # L[rl][:, cl]
+    P = take(take(belief.cov, ca, axis=0), ca, axis=1)
+    APA = _mm(_mm(A, P), A.T)
+    Q = jnp.asarray(Q, belief.cov.dtype)
+    if Q.ndim == 1:
+        LQL = _mm(L * take(Q, cl, axis=0)[None, :], L.T)
+    else:
+        LQL = _mm(_mm(L, take(take(Q, cl, axis=0), cl, axis=1)), L.T)
+    cov = embed(embed(APA, ra, n, axis=0), ra, n, axis=1) + embed(embed(LQL, rl, n, axis=0), rl, n, axis=1)
     return Gaussian(mean, _symmetrize(cov))
 
 
@@ -75,7 +100,8 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     return Gaussian(mean, _symmetrize(cov))
 
 
-def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jacobian_grad: bool = True) -> Gaussian:
+def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jacobian_grad: bool = True,
+                    structure: EKFStructure | None = None) -> Gaussian:
     """Correction for additive measurement noise with diagonal covariance ``diag(r)``.
 
     Same result as ``ekf_update`` with ``R = diag(r)`` and ``M = I`` (seed 000 eq.
@@ -87,17 +113,27 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     the batched (vmapped) update elementwise and fast. Each scalar step is
     P <- P - (P h')(P h')' / s, an exactly symmetric rank-one downdate (equal to the
     Joseph form for the optimal gain). ``jacobian_grad``: as in :func:`ekf_predict`.
+
+    ``structure`` (static): with H's pattern, H is computed only along its nonzero
+    columns and each scalar step sums only over the states its row depends on.
     """
+    n = belief.mean.shape[0]
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     innovation = z - h(belief.mean, v0)
-    H = jax.jacfwd(h, argnums=0)(_at(belief.mean, jacobian_grad), v0)
+    ph = Pattern.dense(z.shape[0], n) if structure is None else structure.H
+    cols = ph.cols
+    pos = {j: p for p, j in enumerate(cols)}
+    H = jacobian_columns(lambda x: h(x, v0), _at(belief.mean, jacobian_grad), cols)   # H[:, cols]
     P = belief.cov
     delta = jnp.zeros_like(belief.mean)          # correction of the mean so far
     for i in range(z.shape[0]):
-        Hi = H[i]
-        PHt = jnp.sum(P * Hi[None, :], axis=1)
-        s = jnp.sum(Hi * PHt) + r[i]
+        live = ph.row(i)
+        if not live:                             # z_i does not depend on the state: no correction
+            continue
+        Hi = take(H[i], [pos[j] for j in live], axis=0)
+        PHt = jnp.sum(take(P, live, axis=1) * Hi[None, :], axis=1)
+        s = jnp.sum(Hi * take(PHt, live, axis=0)) + r[i]
         k = PHt / s
-        delta = delta + k * (innovation[i] - jnp.sum(Hi * delta))
+        delta = delta + k * (innovation[i] - jnp.sum(Hi * take(delta, live, axis=0)))
         P = P - (PHt[:, None] * PHt[None, :]) / s   # products commute: exactly symmetric
     return Gaussian(belief.mean + delta, P)

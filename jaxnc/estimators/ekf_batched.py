@@ -43,16 +43,21 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.custom_batching import custom_vmap
 
 from jaxnc.estimators.ekf import Gaussian
+from jaxnc.estimators.sparsity import EKFStructure, Pattern, embed, jacobian_columns
 
 __all__ = ["Gaussian", "ekf_filter", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
 
 
 # -- batch-last kernels: matrix indices lead, batch axes (possibly none) trail --------
+# Structurally zero entries (a Pattern) are never read.
 def _sum(terms):
     terms = iter(terms)
     acc = next(terms)
@@ -61,40 +66,85 @@ def _sum(terms):
     return acc
 
 
-def _mm(a, b):
-    """a @ b on the leading two axes, every entry an unrolled sum of products."""
-    return jnp.stack([jnp.stack([_sum(a[i, k] * b[k, j] for k in range(a.shape[1])) for j in range(b.shape[1])])
-                      for i in range(a.shape[0])])
+def _mask(pattern: Pattern | None, shape) -> np.ndarray:
+    return np.ones(shape, bool) if pattern is None else pattern.array
 
 
-def _t(a):
-    return jnp.swapaxes(a, 0, 1)
+def _stack(rows):
+    return jnp.stack([jnp.stack(r) for r in rows])
 
 
-def predict_cov(P, A, L, Q):
-    """Covariance prediction, seed 000 eq. (12): sym(A P A' + L Q L'), batch-last."""
-    C = _mm(_mm(A, P), _t(A)) + _mm(_mm(L, Q), _t(L))
-    return 0.5 * (C + _t(C))
+def _sym_entries(P):
+    """Entries of symmetric ``P``, the lower triangle referring to the upper one."""
+    n = P.shape[0]
+    E = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i, n):
+            E[i][j] = E[j][i] = P[i, j]
+    return E
 
 
-def update_diag(P, H, innovation, r):
+def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None):
+    """Covariance prediction, seed 000 eq. (12): A P A' + L Q L', batch-last.
+
+    ``Q`` is (nw, nw) or a vector of variances (diagonal); ``pa``, ``pl`` (static) the
+    patterns of A and L (None: dense): products with their structural zeros are skipped.
+    Matrices are handled as Python lists of their entries (each an array of the batch
+    shape); only the upper triangle is computed, and entry (j, i) is the same array as
+    (i, j): the result is exactly symmetric.
+    """
+    n, nw = P.shape[0], L.shape[1]
+    ma, ml = _mask(pa, (n, n)), _mask(pl, (n, nw))
+    Pe = _sym_entries(P)
+    zero = jnp.zeros(P.shape[2:], P.dtype)
+    # AP = A P on the rows A can be nonzero in
+    AP = {i: [_sum(A[i, k] * Pe[k][j] for k in np.flatnonzero(ma[i])) for j in range(n)]
+          for i in range(n) if ma[i].any()}
+    if Q.ndim == 1:
+        LQ = {i: {k: L[i, k] * Q[k] for k in np.flatnonzero(ml[i])} for i in range(n)}
+        LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[i] & ml[j])]
+    else:
+        LQ = {i: [_sum(L[i, k] * Q[k, l] for k in np.flatnonzero(ml[i])) for l in range(nw)]
+              for i in range(n) if ml[i].any()}
+        LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[j])] if i in LQ else []
+    C = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i, n):
+            terms = [AP[i][l] * A[j, l] for l in np.flatnonzero(ma[j])] if i in AP else []
+            terms += LQL(i, j)
+            C[i][j] = C[j][i] = _sum(terms) if terms else zero
+    return _stack(C)
+
+
+def update_diag(P, H, innovation, r, ph: Pattern | None = None):
     """Sequential scalar correction (seed 000 eq. 13-16 with R = diag(r)), batch-last.
 
     Returns ``(delta, P)``: the correction of the mean and the posterior covariance.
     Same algorithm as ``ekf.ekf_update_diag``: for each output i, with the Jacobian at
     the prior mean, s = h P h' + r_i, k = P h' / s, delta += k (e_i - h delta),
-    P <- P - (P h')(P h')' / s (exactly symmetric).
+    P <- P - (P h')(P h')' / s (exactly symmetric). ``ph`` (static): the pattern of H;
+    each row's sums run over its nonzero columns only.
+
+    Written on whole (n, n, *batch) arrays, unlike :func:`predict_cov`: as lists of
+    entries, the nine chained rank-one downdates compiled to a program that ran 500x
+    slower on XLA:CPU (jax 0.10), each entry apparently recomputed once per use.
     """
-    n = P.shape[0]
+    n, m = P.shape[0], H.shape[0]
+    mh = _mask(ph, (m, n))
     delta = None
-    for i in range(H.shape[0]):
+    for i in range(m):
+        live = np.flatnonzero(mh[i])
+        if live.size == 0:                     # z_i does not depend on the state
+            continue
         h = H[i]
-        PHt = _sum(P[:, j] * h[j][None] for j in range(n))
-        s = _sum(h[j] * PHt[j] for j in range(n)) + r[i]
-        e = innovation[i] if delta is None else innovation[i] - _sum(h[j] * delta[j] for j in range(n))
+        PHt = _sum(P[:, j] * h[j][None] for j in live)
+        s = _sum(h[j] * PHt[j] for j in live) + r[i]
+        e = innovation[i] if delta is None else innovation[i] - _sum(h[j] * delta[j] for j in live)
         k = PHt / s[None]
         delta = k * e[None] if delta is None else delta + k * e[None]
         P = P - (PHt[:, None] * PHt[None, :]) / s[None, None]
+    if delta is None:
+        return jnp.zeros(P.shape[1:], P.dtype), P
     return delta, P
 
 
@@ -156,7 +206,8 @@ def _mm_compact(a, b):
 
 
 def _predict_cov_compact(P, A, L, Q):
-    C = _mm_compact(_mm_compact(A, P), A.T) + _mm_compact(_mm_compact(L, Q), L.T)
+    LQ = L * Q[None, :] if Q.ndim == 1 else _mm_compact(L, Q)
+    C = _mm_compact(_mm_compact(A, P), A.T) + _mm_compact(LQ, L.T)
     return 0.5 * (C + C.T)
 
 
@@ -218,20 +269,16 @@ def _reverse_by_compact(kernel: Callable, compact: Callable, in_axes: tuple) -> 
     return _backward_by(kernel, jax.vmap(compact, in_axes=in_axes, out_axes=-1))
 
 
-_predict_cov_last = _reverse_by_compact(predict_cov, _predict_cov_compact, (-1, -1, -1, None))
-_update_diag_last = _reverse_by_compact(update_diag, _update_diag_compact, (-1, -1, -1, None))
-
-
-def _jacobian(fn, x):
+def _jacobian(fn, x, cols=None):
     """d fn / d x for batch-last ``x`` of shape (n, *batch): (n_out, n, *batch).
 
-    One forward-mode product per input direction (``vmap`` over one-hot tangents on a
-    *leading* axis, so the seed axis stays minor); the model's code sees batch-last
-    arrays only.
+    One forward-mode product per input direction in ``cols`` (static; None: all) on a
+    *leading* axis, so the seed axis stays minor; the other columns are zeros. The
+    model's code sees batch-last arrays only.
     """
     n = x.shape[0]
-    basis = jnp.broadcast_to(jnp.eye(n, dtype=x.dtype).reshape((n, n) + (1,) * (x.ndim - 1)), (n,) + x.shape)
-    return jax.vmap(lambda t: jax.jvp(fn, (x,), (t,))[1], out_axes=1)(basis)
+    cols = tuple(range(n)) if cols is None else tuple(cols)
+    return embed(jacobian_columns(fn, x, cols, axis=1), cols, n, axis=1)
 
 
 def _check_model(f, h, n, nu, nw, m, dtype):
@@ -254,7 +301,7 @@ def _check_model(f, h, n, nu, nw, m, dtype):
 
 
 def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r, *,
-               noise_dim: int, return_means: bool = False):
+               noise_dim: int, return_means: bool = False, structure: EKFStructure | None = None):
     """EKF over whole sequences for many seeds, run with the seed axis last (seed 000 eq. 11-16).
 
     For k = 0 .. K-1: predict with ``us[:, k]`` (eq. 11-12, A = df/dxi, L = df/dn1 at
@@ -271,9 +318,14 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
         (n, B), ``u`` (nu, B), ``w`` (noise_dim, B), ``v`` (m, B).
       belief0: initial beliefs, ``mean`` (B, n), ``cov`` (B, n, n).
       us: inputs (B, K, nu); zs: measurements (B, K, m); valid: (B, K) booleans.
-      Q: (noise_dim, noise_dim) process noise covariance; r: (m,) measurement variances.
+      Q: (noise_dim, noise_dim) process noise covariance, or (noise_dim,) variances of a
+        diagonal one; r: (m,) measurement variances.
       noise_dim: dimension of the process noise ``w`` (static).
       return_means: also return the filtered means (B, K, n) (memory K·n·B).
+      structure: the sparsity patterns of A, L and H (static; from
+        :func:`jaxnc.estimators.sparsity.detect_structure` on the per-seed model):
+        Jacobian columns and products that are structurally zero are skipped (same
+        values up to float32 summation order). None: dense.
 
     Returns:
       the final beliefs (batch-first), and the means if ``return_means``.
@@ -289,20 +341,34 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
     m, nu = zs.shape[-1], us.shape[-1]
     dtype = cov0.dtype
     Q, r = jnp.asarray(Q, dtype), jnp.asarray(r, dtype)
-    if Q.shape != (noise_dim, noise_dim) or r.shape != (m,):
-        raise ValueError(f"ekf_filter: Q must be ({noise_dim}, {noise_dim}) and r ({m},); got {Q.shape}, {r.shape}")
+    if Q.shape not in ((noise_dim, noise_dim), (noise_dim,)) or r.shape != (m,):
+        raise ValueError(f"ekf_filter: Q must be ({noise_dim}, {noise_dim}) or ({noise_dim},) (diagonal) and r ({m},); "
+                         f"got {Q.shape}, {r.shape}")
+    if structure is not None:
+        want = {"A": (n, n), "L": (n, noise_dim), "H": (m, n)}
+        for name, pat in zip("ALH", structure):
+            if pat.shape != want[name]:
+                raise ValueError(f"ekf_filter: structure.{name} has shape {pat.shape}, expected {want[name]}")
+    pa, pl, ph = (None, None, None) if structure is None else structure
     _check_model(f, h, n, nu, noise_dim, m, dtype)
+    # live Jacobian directions: A's columns, then L's (offset n) in the stacked (xi, n1)
+    dirs = None if structure is None else pa.cols + tuple(n + j for j in pl.cols)
+    hcols = None if structure is None else ph.cols
+    predict_last = _reverse_by_compact(functools.partial(predict_cov, pa=pa, pl=pl), _predict_cov_compact,
+                                       (-1, -1, -1, None))
+    update_last = _reverse_by_compact(functools.partial(update_diag, ph=ph), _update_diag_compact,
+                                      (-1, -1, -1, None))
 
     def step(carry, inp):
         x, P = carry
         u, z, ok = inp
         xw = jnp.concatenate([x, jnp.zeros((noise_dim, B), x.dtype)])
         fxw = lambda a: f(a[:n], u, a[n:])
-        J = _jacobian(fxw, xw)
+        J = _jacobian(fxw, xw, dirs)
         x = fxw(xw)
-        P = _predict_cov_last(P, J[:, :n], J[:, n:], Q)
+        P = predict_last(P, J[:, :n], J[:, n:], Q)
         hx = lambda a: h(a, jnp.zeros((m, B), a.dtype))
-        delta, Pc = _update_diag_last(P, _jacobian(hx, x), z - hx(x), r)
+        delta, Pc = update_last(P, _jacobian(hx, x, hcols), z - hx(x), r)
         x, P = jnp.where(ok[None], x + delta, x), jnp.where(ok[None, None], Pc, P)
         return (x, P), (x if return_means else None)
 

@@ -20,17 +20,20 @@ import jax
 import jax.numpy as jnp
 
 from jaxnc.estimators.ekf import Gaussian, ekf_update, ekf_update_diag
+from jaxnc.estimators.sparsity import EKFStructure
 
 
-def nudrekf_correct(model, belief: Gaussian, z, R, *, jacobian_grad: bool = True) -> Gaussian:
+def nudrekf_correct(model, belief: Gaussian, z, R, *, jacobian_grad: bool = True,
+                    structure: EKFStructure | None = None) -> Gaussian:
     """Correction at an arrival instant, eq. (13)-(16).
 
     ``R`` is the measurement noise covariance [s, s], or a vector of variances for
     additive noise with a diagonal covariance (then the update is processed one
     scalar at a time: same result, no factorisation; see ``ekf_update_diag``, which
-    also explains ``jacobian_grad``)."""
+    also explains ``jacobian_grad`` and ``structure``; the general update is dense)."""
     if jnp.ndim(R) == 1:
-        return ekf_update_diag(model.measure, belief, z, R, z.shape[0], jacobian_grad=jacobian_grad)
+        return ekf_update_diag(model.measure, belief, z, R, z.shape[0], jacobian_grad=jacobian_grad,
+                               structure=structure)
     if not jacobian_grad:
         raise ValueError("nudrekf_correct: jacobian_grad=False needs a diagonal R (a vector of variances)")
     return ekf_update(model.measure, belief, z, R, z.shape[0])
