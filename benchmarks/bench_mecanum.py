@@ -95,16 +95,20 @@ def numpy_ekf(plant, noise, us, zs, valid):
     return x
 
 
-def jax_ekf(plant, noise, sequential=False):
-    """jit(vmap(scan)) of the per-seed ``ekf`` functions (the closed loops' form)."""
+def jax_ekf(plant, noise, sequential=False, structured=False):
+    """jit(vmap(scan)) of the per-seed ``ekf`` functions (the closed loops' form);
+    ``structured``: with the Jacobians' sparsity and Q as a vector of variances."""
     Q, R = noise.Q(), noise.R()
     r = noise.measurement_std() ** 2
+    st = mec.ekf_structure(plant) if structured else None
+    Q = noise.process_std() ** 2 if structured else Q
 
     def one(us, zs, valid):
         def step(b, inp):
             u, z, ok = inp
-            b = ekf_predict(plant.dynamics, b, u, Q, 7)
-            c = ekf_update_diag(plant.measure, b, z, r, 9) if sequential else ekf_update(plant.measure, b, z, R, 9)
+            b = ekf_predict(plant.dynamics, b, u, Q, 7, structure=st)
+            c = (ekf_update_diag(plant.measure, b, z, r, 9, structure=st) if sequential
+                 else ekf_update(plant.measure, b, z, R, 9))
             return jax.tree.map(lambda a, o: jnp.where(ok, o, a), b, c), None
 
         b, _ = jax.lax.scan(step, Gaussian(jnp.zeros(6), jnp.eye(6) * 1e-3), (us, zs, valid))
@@ -113,14 +117,17 @@ def jax_ekf(plant, noise, sequential=False):
     return jax.jit(jax.vmap(one))
 
 
-def jax_ekf_filter(plant, noise):
-    """``ekf_batched.ekf_filter``: the whole filter with the seed axis last."""
+def jax_ekf_filter(plant, noise, structured=False):
+    """``ekf_batched.ekf_filter``: the whole filter with the seed axis last; ``structured``:
+    with the Jacobians' sparsity (``jaxnc.estimators.sparsity``) and Q as a vector."""
     Q, r = noise.Q(), noise.measurement_std() ** 2
+    st = mec.ekf_structure(plant) if structured else None
+    Q = noise.process_std() ** 2 if structured else Q
 
     def run(us, zs, valid):
         B = us.shape[0]
         b0 = Gaussian(jnp.zeros((B, 6)), jnp.broadcast_to(jnp.eye(6) * 1e-3, (B, 6, 6)))
-        return ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, Q, r, noise_dim=7).mean
+        return ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, Q, r, noise_dim=7, structure=st).mean
 
     return jax.jit(run)
 
@@ -136,7 +143,10 @@ def bench_ekf(batches, steps):
     # device: split over two CPU devices at B = 10 000 its LAPACK calls deadlocked (jax 0.10.2).
     filters = (("jit(vmap(scan)) of ekf, Cholesky update", jax_ekf(plant, noise, sequential=False), False),
                ("jit(vmap(scan)) of ekf, sequential scalar update", jax_ekf(plant, noise, sequential=True), True),
-               ("ekf_filter (seed axis last), sequential scalar update", jax_ekf_filter(plant, noise), True))
+               ("jit(vmap(scan)) of ekf, sequential scalar update, structured", jax_ekf(plant, noise, True, True), True),
+               ("ekf_filter (seed axis last), sequential scalar update", jax_ekf_filter(plant, noise), True),
+               ("ekf_filter (seed axis last), sequential scalar update, structured",
+                jax_ekf_filter(plant, noise, structured=True), True))
     devices = jax.devices()
     seeds = montecarlo.seed_sharding(devices)
     for B in batches:
@@ -163,9 +173,10 @@ def bench_loops(batches):
     """Closed loops through run_batched with the configuration as a runtime argument:
     one compilation per N serves every case (the grid experiment's path)."""
     rows = []
-    cells = [("SR", 1, 0.0), ("SR", 10, 0.5), ("DR", 10, 0.5), ("DRH", 10, 0.5), ("DRHE", 10, 0.5), ("DRHE", 1, 0.5)]
-    for case, N, dp in cells:
-        loop = mec.mecanum_loop(case, N, dp)
+    cells = [("SR", 1, 0.0), ("SR", 10, 0.5), ("DR", 10, 0.5), ("DRH", 10, 0.5), ("DRHE", 10, 0.5), ("DRHE", 1, 0.5),
+             ("DRHE", 10, 0.5, False)]          # the last without the Jacobians' sparsity (dense EKF)
+    for case, N, dp, *sparse in cells:
+        loop = mec.mecanum_loop(case, N, dp, sparse=sparse[0] if sparse else True)
         for B in batches:
             keys = montecarlo.seed_keys(0, B)
             run = lambda: montecarlo.run_batched(run_seed, keys, args=(loop,), chunk_size=B, progress=False)
@@ -173,7 +184,7 @@ def bench_loops(batches):
             run()
             first = time.perf_counter() - t0
             t = _time(run, repeat=2)
-            rows.append([f"{case} N={N} DP={dp} h={int(loop.h)}", B, f"{max(first - t, 0.0):.1f}", f"{t:.2f}",
+            rows.append([f"{case} N={N} DP={dp} h={int(loop.h)}" + (" (dense EKF)" if loop.structure is None else ""), B, f"{max(first - t, 0.0):.1f}", f"{t:.2f}",
                          f"{B * loop.steps / t:,.0f}"])
     return markdown_table(["closed loop (Lissajous)", "seeds", "compile s", "run s", "seed-steps/s"], rows)
 

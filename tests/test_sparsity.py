@@ -136,3 +136,12 @@ def test_sparse_and_dense_closed_loops_agree():
     assert np.max(np.abs(np.asarray(a.x - b.x))) < 1e-4
     assert np.max(np.abs(np.asarray(a.mean - b.mean))) < 1e-4
     assert mec.mecanum_loop("DRHE", 5, 0.3, sparse=False).structure is None
+
+
+def test_saved_configuration_shows_the_structure():
+    import json
+
+    from jaxnc.experiments.mecanum import loop_config
+    cfg = json.loads(json.dumps(loop_config(mec.mecanum_loop("DRHE", 5, 0.3))))
+    assert cfg["structure"]["A"] == "....../....../....../...x.x/....xx/.....x"
+    assert loop_config(mec.mecanum_loop("DRHE", 5, 0.3, sparse=False))["structure"] is None

@@ -78,9 +78,12 @@ class Pattern:
     def nnz(self) -> int:
         return int(self.array.sum())
 
+    def describe(self) -> str:
+        """Rows separated by '/', 'x' where an entry can be nonzero, '.' where it is zero."""
+        return "/".join("".join("x" if v else "." for v in r) for r in self.mask)
+
     def __repr__(self):
-        rows = "/".join("".join("x" if v else "." for v in r) for r in self.mask)
-        return f"Pattern({self.shape[0]}x{self.shape[1]}: {rows})"
+        return f"Pattern({self.shape[0]}x{self.shape[1]}: {self.describe()})"
 
 
 class EKFStructure(NamedTuple):
@@ -90,6 +93,10 @@ class EKFStructure(NamedTuple):
     A: Pattern
     L: Pattern
     H: Pattern
+
+    def describe(self) -> dict:
+        """JSON-friendly: each pattern as :meth:`Pattern.describe` writes it."""
+        return {name: pat.describe() for name, pat in zip(self._fields, self)}
 
 
 def detect_structure(f: Callable, h: Callable, state_dim: int, input_dim: int, noise_dim: int, meas_dim: int, *,
