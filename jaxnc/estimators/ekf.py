@@ -2,9 +2,12 @@
 
 Seed 000 eq. (11)-(16): prediction with Jacobians A = df/dxi, L = df/dn1; correction
 with H = dh/dxi, M = dh/dn2, gain K = P H' (H P H' + M R M')^-1 and the Joseph form
-P = (I - K H) P (I - K H)' + K (M R M') K'. Jacobians come from ``jax.jacfwd`` of
-the model's own ``dynamics(x, u, w)`` / ``measure(x, v)`` methods, so a linear model
-gives exactly the Kalman filter.
+P = (I - K H) P (I - K H)' + K (M R M') K'. Jacobians come from forward-mode
+differentiation (``jax.jacfwd``, or one ``jvp`` per live direction) of the model's own
+``dynamics(x, u, w)`` / ``measure(x, v)`` methods, so a linear model gives exactly the
+Kalman filter. ``ekf_predict`` and ``ekf_update_diag`` accept the Jacobians' sparsity
+patterns (``structure``, :mod:`jaxnc.estimators.sparsity`) and then skip the structural
+zeros.
 """
 from __future__ import annotations
 

@@ -10,8 +10,10 @@ each operation is one contiguous, vectorised loop over seeds.
 (Monte-Carlo studies of an estimator, issue 9's EKF benchmark): it moves the seed axis
 last once, runs the whole ``lax.scan`` batch-last, Jacobians included (forward-mode
 ``jvp`` of the model's own methods on batch-last arrays), and moves it back. On a
-2-core CPU it runs 2-3x the ``jit(vmap(scan))`` of the per-seed ``ekf`` functions at
-1 000-10 000 seeds, 1.6 M steps/s on both cores (``benchmarks/bench_mecanum.py``); at a
+2-core CPU it runs 3-4x the ``jit(vmap(scan))`` of the per-seed ``ekf`` functions at
+1 000-10 000 seeds: 3.9 M steps/s on both cores, 4.6 M with the Jacobians' sparsity
+(``structure=``, :mod:`jaxnc.estimators.sparsity`) (``benchmarks/bench_mecanum.py``,
+2026-11-24; 1.6-2.2 M on busier days); at a
 single seed it is slower (use ``ekf`` there). It needs model methods that
 accept trailing batch axes (``x`` of shape (n, B)), as
 :class:`jaxnc.plants.mecanum.Mecanum`'s do; it checks that before tracing.
