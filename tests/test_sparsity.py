@@ -145,3 +145,22 @@ def test_saved_configuration_shows_the_structure():
     cfg = json.loads(json.dumps(loop_config(mec.mecanum_loop("DRHE", 5, 0.3))))
     assert cfg["structure"]["A"] == "....../....../....../...x.x/....xx/.....x"
     assert loop_config(mec.mecanum_loop("DRHE", 5, 0.3, sparse=False))["structure"] is None
+
+
+def test_pattern_from_lists_is_hashable_and_checked():
+    p = Pattern([[1, 0], [0, 1]])
+    assert p == Pattern(((True, False), (False, True))) and hash(p) == hash(Pattern.of(np.eye(2)))
+    assert p.rows == (0, 1) and p.row(1) == (1,) and p.nnz == 2
+    with pytest.raises(ValueError, match="same length"):
+        Pattern([[1, 0], [1]])
+
+
+def test_a_structure_of_the_wrong_shape_is_refused():
+    st = mec.ekf_structure(Mecanum())
+    b = Gaussian(jnp.zeros(6), jnp.eye(6))
+    bad = EKFStructure(Pattern.dense(5, 5), st.L, st.H)
+    with pytest.raises(ValueError, match="structure.A"):
+        ekf_predict(Mecanum().dynamics, b, jnp.zeros(4), jnp.ones(7), 7, structure=bad)
+    with pytest.raises(ValueError, match="structure.H"):
+        ekf_update_diag(Mecanum().measure, b, jnp.zeros(9), jnp.ones(9), 9,
+                        structure=EKFStructure(st.A, st.L, Pattern.dense(8, 6)))

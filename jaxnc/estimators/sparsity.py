@@ -36,6 +36,8 @@ class Pattern:
     mask: tuple[tuple[bool, ...], ...]
 
     def __post_init__(self):
+        # any nested sequence of truth values -> a tuple of tuples of bools (hashable)
+        object.__setattr__(self, "mask", tuple(tuple(bool(v) for v in row) for row in self.mask))
         widths = {len(r) for r in self.mask}
         if len(widths) > 1:
             raise ValueError(f"Pattern.mask rows must all have the same length, got lengths {sorted(widths)}")
