@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
+from jaxnc.estimators.covariance import predict_cov
 from jaxnc.estimators.sparsity import EKFStructure, Pattern, embed, jacobian_columns, take
 
 
@@ -64,9 +65,10 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
 
     ``structure`` (static, from :func:`jaxnc.estimators.sparsity.detect_structure`):
     the Jacobians' sparsity patterns. A and L are then computed only along their
-    nonzero columns, and A P A' only on the block of A's nonzero rows and columns; the
-    skipped terms are exact zeros, so the result is the dense one up to float32
-    summation order. ``None``: dense.
+    nonzero columns, and A P A' + L Q L' entry by entry on its upper triangle
+    (:func:`jaxnc.estimators.covariance.predict_cov`), skipping every product with a
+    structural zero: the skipped terms are exact zeros, so the result is the dense one up
+    to float32 summation order. ``None``: dense, as matrix products.
 
     ``jacobian_grad=False`` (static) gives the same values, but gradients of anything
     downstream hold A and L constant: an approximation of the gradient (the covariance's
@@ -78,21 +80,25 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
     pa, pl = (Pattern.dense(n, n), Pattern.dense(n, noise_dim)) if structure is None else structure[:2]
     _check_shape("ekf_predict", "A", pa, (n, n))
     _check_shape("ekf_predict", "L", pl, (n, noise_dim))
-    (ra, ca), (rl, cl) = (pa.rows, pa.cols), (pl.rows, pl.cols)
+    ca, cl = pa.cols, pl.cols
     x0, u0 = _at(belief.mean, jacobian_grad), _at(u, jacobian_grad)
     # one forward-mode product per live direction of (xi, n1): A's columns, then L's
     J = jacobian_columns(lambda xw: f(xw[:n], u0, xw[n:]), jnp.concatenate([x0, w0]),
                          ca + tuple(n + j for j in cl))
-    A = take(J[:, :len(ca)], ra, axis=0)                  # A[ra][:, ca]
-    L = take(J[:, len(ca):], rl, axis=0)                  # L[rl][:, cl]
-    P = take(take(belief.cov, ca, axis=0), ca, axis=1)
-    APA = _mm(_mm(A, P), A.T)
     Q = jnp.asarray(Q, belief.cov.dtype)
+    if structure is not None:
+        # entry by entry, structural zeros skipped (elementwise under vmap): with a sparse
+        # pattern 2x faster forward and 1.4x faster reverse than the matrix form below,
+        # dense it is slower in reverse (benchmarks/RESULTS.md, 2026-11-24)
+        A = embed(J[:, :len(ca)], ca, n, axis=1)
+        L = embed(J[:, len(ca):], cl, noise_dim, axis=1)
+        return Gaussian(mean, predict_cov(belief.cov, A, L, Q, pa, pl))
+    A, L = J[:, :n], J[:, n:]                               # dense: every direction is live
     if Q.ndim == 1:
-        LQL = _mm(L * take(Q, cl, axis=0)[None, :], L.T)
+        LQL = _mm(L * Q[None, :], L.T)
     else:
-        LQL = _mm(_mm(L, take(take(Q, cl, axis=0), cl, axis=1)), L.T)
-    cov = embed(embed(APA, ra, n, axis=0), ra, n, axis=1) + embed(embed(LQL, rl, n, axis=0), rl, n, axis=1)
+        LQL = _mm(_mm(L, Q), L.T)
+    cov = _mm(_mm(A, belief.cov), A.T) + LQL
     return Gaussian(mean, _symmetrize(cov))
 
 

@@ -53,71 +53,15 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from jaxnc.estimators.ekf import Gaussian
+from jaxnc.estimators.covariance import _mask, _sum, predict_cov
 from jaxnc.estimators.sparsity import EKFStructure, Pattern, embed, jacobian_columns
 
 __all__ = ["Gaussian", "ekf_filter", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
 
 
 # -- batch-last kernels: matrix indices lead, batch axes (possibly none) trail --------
-# Structurally zero entries (a Pattern) are never read.
-def _sum(terms):
-    terms = iter(terms)
-    acc = next(terms)
-    for t in terms:
-        acc = acc + t
-    return acc
-
-
-def _mask(pattern: Pattern | None, shape) -> np.ndarray:
-    return np.ones(shape, bool) if pattern is None else pattern.array
-
-
-def _stack(rows):
-    return jnp.stack([jnp.stack(r) for r in rows])
-
-
-def _sym_entries(P):
-    """Entries of symmetric ``P``, the lower triangle referring to the upper one."""
-    n = P.shape[0]
-    E = [[None] * n for _ in range(n)]
-    for i in range(n):
-        for j in range(i, n):
-            E[i][j] = E[j][i] = P[i, j]
-    return E
-
-
-def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None):
-    """Covariance prediction, seed 000 eq. (12): A P A' + L Q L', batch-last.
-
-    ``Q`` is (nw, nw) or a vector of variances (diagonal); ``pa``, ``pl`` (static) the
-    patterns of A and L (None: dense): products with their structural zeros are skipped.
-    Matrices are handled as Python lists of their entries (each an array of the batch
-    shape); only the upper triangle is computed, and entry (j, i) is the same array as
-    (i, j): the result is exactly symmetric.
-    """
-    n, nw = P.shape[0], L.shape[1]
-    ma, ml = _mask(pa, (n, n)), _mask(pl, (n, nw))
-    Pe = _sym_entries(P)
-    zero = jnp.zeros(P.shape[2:], P.dtype)
-    # AP = A P on the rows A can be nonzero in
-    AP = {i: [_sum(A[i, k] * Pe[k][j] for k in np.flatnonzero(ma[i])) for j in range(n)]
-          for i in range(n) if ma[i].any()}
-    if Q.ndim == 1:
-        LQ = {i: {k: L[i, k] * Q[k] for k in np.flatnonzero(ml[i])} for i in range(n)}
-        LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[i] & ml[j])]
-    else:
-        LQ = {i: [_sum(L[i, k] * Q[k, l] for k in np.flatnonzero(ml[i])) for l in range(nw)]
-              for i in range(n) if ml[i].any()}
-        LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[j])] if i in LQ else []
-    C = [[None] * n for _ in range(n)]
-    for i in range(n):
-        for j in range(i, n):
-            terms = [AP[i][l] * A[j, l] for l in np.flatnonzero(ma[j])] if i in AP else []
-            terms += LQL(i, j)
-            C[i][j] = C[j][i] = _sum(terms) if terms else zero
-    return _stack(C)
-
-
+# Structurally zero entries (a Pattern) are never read. ``predict_cov`` (entry by entry)
+# lives in jaxnc.estimators.covariance, shared with the per-seed ``ekf.ekf_predict``.
 def update_diag(P, H, innovation, r, ph: Pattern | None = None):
     """Sequential scalar correction (seed 000 eq. 13-16 with R = diag(r)), batch-last.
 
