@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
 from jaxnc.estimators.covariance import predict_cov
-from jaxnc.estimators.sparsity import EKFStructure, Pattern, embed, jacobian_columns, take
+from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns, take
 
 
 class Gaussian(NamedTuple):
@@ -49,13 +49,6 @@ def _at(x, jacobian_grad: bool):
     return x if jacobian_grad else jax.lax.stop_gradient(x)
 
 
-def _check_shape(where: str, name: str, pattern: Pattern, want: tuple) -> None:
-    """Shapes are static: a structure for another model fails here, at trace time."""
-    if pattern.shape != want:
-        raise ValueError(f"{where}: structure.{name} has shape {pattern.shape}, expected {want} "
-                         f"(a structure detected for another model?)")
-
-
 def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian_grad: bool = True,
                 structure: EKFStructure | None = None) -> Gaussian:
     """One prediction step, eq. (11)-(12): mean = f(mean, u, 0), P = A P A' + L Q L'.
@@ -78,8 +71,8 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
     w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     mean = f(belief.mean, u, w0)
     pa, pl = (Pattern.dense(n, n), Pattern.dense(n, noise_dim)) if structure is None else structure[:2]
-    _check_shape("ekf_predict", "A", pa, (n, n))
-    _check_shape("ekf_predict", "L", pl, (n, noise_dim))
+    check_shape("ekf_predict", "A", pa, (n, n))
+    check_shape("ekf_predict", "L", pl, (n, noise_dim))
     ca, cl = pa.cols, pl.cols
     x0, u0 = _at(belief.mean, jacobian_grad), _at(u, jacobian_grad)
     # one forward-mode product per live direction of (xi, n1): A's columns, then L's
@@ -139,7 +132,7 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     innovation = z - h(belief.mean, v0)
     ph = Pattern.dense(z.shape[0], n) if structure is None else structure.H
-    _check_shape("ekf_update_diag", "H", ph, (z.shape[0], n))
+    check_shape("ekf_update_diag", "H", ph, (z.shape[0], n))
     cols = ph.cols
     pos = {j: p for p, j in enumerate(cols)}
     H = jacobian_columns(lambda x: h(x, v0), _at(belief.mean, jacobian_grad), cols)   # H[:, cols]

@@ -43,9 +43,8 @@ How: each kernel is wrapped by :func:`_batch_last`:
 """
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import functools
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +53,7 @@ from jax.custom_batching import custom_vmap
 
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.covariance import _mask, _sum, predict_cov
-from jaxnc.estimators.sparsity import EKFStructure, Pattern, embed, jacobian_columns
+from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns
 
 __all__ = ["Gaussian", "ekf_filter", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
 
@@ -291,10 +290,8 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
         raise ValueError(f"ekf_filter: Q must be ({noise_dim}, {noise_dim}) or ({noise_dim},) (diagonal) and r ({m},); "
                          f"got {Q.shape}, {r.shape}")
     if structure is not None:
-        want = {"A": (n, n), "L": (n, noise_dim), "H": (m, n)}
-        for name, pat in zip("ALH", structure):
-            if pat.shape != want[name]:
-                raise ValueError(f"ekf_filter: structure.{name} has shape {pat.shape}, expected {want[name]}")
+        for name, pat, want in zip("ALH", structure, ((n, n), (n, noise_dim), (m, n))):
+            check_shape("ekf_filter", name, pat, want)
     pa, pl, ph = (None, None, None) if structure is None else structure
     _check_model(f, h, n, nu, noise_dim, m, dtype)
     # live Jacobian directions: A's columns, then L's (offset n) in the stacked (xi, n1)

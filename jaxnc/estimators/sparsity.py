@@ -5,8 +5,9 @@ The Mecanum kinematics of seed 000 eq. (1) are the example: the body velocities 
 from the wheel commands alone, so A = df/dxi has three zero rows and three zero columns,
 and its pose block is [[1, 0, a35], [0, 1, a45], [0, 0, 1]]; each measurement of eq.
 (2) and (9) depends on two or three of the six states. An EKF that knows this computes
-Jacobian columns only along the directions that matter and multiplies only the blocks
-that can be nonzero (seed 000 eq. 11-16 unchanged; the skipped terms are exact zeros).
+Jacobian columns only along the directions that matter and multiplies only the entries
+that can be nonzero (seed 000 eq. 11-16 unchanged; the skipped terms are
+exact zeros).
 
 A :class:`Pattern` is a hashable tuple of booleans, so it can be a static field of a
 configuration (one compilation per pattern). :func:`detect_structure` finds the
@@ -25,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Pattern", "EKFStructure", "detect_structure", "jacobian_columns", "take", "embed"]
+__all__ = ["Pattern", "EKFStructure", "check_shape", "detect_structure", "jacobian_columns", "take", "embed"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +100,14 @@ class EKFStructure(NamedTuple):
     def describe(self) -> dict:
         """JSON-friendly: each pattern as :meth:`Pattern.describe` writes it."""
         return {name: pat.describe() for name, pat in zip(self._fields, self)}
+
+
+def check_shape(where: str, name: str, pattern: Pattern, want: tuple) -> None:
+    """Refuse ``pattern`` unless its shape is ``want``. Shapes are static, so a structure
+    detected for another model fails at trace time, naming the pattern."""
+    if pattern.shape != tuple(want):
+        raise ValueError(f"{where}: structure.{name} has shape {pattern.shape}, expected {tuple(want)} "
+                         f"(a structure detected for another model?)")
 
 
 def detect_structure(f: Callable, h: Callable, state_dim: int, input_dim: int, noise_dim: int, meas_dim: int, *,

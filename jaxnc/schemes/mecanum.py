@@ -45,8 +45,8 @@ import numpy as np
 from jaxnc._validate import check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
-from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.estimators.nudrekf import PacketChain, advance_chain, exhausted_chain, nudrekf_correct, start_chain
+from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2, local_distance
 from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
