@@ -4,6 +4,13 @@
     jaxnc run EXPERIMENT [--seeds N] [--out DIR] [--set KEY=VALUE ...] [--no-progress]
     jaxnc --version
 
+EXPERIMENT is a registered name (see ``jaxnc list``) or ``MODULE:ATTR`` for an experiment in
+the user's own module, e.g. ``jaxnc run mystudy:experiment``: MODULE is imported (the current
+directory is importable, as with ``python -m``) and ATTR (dotted attributes allowed) must
+be a :class:`jaxnc.experiment.Experiment` or a zero-argument callable returning one.  It then
+runs exactly like a built-in one (same ``--set`` validation, ``--seeds``, ``--out`` default
+``results/<name>``); see :func:`jaxnc.experiment.resolve_experiment`.
+
 :func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
 ends by raising ``SystemExit(code)``: 0 on success, 2 for a bad command line or setting
 (one line ``jaxnc: error: <message>`` on stderr, no traceback), 130 on Ctrl-C.  Use
@@ -48,12 +55,17 @@ def build_parser() -> argparse.ArgumentParser:
                    description="List the registered experiments, their settings, defaults and ranges.")
 
     r = sub.add_parser("run", help="run an experiment",
-                       description="Run a registered experiment over many seeds.")
-    r.add_argument("experiment", metavar="EXPERIMENT", help="experiment name (see 'jaxnc list')")
+                       description="Run an experiment over many seeds: a registered one, or one "
+                                   "defined in your own module, given as MODULE:ATTR.")
+    r.add_argument("experiment", metavar="EXPERIMENT",
+                   help="a registered experiment name (see 'jaxnc list'), or MODULE:ATTR: an "
+                        "Experiment, or a zero-argument callable returning one, in an importable "
+                        "module (the current directory is importable, as with python -m), "
+                        "e.g. mystudy:experiment")
     r.add_argument("--seeds", default=str(DEFAULT_SEEDS), metavar="N",
                    help=f"number of Monte-Carlo seeds, an integer >= 1 (default {DEFAULT_SEEDS})")
     r.add_argument("--out", default=None, metavar="DIR",
-                   help="output directory (default results/EXPERIMENT)")
+                   help="output directory (default results/NAME, the experiment's name)")
     r.add_argument("--set", "-s", dest="settings", action="extend", nargs="+", default=[],
                    metavar="KEY=VALUE", help="override a setting; repeatable (see 'jaxnc list')")
     r.add_argument("--no-progress", dest="progress", action="store_false",
@@ -96,7 +108,7 @@ def _list() -> int:
 
 
 def _run(args) -> int:
-    exp = _exp.get_experiment(args.experiment)
+    exp = _exp.resolve_experiment(args.experiment)
     settings = exp.parse_settings(args.settings)
     seeds = _SEEDS.parse(args.seeds)
     if args.cpu_devices is not None:

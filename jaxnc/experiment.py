@@ -5,6 +5,8 @@ default, bounds) and provides ``run(settings, *, seeds, out, progress) -> dict``
 ``jaxnc.experiments`` call :func:`register` at import time; :func:`load_builtin` imports them.
 Every bad user setting raises :class:`ConfigError` with a one-line message naming the key and
 the allowed values, which the CLI prints as ``jaxnc: error: <message>``.
+:func:`resolve_experiment` also finds an experiment defined in the user's own module from a
+``MODULE:ATTR`` spec (``jaxnc run mymod:experiment``).
 
 This module does not import jax, so ``jaxnc --help`` / ``--version`` stay fast.
 """
@@ -13,14 +15,16 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.util
+import inspect
 import math
+import os
 import pathlib
 import sys
 import warnings
 from typing import Callable
 
 __all__ = ["ConfigError", "Option", "Experiment", "REGISTRY", "register", "get_experiment",
-           "load_builtin", "KINDS"]
+           "resolve_experiment", "load_builtin", "KINDS"]
 
 KINDS = ("int", "float", "choice", "floats", "ints", "bool")
 _TRUE = ("true", "yes", "on", "1")
@@ -228,12 +232,113 @@ def register(exp: Experiment) -> Experiment:
 
 
 def get_experiment(name) -> Experiment:
-    """The registered experiment ``name``; :class:`ConfigError` listing the available ones."""
-    try:
-        return REGISTRY[name]
-    except KeyError:
+    """The registered experiment ``name``; :class:`ConfigError` listing the available ones.
+
+    A ``MODULE:ATTR`` name that is not registered is resolved by :func:`resolve_experiment`.
+    """
+    return resolve_experiment(name)
+
+
+def resolve_experiment(spec) -> Experiment:
+    """The experiment that ``spec`` names: a registered name, or ``MODULE:ATTR``.
+
+    A registered name (looked up first, exactly) returns that experiment.  Otherwise a spec
+    with a colon is ``MODULE:ATTR``: MODULE (an absolute dotted module name, not a file) is
+    imported with :func:`importlib.import_module`, the current working directory first
+    being put at the front of ``sys.path`` if it is not on it (as ``python -m`` does), and
+    ATTR (dotted attributes allowed, e.g. ``studies.main``) is looked up on it.  ATTR must be
+    an :class:`Experiment`, or a callable taking no arguments that returns one (it is called
+    once per resolution).  It need not be registered.
+
+    Every bad spec raises :class:`ConfigError` with a one-line message naming the module
+    and/or attribute: an unknown registered name (listing the available ones), an empty
+    module or attribute part, a module that does not exist, a module that raises ImportError
+    or SyntaxError while importing (its one-line message), a missing attribute (listing the
+    module's Experiment objects), and an object that is not an Experiment (naming its type).
+    A ConfigError raised while importing the module or calling the factory propagates as
+    is; any other exception from the user's code is a bug in it and propagates unchanged.
+    """
+    spec = str(spec)
+    if spec in REGISTRY:
+        return REGISTRY[spec]
+    if ":" not in spec:
         available = ", ".join(sorted(REGISTRY)) or "(none)"
-        raise ConfigError(f"unknown experiment {name!r}; available: {available}") from None
+        raise ConfigError(f"unknown experiment {spec!r}; available: {available} "
+                          f"(or MODULE:ATTR for an experiment in your own module)")
+    module_name, _, attr = (part.strip() for part in spec.partition(":"))
+    if not module_name:
+        raise ConfigError(f"experiment {spec!r} has an empty module name; expected MODULE:ATTR")
+    if not attr:
+        raise ConfigError(f"experiment {spec!r} has an empty attribute name; expected MODULE:ATTR")
+    module = _import_user_module(module_name, spec)
+    obj = module
+    for part in attr.split("."):
+        try:
+            obj = getattr(obj, part)
+        except AttributeError:
+            raise ConfigError(f"module {module_name!r} has no attribute {attr!r}; "
+                              f"{_experiments_in(module)}") from None
+    if isinstance(obj, Experiment):
+        return obj
+    if not callable(obj):
+        raise ConfigError(f"{spec!r} is of type {_type_name(obj)}, not an Experiment "
+                          f"(or a zero-argument callable returning one)")
+    try:
+        signature = inspect.signature(obj)
+    except (TypeError, ValueError):             # no signature (some builtins): just call it
+        signature = None
+    if signature is not None:
+        required = [p.name for p in signature.parameters.values()
+                    if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        if required:
+            raise ConfigError(f"{spec!r} is a callable that needs arguments ({', '.join(required)}); "
+                              f"expected an Experiment or a zero-argument callable returning one")
+    made = obj()
+    if not isinstance(made, Experiment):
+        raise ConfigError(f"{spec!r} returned {_type_name(made)}, not an Experiment")
+    return made
+
+
+def _import_user_module(module_name: str, spec: str):
+    """Import ``module_name`` for :func:`resolve_experiment`; ConfigError if that fails."""
+    if module_name.startswith("."):
+        raise ConfigError(f"experiment {spec!r}: module {module_name!r} is relative; "
+                          f"give an absolute module name")
+    cwd = os.getcwd()
+    if cwd not in sys.path:
+        sys.path.insert(0, cwd)
+    importlib.invalidate_caches()               # a module written since the last import
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        missing = e.name or ""
+        if module_name == missing or module_name.startswith(missing + "."):
+            hint = ""
+            if module_name.endswith(".py") or "/" in module_name or "\\" in module_name:
+                hint = "; give a module name (mymod, pkg.mod), not a file name"
+            raise ConfigError(f"no module named {missing!r} (experiment {spec!r}; searched the "
+                              f"current directory and sys.path){hint}") from None
+        raise ConfigError(f"module {module_name!r} failed to import: {_one_line(e)}") from None
+    except (ImportError, SyntaxError) as e:
+        raise ConfigError(f"module {module_name!r} failed to import: {_one_line(e)}") from None
+
+
+def _one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def _type_name(obj) -> str:
+    """'int', 'NoneType', 'mymod.Thing': the type of ``obj`` for messages."""
+    t = type(obj)
+    return t.__qualname__ if t.__module__ == "builtins" else f"{t.__module__}.{t.__qualname__}"
+
+
+def _experiments_in(module) -> str:
+    names = sorted(k for k, v in vars(module).items() if isinstance(v, Experiment))
+    if not names:
+        return "it has no Experiment objects"
+    return "Experiment objects in it: " + ", ".join(names)
 
 
 def _load_source_tree_experiments() -> bool:
