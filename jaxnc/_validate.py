@@ -43,3 +43,35 @@ def check_int(name, v, low, high=None):
     if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low or (high is not None and v > high):
         hi = "inf" if high is None else str(high)
         raise ValueError(f"{name} must be an integer in [{low}, {hi}], got {v!r}")
+
+
+def concrete(*values) -> bool:
+    """True when every leaf of ``values`` is a concrete number or array (not a tracer, nor a
+    placeholder that jax puts in a pytree while unflattening): validation may look at them."""
+    import jax
+    for leaf in jax.tree_util.tree_leaves(values):
+        if isinstance(leaf, jax.core.Tracer):
+            return False
+        if not isinstance(leaf, (bool, int, float, complex, np.ndarray, np.generic, jax.Array)):
+            return False
+    return True
+
+
+def fields_concrete(obj) -> bool:
+    """:func:`concrete` over a dataclass's fields."""
+    import dataclasses
+    return concrete(*(getattr(obj, f.name) for f in dataclasses.fields(obj)
+                      if not f.metadata.get("static", False)))
+
+
+def array_fields(obj, *names) -> None:
+    """Turn the named fields of a frozen dataclass that are Python sequences (lists,
+    tuples of numbers) into float32 arrays, so that they are one pytree leaf each."""
+    for n in names:
+        v = getattr(obj, n)
+        if isinstance(v, (list, tuple)):
+            try:
+                a = np.asarray(v, np.float32)
+            except (TypeError, ValueError):
+                raise ValueError(f"{type(obj).__name__}.{n} must be a number or an array of numbers, got {v!r}") from None
+            object.__setattr__(obj, n, a)

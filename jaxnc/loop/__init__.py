@@ -1,0 +1,33 @@
+"""One closed loop for every networked system: roles, their implementations, one runner.
+
+Build a :class:`Loop` from a plant, a link per direction, a trigger, an estimator, a
+controller and an actuator; :func:`simulate` runs it (one ``lax.scan``), :func:`run`
+returns its :class:`Metrics`, and ``jaxnc.montecarlo.run_batched(run_seed, keys,
+args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
+"""
+from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractPlant,
+                             AbstractTrigger, Inbox, Packet, blend)
+from jaxnc.loop.controllers import Function, Predictive, StateFeedback
+from jaxnc.loop.estimators import EKF, EKFState, Passthrough
+from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
+                              ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
+                              truncated_exponential)
+from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
+from jaxnc.loop.runner import (STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Trajectory, draw,
+                               evaluate, run, run_seed, simulate)
+from jaxnc.loop.triggers import Periodic, Petc, PetcState
+
+__all__ = [
+    "Loop", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
+    "Quadratic", "Context", "STREAMS",
+    "AbstractPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
+    "Packet", "Inbox", "blend",
+    "Discrete", "Continuous", "LTI", "rk4",
+    "Link", "LinkDraws", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay", "ShiftedExponential",
+    "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel", "truncated_exponential",
+    "Periodic", "Petc", "PetcState",
+    "EKF", "EKFState", "Passthrough",
+    "StateFeedback", "Function", "Predictive",
+    "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
+]

@@ -1,0 +1,98 @@
+"""Actuators: a buffer of received packets indexed by time stamp (seed 000 section 2.4).
+
+:class:`PacketActuator` keeps the ``capacity`` received packets with the newest stamps.
+At fast instant t it applies, of the packets whose stamp is <= t, the newest: its action
+``data[t - stamp]``. When that packet is exhausted (t - stamp >= H) or none has arrived,
+it holds the last action it applied (``on_exhausted="hold"``, seed 001 eq. 4) or applies
+zero (``"zero"``). A packet of one action (H = 1) stamped with the instant it is sent
+makes the plain hold-last actuator (:func:`HoldLast`); a packet of H future actions is
+packet-based control (seeds 000, 003, 004); a capacity > 1 keeps packets stamped for the
+future (seed 001's commands stamped k + lead) until their time comes.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxnc._validate import check_int
+from jaxnc.loop.base import AbstractActuator, Inbox, blend
+
+__all__ = ["PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder"]
+
+_EMPTY = -(2**30)
+
+
+class ActuatorState(NamedTuple):
+    u: jax.Array         # float[B, H, m] actions of the buffered packets
+    stamp: jax.Array     # int32[B] their stamps (_EMPTY: free slot)
+    last: jax.Array      # float[m] the last action applied
+
+
+def _static(default):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PacketActuator(AbstractActuator):
+    """Packet buffer by time stamp (module docstring).
+
+    Attributes:
+      horizon: static H, actions per packet (must equal the controller's).
+      capacity: static B >= 1, packets kept.
+      on_exhausted: static, ``"hold"`` or ``"zero"``.
+    """
+
+    horizon: int = _static(1)
+    capacity: int = _static(1)
+    on_exhausted: str = _static("hold")
+
+    def __post_init__(self):
+        check_int("PacketActuator.horizon", self.horizon, 1, 1_000_000)
+        check_int("PacketActuator.capacity", self.capacity, 1, 10_000)
+        if self.on_exhausted not in ("hold", "zero"):
+            raise ValueError(f"PacketActuator.on_exhausted must be one of hold, zero, got {self.on_exhausted!r}")
+
+    def init(self, ctx) -> ActuatorState:
+        m = ctx.input_dim
+        return ActuatorState(jnp.zeros((self.capacity, self.horizon, m), jnp.float32),
+                             jnp.full((self.capacity,), _EMPTY, jnp.int32), jnp.zeros((m,), jnp.float32))
+
+    def install(self, state: ActuatorState, actions, stamp, w) -> ActuatorState:
+        """Put one packet (actions float[H, m], stamp) with weight ``w`` (0/1 float) in the
+        slot of the oldest stamp, if it is newer than that one."""
+        j = jnp.argmin(state.stamp)
+        take = (w > 0.5) & (stamp > state.stamp[j])
+        wt = jnp.where(take, jnp.asarray(w, jnp.float32), 0.0)
+        u = state.u.at[j].set(blend(wt, jnp.asarray(actions, jnp.float32), state.u[j]))
+        return state._replace(u=u, stamp=state.stamp.at[j].set(jnp.where(take, stamp, state.stamp[j])))
+
+    def receive(self, state: ActuatorState, inbox: Inbox) -> ActuatorState:
+        C = inbox.stamp.shape[0]
+        for c in range(C):                       # C is static and small
+            state = self.install(state, inbox.data[c], inbox.stamp[c], inbox.new[c])
+        return state
+
+    def output(self, state: ActuatorState, t):
+        valid = (state.stamp != _EMPTY) & (state.stamp <= t)
+        key = jnp.where(valid, state.stamp, _EMPTY)
+        j = jnp.argmax(key)
+        idx = t - state.stamp[j]
+        live = valid[j] & (idx < self.horizon)
+        u_pkt = state.u[j, jnp.clip(idx, 0, self.horizon - 1)]
+        fallback = state.last if self.on_exhausted == "hold" else jnp.zeros_like(state.last)
+        u = jnp.where(live, u_pkt, fallback)
+        return u, state._replace(last=u)
+
+
+def HoldLast(capacity: int = 1) -> PacketActuator:
+    """Applies the newest received action and holds it (packets of one action)."""
+    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="hold")
+
+
+def ZeroOrder(capacity: int = 1) -> PacketActuator:
+    """Applies a received action for one period only, zero otherwise (the zero strategy)."""
+    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="zero")

@@ -1,0 +1,210 @@
+"""The roles of a networked loop and the data that passes between them.
+
+A closed loop (:class:`jaxnc.loop.Loop`) is made of six roles, each a frozen-dataclass
+pytree of *parameters* with pure methods; its *state* is a NamedTuple returned by
+``init`` and threaded through the runner's scan (optax's ``init/update``, MJX's
+``step(m, d)``). The runner (:mod:`jaxnc.loop.runner`) calls them in a fixed order
+every slow period k (fast instants t = kN .. kN + N - 1, fast period T):
+
+1. ``plant.measure(x, v)`` -> z_k (the sensor samples at t = kN);
+2. ``trigger.step(state, z_k, k)`` -> (send 0/1, state): PETC, periodic, ...;
+3. the sensor-to-controller :class:`~jaxnc.loop.links.Link` stores the packet
+   (z_k, stamp k) with its arrival time drawn up front; the controller side reads its
+   :class:`Inbox` at t = kN (packets that arrive between slow instants wait for the next);
+4. ``estimator.correct(state, inbox, k)`` -> state, and ``estimator.estimate(state)``;
+5. ``controller.step(state, estimate, fresh, k)`` -> (:class:`Packet` of actions, send,
+   state), optionally gated by a controller-side trigger on the first action;
+6. the controller-to-actuator link stores the packet; then for each fast instant t the
+   actuator receives what arrives at t, ``actuator.output(state, t)`` -> u_t, and the
+   plant moves, ``plant.step(x, u_t, w_t)``;
+7. ``estimator.predict(state, u_applied[N, m], u_believed[N, m], k)``: the actions the
+   actuator applied, and those the controller believes applied (its own packets, as if
+   delivered at once), over the period.
+
+Everything a component needs that does not depend on the loop's signals (noise, packet
+losses and delays) is drawn up front from the run's key, so loops can be compared on the
+same realisation (common random numbers).
+
+Flags that a gradient may pass through (send decisions with a straight-through
+relaxation, link weights) are 0/1 floats; selections on them use blends
+``w * new + (1 - w) * old``, which are exact selects in the forward pass.
+"""
+from __future__ import annotations
+
+import abc
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["Packet", "Inbox", "blend", "AbstractPlant", "AbstractTrigger", "AbstractEstimator",
+           "AbstractController", "AbstractActuator"]
+
+
+class Packet(NamedTuple):
+    """What a link carries.
+
+    Attributes:
+      data: pytree payload, e.g. a measurement ``float[p]`` or actions ``float[H, m]``.
+      stamp: int32 scalar, the fast instant the payload refers to (the sampling instant of
+        a measurement, the instant of ``data[0]`` for actions).
+    """
+
+    data: Any
+    stamp: jax.Array
+
+
+class Inbox(NamedTuple):
+    """A receiver's view of a link's ring of the last ``C`` transmissions (leading axis C).
+
+    Attributes:
+      data: the payloads, pytree with leading axis C.
+      stamp: int32[C], the packets' time stamps (-1 for a slot never used).
+      weight: float[C], 1 for a packet that was sent and not lost or discarded (a 0/1
+        float that carries a send decision's gradient), 0 otherwise.
+      arrived: bool[C], the packet has reached the receiver by now.
+      new: float[C], ``weight`` where the packet is delivered now (first arrival, and kept
+        by the link's ordering policy), 0 elsewhere.
+    """
+
+    data: Any
+    stamp: jax.Array
+    weight: jax.Array
+    arrived: jax.Array
+    new: jax.Array
+
+    @property
+    def fresh(self):
+        """1.0 when anything was delivered now (a 0/1 float)."""
+        return jnp.minimum(jnp.sum(self.new), 1.0)
+
+    def newest(self):
+        """(data, stamp, weight) of the newest delivered packet by time stamp; weight 0 when
+        nothing was delivered."""
+        key = jnp.where(self.new > 0, self.stamp, -(2**30))
+        i = jnp.argmax(key)
+        return jax.tree.map(lambda a: a[i], self.data), self.stamp[i], self.new[i]
+
+
+def blend(w, new, old):
+    """``new`` where the 0/1 float ``w`` is 1, else ``old``, leaf by leaf: a float blend
+    (exact in the forward pass, lets a straight-through gradient pass) or, for integer and
+    boolean leaves, a select."""
+    def leaf(a, b):
+        a, b = jnp.asarray(a), jnp.asarray(b)
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            ww = jnp.asarray(w, a.dtype)
+            return ww * a + (1.0 - ww) * b
+        return jnp.where(jnp.asarray(w) > 0.5, a, b)
+    return jax.tree.map(leaf, new, old)
+
+
+class AbstractPlant(abc.ABC):
+    """A plant in discrete time at the fast period T.
+
+    Subclasses are frozen dataclasses (registered pytrees) and define ``dynamics``,
+    ``measure`` and the noise dimensions; the runner draws standard normal noises and
+    scales them by ``process_std`` / ``measurement_std``. The same object serves as the
+    model of an estimator (``jax.jacfwd(plant.dynamics)``).
+    """
+
+    #: int: state, input, process-noise and output/measurement-noise dimensions
+    state_dim: int
+    input_dim: int
+    noise_dim: int
+    output_dim: int
+
+    @abc.abstractmethod
+    def dynamics(self, x, u, w):
+        """x_{t+1} = f(x_t, u_t, w_t); x float[n], u float[m], w float[noise_dim] -> float[n]."""
+
+    @abc.abstractmethod
+    def measure(self, x, v):
+        """z = h(x, v); v float[output_dim] -> float[output_dim]."""
+
+    def process_std(self):
+        """float[noise_dim]: std of w (the runner multiplies standard normals by it)."""
+        return jnp.zeros((self.noise_dim,), jnp.float32)
+
+    def measurement_std(self):
+        """float[output_dim]: std of v."""
+        return jnp.zeros((self.output_dim,), jnp.float32)
+
+    def init(self, key):
+        """Initial true state x_0 (``key`` for plants with a random start)."""
+        return jnp.asarray(self.x0, jnp.float32)
+
+    def step(self, x, u, w):
+        """One fast period of the true plant (default: ``dynamics``)."""
+        return self.dynamics(x, u, w)
+
+    def state_vector(self, x):
+        """The state as float[n] for recording and failure checks (default: x itself)."""
+        return x
+
+
+class AbstractTrigger(abc.ABC):
+    """Decides at each slow instant whether a signal is sent (sensor side: z; controller
+    side: the first action of a packet)."""
+
+    @abc.abstractmethod
+    def init(self, s0):
+        """State before the first instant; ``s0`` is an example signal (float[p])."""
+
+    @abc.abstractmethod
+    def step(self, state, s, k):
+        """(send, state): send is a 0/1 float (straight-through gradient where relaxed)."""
+
+
+class AbstractEstimator(abc.ABC):
+    """The controller side's belief of the plant state."""
+
+    @abc.abstractmethod
+    def init(self, ctx):
+        """State before the first instant; ``ctx`` (:class:`jaxnc.loop.runner.Context`)
+        gives the dimensions, N, T and the uplink's ring capacity."""
+
+    @abc.abstractmethod
+    def correct(self, state, inbox: Inbox, k):
+        """Use what the uplink delivered (``inbox``) at slow instant k; returns the state."""
+
+    @abc.abstractmethod
+    def estimate(self, state):
+        """float[n]: the estimate the controller uses at this slow instant."""
+
+    @abc.abstractmethod
+    def predict(self, state, u_applied, u_believed, k):
+        """Propagate over the period k (actions float[N, m]); returns the state."""
+
+
+class AbstractController(abc.ABC):
+    """Computes a packet of actions from the estimate at a slow instant."""
+
+    #: int: number of fast actions per packet (static)
+    horizon: int
+
+    @abc.abstractmethod
+    def init(self, ctx):
+        """Controller state before the first instant."""
+
+    @abc.abstractmethod
+    def step(self, state, xhat, fresh, k, ctx):
+        """(Packet(actions float[horizon, m], stamp), send 0/1 float, state).
+
+        ``fresh`` is 1.0 when the estimator received something at this instant."""
+
+
+class AbstractActuator(abc.ABC):
+    """Applies, every fast period, an action from the packets it has received."""
+
+    @abc.abstractmethod
+    def init(self, ctx):
+        """State before the first packet."""
+
+    @abc.abstractmethod
+    def receive(self, state, inbox: Inbox):
+        """Install what the downlink delivers now (``inbox.new``); returns the state."""
+
+    @abc.abstractmethod
+    def output(self, state, t):
+        """(u_t float[m], state) for fast instant t."""

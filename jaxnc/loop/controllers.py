@@ -1,0 +1,116 @@
+"""Controllers for a loop: state feedback, a user function, and a packet of predicted actions.
+
+* :class:`StateFeedback`: u = -K (xhat - x_ref), saturated to [u_min, u_max] (gains from
+  :func:`jaxnc.controllers.hold_lq.dlqr` or the hold-aware LQ gain);
+* :class:`Function`: u = fn(params, xhat) for any user law (``fn`` static, ``params``
+  a pytree of leaves that can be tuned or differentiated);
+* :class:`Predictive`: a packet of ``horizon`` fast actions (seed 000 section 3.3.1,
+  seed 004 eq. 14): from xhat the law and the model (noise-free) are iterated in open
+  loop, u_j = law(x_j), x_{j+1} = f(x_j, u_j, 0); the actuator applies them by time
+  stamp (:class:`jaxnc.loop.actuators.PacketActuator` with the same horizon).
+
+A controller runs at every slow instant; its packet carries the stamp kN.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import array_fields, check_int, fields_concrete
+from jaxnc.loop.base import AbstractController, Packet
+
+__all__ = ["StateFeedback", "Function", "Predictive"]
+
+
+def _static(default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+class _OneAction(AbstractController):
+    """A law u = action(xhat) sent as a packet of one action."""
+
+    horizon = 1
+
+    def init(self, ctx):
+        return ()
+
+    def step(self, state, xhat, fresh, k, ctx):
+        u = self.action(xhat)
+        return Packet(u[None, :], (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32), state
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class StateFeedback(_OneAction):
+    """u = clip(-K (xhat - x_ref), u_min, u_max).
+
+    Attributes: K float[m, n]; x_ref float[n] (default 0); u_min, u_max float[m] or None.
+    """
+
+    K: Any
+    x_ref: Any = 0.0
+    u_min: Any = None
+    u_max: Any = None
+
+    def __post_init__(self):
+        array_fields(self, "K", "x_ref", "u_min", "u_max")
+        if not fields_concrete(self):
+            return
+        K = np.atleast_2d(np.asarray(self.K, np.float32))
+        object.__setattr__(self, "K", K)
+        if not np.all(np.isfinite(K)):
+            raise ValueError("StateFeedback.K must be finite")
+        if self.u_min is not None and self.u_max is not None and np.any(np.asarray(self.u_min) > np.asarray(self.u_max)):
+            raise ValueError("StateFeedback.u_min must be <= u_max")
+
+    def action(self, xhat):
+        u = -(jnp.asarray(self.K) @ (xhat - self.x_ref))
+        if self.u_min is not None or self.u_max is not None:
+            u = jnp.clip(u, self.u_min, self.u_max)
+        return u
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Function(_OneAction):
+    """u = fn(params, xhat) (``fn`` static: define it at module level)."""
+
+    params: Any
+    fn: Callable = _static()
+
+    def action(self, xhat):
+        return jnp.atleast_1d(self.fn(self.params, xhat))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Predictive(AbstractController):
+    """A packet of ``horizon`` actions predicted along the noise-free model.
+
+    Attributes: law, a one-action controller (:class:`StateFeedback`, :class:`Function`);
+    model, an :class:`~jaxnc.loop.base.AbstractPlant`; horizon, static H >= 1.
+    """
+
+    law: Any
+    model: Any
+    horizon: int = _static(1)
+
+    def __post_init__(self):
+        check_int("Predictive.horizon", self.horizon, 1, 1_000_000)
+
+    def init(self, ctx):
+        return ()
+
+    def step(self, state, xhat, fresh, k, ctx):
+        w0 = jnp.zeros((self.model.noise_dim,), jnp.float32)
+
+        def body(x, _):
+            u = self.law.action(x)
+            return self.model.dynamics(x, u, w0), u
+
+        _, us = jax.lax.scan(body, xhat, None, length=self.horizon)
+        return Packet(us, (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32), state

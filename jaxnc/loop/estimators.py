@@ -1,0 +1,165 @@
+"""Estimators for a loop: the measurement itself, and an EKF with time-stamped measurements.
+
+:class:`EKF` is the extended Kalman filter of seed 000 eq. (11)-(16) (Jacobians by
+forward differentiation of the model; a linear model gives the Kalman filter) with
+intermittent observations and a bounded buffer for delayed ones. It keeps the inputs of
+the last ``buffer`` slow periods and the prior at the start of that window; at every slow
+instant it re-runs the window, correcting at each instant whose measurement has arrived by
+now (``Inbox.arrived``) and propagating with the stored inputs, so the estimate is the one
+an on-time filter would have had with the same measurements (seed 001 eq. 9-15, extended
+to a nonlinear model; :mod:`jaxnc.estimators.buffered_kf` is its linear, one-rate form). A
+measurement older than the window is lost. ``buffer=0`` is the plain intermittent filter:
+only a measurement stamped now is used.
+
+:class:`Passthrough` uses the newest delivered measurement as the estimate and holds it
+(eq. 5 of seed 001, no model): for controllers that act on the output.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import array_fields, check_int, fields_concrete
+from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
+from jaxnc.loop.base import AbstractEstimator, Inbox, blend
+
+__all__ = ["EKF", "EKFState", "Passthrough", "PassthroughState"]
+
+
+def _static(default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+class EKFState(NamedTuple):
+    base: Gaussian      # prior at the first instant of the window (k - buffer)
+    u: jax.Array        # float[buffer, N, m] inputs of the window's periods
+    post: Gaussian      # posterior at the current instant (the estimate)
+    next_base: Gaussian  # prior at k - buffer + 1 (becomes base after predict)
+
+
+class PassthroughState(NamedTuple):
+    z: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class EKF(AbstractEstimator):
+    """EKF with intermittent, time-stamped measurements (module docstring).
+
+    Attributes:
+      model: an :class:`~jaxnc.loop.base.AbstractPlant` (its ``dynamics`` and ``measure``).
+      Q: float[q, q] or float[q] (diagonal), process noise covariance of the model's w,
+        per fast period.
+      R: float[p, p], measurement noise covariance of v.
+      mean0: float[n]; cov0: float[n, n], the prior at t = 0.
+      buffer: static int >= 0, slow periods a measurement may be late.
+      inputs: static, ``"believed"`` (the actions of the controller's own packets, what a
+        remote filter knows) or ``"applied"`` (a filter collocated with the actuator).
+    """
+
+    model: Any
+    Q: Any
+    R: Any
+    mean0: Any
+    cov0: Any
+    buffer: int = _static(0)
+    inputs: str = _static("believed")
+
+    def __post_init__(self):
+        array_fields(self, "Q", "R", "mean0", "cov0")
+        check_int("EKF.buffer", self.buffer, 0, 10_000)
+        if self.inputs not in ("believed", "applied"):
+            raise ValueError(f"EKF.inputs must be one of believed, applied, got {self.inputs!r}")
+        if not fields_concrete(self):
+            return
+        n, q, p = self.model.state_dim, self.model.noise_dim, self.model.output_dim
+        m0 = np.asarray(self.mean0, np.float32)
+        if m0.shape != (n,):
+            raise ValueError(f"EKF.mean0 must have {n} entries (the model's state), got shape {m0.shape}")
+        P0 = np.asarray(self.cov0, np.float32)
+        if P0.shape != (n, n):
+            raise ValueError(f"EKF.cov0 must be {n}x{n}, got shape {P0.shape}")
+        Q = np.asarray(self.Q, np.float32)
+        if Q.shape not in ((q,), (q, q)):
+            raise ValueError(f"EKF.Q must be {q}x{q} or a vector of {q} variances (the model's noise_dim), "
+                             f"got shape {Q.shape}")
+        R = np.asarray(self.R, np.float32)
+        if R.shape != (p, p):
+            raise ValueError(f"EKF.R must be {p}x{p} (the model's output_dim), got shape {R.shape}")
+        for name, M in (("cov0", P0), ("R", R)) + ((("Q", Q),) if Q.ndim == 2 else ()):
+            if not np.allclose(M, M.T, atol=1e-6 * max(1.0, float(np.abs(M).max()))):
+                raise ValueError(f"EKF.{name} must be symmetric")
+            if np.linalg.eigvalsh(M.astype(float)).min() < 0:
+                raise ValueError(f"EKF.{name} must be positive semi-definite")
+        if np.linalg.eigvalsh(R.astype(float)).min() <= 0:
+            raise ValueError("EKF.R must be positive definite")
+        if Q.ndim == 1 and Q.min() < 0:
+            raise ValueError("EKF.Q's variances must be >= 0")
+
+    def init(self, ctx) -> EKFState:
+        g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
+        u = jnp.zeros((self.buffer, ctx.N, ctx.input_dim), jnp.float32)
+        return EKFState(g, u, g, g)
+
+    def _predict_period(self, g: Gaussian, us):
+        def body(g, u):
+            return ekf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
+        g, _ = jax.lax.scan(body, g, us)
+        return g
+
+    def _correct_at(self, g: Gaussian, inbox: Inbox, stamp, C):
+        slot = jnp.mod(stamp, C)
+        ok = (inbox.stamp[slot] == stamp) & inbox.arrived[slot] & (stamp >= 0)
+        w = jnp.where(ok, inbox.weight[slot], 0.0)
+        z = jax.tree.map(lambda a: a[slot], inbox.data)
+        return blend(w, ekf_update(self.model.measure, g, z, self.R, self.model.output_dim), g)
+
+    def correct(self, state: EKFState, inbox: Inbox, k) -> EKFState:
+        C = inbox.stamp.shape[0]
+        N = state.u.shape[1]                             # fast periods per slow period
+        g = state.base
+        next_base = state.base
+        for i in range(self.buffer):                     # the window k - D .. k - 1 (static D)
+            s = k - self.buffer + i
+            g1 = self._predict_period(self._correct_at(g, inbox, s * N, C), state.u[i])
+            g = blend((s >= 0).astype(jnp.float32), g1, g)
+            if i == 0:
+                next_base = g
+        post = self._correct_at(g, inbox, k * N, C)
+        return state._replace(post=post, next_base=next_base)
+
+    def estimate(self, state: EKFState):
+        return state.post.mean
+
+    def predict(self, state: EKFState, u_applied, u_believed, k) -> EKFState:
+        us = u_believed if self.inputs == "believed" else u_applied
+        if self.buffer == 0:
+            g = self._predict_period(state.post, us)
+            return state._replace(base=g, next_base=g)
+        u = jnp.concatenate([state.u[1:], us[None]], axis=0)
+        return state._replace(base=state.next_base, u=u)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Passthrough(AbstractEstimator):
+    """The newest delivered measurement, held (no model). ``z0``: float[p] before the first."""
+
+    z0: Any = 0.0
+
+    def init(self, ctx):
+        return PassthroughState(jnp.broadcast_to(jnp.asarray(self.z0, jnp.float32), (ctx.output_dim,)))
+
+    def correct(self, state, inbox: Inbox, k):
+        z, _, w = inbox.newest()
+        return PassthroughState(blend(w, z, state.z))
+
+    def estimate(self, state):
+        return state.z
+
+    def predict(self, state, u_applied, u_believed, k):
+        return state

@@ -1,0 +1,379 @@
+"""One direction of the network: loss model x delay model, time stamps, a ring of packets.
+
+A :class:`Link` carries one packet per slow instant k (when the sender sends). Its
+randomness is exogenous: :meth:`Link.draw` draws, before the run, whether the packet of
+each slow instant would be lost and its delay in whole fast periods (delays are
+quantised *up* to the fast period T, :func:`jaxnc.network.quantise_delay`; a packet
+later than ``tau_max`` is discarded). Inside the run the link keeps the last
+``capacity`` packets in a ring (slot ``k mod capacity``), with their arrival instants;
+a receiver gets an :class:`~jaxnc.loop.base.Inbox` of that ring at each instant it
+looks. A packet still in flight when its slot is reused is lost, so ``capacity`` must
+cover the longest delay in slow periods plus one (checked when the loop is built).
+
+Ordering policies (``order``):
+
+* ``"newest"``: a packet is delivered only if its stamp is newer than every packet
+  delivered before (older ones arriving late, out of order, are dropped); of several
+  arriving together, the newest;
+* ``"all"``: every packet is delivered at its arrival instant (a receiver with a
+  buffer, e.g. the time-stamped filter, sorts them by stamp itself).
+
+Loss models: :class:`NoLoss`, :class:`Bernoulli` (seed 000 eq. 5),
+:class:`GilbertElliott` (bursts), :class:`TraceLoss` (recorded). Delay models:
+:class:`NoDelay`, :class:`ShiftedExponential` (seed 000 eq. 7),
+:class:`TruncatedExponential` (seed 004 section 5.1, never beyond its bound),
+:class:`PmfDelay` (a discrete law in fast periods), :class:`TraceDelay` (recorded), and
+:class:`WifiModel`, the seed-001 Wi-Fi channel (:mod:`jaxnc.wifi`), which draws loss and
+delay jointly. Each model's ``sample(key, n, T)`` returns ``(steps int32[n], seconds
+float32[n])`` for delays or ``bool[n]`` for losses; ``n`` is static.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc import wifi
+from jaxnc._validate import array_fields, check_int, check_nonneg, check_range, concrete
+from jaxnc.loop.base import Inbox
+from jaxnc.network import late, quantise_delay
+
+__all__ = ["Link", "LinkDraws", "LinkState", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay",
+           "ShiftedExponential", "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel",
+           "truncated_exponential", "NEVER"]
+
+NEVER = 2**30          # arrival instant of a packet that never arrives
+_F32 = jnp.float32
+
+
+def _dataclass(cls):
+    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
+
+
+def _static(default):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+# ----------------------------------------------------------------------------- loss models
+
+
+@_dataclass
+class NoLoss:
+    """Every packet arrives."""
+
+    def sample(self, key, n: int):
+        return jnp.zeros((n,), bool)
+
+
+@_dataclass
+class Bernoulli:
+    """Independent loss with probability ``p`` (seed 000 eq. 5): ``lost = U < p``, so with
+    the same key the losses at a lower p are a subset of those at a higher one."""
+
+    p: Any = 0.0
+
+    def __post_init__(self):
+        check_range("Bernoulli.p", self.p, 0.0, 1.0, high_open=True)
+
+    def sample(self, key, n: int):
+        return jax.random.uniform(key, (n,), _F32) < jnp.asarray(self.p, _F32)
+
+
+@_dataclass
+class GilbertElliott:
+    """Two-state Markov (bursty) loss: good -> bad with ``p_gb``, bad -> good with ``p_bg``
+    per packet; a packet is lost with ``loss_good`` / ``loss_bad`` in each state. The chain
+    starts in its stationary distribution."""
+
+    p_gb: Any = 0.0
+    p_bg: Any = 1.0
+    loss_good: Any = 0.0
+    loss_bad: Any = 1.0
+
+    def __post_init__(self):
+        for n in ("p_gb", "p_bg", "loss_good", "loss_bad"):
+            check_range(f"GilbertElliott.{n}", getattr(self, n), 0.0, 1.0)
+        check_range("GilbertElliott.p_bg", self.p_bg, 0.0, 1.0, low_open=True)
+
+    def stationary_loss(self):
+        """Long-run loss rate: pi_b loss_bad + (1 - pi_b) loss_good, pi_b = p_gb / (p_gb + p_bg)."""
+        pb = self.p_gb / (self.p_gb + self.p_bg)
+        return pb * self.loss_bad + (1 - pb) * self.loss_good
+
+    def sample(self, key, n: int):
+        k0, ks, kl = jax.random.split(key, 3)
+        p_gb, p_bg = jnp.asarray(self.p_gb, _F32), jnp.asarray(self.p_bg, _F32)
+        bad0 = jax.random.uniform(k0, (), _F32) < p_gb / (p_gb + p_bg)
+
+        def step(bad, u):
+            bad = jnp.where(bad, u >= p_bg, u < p_gb)
+            return bad, bad
+
+        _, bad = jax.lax.scan(step, bad0, jax.random.uniform(ks, (n,), _F32))
+        q = jnp.where(bad, jnp.asarray(self.loss_bad, _F32), jnp.asarray(self.loss_good, _F32))
+        return jax.random.uniform(kl, (n,), _F32) < q
+
+
+@_dataclass
+class TraceLoss:
+    """A recorded loss sequence (bool, True = lost), replayed from its start; it must be
+    at least as long as the run's slow instants."""
+
+    lost: Any
+
+    def sample(self, key, n: int):
+        lost = jnp.asarray(self.lost, bool)
+        if lost.shape[0] < n:
+            raise ValueError(f"TraceLoss.lost has {lost.shape[0]} entries, the run needs {n}")
+        return lost[:n]
+
+
+# ----------------------------------------------------------------------------- delay models
+
+
+@_dataclass
+class NoDelay:
+    """Zero delay: a packet is usable at the instant it is sent."""
+
+    def sample(self, key, n: int, T):
+        return jnp.zeros((n,), jnp.int32), jnp.zeros((n,), _F32)
+
+
+@_dataclass
+class ShiftedExponential:
+    """tau = eta + phi Exp(1) seconds (seed 000 eq. 7), quantised up to the fast period."""
+
+    eta: Any = 0.0
+    phi: Any = 0.0
+
+    def __post_init__(self):
+        check_nonneg("ShiftedExponential.eta", self.eta)
+        check_nonneg("ShiftedExponential.phi", self.phi)
+
+    def seconds(self, e):
+        """The delay for standard exponential draws ``e``."""
+        return jnp.asarray(self.eta, _F32) + jnp.asarray(self.phi, _F32) * e
+
+    def sample(self, key, n: int, T):
+        tau = self.seconds(jax.random.exponential(key, (n,), _F32))
+        return quantise_delay(tau, T), tau
+
+
+def truncated_exponential(u, eta, phi, tau_max):
+    """Inverse CDF of eta + phi Exp(1) truncated to [eta, tau_max], at uniforms ``u``
+    (never beyond tau_max: seed 004 keeps tau_max < NT so packets never overtake)."""
+    m = -jnp.expm1(-(tau_max - eta) / jnp.maximum(phi, 1e-12))
+    return jnp.where(phi > 0, eta - phi * jnp.log1p(-u * m), eta)
+
+
+@_dataclass
+class TruncatedExponential:
+    """eta + phi Exp(1) truncated to [eta, tau_max] seconds (:func:`truncated_exponential`)."""
+
+    eta: Any = 0.0
+    phi: Any = 0.0
+    tau_max: Any = 1.0
+
+    def __post_init__(self):
+        check_nonneg("TruncatedExponential.eta", self.eta)
+        check_nonneg("TruncatedExponential.phi", self.phi)
+        check_range("TruncatedExponential.tau_max", self.tau_max, 0.0, None)
+        try:
+            if float(self.tau_max) < float(self.eta):
+                raise ValueError(f"TruncatedExponential.tau_max must be >= eta={float(self.eta):g}, "
+                                 f"got {float(self.tau_max):g}")
+        except TypeError:
+            pass
+
+    def sample(self, key, n: int, T):
+        tau = truncated_exponential(jax.random.uniform(key, (n,), _F32), self.eta, self.phi, self.tau_max)
+        return quantise_delay(tau, T), tau
+
+
+@_dataclass
+class PmfDelay:
+    """A discrete delay law: ``pmf[d]`` = P(delay = d fast periods)."""
+
+    pmf: Any
+
+    def __post_init__(self):
+        array_fields(self, "pmf")
+        p = np.asarray(self.pmf, float) if concrete(self.pmf) else None
+        if p is not None:
+            if p.ndim != 1 or p.size == 0:
+                raise ValueError(f"PmfDelay.pmf must be a non-empty 1-D array, got shape {p.shape}")
+            check_range("PmfDelay.pmf", p, 0.0, 1.0)
+            if abs(p.sum() - 1.0) > 1e-5:
+                raise ValueError(f"PmfDelay.pmf must sum to 1, got {p.sum():.6f}")
+
+    @property
+    def max_steps(self) -> int:
+        return int(np.shape(self.pmf)[0]) - 1
+
+    def sample(self, key, n: int, T):
+        d = jax.random.categorical(key, jnp.log(jnp.asarray(self.pmf, _F32)), shape=(n,)).astype(jnp.int32)
+        return d, d.astype(_F32) * jnp.asarray(T, _F32)
+
+
+@_dataclass
+class TraceDelay:
+    """Recorded delays in fast periods (int, negative = lost), replayed from the start."""
+
+    steps: Any
+
+    def sample(self, key, n: int, T):
+        d = jnp.asarray(self.steps, jnp.int32)
+        if d.shape[0] < n:
+            raise ValueError(f"TraceDelay.steps has {d.shape[0]} entries, the run needs {n}")
+        d = d[:n]
+        return d, jnp.maximum(d, 0).astype(_F32) * jnp.asarray(T, _F32)
+
+
+@_dataclass
+class WifiModel:
+    """The seed-001 Wi-Fi channel (:class:`jaxnc.wifi.WifiChannel`): bursty loss and the
+    delay pmf drawn jointly by :func:`jaxnc.wifi.sample_trace`; use it as the link's delay
+    model (a lost packet has delay -1)."""
+
+    channel: wifi.WifiChannel = wifi.NOMINAL
+
+    @property
+    def max_steps(self) -> int:
+        return self.channel.max_delay
+
+    def sample(self, key, n: int, T):
+        d = wifi.sample_trace(key, self.channel, n)
+        return d, jnp.maximum(d, 0).astype(_F32) * jnp.asarray(T, _F32)
+
+
+# ----------------------------------------------------------------------------- the link
+
+
+class LinkDraws(NamedTuple):
+    """Per slow instant: the packet's delay in fast periods; NEVER-like when lost or late."""
+
+    delay: jax.Array     # int32[S]; >= 0, or -1 when lost / discarded
+
+
+class LinkState(NamedTuple):
+    """The ring of the last C packets (slot k mod C)."""
+
+    data: Any            # payloads, leading axis C
+    stamp: jax.Array     # int32[C] (-1: empty)
+    weight: jax.Array    # float[C]: sent and not lost (0/1 float)
+    arrival: jax.Array   # int32[C] fast instant of arrival (NEVER: lost / not sent)
+    delivered: jax.Array  # bool[C]
+    last: jax.Array      # int32: newest stamp delivered so far (order "newest")
+    count: jax.Array     # float: packets sent (transmissions)
+
+
+@_dataclass
+class Link:
+    """One direction of the network.
+
+    Attributes:
+      loss: a loss model (default :class:`NoLoss`).
+      delay: a delay model (default :class:`NoDelay`).
+      tau_max: seconds; later packets are discarded (None: never).
+      reliable_first: static; the packet of the first slow instant is never lost or late
+        (a start-up handshake).
+      order: static, ``"newest"`` or ``"all"`` (module docstring).
+      capacity: static ring length C (transmissions remembered), >= 1.
+    """
+
+    loss: Any = NoLoss()
+    delay: Any = NoDelay()
+    tau_max: Any = None
+    reliable_first: bool = _static(False)
+    order: str = _static("newest")
+    capacity: int = _static(2)
+
+    def __post_init__(self):
+        if self.order not in ("newest", "all"):
+            raise ValueError(f"Link.order must be one of newest, all, got {self.order!r}")
+        check_int("Link.capacity", self.capacity, 1, 100_000)
+        if self.tau_max is not None:
+            check_range("Link.tau_max", self.tau_max, 0.0, None)
+
+    # -- before the run
+    def max_delay_steps(self, T: float):
+        """An upper bound on the delay in fast periods, when one is known (else None)."""
+        if self.tau_max is not None:
+            try:
+                return int(math.ceil(float(self.tau_max) / float(T) * (1 - 2.0**-21)))
+            except TypeError:
+                return None
+        if isinstance(self.delay, NoDelay):
+            return 0
+        if isinstance(self.delay, (PmfDelay, WifiModel)):
+            return self.delay.max_steps
+        if isinstance(self.delay, TruncatedExponential):
+            try:
+                return int(math.ceil(float(self.delay.tau_max) / float(T) * (1 - 2.0**-21)))
+            except TypeError:
+                return None
+        return None
+
+    def draw(self, key, n: int, T) -> LinkDraws:
+        """Delays (fast periods) of the packets of ``n`` slow instants; -1 when lost or late."""
+        kl, kd = jax.random.split(key)
+        lost = self.loss.sample(kl, n)
+        steps, seconds = self.delay.sample(kd, n, T)
+        bad = lost | (steps < 0)
+        if self.tau_max is not None:
+            bad = bad | late(seconds, self.tau_max)
+        if self.reliable_first:
+            bad = bad & (jnp.arange(n) > 0)
+        return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))
+
+    # -- inside the run
+    def init(self, example) -> LinkState:
+        """An empty ring for payloads shaped like ``example``."""
+        C = self.capacity
+        data = jax.tree.map(lambda a: jnp.zeros((C, *jnp.shape(a)), jnp.asarray(a).dtype), example)
+        return LinkState(data, jnp.full((C,), -1, jnp.int32), jnp.zeros((C,), _F32),
+                         jnp.full((C,), NEVER, jnp.int32), jnp.ones((C,), bool),
+                         jnp.asarray(-(2**30), jnp.int32), jnp.zeros((), _F32))
+
+    def send(self, state: LinkState, data, stamp, k, send, delay, t_send) -> LinkState:
+        """Put a packet in slot ``k mod C``.
+
+        Args:
+          data: payload; stamp: int32 time stamp; k: int32 slow instant (the slot).
+          send: 0/1 float, whether the sender transmits (may carry a gradient).
+          delay: int32 delay in fast periods from :meth:`draw` (-1: lost).
+          t_send: int32 fast instant of sending.
+        """
+        i = jnp.mod(k, self.capacity)
+        send = jnp.asarray(send, _F32)
+        ok = (delay >= 0).astype(_F32)
+        w = send * ok
+        sent = send > 0.5
+        return LinkState(
+            data=jax.tree.map(lambda r, a: r.at[i].set(jnp.asarray(a, r.dtype)), state.data, data),
+            stamp=state.stamp.at[i].set(jnp.where(sent, stamp, -1).astype(jnp.int32)),
+            weight=state.weight.at[i].set(w),
+            arrival=state.arrival.at[i].set(jnp.where(sent & (delay >= 0), t_send + delay, NEVER).astype(jnp.int32)),
+            delivered=state.delivered.at[i].set(~sent),
+            last=state.last, count=state.count + send)
+
+    def inbox(self, state: LinkState, t) -> tuple[Inbox, LinkState]:
+        """What the receiver gets at fast instant ``t``, and the ring with it marked delivered."""
+        arrived = state.arrival <= t
+        now = arrived & ~state.delivered
+        if self.order == "newest":
+            key = jnp.where(now, state.stamp, -(2**30))
+            i = jnp.argmax(key)
+            pick = (jnp.arange(self.capacity) == i) & now & (state.stamp > state.last)
+            last = jnp.where(jnp.any(pick), state.stamp[i], state.last)
+        else:
+            pick = now
+            last = jnp.maximum(state.last, jnp.max(jnp.where(now, state.stamp, -(2**30))))
+        new = jnp.where(pick, state.weight, 0.0)
+        inbox = Inbox(state.data, state.stamp, state.weight, arrived & (state.weight > 0), new)
+        return inbox, state._replace(delivered=state.delivered | now, last=last)
+

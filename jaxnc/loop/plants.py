@@ -1,0 +1,255 @@
+"""General plants for a loop: a user's discrete or continuous nonlinear model, and LTI.
+
+* :class:`Discrete` wraps ``f(x, u, w)`` and ``h(x, v)`` given as functions (static
+  fields: define them at module level, so that the same function object, and one
+  compiled program, is reused across loops);
+* :class:`Continuous` integrates dx/dt = f(x, u, w) over the fast period T with
+  ``substeps`` classical Runge-Kutta (RK4) steps, u and w held over the period (ZOH);
+* :class:`LTI` is x+ = A x + B u + G w, z = C x + D u + v, from matrices
+  (:meth:`LTI.from_continuous`: exact zero-order-hold discretisation, matrix
+  exponential of the block matrix [[A, B], [0, 0]] T) or from a python-control
+  ``StateSpace`` / ``TransferFunction`` (:meth:`LTI.from_control`, ``control.c2d`` with
+  ``"zoh"``).
+
+All three are :class:`~jaxnc.loop.base.AbstractPlant`: the runner draws standard normal
+noises and scales them by ``w_std`` / ``v_std``; the same object is an estimator's model.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from jaxnc._validate import array_fields, check_int, check_nonneg, check_positive, fields_concrete
+from jaxnc.loop.base import AbstractPlant
+
+__all__ = ["Discrete", "Continuous", "LTI", "rk4"]
+
+
+def _static(default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+def _vec(name, v, n):
+    a = np.asarray(v, np.float32)
+    if a.ndim == 0:
+        a = np.full((n,), a, np.float32)
+    if a.shape != (n,):
+        raise ValueError(f"{name} must be a scalar or have {n} entries, got shape {a.shape}")
+    check_nonneg(name, a)
+    return a
+
+
+def _dims(f, h, x0, input_dim, noise_dim):
+    """Output dimension of h, checked by evaluating f and h once on zeros."""
+    x0 = jnp.asarray(x0, jnp.float32)
+    u0, w0 = jnp.zeros((input_dim,), jnp.float32), jnp.zeros((noise_dim,), jnp.float32)
+    try:
+        x1 = jax.eval_shape(f, x0, u0, w0)
+    except Exception as e:  # noqa: BLE001 - re-raised with the user-facing name
+        raise ValueError(f"f(x, u, w) failed on x0 (shape {x0.shape}), u of shape ({input_dim},), "
+                         f"w of shape ({noise_dim},): {e}") from e
+    if x1.shape != x0.shape:
+        raise ValueError(f"f(x, u, w) must return the state's shape {x0.shape}, got {x1.shape}")
+    return x0
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Discrete(AbstractPlant):
+    """x_{t+1} = f(x_t, u_t, w_t), z = h(x, v) (additive noise is the usual h(x, v) = g(x) + v).
+
+    Attributes:
+      x0: float[n], the initial state.
+      w_std: float[noise_dim] (or scalar), std of w; v_std: float[output_dim], std of v.
+      f, h: static functions (module docstring).
+      input_dim, noise_dim, output_dim: static dimensions.
+    """
+
+    x0: Any
+    w_std: Any
+    v_std: Any
+    f: Callable = _static()
+    h: Callable = _static()
+    input_dim: int = _static(1)
+    noise_dim: int = _static(1)
+    output_dim: int = _static(1)
+
+    def __post_init__(self):
+        array_fields(self, "x0", "w_std", "v_std")
+        check_int("Discrete.input_dim", self.input_dim, 1, 10_000)
+        check_int("Discrete.noise_dim", self.noise_dim, 1, 10_000)
+        check_int("Discrete.output_dim", self.output_dim, 1, 10_000)
+        if fields_concrete(self):
+            object.__setattr__(self, "x0", np.asarray(self.x0, np.float32))
+            x0 = _dims(self.f, self.h, self.x0, self.input_dim, self.noise_dim)
+            z = jax.eval_shape(self.h, x0, jnp.zeros((self.output_dim,), jnp.float32))
+            if z.shape != (self.output_dim,):
+                raise ValueError(f"h(x, v) must return output_dim={self.output_dim} values, got shape {z.shape}")
+            object.__setattr__(self, "w_std", _vec("w_std", self.w_std, self.noise_dim))
+            object.__setattr__(self, "v_std", _vec("v_std", self.v_std, self.output_dim))
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.x0.shape[0])
+
+    def dynamics(self, x, u, w):
+        return self.f(x, u, w)
+
+    def measure(self, x, v):
+        return self.h(x, v)
+
+    def process_std(self):
+        return jnp.asarray(self.w_std, jnp.float32)
+
+    def measurement_std(self):
+        return jnp.asarray(self.v_std, jnp.float32)
+
+
+def rk4(f, x, u, w, dt, n: int):
+    """``n`` classical Runge-Kutta steps of length dt / n of dx/dt = f(x, u, w)."""
+    h = dt / n
+
+    def body(x, _):
+        k1 = f(x, u, w)
+        k2 = f(x + 0.5 * h * k1, u, w)
+        k3 = f(x + 0.5 * h * k2, u, w)
+        k4 = f(x + h * k3, u, w)
+        return x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4), None
+
+    x, _ = jax.lax.scan(body, x, None, length=n)
+    return x
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Continuous(Discrete):
+    """dx/dt = f(x, u, w) integrated over the fast period ``T`` by ``substeps`` RK4 steps
+    (u and w held over the period); z = h(x, v) at the sampling instants.
+
+    Attributes (beyond :class:`Discrete`'s): T, the fast period in seconds (> 0);
+    substeps, static int >= 1.
+    """
+
+    T: Any = 0.01
+    substeps: int = _static(4)
+
+    def __post_init__(self):
+        check_positive("Continuous.T", self.T)
+        check_int("Continuous.substeps", self.substeps, 1, 100_000)
+        super().__post_init__()
+
+    def dynamics(self, x, u, w):
+        return rk4(self.f, x, u, w, jnp.asarray(self.T, x.dtype), self.substeps)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class LTI(AbstractPlant):
+    """x+ = A x + B u + G w, z = C x + D u + v (discrete, period T).
+
+    Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m], G float[n, q]
+    (default identity: w is additive state noise), x0 float[n], w_std float[q],
+    v_std float[p], T seconds (informative).
+    """
+
+    A: Any
+    B: Any
+    C: Any
+    D: Any = None
+    G: Any = None
+    x0: Any = None
+    w_std: Any = 0.0
+    v_std: Any = 0.0
+    T: Any = 1.0
+
+    def __post_init__(self):
+        array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std")
+        if not fields_concrete(self):
+            return
+        A = np.atleast_2d(np.asarray(self.A, np.float32))
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise ValueError(f"LTI.A must be square, got shape {A.shape}")
+        B = np.asarray(self.B, np.float32).reshape(n, -1)
+        C = np.atleast_2d(np.asarray(self.C, np.float32))
+        if C.shape[1] != n:
+            raise ValueError(f"LTI.C must have {n} columns (one per state), got shape {C.shape}")
+        m, p = B.shape[1], C.shape[0]
+        D = np.zeros((p, m), np.float32) if self.D is None else np.asarray(self.D, np.float32).reshape(p, m)
+        G = np.eye(n, dtype=np.float32) if self.G is None else np.asarray(self.G, np.float32).reshape(n, -1)
+        x0 = np.zeros(n, np.float32) if self.x0 is None else np.asarray(self.x0, np.float32)
+        if x0.shape != (n,):
+            raise ValueError(f"LTI.x0 must have {n} entries, got shape {x0.shape}")
+        check_positive("LTI.T", self.T)
+        for name, v in (("A", A), ("B", B), ("C", C), ("D", D), ("G", G)):
+            object.__setattr__(self, name, v)
+        object.__setattr__(self, "x0", x0)
+        object.__setattr__(self, "w_std", _vec("LTI.w_std", self.w_std, G.shape[1]))
+        object.__setattr__(self, "v_std", _vec("LTI.v_std", self.v_std, p))
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.A.shape[0])
+
+    @property
+    def input_dim(self) -> int:
+        return int(self.B.shape[1])
+
+    @property
+    def output_dim(self) -> int:
+        return int(self.C.shape[0])
+
+    @property
+    def noise_dim(self) -> int:
+        return int(self.G.shape[1])
+
+    def dynamics(self, x, u, w):
+        return self.A @ x + self.B @ u + self.G @ w
+
+    def measure(self, x, v):
+        # D u is not known at sampling time in a networked loop: z = C x + v (D must be 0)
+        return self.C @ x + v
+
+    def process_std(self):
+        return jnp.asarray(self.w_std, jnp.float32)
+
+    def measurement_std(self):
+        return jnp.asarray(self.v_std, jnp.float32)
+
+    @classmethod
+    def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":
+        """Exact ZOH discretisation of dx/dt = A x + B u: Ad = e^{A T}, Bd = int_0^T e^{A s} ds B."""
+        check_positive("T", T)
+        A = np.atleast_2d(np.asarray(A, float))
+        n = A.shape[0]
+        B = np.asarray(B, float).reshape(n, -1)
+        m = B.shape[1]
+        M = np.zeros((n + m, n + m))
+        M[:n, :n], M[:n, n:] = A, B
+        E = scipy.linalg.expm(M * T)
+        return cls(A=E[:n, :n], B=E[:n, n:], C=C, T=T, **kw)
+
+    @classmethod
+    def from_control(cls, sys, T: float | None = None, **kw) -> "LTI":
+        """From a python-control ``StateSpace`` or ``TransferFunction``: a continuous-time
+        system is discretised at ``T`` with ``control.c2d(sys, T, "zoh")``; a discrete one
+        must have ``dt == T`` (or T None)."""
+        import control
+        ss = control.ss(sys)
+        if ss.dt in (0, None):
+            if T is None:
+                raise ValueError("T is required to discretise a continuous-time system")
+            check_positive("T", T)
+            ss = control.c2d(ss, T, "zoh")
+        elif T is not None and ss.dt is not True and abs(float(ss.dt) - float(T)) > 1e-12:
+            raise ValueError(f"the system is discrete with dt={ss.dt}, T={T} differs")
+        dt = float(T if T is not None else (1.0 if ss.dt is True else ss.dt))
+        if np.any(np.asarray(ss.D) != 0):
+            raise ValueError("from_control: the system has a direct feedthrough D != 0; a sampled "
+                             "networked loop needs D = 0")
+        return cls(A=ss.A, B=ss.B, C=ss.C, T=dt, **kw)

@@ -1,0 +1,347 @@
+"""The closed loop, written once: :class:`Loop`, :func:`simulate`, :func:`run`.
+
+:func:`simulate` is one ``lax.scan`` over the slow periods (NT) with the N fast periods
+(T) inside, calling the roles of :mod:`jaxnc.loop.base` in the order given there. All
+exogenous randomness (plant and sensor noise, every packet's loss and delay) is drawn
+before the scan from the run's key by :func:`draw`, one stream per purpose
+(``fold_in(key, i)``, the order of :data:`STREAMS`), so two loops run with the same key
+meet the same realisation wherever their roles agree (common random numbers), and a
+seed's run does not depend on the batch it is in.
+
+A run *fails* when the true state becomes non-finite or leaves ``Monitor.bounds``; from
+then on the plant is frozen at its last good state (``Monitor.freeze``), so divergence
+is data (inf in :class:`Metrics`), never an exception or a NaN in a batch.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import array_fields, check_int
+from jaxnc.loop.actuators import PacketActuator
+from jaxnc.loop.base import Inbox
+from jaxnc.loop.links import Link, LinkDraws
+
+__all__ = ["Loop", "Monitor", "Quadratic", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
+           "run", "run_seed", "evaluate", "STREAMS"]
+
+#: the draw streams of a run: stream i uses ``fold_in(key, i)``
+STREAMS = ("process", "measurement", "uplink", "downlink", "plant_init")
+
+
+def _static(default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+class Context(NamedTuple):
+    """Static facts about the loop that components need to build their state."""
+
+    N: int
+    steps: int
+    T: float
+    state_dim: int
+    input_dim: int
+    output_dim: int
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Monitor:
+    """Failure detection: non-finite state, or |x_i| > bounds_i for any i (bounds float[n],
+    inf where unbounded; None: only non-finite). ``freeze`` (static): hold the plant at its
+    last good state once failed."""
+
+    bounds: Any = None
+    freeze: bool = _static(True)
+
+    def __post_init__(self):
+        array_fields(self, "bounds")
+
+    def failed(self, xv):
+        bad = ~jnp.all(jnp.isfinite(xv))
+        if self.bounds is not None:
+            bad = bad | jnp.any(jnp.abs(xv) > self.bounds)
+        return bad
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Quadratic:
+    """Cost J = (1/K) sum_t (x_t - x_ref)' Q (x_t - x_ref) + u_t' R u_t over the fast instants.
+
+    Q float[n, n] or float[n] (diagonal), R float[m, m] or float[m]."""
+
+    Q: Any
+    R: Any
+    x_ref: Any = 0.0
+
+    def __post_init__(self):
+        array_fields(self, "Q", "R", "x_ref")
+
+    def __call__(self, x, u):
+        e = x - self.x_ref
+        Q, R = jnp.asarray(self.Q), jnp.asarray(self.R)
+        qx = jnp.sum(e * e * Q, -1) if Q.ndim == 1 else jnp.einsum("...i,ij,...j->...", e, Q, e)
+        ru = jnp.sum(u * u * R, -1) if R.ndim == 1 else jnp.einsum("...i,ij,...j->...", u, R, u)
+        return jnp.mean(qx + ru)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Loop:
+    """A networked closed loop: one value per role, and the static sizes.
+
+    Attributes:
+      plant: the true plant (:class:`~jaxnc.loop.base.AbstractPlant`).
+      trigger: the sensor's trigger (:mod:`jaxnc.loop.triggers`).
+      uplink: sensor -> controller :class:`~jaxnc.loop.links.Link`.
+      estimator: :mod:`jaxnc.loop.estimators`.
+      controller: :mod:`jaxnc.loop.controllers`.
+      downlink: controller -> actuator link.
+      actuator: :mod:`jaxnc.loop.actuators` (its horizon must equal the controller's).
+      controller_trigger: optional trigger on the first action of each packet (seed 003
+        eq. 21-22); None: every computed packet is sent.
+      monitor: failure detection.
+      cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`,
+        or None.
+      N: static, fast periods per slow period (>= 1).
+      steps: static, fast periods simulated (a multiple of N).
+      T: static, the fast period in seconds (links quantise delays to it).
+      record: static, False to return only the summaries (no per-instant signals).
+    """
+
+    plant: Any
+    trigger: Any
+    uplink: Link
+    estimator: Any
+    controller: Any
+    downlink: Link
+    actuator: Any
+    controller_trigger: Any = None
+    monitor: Monitor = Monitor()
+    cost: Any = None
+    N: int = _static(1)
+    steps: int = _static(100)
+    T: float = _static(1.0)
+    record: bool = _static(True)
+
+    def __post_init__(self):
+        check_int("Loop.N", self.N, 1, 100_000)
+        check_int("Loop.steps", self.steps, self.N, None)
+        if self.steps % self.N:
+            raise ValueError(f"Loop.steps must be a multiple of N={self.N}, got {self.steps}")
+        if not (isinstance(self.T, (int, float)) and np.isfinite(self.T) and self.T > 0):
+            raise ValueError(f"Loop.T must be a number > 0 (seconds), got {self.T!r}")
+        H = getattr(self.controller, "horizon", None)
+        if isinstance(self.actuator, PacketActuator) and H is not None and self.actuator.horizon != H:
+            raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
+                             f"horizon ({H})")
+        for name in ("uplink", "downlink"):
+            link = getattr(self, name)
+            if not isinstance(link, Link):
+                raise ValueError(f"Loop.{name} must be a jaxnc.loop.Link, got {type(link).__name__}")
+            d = link.max_delay_steps(self.T)
+            if d is not None:
+                need = -(-d // self.N) + 1 if name == "downlink" else -(-d // self.N) + 1
+                if link.capacity < need:
+                    raise ValueError(f"Loop.{name}.capacity must be >= {need} for delays up to {d} fast periods "
+                                     f"with N={self.N}, got {link.capacity}")
+
+    @property
+    def ctx(self) -> Context:
+        p = self.plant
+        return Context(self.N, self.steps, float(self.T), int(p.state_dim), int(p.input_dim), int(p.output_dim))
+
+
+class Draws(NamedTuple):
+    """A run's exogenous randomness (S = steps / N slow periods)."""
+
+    w: jax.Array          # float[S, N, q] process noise (scaled)
+    v: jax.Array          # float[S, p] measurement noise (scaled)
+    uplink: LinkDraws     # delays of the sensor packets
+    downlink: LinkDraws   # delays of the control packets
+    init_key: jax.Array   # key for the plant's initial state
+
+
+def draw(loop: Loop, key) -> Draws:
+    """All of a run's random draws, one stream per purpose (:data:`STREAMS`)."""
+    S, N, p = loop.steps // loop.N, loop.N, loop.plant
+    k = {name: jax.random.fold_in(key, i) for i, name in enumerate(STREAMS)}
+    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * p.process_std()
+    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * p.measurement_std()
+    return Draws(w, v, loop.uplink.draw(k["uplink"], S, loop.T), loop.downlink.draw(k["downlink"], S, loop.T),
+                 k["plant_init"])
+
+
+class Trajectory(NamedTuple):
+    """One run. Fast-rate signals have K = steps rows, slow-rate ones S = steps / N."""
+
+    x: jax.Array          # float[K, n] true state at the start of each fast period
+    u: jax.Array          # float[K, m] applied action
+    z: jax.Array          # float[S, p] measurement
+    xhat: jax.Array       # float[S, n] the estimate the controller used
+    sent_sc: jax.Array    # float[S] sensor transmissions
+    recv_sc: jax.Array    # float[S] the controller received something
+    sent_ca: jax.Array    # float[S] controller transmissions
+    recv_ca: jax.Array    # float[K] a packet reached the actuator
+    failed: jax.Array     # bool
+    fail_step: jax.Array  # int32: first failed fast instant (K if never)
+    tx_sc: jax.Array      # float: sensor transmissions in the run
+    tx_ca: jax.Array      # float: controller transmissions in the run
+    est_rec: Any = ()     # [S, ...] estimator.record(state) after each correction, if defined
+    ctrl_rec: Any = ()    # [S, ...] controller.record(state) after each step, if defined
+    act_rec: Any = ()     # [K, ...] actuator.record(state, t) after each output, if defined
+
+
+class _Carry(NamedTuple):
+    x: Any
+    trig: Any
+    up: Any
+    est: Any
+    ctrl: Any
+    ctrig: Any
+    down: Any
+    act: Any
+    bel: Any
+    failed: jax.Array
+    fail_step: jax.Array
+
+
+def _recorder(role):
+    return getattr(role, "record", None)
+
+
+def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
+    """One closed-loop run; a pure function of (loop, key), to vmap over keys.
+
+    ``draws`` replaces :func:`draw`'s (e.g. a recorded realisation shared by loops).
+    A role that defines ``record(state)`` (actuator: ``record(state, t)``) has it recorded
+    into ``Trajectory.est_rec`` / ``ctrl_rec`` / ``act_rec`` (when ``loop.record``)."""
+    ctx = loop.ctx
+    N, S = loop.N, loop.steps // loop.N
+    d = draw(loop, key) if draws is None else draws
+    plant, act_role = loop.plant, loop.actuator
+    x0 = plant.init(d.init_key)
+    xv0 = plant.state_vector(x0)
+    z0 = plant.measure(x0, jnp.zeros((ctx.output_dim,), jnp.float32))
+    ctrl0 = loop.controller.init(ctx)
+    est0 = loop.estimator.init(ctx)
+    pkt0, _, _ = jax.eval_shape(lambda: loop.controller.step(ctrl0, xv0, jnp.float32(1), jnp.int32(0), ctx))
+    pkt_zero = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), pkt0)
+    act0 = act_role.init(ctx)
+    carry0 = _Carry(
+        x=x0, trig=loop.trigger.init(z0),
+        up=loop.uplink.init(z0), est=est0, ctrl=ctrl0,
+        ctrig=None if loop.controller_trigger is None else loop.controller_trigger.init(pkt_zero.data[0][0]),
+        down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0,
+        failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32))
+    believed_needed = getattr(loop.estimator, "inputs", "believed") == "believed"
+    est_rec, ctrl_rec, act_rec = (_recorder(loop.estimator), _recorder(loop.controller), _recorder(loop.actuator))
+
+    def slow(c: _Carry, inp):
+        k, w_k, v_k, d_up, d_down = inp
+        t0 = k * N
+        # 1-2. sensor and trigger
+        z = plant.measure(c.x, v_k)
+        send_sc, trig = loop.trigger.step(c.trig, z, k)
+        # 3. uplink, read by the controller side at t0
+        up = loop.uplink.send(c.up, z, t0, k, send_sc, d_up, t0)
+        inbox, up = loop.uplink.inbox(up, t0)
+        # 4. estimator
+        est = loop.estimator.correct(c.est, inbox, k)
+        est_c = est
+        xhat = loop.estimator.estimate(est)
+        # 5. controller (and its trigger)
+        pkt, send_ca, ctrl = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
+        ctrig = c.ctrig
+        if loop.controller_trigger is not None:
+            fire, ctrig = loop.controller_trigger.step(c.ctrig, pkt.data[0], k)
+            send_ca = send_ca * fire
+        # 6. downlink; the controller's own copy as if delivered at once
+        down = loop.downlink.send(c.down, pkt.data, pkt.stamp, k, send_ca, d_down, t0)
+        bel = c.bel
+        if believed_needed:
+            own = Inbox(jax.tree.map(lambda a: a[None], pkt.data), pkt.stamp[None], send_ca[None],
+                        jnp.ones((1,), bool), send_ca[None])
+            bel = act_role.receive(bel, own)
+
+        def fast(fc, inp_j):
+            x, down, act, bel, failed, fail_step = fc
+            j, w_t = inp_j
+            t = t0 + j
+            box, down = loop.downlink.inbox(down, t)
+            act = act_role.receive(act, box)
+            u, act = act_role.output(act, t)
+            ub, bel = act_role.output(bel, t) if believed_needed else (u, bel)
+            x_new = plant.step(x, u, w_t)
+            bad = loop.monitor.failed(plant.state_vector(x_new))
+            fail_step = jnp.where(bad & ~failed, t + 1, fail_step)
+            failed = failed | bad
+            if loop.monitor.freeze:
+                x_new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), x, x_new)
+            arec = act_rec(act, t) if act_rec is not None and loop.record else ()
+            out = (plant.state_vector(x), u, ub, jnp.sum(box.new), arec)
+            return (x_new, down, act, bel, failed, fail_step), out
+
+        fc0 = (c.x, down, c.act, bel, c.failed, c.fail_step)
+        fc, (xs, us, ubs, rca, arec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
+        x, down, act, bel, failed, fail_step = fc
+        # 7. estimator prediction over the period
+        est = loop.estimator.predict(est, us, ubs, k)
+        c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, failed, fail_step)
+        erec = est_rec(est_c) if est_rec is not None and loop.record else ()
+        crec = ctrl_rec(ctrl) if ctrl_rec is not None and loop.record else ()
+        outs = ((xs, us, z, xhat, send_sc, inbox.fresh, send_ca, rca, erec, crec, arec) if loop.record
+                else (send_sc, send_ca))
+        return c, outs
+
+    xs_in = (jnp.arange(S, dtype=jnp.int32), d.w, d.v, d.uplink.delay, d.downlink.delay)
+    final, outs = jax.lax.scan(slow, carry0, xs_in)
+    if loop.record:
+        xs, us, z, xhat, s_sc, r_sc, s_ca, r_ca, erec, crec, arec = outs
+        K = loop.steps
+        x, u, r_ca = xs.reshape(K, -1), us.reshape(K, -1), r_ca.reshape(K)
+        arec = jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), arec)
+    else:
+        s_sc, s_ca = outs
+        x = u = z = xhat = r_sc = r_ca = jnp.zeros((0,), jnp.float32)
+        erec = crec = arec = ()
+    return Trajectory(x, u, z, xhat, s_sc, r_sc, s_ca, r_ca, final.failed, final.fail_step,
+                      jnp.sum(s_sc), jnp.sum(s_ca), erec, crec, arec)
+
+
+class Metrics(NamedTuple):
+    """Per-run summaries."""
+
+    cost: jax.Array       # Loop.cost of the run (inf when failed; nan when the loop has no cost)
+    cost_raw: jax.Array   # the same without the failure mask (finite: the plant is frozen at failure)
+    rate_sc: jax.Array    # sensor transmissions per slow period
+    rate_ca: jax.Array    # controller transmissions per slow period
+    unstable: jax.Array   # bool: the run failed
+
+
+def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
+    """Metrics of one recorded run."""
+    S = loop.steps // loop.N
+    if loop.cost is not None and loop.record:
+        raw = loop.cost(traj.x, traj.u)
+    else:
+        raw = jnp.asarray(jnp.nan, jnp.float32)
+    cost = jnp.where(traj.failed, jnp.inf, raw)
+    return Metrics(cost, raw, traj.tx_sc / S, traj.tx_ca / S, traj.failed)
+
+
+def run(loop: Loop, key) -> Metrics:
+    """simulate + evaluate: the per-seed function the Monte-Carlo engine maps,
+    ``montecarlo.run_batched(run, keys, args=(loop,))``."""
+    return evaluate(loop, simulate(loop, key))
+
+
+def run_seed(key, loop: Loop) -> Metrics:
+    """:func:`run` with the key first, as :func:`jaxnc.montecarlo.run_batched` calls it:
+    ``run_batched(run_seed, keys, args=(loop,))`` compiles once per loop structure."""
+    return run(loop, key)

@@ -1,0 +1,118 @@
+"""Triggers of a loop: periodic, PETC with a time-triggered safety condition.
+
+:class:`Petc` is the mixed condition of seed 000 eq. (3)-(4) (and of seed 003 eq. 5-6
+for the sensor, eq. 21-22 for the controller side, on the first action of a packet):
+
+    ||zbar_{k-1} - z_k||^2 > sigma ||z_k||^2 + delta,   zbar_k = beta_k z_k + (1 - beta_k) zbar_{k-1},
+
+``reading="sum"``: one condition on the sums over outputs (sigma, delta per output,
+seed 000 eq. 4); ``reading="each"``: it fires when the condition holds for any output
+alone. ``max_silence`` > 0 adds the time-triggered safety condition of seed 003 eq. (7):
+it also fires when the signal has not been sent for ``max_silence`` slow instants. The
+first instant always sends (zbar_0 = z_0).
+
+With ``temperature`` > 0 the decision is straight-through: the exact hard value forward,
+the gradient of sigmoid(gap / temperature) backward (:mod:`jaxnc.tune.estimators`);
+``relaxed=True`` makes the forward pass soft as well (the sigmoid relaxation).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxnc._validate import array_fields, check_int, check_nonneg
+from jaxnc.loop.base import AbstractTrigger, blend
+
+__all__ = ["Periodic", "Petc", "PetcState"]
+
+
+def _static(default):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+class PetcState(NamedTuple):
+    last: jax.Array      # zbar: the last value sent
+    silent: jax.Array    # int32: slow instants since the last send
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Periodic(AbstractTrigger):
+    """Sends every ``every`` slow instants (static; 1 = always), starting at k = 0."""
+
+    every: int = _static(1)
+
+    def __post_init__(self):
+        check_int("Periodic.every", self.every, 1, 1_000_000)
+
+    def init(self, s0):
+        return ()
+
+    def step(self, state, s, k):
+        return (jnp.mod(k, self.every) == 0).astype(jnp.float32), state
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Petc(AbstractTrigger):
+    """Periodic event-triggered condition (module docstring).
+
+    Attributes:
+      sigma, delta: float or float[p], >= 0 (relative and absolute thresholds).
+      temperature: >= 0; > 0 gives a straight-through (or, ``relaxed``, soft) decision.
+      max_silence: static int >= 0, the safety condition's k_max (0: off).
+      reading: static, ``"sum"`` or ``"each"``.
+      relaxed: static; the forward pass is the sigmoid too (needs temperature > 0).
+    """
+
+    sigma: Any = 0.0
+    delta: Any = 0.0
+    temperature: Any = 0.0
+    max_silence: int = _static(0)
+    reading: str = _static("sum")
+    relaxed: bool = _static(False)
+
+    def __post_init__(self):
+        array_fields(self, "sigma", "delta")
+        check_nonneg("Petc.sigma", self.sigma)
+        check_nonneg("Petc.delta", self.delta)
+        check_nonneg("Petc.temperature", self.temperature)
+        check_int("Petc.max_silence", self.max_silence, 0, 1_000_000)
+        if self.reading not in ("sum", "each"):
+            raise ValueError(f"Petc.reading must be one of sum, each, got {self.reading!r}")
+        if self.relaxed:
+            try:
+                if float(self.temperature) <= 0:
+                    raise ValueError("Petc.temperature must be > 0 when relaxed=True, "
+                                     f"got {float(self.temperature):g}")
+            except TypeError:
+                pass
+
+    def gap(self, last, s):
+        """Left minus right side of the condition (fires when > 0); for ``"each"`` the
+        largest of the per-output gaps."""
+        per = (last - s) ** 2 - (self.sigma * s * s + self.delta)
+        if self.reading == "each":
+            return jnp.max(per)
+        return jnp.sum((last - s) ** 2) - jnp.sum(self.sigma * s * s + self.delta * jnp.ones_like(s))
+
+    def init(self, s0):
+        s0 = jnp.asarray(s0, jnp.float32)
+        return PetcState(jnp.zeros_like(s0), jnp.zeros((), jnp.int32))
+
+    def step(self, state, s, k):
+        g = self.gap(state.last, s)
+        hard = (g > 0).astype(s.dtype)
+        tau = jnp.maximum(jnp.asarray(self.temperature, s.dtype), 1e-12)
+        soft = jnp.where(jnp.asarray(self.temperature) > 0, jax.nn.sigmoid(g / tau), 0.0)
+        beta = soft if self.relaxed else hard + (soft - jax.lax.stop_gradient(soft))
+        forced = k == 0
+        if self.max_silence > 0:
+            forced = forced | (state.silent + 1 >= self.max_silence)
+        beta = jnp.where(forced, jnp.ones((), s.dtype), beta)
+        last = blend(beta, s, state.last)
+        silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
+        return beta, PetcState(last, silent)
