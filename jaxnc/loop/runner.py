@@ -8,7 +8,8 @@ before the scan from the run's key by :func:`draw`, one stream per purpose
 meet the same realisation wherever their roles agree (common random numbers), and a
 seed's run does not depend on the batch it is in.
 
-A run *fails* when the true state becomes non-finite or leaves ``Monitor.bounds``; from
+A run *fails* when the true state or the action becomes non-finite, or the state leaves
+``Monitor.bounds``; a non-finite action is replaced by zero and, from
 then on the plant is frozen at its last good state (``Monitor.freeze``), so divergence
 is data (inf in :class:`Metrics`), never an exception or a NaN in a batch.
 """
@@ -83,10 +84,10 @@ class Quadratic:
         array_fields(self, "Q", "R", "x_ref")
 
     def __call__(self, x, u):
-        e = x - self.x_ref
+        e = x - jnp.asarray(self.x_ref, x.dtype)
         Q, R = jnp.asarray(self.Q), jnp.asarray(self.R)
-        qx = jnp.sum(e * e * Q, -1) if Q.ndim == 1 else jnp.einsum("...i,ij,...j->...", e, Q, e)
-        ru = jnp.sum(u * u * R, -1) if R.ndim == 1 else jnp.einsum("...i,ij,...j->...", u, R, u)
+        qx = (e * e) @ Q if Q.ndim == 1 else jnp.einsum("...i,ij,...j->...", e, Q, e)
+        ru = (u * u) @ R if R.ndim == 1 else jnp.einsum("...i,ij,...j->...", u, R, u)
         return jnp.mean(qx + ru)
 
 
@@ -171,8 +172,8 @@ def draw(loop: Loop, key) -> Draws:
     """All of a run's random draws, one stream per purpose (:data:`STREAMS`)."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     k = {name: jax.random.fold_in(key, i) for i, name in enumerate(STREAMS)}
-    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * p.process_std()
-    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * p.measurement_std()
+    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * p.process_std()[None, None, :]
+    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * p.measurement_std()[None, :]
     return Draws(w, v, loop.uplink.draw(k["uplink"], S, loop.T), loop.downlink.draw(k["downlink"], S, loop.T),
                  k["plant_init"])
 
@@ -195,6 +196,8 @@ class Trajectory(NamedTuple):
     est_rec: Any = ()     # [S, ...] estimator.record(state) after each correction, if defined
     ctrl_rec: Any = ()    # [S, ...] controller.record(state) after each step, if defined
     act_rec: Any = ()     # [K, ...] actuator.record(state, t) after each output, if defined
+    plant_rec: Any = ()   # [K, ...] plant.record(x) of the state after each fast period's step, if defined
+    est_pred_rec: Any = ()  # [S, ...] estimator.record_predict(state) after each prediction, if defined
 
 
 class _Carry(NamedTuple):
@@ -220,17 +223,30 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
 
     ``draws`` replaces :func:`draw`'s (e.g. a recorded realisation shared by loops).
     A role that defines ``record(state)`` (actuator: ``record(state, t)``) has it recorded
-    into ``Trajectory.est_rec`` / ``ctrl_rec`` / ``act_rec`` (when ``loop.record``)."""
+    into ``Trajectory.est_rec`` / ``ctrl_rec`` / ``act_rec`` (when ``loop.record``); a plant
+    that defines ``record(x)`` has it recorded, after each fast period's step, into
+    ``Trajectory.plant_rec`` (e.g. a monitor kept in the plant's state); an estimator that
+    defines ``record_predict(state)`` has it recorded after each prediction into
+    ``Trajectory.est_pred_rec``.
+
+    Optional hooks for packets that both ends advance in step (seed 000's prediction
+    chains), used when the estimator takes the believed actions: a controller that defines
+    ``step_from_sent(state, xhat, fresh, k, ctx, sent)`` is called instead of ``step`` with
+    ``sent``, the actuator-role state of its own packets (what ``u_believed`` is read from);
+    an actuator that defines ``receive_from_sender(state, inbox, sent)`` is called instead
+    of ``receive`` at each fast instant with that state as it is at the instant (it may
+    install the sender's current copy of a delivered packet rather than its payload)."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
     d = draw(loop, key) if draws is None else draws
     plant, act_role = loop.plant, loop.actuator
     x0 = plant.init(d.init_key)
-    xv0 = plant.state_vector(x0)
     z0 = plant.measure(x0, jnp.zeros((ctx.output_dim,), jnp.float32))
     ctrl0 = loop.controller.init(ctx)
     est0 = loop.estimator.init(ctx)
-    pkt0, _, _ = jax.eval_shape(lambda: loop.controller.step(ctrl0, xv0, jnp.float32(1), jnp.int32(0), ctx))
+    # the packet's shape, from the estimate the controller will be given (not the plant's state)
+    pkt0, _, _ = jax.eval_shape(lambda: loop.controller.step(ctrl0, loop.estimator.estimate(est0), jnp.float32(1),
+                                                              jnp.int32(0), ctx))
     pkt_zero = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), pkt0)
     act0 = act_role.init(ctx)
     carry0 = _Carry(
@@ -241,6 +257,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32))
     believed_needed = getattr(loop.estimator, "inputs", "believed") == "believed"
     est_rec, ctrl_rec, act_rec = (_recorder(loop.estimator), _recorder(loop.controller), _recorder(loop.actuator))
+    plant_rec = _recorder(loop.plant)
+    est_pred_rec = getattr(loop.estimator, "record_predict", None)
+    step_from_sent = getattr(loop.controller, "step_from_sent", None) if believed_needed else None
+    receive_from_sender = getattr(act_role, "receive_from_sender", None) if believed_needed else None
 
     def slow(c: _Carry, inp):
         k, w_k, v_k, d_up, d_down = inp
@@ -256,7 +276,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         est_c = est
         xhat = loop.estimator.estimate(est)
         # 5. controller (and its trigger)
-        pkt, send_ca, ctrl = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
+        if step_from_sent is not None:
+            pkt, send_ca, ctrl = step_from_sent(c.ctrl, xhat, inbox.fresh, k, ctx, c.bel)
+        else:
+            pkt, send_ca, ctrl = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
         ctrig = c.ctrig
         if loop.controller_trigger is not None:
             fire, ctrig = loop.controller_trigger.step(c.ctrig, pkt.data[0], k)
@@ -274,16 +297,19 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             j, w_t = inp_j
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
-            act = act_role.receive(act, box)
+            act = act_role.receive(act, box) if receive_from_sender is None else receive_from_sender(act, box, bel)
             u, act = act_role.output(act, t)
             ub, bel = act_role.output(bel, t) if believed_needed else (u, bel)
+            u_ok = jnp.all(jnp.isfinite(u))
+            u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
             x_new = plant.step(x, u, w_t)
-            bad = loop.monitor.failed(plant.state_vector(x_new))
+            bad = loop.monitor.failed(plant.state_vector(x_new)) | ~u_ok
             fail_step = jnp.where(bad & ~failed, t + 1, fail_step)
             failed = failed | bad
             if loop.monitor.freeze:
                 x_new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), x, x_new)
             arec = act_rec(act, t) if act_rec is not None and loop.record else ()
+            arec = (arec, plant_rec(x_new) if plant_rec is not None and loop.record else ())
             out = (plant.state_vector(x), u, ub, jnp.sum(box.new), arec)
             return (x_new, down, act, bel, failed, fail_step), out
 
@@ -295,6 +321,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, failed, fail_step)
         erec = est_rec(est_c) if est_rec is not None and loop.record else ()
         crec = ctrl_rec(ctrl) if ctrl_rec is not None and loop.record else ()
+        erec = (erec, est_pred_rec(est) if est_pred_rec is not None and loop.record else ())
         outs = ((xs, us, z, xhat, send_sc, inbox.fresh, send_ca, rca, erec, crec, arec) if loop.record
                 else (send_sc, send_ca))
         return c, outs
@@ -305,13 +332,14 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         xs, us, z, xhat, s_sc, r_sc, s_ca, r_ca, erec, crec, arec = outs
         K = loop.steps
         x, u, r_ca = xs.reshape(K, -1), us.reshape(K, -1), r_ca.reshape(K)
-        arec = jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), arec)
+        arec, prec = jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), arec)
+        erec, perec = erec
     else:
         s_sc, s_ca = outs
         x = u = z = xhat = r_sc = r_ca = jnp.zeros((0,), jnp.float32)
-        erec = crec = arec = ()
+        erec = crec = arec = prec = perec = ()
     return Trajectory(x, u, z, xhat, s_sc, r_sc, s_ca, r_ca, final.failed, final.fail_step,
-                      jnp.sum(s_sc), jnp.sum(s_ca), erec, crec, arec)
+                      jnp.sum(s_sc), jnp.sum(s_ca), erec, crec, arec, prec, perec)
 
 
 class Metrics(NamedTuple):

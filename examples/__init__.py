@@ -1,0 +1,1 @@
+"""Example loops built from jaxnc's parts (run from the repository root)."""

@@ -1,0 +1,141 @@
+"""A gradient check a user can run on their own loop: which estimator to trust here.
+
+For a per-seed objective ``J(theta, key, temperature) -> scalar`` (theta a flat vector in
+the space being tuned, e.g. log thresholds) and a set of seeds, :func:`gradient_check`
+computes, *on the same seeds* (common random numbers):
+
+* ``"finite_difference"``: central differences of the hard objective (temperature 0),
+  (J(theta + h e_j) - J(theta - h e_j)) / 2h per seed and coordinate: the reference;
+* ``"straight_through"``: the pathwise gradient ``jax.grad`` at ``temperature`` > 0 (hard
+  forward pass, sigmoid backward, :mod:`jaxnc.tune.estimators`);
+* ``"score"``: the antithetic Gaussian score function at scale ``score_scale``,
+  (J(theta + s e) - J(theta - s e)) e / 2s with e ~ N(0, I) drawn per seed.
+
+Each estimate is a mean over seeds with its standard error. An estimator is *consistent*
+with the finite differences when, for every coordinate, the mean of the per-seed
+differences (estimator minus finite difference, paired on the seed) is within
+``z`` (1.96) of its standard error, *and* its standard error is at most ``max_noise``
+(10) times the finite differences' (an estimator so noisy that it agrees with anything,
+e.g. a straight-through gradient through a very sharp sigmoid, is flagged as too noisy,
+not passed). The recommendation is the consistent estimator with
+the smallest standard error (ties: straight-through, which needs one pass); none when
+no estimator is consistent. The finite differences themselves estimate the gradient of
+the mean objective only up to O(h^2) and their own noise; both are in the report.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import check_positive
+
+__all__ = ["GradientCheck", "gradient_check"]
+
+ESTIMATORS = ("straight_through", "score")
+
+
+class GradientCheck(NamedTuple):
+    """Result of :func:`gradient_check` (arrays over theta's coordinates)."""
+
+    theta: np.ndarray
+    value: float                    # mean hard objective at theta
+    estimates: dict                 # name -> (mean float[d], standard error float[d])
+    paired_z: dict                  # name -> float[d]: (mean difference to FD) / its SE
+    consistent: dict                # name -> bool
+    reason: dict                    # name -> "" when consistent, else why not
+    recommended: str | None
+
+    def table(self) -> str:
+        """A plain-text table of the check."""
+        rows = [f"{'estimator':<20} {'gradient':>28} {'std err':>24} {'|z| vs FD':>10}  consistent"]
+        for name, (m, s) in self.estimates.items():
+            z = self.paired_z.get(name)
+            zs = "-" if z is None else f"{float(np.max(np.abs(z))):.2f}"
+            c = "-" if name == "finite_difference" else ("yes" if self.consistent[name] else
+                                                          f"NO ({self.reason[name]})")
+            rows.append(f"{name:<20} {np.array2string(m, precision=4):>28} {np.array2string(s, precision=3):>24} "
+                        f"{zs:>10}  {c}")
+        rows.append(f"recommended: {self.recommended or 'none (no estimator agrees with the finite differences)'}")
+        return "\n".join(rows)
+
+
+def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
+                   score_scale: float = 0.05, z: float = 1.96, max_noise: float = 10.0,
+                   estimators=ESTIMATORS) -> GradientCheck:
+    """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
+
+    Args:
+      objective: ``objective(theta float[d], key, temperature) -> scalar`` for one seed;
+        temperature 0 must give the hard (exact) simulation.
+      theta: float[d], the point.
+      keys: the seeds' keys, shape (n, 2) (n >= 2).
+      fd_step, temperature, score_scale: > 0.
+      z: the normal quantile of the consistency test.
+      max_noise: the largest ratio of an estimator's standard error to the finite
+        differences' for it to count as consistent.
+      estimators: which of ``"straight_through"``, ``"score"`` to check.
+
+    Returns:
+      :class:`GradientCheck`.
+
+    Raises:
+      ValueError: theta not a non-empty 1-D vector, fewer than 2 keys, a non-positive
+        step/scale/temperature, or an unknown estimator.
+    """
+    theta = np.asarray(theta, np.float32)
+    if theta.ndim != 1 or theta.size == 0:
+        raise ValueError(f"gradient_check: theta must be a non-empty 1-D vector, got shape {theta.shape}")
+    keys = jnp.asarray(keys)
+    if keys.ndim != 2 or keys.shape[0] < 2:
+        raise ValueError(f"gradient_check: keys must have shape (n, 2) with n >= 2, got {keys.shape}")
+    for name, v in (("fd_step", fd_step), ("temperature", temperature), ("score_scale", score_scale)):
+        check_positive(name, v)
+    unknown = [e for e in estimators if e not in ESTIMATORS]
+    if unknown:
+        raise ValueError(f"gradient_check: estimators must be among {', '.join(ESTIMATORS)}, got {unknown}")
+    d = theta.shape[0]
+    th = jnp.asarray(theta)
+    eye = jnp.eye(d, dtype=jnp.float32)
+    hard = lambda t, k: objective(t, k, jnp.float32(0.0))
+
+    def per_seed(key):
+        out = {"value": hard(th, key)}
+        fd = jax.vmap(lambda e: (hard(th + fd_step * e, key) - hard(th - fd_step * e, key)) / (2 * fd_step))(eye)
+        out["finite_difference"] = fd
+        if "straight_through" in estimators:
+            out["straight_through"] = jax.grad(lambda t: objective(t, key, jnp.float32(temperature)))(th)
+        if "score" in estimators:
+            e = jax.random.normal(jax.random.fold_in(key, 7919), (d,), jnp.float32)
+            diff = hard(th + score_scale * e, key) - hard(th - score_scale * e, key)
+            out["score"] = diff / (2 * score_scale) * e
+        return out
+
+    res = jax.device_get(jax.jit(jax.vmap(per_seed))(keys))
+    n = keys.shape[0]
+    se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
+    fd = np.asarray(res["finite_difference"], float)
+    estimates = {"finite_difference": (fd.mean(0), se(fd))}
+    paired, consistent, reason = {}, {}, {}
+    for name in estimators:
+        g = np.asarray(res[name], float)
+        estimates[name] = (g.mean(0), se(g))
+        diff = g - fd
+        s = se(diff)
+        zz = np.where(s > 0, diff.mean(0) / np.where(s > 0, s, 1.0), np.where(diff.mean(0) == 0, 0.0, np.inf))
+        paired[name] = zz
+        if not np.all(np.isfinite(g)):
+            reason[name] = "non-finite values"
+        elif not np.all(np.abs(zz) <= z):
+            reason[name] = f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
+        elif np.any(estimates[name][1] > max_noise * np.maximum(estimates["finite_difference"][1], 1e-30)):
+            ratio = float(np.max(estimates[name][1] / np.maximum(estimates["finite_difference"][1], 1e-30)))
+            reason[name] = f"too noisy, std err {ratio:.3g}x the finite differences'"
+        else:
+            reason[name] = ""
+        consistent[name] = reason[name] == ""
+    ok = [nm for nm in estimators if consistent[nm]]
+    rec = min(ok, key=lambda nm: (float(np.max(estimates[nm][1])), nm != "straight_through")) if ok else None
+    return GradientCheck(theta, float(np.mean(res["value"])), estimates, paired, consistent, reason, rec)

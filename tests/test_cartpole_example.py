@@ -1,0 +1,80 @@
+"""The new-user example (examples/cartpole.py): short, runs 1000 seeds, checked gradient."""
+import ast
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from examples import cartpole as cp  # noqa: E402
+from jaxnc import loop as nc  # noqa: E402
+from jaxnc import montecarlo  # noqa: E402
+from jaxnc.cli import run_cli  # noqa: E402
+from jaxnc.tune.check import gradient_check  # noqa: E402
+
+
+def _code_lines(src: str, names) -> int:
+    """Lines of code (no blank lines, comments or docstrings) of the named top-level
+    definitions and assignments, plus the imports."""
+    tree = ast.parse(src)
+    lines = src.splitlines()
+    count = 0
+    for node in tree.body:
+        keep = isinstance(node, (ast.Import, ast.ImportFrom)) or \
+            (isinstance(node, ast.FunctionDef) and node.name in names) or \
+            (isinstance(node, ast.Assign) and any(getattr(t, "id", None) in names or isinstance(t, ast.Tuple)
+                                                   for t in node.targets) and node.lineno < tree.body[-1].lineno
+             and any(getattr(e, "id", "") in ("T", "STEPS") for t in node.targets for e in getattr(t, "elts", [t])))
+        if not keep:
+            continue
+        doc = ast.get_docstring(node) if isinstance(node, ast.FunctionDef) else None
+        for i in range(node.lineno - 1, node.end_lineno):
+            s = lines[i].strip()
+            if s and not s.startswith("#") and not (doc and s.strip('"') in doc.splitlines()[0]):
+                count += 1
+    return count
+
+
+def test_the_user_code_is_at_most_40_lines():
+    n = _code_lines(pathlib.Path(cp.__file__).read_text(), {"f", "h", "cartpole", "T", "STEPS"})
+    assert 20 < n <= 40, n
+
+
+def test_runs_1000_seeds_and_stays_up():
+    loop = cp.cartpole()
+    m = montecarlo.run_batched(nc.run_seed, montecarlo.seed_keys(0, 1000), args=(loop,), chunk_size=1000,
+                               progress=False)
+    assert m.cost.shape == (1000,)
+    assert np.mean(m.unstable) < 0.02
+    # PETC at delta = 1e-3 sends on a minority of periods; the link loses 30 % of those
+    assert 0.05 < np.mean(m.rate_sc) < 0.5
+    assert np.all(np.isfinite(m.cost_raw))
+
+
+def test_delta_gradient_agrees_with_finite_differences_and_straight_through_is_flagged():
+    """The score-function estimate of d mean cost / d log delta agrees with central finite
+    differences on the same 96 seeds (paired 95 % interval); the straight-through estimate
+    at a sharp temperature does not (issue: 6e5 ... 3e10 measured), and is flagged."""
+    loop = cp.cartpole()
+    chk = gradient_check(cp.cost_of_log_delta(loop), [np.log(1e-3)], montecarlo.seed_keys(1, 96),
+                         fd_step=0.1, temperature=1e-4, score_scale=0.1)
+    assert chk.consistent["score"], chk.table()
+    assert chk.recommended == "score"
+    assert not chk.consistent["straight_through"], chk.table()
+    assert chk.reason["straight_through"].startswith(("too noisy", "differs")), chk.table()
+
+
+def test_cli_runs_the_example_and_rejects_a_bad_module(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "cp"
+    assert run_cli(["run", "examples.cartpole:experiment", "--seeds", "16", "--out", str(out), "--no-progress",
+                    "--set", "delta=0.0001"]) == 0
+    doc = montecarlo.load_results(out / "results.json")
+    assert doc["config"]["delta"] == pytest.approx(1e-4) and doc["config"]["seeds"] == 16
+    capsys.readouterr()
+    assert run_cli(["run", "examples.nope:experiment", "--seeds", "4", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "examples.nope" in err[0]

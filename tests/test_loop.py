@@ -1,0 +1,236 @@
+"""The one runner (jaxnc.loop) against independent references: closed forms, numpy loops."""
+import dataclasses
+
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+
+from jaxnc import loop as nc
+from jaxnc import montecarlo
+from jaxnc.loop.links import LinkDraws
+
+A2 = np.array([[1.0, 0.1], [0.0, 0.95]])
+B2 = np.array([[0.005], [0.1]])
+C2 = np.array([[1.0, 0.0]])
+K2 = np.array([[3.0, 1.5]])
+
+
+def _lti_loop(*, N=1, steps=40, uplink=None, buffer=0, K=K2, A=A2, trigger=None, **kw):
+    plant = nc.LTI(A=A, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
+    ekf = nc.EKF(plant, Q=np.diag([0.01, 0.02]) ** 2, R=np.eye(1) * 0.05**2, mean0=[0.0, 0.0], cov0=np.eye(2),
+                 buffer=buffer)
+    return nc.Loop(plant=plant, trigger=trigger or nc.Periodic(), uplink=uplink or nc.Link(), estimator=ekf,
+                   controller=nc.StateFeedback(K), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   cost=nc.Quadratic(Q=[1.0, 1.0], R=[0.1]), N=N, steps=steps, T=0.1, **kw)
+
+
+def _kf_lqr_reference(loop, d):
+    """float64 numpy: KF at every slow instant, u held over the N fast periods."""
+    p = loop.plant
+    A, B, C = (np.asarray(a, float) for a in (p.A, p.B, p.C))
+    Q, R = np.asarray(loop.estimator.Q, float), np.asarray(loop.estimator.R, float)
+    K = np.asarray(loop.controller.K, float)
+    x = np.asarray(p.x0, float)
+    m, P = np.zeros(2), np.eye(2)
+    w, v = np.asarray(d.w, float), np.asarray(d.v, float)
+    xs, xhats = [], []
+    for k in range(loop.steps // loop.N):
+        z = C @ x + v[k]
+        S = C @ P @ C.T + R
+        G = P @ C.T @ np.linalg.inv(S)
+        m = m + G @ (z - C @ m)
+        P = (np.eye(2) - G @ C) @ P @ (np.eye(2) - G @ C).T + G @ R @ G.T
+        xhats.append(m.copy())
+        u = -K @ m
+        for j in range(loop.N):
+            xs.append(x.copy())
+            x = A @ x + B @ u + w[k, j]
+            m = A @ m + B @ u
+            P = A @ P @ A.T + Q
+    return np.array(xs), np.array(xhats)
+
+
+@pytest.mark.parametrize("N", [1, 3])
+def test_kf_lqr_loop_matches_a_numpy_reference(N):
+    loop = _lti_loop(N=N, steps=12 * N)
+    key = jax.random.PRNGKey(3)
+    tr = jax.jit(nc.simulate)(loop, key)
+    xs, xhats = _kf_lqr_reference(loop, nc.draw(loop, key))
+    np.testing.assert_allclose(np.asarray(tr.x), xs, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(tr.xhat), xhats, rtol=1e-4, atol=1e-5)
+    assert float(tr.tx_sc) == 12 and float(tr.tx_ca) == 12
+    assert tr.x.shape == (12 * N, 2) and tr.u.shape == (12 * N, 1) and tr.z.shape == (12, 1)
+
+
+def _on_time_filter(loop, d, delays, lost):
+    """float64: at each k, the KF over every measurement that has arrived by k and arrived
+    while its instant was inside the buffer window (the EKF's contract), from scratch."""
+    p = loop.plant
+    A, B, C = (np.asarray(a, float) for a in (p.A, p.B, p.C))
+    Q, R = np.asarray(loop.estimator.Q, float), np.asarray(loop.estimator.R, float)
+    D = loop.estimator.buffer
+    x = np.asarray(p.x0, float)
+    S = loop.steps
+    zs = []
+    for k in range(S):                      # open loop (K = 0): u = 0, the truth is independent
+        zs.append(C @ x + np.asarray(d.v[k], float))
+        x = A @ x + np.asarray(d.w[k, 0], float)
+    out = []
+    for k in range(S):
+        m, P = np.zeros(2), np.eye(2)
+        for s in range(k + 1):
+            usable = (not lost[s]) and s + delays[s] <= k and delays[s] <= D
+            if usable:
+                G = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
+                m = m + G @ (zs[s] - C @ m)
+                P = (np.eye(2) - G @ C) @ P @ (np.eye(2) - G @ C).T + G @ R @ G.T
+            if s < k:
+                m, P = A @ m, A @ P @ A.T + Q
+        out.append(m)
+    return np.array(out)
+
+
+def test_time_stamped_ekf_equals_the_on_time_filter_with_the_arrived_measurements():
+    pmf = [0.4, 0.2, 0.2, 0.1, 0.1]          # 0..4 fast periods (N = 1)
+    up = nc.Link(nc.Bernoulli(0.3), nc.PmfDelay(pmf), order="all", capacity=6)
+    loop = _lti_loop(steps=30, uplink=up, buffer=3, K=np.zeros((1, 2)))
+    key = jax.random.PRNGKey(11)
+    d = nc.draw(loop, key)
+    tr = jax.jit(nc.simulate)(loop, key)
+    delays = np.asarray(d.uplink.delay)
+    lost = delays < 0
+    assert lost.any() and (delays > 3).any() and ((delays > 0) & (delays <= 3)).any()   # all cases occur
+    ref = _on_time_filter(loop, d, np.where(lost, 0, delays), lost)
+    np.testing.assert_allclose(np.asarray(tr.xhat), ref, rtol=2e-4, atol=2e-5)
+
+
+def test_bernoulli_link_loss_rate_and_common_random_numbers():
+    n, p = 20_000, 0.3
+    d = nc.Link(nc.Bernoulli(p)).draw(jax.random.PRNGKey(0), n, 0.1).delay
+    rate = float(np.mean(np.asarray(d) < 0))
+    assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / n)
+    d2 = nc.Link(nc.Bernoulli(0.1)).draw(jax.random.PRNGKey(0), n, 0.1).delay
+    assert np.all(np.asarray(d)[np.asarray(d2) < 0] < 0)      # losses at 0.1 are a subset of those at 0.3
+
+
+def test_delays_quantised_up_and_late_packets_discarded():
+    T = 0.01
+    link = nc.Link(delay=nc.ShiftedExponential(eta=0.005, phi=0.02), tau_max=0.03)
+    key = jax.random.PRNGKey(1)
+    d = np.asarray(link.draw(key, 5000, T).delay)
+    tau = 0.005 + 0.02 * np.asarray(jax.random.exponential(jax.random.split(key)[1], (5000,)))
+    expect = np.where(tau > 0.03, -1, np.ceil(tau / T - 1e-5))
+    np.testing.assert_array_equal(d, expect)
+    first = nc.Link(nc.Bernoulli(0.9), reliable_first=True).draw(key, 50, T).delay
+    assert int(first[0]) == 0 and np.mean(np.asarray(first[1:]) < 0) > 0.7
+
+
+def test_gilbert_elliott_stationary_loss():
+    ge = nc.GilbertElliott(p_gb=0.05, p_bg=0.2, loss_good=0.01, loss_bad=0.8)
+    lost = np.asarray(ge.sample(jax.random.PRNGKey(2), 200_000))
+    assert abs(lost.mean() - ge.stationary_loss()) < 0.01
+    # bursty: a loss is more likely right after a loss than on average
+    assert np.mean(lost[1:][lost[:-1]]) > 2 * lost.mean()
+
+
+def test_newest_order_drops_out_of_order_packets_all_delivers_them():
+    for order, expect in (("newest", [1, 0]), ("all", [1, 1])):
+        link = nc.Link(order=order, capacity=3)
+        st = link.init(jnp.zeros(1))
+        st = link.send(st, jnp.ones(1), 0, 0, 1.0, jnp.int32(5), 0)     # stamp 0 arrives at 5
+        st = link.send(st, 2 * jnp.ones(1), 1, 1, 1.0, jnp.int32(1), 1)  # stamp 1 arrives at 2
+        got = []
+        for t in (2, 5):
+            box, st = link.inbox(st, t)
+            got.append(int(np.sum(np.asarray(box.new))))
+        assert got == expect, order
+
+
+def test_packet_actuator_indexes_by_stamp_holds_and_waits_for_future_packets():
+    ctx = nc.Context(N=1, steps=10, T=1.0, state_dim=1, input_dim=1, output_dim=1)
+    for mode, after in (("hold", 3.0), ("zero", 0.0)):
+        act = nc.PacketActuator(horizon=3, capacity=2, on_exhausted=mode)
+        st = act.init(ctx)
+        st = act.install(st, jnp.array([[1.0], [2.0], [3.0]]), jnp.int32(2), 1.0)
+        st = act.install(st, jnp.array([[9.0], [9.0], [9.0]]), jnp.int32(8), 1.0)   # for later
+        us = []
+        for t in range(10):
+            u, st = act.output(st, t)
+            us.append(float(u[0]))
+        assert us == [0, 0, 1, 2, 3, after, after, after, 9, 9], mode
+
+
+def test_petc_first_sample_threshold_and_max_silence():
+    trig = nc.Petc(delta=0.5, max_silence=3)
+    st = trig.init(jnp.zeros(1))
+    sends = []
+    for k, z in enumerate([0.0, 0.1, 0.2, 0.3, 2.0, 2.1]):
+        b, st = trig.step(st, jnp.array([z]), k)
+        sends.append(int(b))
+    assert sends == [1, 0, 0, 1, 1, 0]          # first; silence 3 forces k = 3; |2 - 0.3|^2 > 0.5
+
+
+def test_a_seed_is_the_same_alone_and_in_a_batch():
+    loop = _lti_loop(uplink=nc.Link(nc.Bernoulli(0.3)))
+    keys = montecarlo.seed_keys(0, 9)
+    full = montecarlo.run_batched(nc.run_seed, keys, args=(loop,), chunk_size=4, progress=False)
+    part = montecarlo.run_batched(nc.run_seed, keys[5:7], args=(loop,), chunk_size=4, progress=False)
+    np.testing.assert_array_equal(full.cost[5:7], part.cost)
+
+
+def test_divergence_is_data():
+    loop = _lti_loop(A=np.array([[1.5, 0.0], [0.0, 1.2]]), K=np.zeros((1, 2)), steps=200,
+                     monitor=nc.Monitor(bounds=[1e3, 1e3]))
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
+    m = nc.evaluate(loop, tr)
+    assert bool(tr.failed) and bool(m.unstable) and np.isinf(float(m.cost)) and np.isfinite(float(m.cost_raw))
+    assert np.all(np.isfinite(np.asarray(tr.x))) and int(tr.fail_step) < 200
+
+
+def test_configuration_errors_name_the_parameter():
+    slow = nc.Link(delay=nc.PmfDelay([0.5, 0.0, 0.0, 0.5]), capacity=2)
+    with pytest.raises(ValueError, match="Loop.uplink.capacity must be >= 4"):
+        _lti_loop(uplink=slow)
+    with pytest.raises(ValueError, match="multiple of N=2"):
+        _lti_loop(N=2, steps=5)
+    with pytest.raises(ValueError, match="actuator.horizon"):
+        dataclasses.replace(_lti_loop(), actuator=nc.PacketActuator(horizon=3))
+    plant = nc.LTI(A=A2, B=B2, C=C2)
+    with pytest.raises(ValueError, match="EKF.Q must be 2x2"):
+        nc.EKF(plant, Q=np.eye(3), R=np.eye(1), mean0=[0, 0], cov0=np.eye(2))
+    with pytest.raises(ValueError, match="EKF.R must be positive"):
+        nc.EKF(plant, Q=np.eye(2), R=-np.eye(1), mean0=[0, 0], cov0=np.eye(2))
+    with pytest.raises(ValueError, match="PmfDelay.pmf must sum to 1"):
+        nc.PmfDelay([0.5, 0.2])
+    with pytest.raises(ValueError, match=r"Bernoulli.p must be in \[0, 1\)"):
+        nc.Bernoulli(1.0)
+    with pytest.raises(ValueError, match="Link.order"):
+        nc.Link(order="fifo")
+
+
+def test_lti_discretisation_matches_python_control_and_rk4():
+    Ac, Bc, Cc = np.array([[0.0, 1.0], [-2.0, -0.5]]), np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]])
+    T = 0.05
+    ref = control.c2d(control.ss(Ac, Bc, Cc, 0), T, "zoh")
+    lti = nc.LTI.from_continuous(Ac, Bc, Cc, T)
+    np.testing.assert_allclose(lti.A, ref.A, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(lti.B, ref.B, rtol=1e-6, atol=1e-7)
+    tf = nc.LTI.from_control(control.tf([1.0], [1.0, 0.5, 2.0]), T)
+    assert (tf.state_dim, tf.input_dim, tf.output_dim) == (2, 1, 1)
+    np.testing.assert_allclose(np.linalg.eigvals(tf.A), np.linalg.eigvals(ref.A), rtol=1e-5)
+    ct = nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_lin_f, h=_lin_h, input_dim=1, noise_dim=1,
+                       output_dim=1, T=T, substeps=8)
+    x, u = jnp.array([1.0, -0.5]), jnp.array([0.3])
+    np.testing.assert_allclose(ct.dynamics(x, u, jnp.zeros(1)), lti.A @ x + lti.B @ u, rtol=1e-5, atol=1e-6)
+    assert np.allclose(scipy.linalg.expm(Ac * T), ref.A, atol=1e-9)
+
+
+def _lin_f(x, u, w):
+    return jnp.stack([x[1], -2.0 * x[0] - 0.5 * x[1] + u[0] + w[0]])
+
+
+def _lin_h(x, v):
+    return x[:1] + v
