@@ -7,10 +7,13 @@ from jaxnc.estimators import Gaussian, ekf_predict, ekf_update, nudrekf_correct,
 from jaxnc.network import Channel, sample_channel  # noqa: E402
 from jaxnc.plants import Mecanum, MecanumNoise  # noqa: E402
 from jaxnc.triggers import PetcTrigger  # noqa: E402
+from jaxnc import loop  # noqa: E402
+from jaxnc.loop import *  # noqa: E402,F401,F403  (the runner's building blocks, listed in jaxnc.loop.__all__)
 
 __all__ = [
     "__version__", "montecarlo", "metrics", "paths",
     "Channel", "sample_channel", "PetcTrigger",
     "Gaussian", "ekf_predict", "ekf_update", "nudrekf_correct", "predict_horizon",
     "Mecanum", "MecanumNoise", "PathFollower", "PacketBuffer", "pure_pursuit",
+    "loop", *loop.__all__,
 ]
