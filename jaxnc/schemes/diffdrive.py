@@ -1,4 +1,4 @@
-"""Closed loops of seed 004, scenarios a-e (section 5.2), one ``lax.scan`` each.
+"""Closed loops of seed 004, scenarios a-e (section 5.2), as configurations of :mod:`jaxnc.loop`.
 
 The robot follows a path of four right angles by standard pure pursuit (eq. 15-20);
 the wheel-speed loops are PI (eq. 27) in one of two forms:
@@ -24,10 +24,20 @@ seed 000, truncated at tau_max = 0.17 s < NT (section 5.1), so packets never ove
 one another.  The packet's content (path references) is static, so only its timing
 matters.  The true plant runs at the fine period T/sub (delays are quantised up to it).
 
-All randomness is drawn per fast slot T from the key, so every scenario meets the same
-noise and delays at the same times (common random numbers).  A run is *unstable* when the
-robot leaves a ``max_dev`` tube around the path, a state is non-finite, or it does not
-reach the end within the horizon; its indexes are then inf.
+All randomness is drawn per fast slot T from the key (:func:`draw`), so every scenario
+meets the same noise and delays at the same times (common random numbers).  A run is
+*unstable* when the robot leaves a ``max_dev`` tube around the path, a state is
+non-finite, or it does not reach the end within the horizon; its indexes are then inf.
+Once the path is complete the motors receive zero from the next sensing instant.
+
+On the runner (:func:`runner_loop`): its fast period is the fine step dt = T/sub, so one
+slow period is ns * sub fine steps (ns = 1 for a, N otherwise), the controller's packet
+holds each action over sub fine steps, the downlink's delay (d, e) is the reference
+packet's, quantised up to dt, and the wheel noise enters at the first fine step of each
+slot T (:func:`runner_draws`).  The roles: :class:`Robot` (the true plant and its
+completion / tube monitor, recorded through ``plant.record``), Passthrough or
+:class:`DiffDriveEKF`, :class:`DiffDriveController`, and a packet actuator by time stamp
+or :class:`ArrivalActuator` (d).
 """
 from __future__ import annotations
 
@@ -43,7 +53,15 @@ import numpy as np
 from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, DualRateState, dualrate_design, pi_controller, \
     single_rate_pi
+from jaxnc.controllers.prediction import predict_periods
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
+from jaxnc.loop import runner
+from jaxnc.loop.actuators import PacketActuator
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractPlant, Inbox, Packet,
+                             blend)
+from jaxnc.loop.estimators import Passthrough
+from jaxnc.loop.links import Link, LinkDraws, TruncatedExponential, truncated_exponential
+from jaxnc.loop.triggers import Periodic
 from jaxnc.metrics import distance_to_path, distance_to_points
 from jaxnc.network import quantise_delay
 from jaxnc.paths import Path, closest_index, from_waypoints, point_at
@@ -192,16 +210,17 @@ class Draws(NamedTuple):
 
 
 def draw(key, steps: int) -> Draws:
+    """The run's standard draws for ``steps`` fast slots T: ``key`` split into 4 streams
+    (wheel noise, measurement noise, remote -> local and local -> remote delay uniforms)."""
     kw, kv, kr, kl = jax.random.split(key, 4)
     return Draws(jax.random.normal(kw, (steps, 2)), jax.random.normal(kv, (steps, OUTPUT_DIM)),
                  jax.random.uniform(kr, (steps,)), jax.random.uniform(kl, (steps,)))
 
 
-def truncated_delay(u, eta, phi, tau_max):
-    """Inverse CDF of eta + phi Exp(1) truncated to [eta, tau_max] (never beyond tau_max,
-    so never out of order when tau_max < NT)."""
-    m = -jnp.expm1(-(tau_max - eta) / jnp.maximum(phi, 1e-12))
-    return jnp.where(phi > 0, eta - phi * jnp.log1p(-u * m), eta)
+#: Inverse CDF of eta + phi Exp(1) truncated to [eta, tau_max] at uniforms u (never beyond
+#: tau_max, so never out of order when tau_max < NT): the loop's
+#: :func:`jaxnc.loop.links.truncated_exponential`.
+truncated_delay = truncated_exponential
 
 
 class Trajectory(NamedTuple):
@@ -214,20 +233,6 @@ class Trajectory(NamedTuple):
     u_prior: jax.Array    # [n_sense, N, 2] e: actions predicted for it one period earlier (u_{k|k-1})
     l: jax.Array          # fast slots until the path was completed (K if never)
     done: jax.Array
-    bad: jax.Array
-
-
-class _Carry(NamedTuple):
-    x: jax.Array
-    sr: jax.Array           # [2, n] single-rate PI states
-    dr: DualRateState       # dual-rate states, [2, n] each
-    idx: jax.Array          # pure-pursuit progress (local side)
-    belief: Gaussian        # EKF prior for this sensing instant
-    u_pred: jax.Array       # [N, 2] e: actions predicted at k-1 for period k
-    u_last: jax.Array       # [2] last applied command (d holds it)
-    idx_true: jax.Array
-    done: jax.Array
-    l: jax.Array
     bad: jax.Array
 
 
@@ -252,109 +257,322 @@ def _control(loop: DiffDriveLoop, est, idx, sr, dr):
 
 def predict_stage(loop: DiffDriveLoop, mean, idx, dr: DualRateState):
     """h-step-ahead prediction stage (section 3.2, items 1-4, eq. 14) from the corrected
-    state: pure pursuit, dual-rate controller and the NT model iterated in open loop.
+    state: pure pursuit, dual-rate controller and the NT model iterated in open loop
+    (:func:`jaxnc.controllers.prediction.predict_periods`).
 
     Returns (states [h+1, 5] = xi_{k|k} .. xi_{k+h|k}, actions [h+1, N, 2] for periods
     k .. k+h, and the controller state / path progress after the first period).
     """
-    plant = loop.plant
-    n0 = jnp.zeros((PROCESS_NOISE_DIM,), jnp.float32)
+    sr0 = jnp.zeros((2, loop.sr.order), jnp.float32)
 
-    def body(c, _):
-        s, i, d = c
-        U, _, i, _, d = _control(loop, s, i, jnp.zeros((2, loop.sr.order), jnp.float32), d)
-        return (plant.dynamics(s, U, n0), i, d), (s, U, i, d)
+    def law(c, s):
+        i, d = c
+        U, _, i, _, d = _control(loop, s, i, sr0, d)
+        return U, (i, d)
 
-    _, (states, Us, idxs, drs) = jax.lax.scan(body, (mean, idx, dr), None, length=loop.h + 1)
+    states, Us, (idxs, drs) = predict_periods(law, loop.plant.dynamics, mean, (idx, dr), loop.h + 1,
+                                              PROCESS_NOISE_DIM)
     first = jax.tree.map(lambda a: a[0], (idxs, drs))
     return states, Us, first[0], first[1]
 
 
-def simulate(loop: DiffDriveLoop, key) -> Trajectory:
-    """One closed-loop run of ``loop.scenario``: a ``lax.scan`` over sensing periods with
-    the fine plant steps inside.  Pure function of (loop, key); vmap it over keys."""
-    plant, N, ns, sub = loop.plant, loop.N, loop.ns, loop.plant.sub
-    K = loop.steps
-    n_sense = K // ns
-    nf = ns * sub                                   # fine steps per sensing period
-    dt = plant.dt
-    d = draw(key, K)
-    w_noise = (d.w * loop.noise.process_std()[None, :]).reshape(n_sense, ns, 2)
-    v_noise = (d.v * loop.noise.measurement_std()[None, :])[::ns]
-    if loop.delayed:
-        tau = truncated_delay(d.u_rl[::ns], loop.eta, loop.phi, loop.tau_max)
-    else:
-        tau = jnp.zeros((n_sense,), jnp.float32)
-    d_fine = quantise_delay(tau, dt)
-    path = loop.path
-    end = path.points[-1]
-    M = path.M
-    x0 = jnp.concatenate([jnp.zeros(2), path.points[0], jnp.zeros(1)]).astype(jnp.float32)
-    belief0 = Gaussian(x0, jnp.diag(jnp.asarray(loop.P0_std, jnp.float32) ** 2))
-    fine_i = jnp.arange(nf)
-    slot = fine_i // sub
+# ----------------------------------------------------------------------------- the loop's roles
+#
+# The runner's fast period is the true plant's fine step dt = T/sub (Loop.N = ns * sub fine
+# steps per sensing period), so the reference packet's delay, quantised up to dt, can start
+# the period's actions in the middle of a slot T, and the actions are held over sub fine steps.
 
-    def step(c: _Carry, inp):
-        k, w_k, v_k, df, tau_k = inp
-        z = plant.measure(c.x, v_k)
-        if loop.scenario == "e":
-            corrected = ekf_update(plant.measure, c.belief, z, loop.R, OUTPUT_DIM)
-            est = corrected.mean
-            states, Us, idx, dr = predict_stage(loop, est, c.idx, c.dr)
+
+def _x0(loop: DiffDriveLoop):
+    return jnp.concatenate([jnp.zeros(2), loop.path.points[0], jnp.zeros(1)]).astype(jnp.float32)
+
+
+class RobotState(NamedTuple):
+    """The true robot and its completion / tube monitor (scalars unless shown)."""
+
+    x: jax.Array        # float[5] state
+    t: jax.Array        # int32 fine steps taken
+    idx: jax.Array      # int32 progress of the true position along the path (updated every T)
+    done: jax.Array     # bool: the path was completed (within end_tol of its end)
+    stop: jax.Array     # bool: motors stopped (done at the last sensing instant)
+    l: jax.Array        # int32 slots T until completion (K if never)
+    bad: jax.Array      # bool: left the max_dev tube or non-finite before completion
+    x_in: jax.Array     # float[5] the state entering the last fine step (with its slot's noise)
+    u: jax.Array        # float[2] the command the motors received in the last fine step
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Robot(AbstractPlant):
+    """The true plant of scenarios a-e at the fine period dt = T/sub (runner's fast period).
+
+    ``step``: at the first fine step of each slot T the wheel noise n1 (eq. 4) is added to
+    the wheel speeds (``w`` float[2], zero elsewhere in the runner's draws); then one
+    :meth:`DiffDrive.substep`. At the last fine step of each slot the monitor advances:
+    the path progress (monotone windowed search), tube failure (distance > max_dev or a
+    non-finite state, before completion), the completion slot l and ``done``. From the
+    first sensing instant after completion the motors receive zero (``stop``).
+    ``measure`` returns (xi + n2, done) float[6]: the measurement eq. (8) and the local
+    side's completion flag.
+    """
+
+    loop: DiffDriveLoop
+    state_dim = STATE_DIM
+    input_dim = 2
+    noise_dim = 2
+    output_dim = OUTPUT_DIM + 1
+
+    def init(self, key) -> RobotState:
+        x0 = _x0(self.loop)
+        z = jnp.zeros((), jnp.int32)
+        f = jnp.zeros((), bool)
+        return RobotState(x0, z, z, f, f, jnp.asarray(self.loop.steps, jnp.int32), f, x0, jnp.zeros(2, jnp.float32))
+
+    def dynamics(self, x, u, w):
+        """One fine step of the state vector: noise w float[2] on the wheel speeds, then the substep."""
+        return self.loop.plant.substep(x.at[:2].add(w), u)
+
+    def step(self, s: RobotState, u, w) -> RobotState:
+        lp = self.loop
+        sub = lp.plant.sub
+        nf = lp.ns * sub
+        path, M = lp.path, lp.path.M
+        i = jnp.mod(s.t, sub)
+        stop = jnp.where(jnp.mod(s.t, nf) == 0, s.done, s.stop)
+        u = jnp.where(stop, 0.0, u)
+        x = jnp.where(i == 0, s.x.at[:2].add(w), s.x)
+        x1 = lp.plant.substep(x, u)
+        idx, dist = closest_index(path, x1[2:4], s.idx, lp.window)
+        at_end = (idx >= (9 * M) // 10) & (jnp.sum((x1[2:4] - path.points[-1]) ** 2) < lp.end_tol ** 2)
+        bad = s.bad | (~s.done & ((dist > lp.max_dev) | ~jnp.all(jnp.isfinite(x1))))
+        l = jnp.where(s.done, s.l, s.t // sub + 1)
+        done = s.done | at_end
+        e = i == sub - 1
+        return RobotState(x1, s.t + 1, jnp.where(e, idx, s.idx), jnp.where(e, done, s.done), stop,
+                          jnp.where(e, l, s.l), jnp.where(e, bad, s.bad), x, u)
+
+    def measure(self, s: RobotState, v):
+        return jnp.concatenate([self.loop.plant.measure(s.x, v[:OUTPUT_DIM]), s.done.astype(jnp.float32)[None]])
+
+    def process_std(self):
+        return self.loop.noise.process_std()
+
+    def measurement_std(self):
+        return jnp.concatenate([self.loop.noise.measurement_std(), jnp.zeros((1,), jnp.float32)])
+
+    def state_vector(self, s: RobotState):
+        return s.x
+
+    def record(self, s: RobotState):
+        """(x_in float[5], u float[2], l, done, bad) after each fine step."""
+        return s.x_in, s.u, s.l, s.done, s.bad
+
+
+class EkfState(NamedTuple):
+    prior: Gaussian     # belief for this sensing instant
+    post: Gaussian      # corrected belief (the estimate)
+    stop: jax.Array     # bool: the motors are stopped this period
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class DiffDriveEKF(AbstractEstimator):
+    """Scenario e's EKF (eq. 8-13) at the sensing period NT.
+
+    ``correct``: :func:`ekf_update` with the delivered measurement (xi + n2, eq. 8);
+    ``predict``: :func:`ekf_predict` with the NT model eq. (1)-(3), (7) and, per slot T, the
+    mean of the fine commands the motors received (``u_applied`` float[N*sub, 2]; zero
+    once the robot has stopped)."""
+
+    loop: DiffDriveLoop
+    inputs = "applied"
+
+    def init(self, ctx) -> EkfState:
+        g = Gaussian(_x0(self.loop), jnp.diag(jnp.asarray(self.loop.P0_std, jnp.float32) ** 2))
+        return EkfState(g, g, jnp.zeros((), bool))
+
+    def correct(self, state: EkfState, inbox: Inbox, k) -> EkfState:
+        z, _, w = inbox.newest()
+        post = ekf_update(self.loop.plant.measure, state.prior, z[:OUTPUT_DIM], self.loop.R, OUTPUT_DIM)
+        return EkfState(state.prior, blend(w, post, state.prior), blend(w, z[OUTPUT_DIM] > 0.5, state.stop))
+
+    def estimate(self, state: EkfState):
+        return state.post.mean
+
+    def predict(self, state: EkfState, u_applied, u_believed, k) -> EkfState:
+        lp = self.loop
+        u = jnp.where(state.stop, 0.0, u_applied)
+        u_eff = jnp.mean(u.reshape(lp.ns, lp.plant.sub, 2), axis=1)
+        prior = ekf_predict(lp.plant.dynamics, state.post, u_eff, lp.Q, PROCESS_NOISE_DIM)
+        return state._replace(prior=prior)
+
+
+class CtrlState(NamedTuple):
+    sr: jax.Array           # [2, n] single-rate PI states
+    dr: DualRateState       # dual-rate states, [2, n] each
+    idx: jax.Array          # pure-pursuit progress (local side)
+    u_pred: jax.Array       # [N, 2] e: actions predicted for the next period
+    w_com: jax.Array        # [2] the last wheel-speed references (eq. 20)
+    est: jax.Array          # [h+1, 5] the last estimates packet
+    U: jax.Array            # [ns, 2] the last period's actions u_{k|k}
+    u_prior: jax.Array      # [N, 2] the actions predicted for that period one period earlier
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class DiffDriveController(AbstractController):
+    """Pure pursuit (eq. 15-20) and the scenario's PI, one packet per sensing period.
+
+    a, b: single-rate PI (eq. 30-31), its action held over the period; c, d: dual rate
+    (eq. 21-22, 28-29), N actions at T; e: the h-step-ahead prediction stage
+    (:func:`predict_stage`, eq. 14), the actions of periods k .. k+h. The packet carries
+    them at the fine period (each action repeated sub times), stamped kN sub."""
+
+    loop: DiffDriveLoop
+
+    @property
+    def horizon(self) -> int:
+        lp = self.loop
+        return lp.ns * lp.plant.sub * (lp.h + 1 if lp.scenario == "e" else 1)
+
+    def init(self, ctx) -> CtrlState:
+        lp = self.loop
+        z2 = jnp.zeros(2, jnp.float32)
+        return CtrlState(jnp.zeros((2, lp.sr.order), jnp.float32), lp.dr.init((2,)), jnp.zeros((), jnp.int32),
+                         jnp.zeros((lp.N, 2), jnp.float32), z2, jnp.zeros((lp.h + 1, STATE_DIM), jnp.float32),
+                         jnp.zeros((lp.ns, 2), jnp.float32), jnp.zeros((lp.N, 2), jnp.float32))
+
+    def step(self, state: CtrlState, xhat, fresh, k, ctx):
+        lp = self.loop
+        est = xhat[:STATE_DIM]
+        if lp.scenario == "e":
+            states, Us, idx, dr = predict_stage(lp, est, state.idx, state.dr)
             U = Us[0]
-            w_com, _ = _wheel_ref(loop, est, c.idx)
-            sr = c.sr
+            w_com, _ = _wheel_ref(lp, est, state.idx)
+            sr, u_pred = state.sr, Us[1]
+            acts = Us.reshape(-1, 2)
         else:
-            est = z
-            U, w_com, idx, sr, dr = _control(loop, est, c.idx, c.sr, c.dr)
-            states = jnp.broadcast_to(est, (loop.h + 1, STATE_DIM))
-            Us = None
-        # command at every fine step of the period (section 2.2 for d and e)
-        before = df > fine_i
-        if loop.scenario == "d":
-            u_new = U[jnp.clip((fine_i - df) // sub, 0, ns - 1)]
-            u_seq = jnp.where(before[:, None], c.u_last[None, :], u_new)
-        elif loop.scenario == "e":
-            u_seq = jnp.where(before[:, None], c.u_pred[slot], U[slot])
-        else:
-            u_seq = U[slot]
-        u_seq = jnp.where(c.done, 0.0, u_seq)
+            U, w_com, idx, sr, dr = _control(lp, est, state.idx, state.sr, state.dr)
+            states = jnp.broadcast_to(est, (lp.h + 1, STATE_DIM))
+            u_pred, acts = state.u_pred, U
+        new = CtrlState(sr, dr, idx, u_pred, w_com, states, U, state.u_pred)
+        pkt = Packet(jnp.repeat(acts, lp.plant.sub, axis=0), (k * ctx.N).astype(jnp.int32))
+        return pkt, jnp.ones((), jnp.float32), new
 
-        def fast(fc, j):
-            x, idx_true, done, l, bad = fc
-            x = x.at[:2].add(w_k[j])                    # n1, every T (eq. 4)
-            x_start = x
+    def record(self, state: CtrlState):
+        """(w_com [2], est [h+1, 5], U [ns, 2], u_prior [N, 2]) after each step."""
+        return state.w_com, state.est, state.U, state.u_prior
 
-            def fine(x, i):
-                return plant.substep(x, u_seq[j * sub + i]), None
 
-            x, _ = jax.lax.scan(fine, x, jnp.arange(sub))
-            idx_true, dist = closest_index(path, x[2:4], idx_true, loop.window)
-            t = k * ns + j
-            at_end = (idx_true >= (9 * M) // 10) & (jnp.sum((x[2:4] - end) ** 2) < loop.end_tol ** 2)
-            bad = bad | (~done & ((dist > loop.max_dev) | ~jnp.all(jnp.isfinite(x))))
-            l = jnp.where(done, l, t + 1)
-            done = done | at_end
-            return (x, idx_true, done, l, bad), (x_start, u_seq[j * sub])
+class ArrivalState(NamedTuple):
+    u: jax.Array         # float[H, m] the newest packet's actions
+    stamp: jax.Array     # int32 its time stamp (the start of its period)
+    start: jax.Array     # int32 fine instant its first action started (_EMPTY: none yet)
+    pending: jax.Array   # bool: a packet was received and starts at the next output
+    last: jax.Array      # float[m] the last action applied
 
-        fc, (xs, us) = jax.lax.scan(fast, (c.x, c.idx_true, c.done, c.l, c.bad), jnp.arange(ns))
-        x, idx_true, done, l, bad = fc
-        if loop.scenario == "e":
-            u_eff = jnp.mean(u_seq.reshape(ns, sub, 2), axis=1)   # what the motors received per slot
-            belief = ekf_predict(plant.dynamics, corrected, u_eff, loop.Q, PROCESS_NOISE_DIM)
-            u_pred = Us[1]
-        else:
-            belief, u_pred = c.belief, c.u_pred
-        new = _Carry(x, sr, dr, idx, belief, u_pred, u_seq[-1], idx_true, done, l, bad)
-        return new, (xs, us, w_com, states, tau_k, U, c.u_pred)
 
-    carry0 = _Carry(x0, jnp.zeros((2, loop.sr.order), jnp.float32), loop.dr.init((2,)),
-                    jnp.zeros((), jnp.int32), belief0, jnp.zeros((N, 2), jnp.float32), jnp.zeros(2, jnp.float32),
-                    jnp.zeros((), jnp.int32), jnp.zeros((), bool), jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
-    xs_in = (jnp.arange(n_sense), w_noise, v_noise, d_fine, tau)
-    final, (xs, us, w_com, est, tau, U, u_prior) = jax.lax.scan(step, carry0, xs_in)
-    return Trajectory(x=xs.reshape(K, STATE_DIM), u=us.reshape(K, 2), w_com=w_com, est=est, delay=tau, u_plan=U, u_prior=u_prior,
-                      l=final.l, done=final.done, bad=final.bad)
+_EMPTY = -(2**30)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ArrivalActuator(AbstractActuator):
+    """Scenario d's actuator: a packet's actions (float[H, m], stamped with the start of
+    its period of H fast instants) start when it arrives, ``data[t - arrival]``, and stop
+    at the end of its period; outside that window the last action applied is held (zero
+    before the first packet). ``horizon``: static H."""
+
+    horizon: int = dataclasses.field(default=1, metadata=dict(static=True))
+
+    def init(self, ctx) -> ArrivalState:
+        m = ctx.input_dim
+        e = jnp.asarray(_EMPTY, jnp.int32)
+        return ArrivalState(jnp.zeros((self.horizon, m), jnp.float32), e, e, jnp.zeros((), bool),
+                            jnp.zeros((m,), jnp.float32))
+
+    def receive(self, state: ArrivalState, inbox: Inbox) -> ArrivalState:
+        data, stamp, w = inbox.newest()
+        take = w > 0.5
+        return state._replace(u=blend(w, jnp.asarray(data, jnp.float32), state.u),
+                              stamp=jnp.where(take, stamp, state.stamp), pending=state.pending | take)
+
+    def output(self, state: ArrivalState, t):
+        start = jnp.where(state.pending, t, state.start)
+        live = (start != _EMPTY) & (t < state.stamp + self.horizon)
+        u = jnp.where(live, state.u[jnp.clip(t - start, 0, self.horizon - 1)], state.last)
+        return u, state._replace(start=start, pending=jnp.zeros((), bool), last=u)
+
+
+def runner_loop(loop: DiffDriveLoop) -> runner.Loop:
+    """The scenario as a :class:`jaxnc.loop.Loop` at the fine period dt = T/sub.
+
+    Uplink without delay (the measurement is used at its sampling instant), downlink with
+    the truncated exponential delay (d, e) quantised up to dt; Passthrough estimate (a-d)
+    or :class:`DiffDriveEKF` (e); :class:`DiffDriveController`; actuator: the packet's
+    actions by time stamp (a-c; e: u_{k|k-1} of the previous packet until the new one
+    arrives), :class:`ArrivalActuator` (d). No failure freeze (the tube monitor lives in
+    :class:`Robot`)."""
+    sub = loop.plant.sub
+    nf = loop.ns * sub
+    ctrl = DiffDriveController(loop)
+    if loop.delayed:
+        down = Link(delay=TruncatedExponential(loop.eta, loop.phi, loop.tau_max))
+    else:
+        down = Link()
+    if loop.scenario == "d":
+        act = ArrivalActuator(horizon=ctrl.horizon)
+    else:
+        act = PacketActuator(horizon=ctrl.horizon, capacity=1, on_exhausted="hold")
+    est = DiffDriveEKF(loop) if loop.scenario == "e" else Passthrough(0.0)
+    return runner.Loop(plant=Robot(loop), trigger=Periodic(), uplink=Link(), estimator=est, controller=ctrl,
+                       downlink=down, actuator=act, monitor=runner.Monitor(freeze=False), N=nf,
+                       steps=loop.steps * sub, T=float(loop.plant.dt))
+
+
+def runner_draws(loop: DiffDriveLoop, key) -> runner.Draws:
+    """The runner's draws from :func:`draw` (``key`` split into 4): the wheel noise at the
+    first fine step of each slot T (zero at the others), the measurement noise of each
+    sensing instant (and 0 for the completion flag), the remote -> local delay of each
+    sensing period (:func:`truncated_delay`, quantised up to dt; 0 for a-c)."""
+    return _runner_draws(loop, draw(key, loop.steps), key)
+
+
+def _runner_draws(loop: DiffDriveLoop, d: Draws, key) -> runner.Draws:
+    ns, sub = loop.ns, loop.plant.sub
+    S = loop.steps // ns
+    w = (d.w * loop.noise.process_std()[None, :]).reshape(S, ns, 1, 2)
+    w = jnp.concatenate([w, jnp.zeros((S, ns, sub - 1, 2), jnp.float32)], axis=2).reshape(S, ns * sub, 2)
+    v = (d.v * loop.noise.measurement_std()[None, :])[::ns]
+    v = jnp.concatenate([v, jnp.zeros((S, 1), jnp.float32)], axis=1)
+    if loop.delayed:
+        delay = quantise_delay(_tau(loop, d), loop.plant.dt)
+    else:
+        delay = jnp.zeros((S,), jnp.int32)
+    zero = jnp.zeros((S,), jnp.int32)
+    return runner.Draws(w, v, LinkDraws(zero), LinkDraws(delay), key)
+
+
+def _tau(loop: DiffDriveLoop, d: Draws):
+    if loop.delayed:
+        return truncated_delay(d.u_rl[::loop.ns], loop.eta, loop.phi, loop.tau_max)
+    return jnp.zeros((loop.steps // loop.ns,), jnp.float32)
+
+
+def simulate(loop: DiffDriveLoop, key) -> Trajectory:
+    """One closed-loop run of ``loop.scenario`` on the runner (:func:`runner_loop`,
+    :func:`runner_draws`, :func:`jaxnc.loop.simulate`), as the scheme's Trajectory.
+    Pure function of (loop, key); vmap it over keys."""
+    sub = loop.plant.sub
+    d = draw(key, loop.steps)
+    tr = runner.simulate(runner_loop(loop), key, draws=_runner_draws(loop, d, key))
+    x_in, u, l, done, bad = tr.plant_rec
+    w_com, est, U, u_prior = tr.ctrl_rec
+    l, done = l[-1], done[-1]
+    # a non-finite action (zeroed by the runner) before completion is a failure too
+    bad = bad[-1] | (tr.failed & ((tr.fail_step - 1) // sub < l))
+    return Trajectory(x=x_in[::sub], u=u[::sub], w_com=w_com, est=est, delay=_tau(loop, d),
+                      u_plan=U, u_prior=u_prior, l=l, done=done, bad=bad)
 
 
 def reference_points(loop: DiffDriveLoop) -> jax.Array:
