@@ -5,7 +5,12 @@
 * :mod:`jaxnc.tune.gradient` -- :func:`tune`, optax on a Monte-Carlo objective with
   reparametrised constraints, temperature annealing and a progress bar;
 * :mod:`jaxnc.tune.search` -- grid / random search and successive halving with common
-  random numbers, the best point with its interval, and hard-trigger evaluation.
+  random numbers, the best point with its interval, and hard-trigger evaluation;
+* :mod:`jaxnc.tune.check` -- :func:`gradient_check`: which estimator agrees with finite
+  differences on *your* loop, and which to use;
+* :mod:`jaxnc.tune.loop_tune` -- :func:`tune_loop`: tune any :class:`jaxnc.loop.Loop` by
+  naming its leaves (search for static integers, gradient for the rest, hard-trigger
+  evaluation on fresh seeds); :func:`mc_mean`, a differentiable chunked Monte-Carlo mean.
 
 For objectives dominated by rare failures (a PETC loop that can leave its tube), search
 first and refine by gradient inside the winner's neighbourhood: ``autotune-mecanum``'s
@@ -16,6 +21,8 @@ from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temp
                                    straight_through)
 from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
     simulations_per_step, tune, unconstrain
+from jaxnc.tune.check import GradientCheck, gradient_check
+from jaxnc.tune.loop_tune import LoopTuneResult, get_path, mc_mean, set_paths, tune_loop
 from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, mean_ci, paired_ci, random_points,
                               search, successive_halving)
 
@@ -26,4 +33,5 @@ __all__ = [
     "unconstrain",
     "SearchResult", "evaluate", "grid", "halving_schedule", "mean_ci", "paired_ci", "random_points", "search",
     "successive_halving",
+    "GradientCheck", "gradient_check", "LoopTuneResult", "get_path", "mc_mean", "set_paths", "tune_loop",
 ]
