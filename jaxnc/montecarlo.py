@@ -59,6 +59,10 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
 
 # ----------------------------------------------------------------------------- batched runs
 
+#: seeds per vector group: chunks are padded to a multiple of this per device (16 float32
+#: lanes of a 512-bit vector unit; a multiple of the narrower units' widths too)
+LANES = 16
+
 # fn -> jit(vmap(fn)).  Weak keys so that a throw-away lambda (e.g. one per configuration)
 # and everything it closes over can be freed; the compiled wrapper reaches fn only through
 # a weak reference, otherwise the value would keep its own key alive.
@@ -117,13 +121,17 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     ``x`` of ``fn``'s output becomes an array of shape ``(len(keys), *x.shape)``.
 
     Row ``i`` of the result depends only on ``keys[i]`` and ``chunk_size``, not on the other
-    keys or on how many there are: with the same ``chunk_size`` (and devices) a seed is
-    bit-identical alone or in any batch.
+    keys, on how many there are or on its lane in the chunk: with the same ``chunk_size``
+    (and devices) a seed is bit-identical alone or in any batch (tested at the first, a
+    middle and the last lane, for chunk sizes that are and are not multiples of
+    :data:`LANES`). ``chunk_size`` is rounded up to a multiple of :data:`LANES` per device
+    (the compiler vectorises a batched loop that many lanes at a time and computes a
+    remainder with other code).
 
     **Several devices.** With more than one local device (GPUs, or CPU devices from
     ``jax.config.update("jax_num_cpu_devices", n)`` / ``jaxnc run --cpu-devices n``) each
     chunk is sharded over them along the seed axis (``jax.sharding``, ``args``
-    replicated); ``chunk_size`` is rounded up to a multiple of the device count. After
+    replicated); ``chunk_size`` is rounded up to a multiple of the device count (times :data:`LANES`). After
     ``jax.distributed.initialize()`` the same code spans several hosts' devices.  The compiled function is cached per ``fn`` object (weakly), so calling
     again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
     tqdm bar over seeds (on stderr) labelled ``desc``.
@@ -146,7 +154,12 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     # alone or in any batch only if both run through one compiled batch shape. Within
     # it, a lane's result does not depend on its position or its neighbours (tested).
     devices = jax.devices()
-    size = -(-chunk_size // len(devices)) * len(devices)
+    # each device's share is a whole number of vector groups (LANES): the CPU compiler
+    # vectorises a batched loop LANES float32 lanes at a time and computes a remainder
+    # with other code, so a lane there would differ in its last bits from the same seed
+    # in a full group
+    group = LANES * len(devices)
+    size = -(-chunk_size // group) * group
     if len(devices) > 1:
         place_keys = seed_sharding(devices)
         args = jax.device_put(args, jax.sharding.NamedSharding(place_keys.mesh, jax.sharding.PartitionSpec()))

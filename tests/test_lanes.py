@@ -1,0 +1,61 @@
+"""Bit-identity of a seed in every lane of a chunk (run_batched), on the loops of all four
+papers and the runner: the first, a middle and the last lane, for chunk sizes that are and
+are not multiples of the vector width (montecarlo.LANES)."""
+import jax
+import numpy as np
+import pytest
+
+from jaxnc import loop as nc
+from jaxnc import montecarlo
+
+
+def _runner_loop():
+    plant = nc.LTI(A=[[1.0, 0.1], [0.0, 0.95]], B=[[0.005], [0.1]], C=[[1.0, 0.0]], x0=[1.0, 0.0],
+                   w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
+    ekf = nc.EKF(plant, Q=np.diag([1e-4, 4e-4]), R=np.eye(1) * 0.0025, mean0=[0.0, 0.0], cov0=np.eye(2), buffer=2)
+    up = nc.Link(nc.Bernoulli(0.3), nc.PmfDelay([0.5, 0.3, 0.2]), order="all", capacity=4)
+    return nc.Loop(plant=plant, trigger=nc.Petc(delta=1e-3), uplink=up, estimator=ekf,
+                   controller=nc.StateFeedback([[3.0, 1.5]]), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   cost=nc.Quadratic(Q=[1.0, 0.1], R=[0.01]), N=1, steps=60, T=0.1)
+
+
+def _runner():
+    return (lambda k, lp: nc.run(lp, k).cost_raw), _runner_loop()
+
+
+def _mecanum():
+    from jaxnc.schemes import mecanum as mec
+    return (lambda k, lp: mec.tracking_cost(lp, k)), mec.mecanum_loop("DRHE", N=4, dp=0.5, horizon_s=12.0)
+
+
+def _hdd():
+    from jaxnc.schemes import hdd
+    y, ise = hdd.tts_reference(steps=120)
+    return (lambda k, lp: hdd.run(lp, k, y, ise, 0.5).ISEP), hdd.hdd_loop(4, steps=120)
+
+
+def _balancing():
+    from jaxnc.schemes import balancing as bal
+    return (lambda k, lp: bal.run(lp, k).tilt_max_deg), bal.balancing_loop("model", horizon_s=0.5)
+
+
+def _diffdrive():
+    from jaxnc.schemes import diffdrive as dd
+    return (lambda k, lp: dd.simulate(lp, k).x[-1]), dd.diffdrive_loop("e", horizon_s=4.0)
+
+
+LOOPS = {"runner": _runner, "mecanum": _mecanum, "hdd": _hdd, "balancing": _balancing, "diffdrive": _diffdrive}
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+@pytest.mark.parametrize("chunk", [20, 16])
+def test_every_lane_is_bit_identical_to_the_seed_alone(name, chunk):
+    fn, loop = LOOPS[name]()
+    keys = montecarlo.seed_keys(0, chunk)
+    full = np.asarray(montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=chunk, progress=False))
+    for i in (0, chunk // 2, chunk - 1):
+        alone = np.asarray(montecarlo.run_batched(fn, keys[i:i + 1], args=(loop,), chunk_size=chunk,
+                                                  progress=False))
+        np.testing.assert_array_equal(full[i], alone[0], err_msg=f"{name}, lane {i} of {chunk}")
+    rev = np.asarray(montecarlo.run_batched(fn, keys[::-1], args=(loop,), chunk_size=chunk, progress=False))
+    np.testing.assert_array_equal(rev[::-1], full, err_msg=f"{name}: reversing the chunk changes a seed")
