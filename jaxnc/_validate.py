@@ -8,16 +8,30 @@ from __future__ import annotations
 import numpy as np
 
 
-def _concrete(v):
+def _concrete(v, name="value"):
+    """``v`` as a float array when it is a concrete number, array or (nested) sequence of
+    numbers; None when it is a JAX array or tracer, or None itself (not checked: a
+    configuration used as a ``vmap`` ``in_axes`` prefix holds None and 0); ValueError for a
+    string, naming ``name``."""
     if isinstance(v, (bool, int, float, np.number)):
         return np.asarray(v, dtype=float)
     if isinstance(v, np.ndarray):
+        if v.dtype.kind not in "biuf":
+            raise ValueError(f"{name} must be a number or an array of numbers, got an array of {v.dtype}")
         return v.astype(float)
+    if isinstance(v, (list, tuple)):
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number or an array of numbers, got {v!r}") from None
+        return a
+    if isinstance(v, (str, bytes)):
+        raise ValueError(f"{name} must be a number, got {v!r}")
     return None
 
 
 def check_range(name, v, low=None, high=None, *, low_open=False, high_open=False):
-    a = _concrete(v)
+    a = _concrete(v, name)
     if a is None:
         return
     lo_ok = True if low is None else (np.all(a > low) if low_open else np.all(a >= low))

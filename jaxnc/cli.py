@@ -34,7 +34,8 @@ __all__ = ["main", "run_cli", "build_parser"]
 
 PROG = "jaxnc"
 DEFAULT_SEEDS = 1000
-_SEEDS = _exp.Option("--seeds", "int", DEFAULT_SEEDS, "number of Monte-Carlo seeds", low=1)
+# seed indices are uint32 (jaxnc.montecarlo.seed_keys)
+_SEEDS = _exp.Option("--seeds", "int", DEFAULT_SEEDS, "number of Monte-Carlo seeds", low=1, high=2**32 - 1)
 _CPU_DEVICES = _exp.Option("--cpu-devices", "int", 1, "CPU devices", low=1, high=256)
 
 
@@ -63,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "module (the current directory is importable, as with python -m), "
                         "e.g. mystudy:experiment")
     r.add_argument("--seeds", default=str(DEFAULT_SEEDS), metavar="N",
-                   help=f"number of Monte-Carlo seeds, an integer >= 1 (default {DEFAULT_SEEDS})")
+                   help=f"number of Monte-Carlo seeds, an integer in [1, {2**32 - 1}] (default {DEFAULT_SEEDS})")
     r.add_argument("--out", default=None, metavar="DIR",
                    help="output directory (default results/NAME, the experiment's name)")
     r.add_argument("--set", "-s", dest="settings", action="extend", nargs="+", default=[],

@@ -19,6 +19,7 @@ import inspect
 import math
 import os
 import pathlib
+import re
 import sys
 import warnings
 from typing import Callable
@@ -28,6 +29,9 @@ __all__ = ["ConfigError", "Option", "Experiment", "REGISTRY", "register", "get_e
 
 KINDS = ("int", "float", "choice", "floats", "ints", "bool")
 _TRUE = ("true", "yes", "on", "1")
+# plain ASCII numbers only: Python's int()/float() also take full-width digits and "1_0"
+_INT_RE = re.compile(r"[+-]?[0-9]+\Z")
+_FLOAT_RE = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?\Z")
 _FALSE = ("false", "no", "off", "0")
 
 
@@ -111,11 +115,21 @@ class Option:
         return (self.low is None or x >= self.low) and (self.high is None or x <= self.high)
 
     def _float(self, item: str, text: str) -> float:
-        try:
-            x = float(item)
-        except ValueError:
-            raise self._error(text) from None
+        if not _FLOAT_RE.match(item):
+            raise self._error(text)
+        x = float(item)
         if not math.isfinite(x) or not self._in_range(x):
+            raise self._error(text)
+        mantissa = re.split(r"[eE]", item)[0]
+        if x == 0.0 and re.search(r"[1-9]", mantissa):
+            raise ConfigError(f"{self.name} must be {self.range_text()}, got {text!r}, which underflows to 0")
+        return x
+
+    def _int(self, item: str, text: str) -> int:
+        if not _INT_RE.match(item):
+            raise self._error(text)
+        x = int(item, 10)
+        if not self._in_range(x):
             raise self._error(text)
         return x
 
@@ -123,13 +137,7 @@ class Option:
         """Parse the command-line text of this option; :class:`ConfigError` if invalid."""
         s = str(text).strip()
         if self.kind == "int":
-            try:
-                x = int(s, 10)
-            except ValueError:
-                raise self._error(text) from None
-            if not self._in_range(x):
-                raise self._error(text)
-            return x
+            return self._int(s, text)
         if self.kind == "float":
             return self._float(s, text)
         if self.kind == "floats":
@@ -141,16 +149,7 @@ class Option:
             items = [p.strip() for p in s.split(",")]
             if not s or any(not p for p in items):
                 raise self._error(text)
-            out = []
-            for p in items:
-                try:
-                    x = int(p, 10)
-                except ValueError:
-                    raise self._error(text) from None
-                if not self._in_range(x):
-                    raise self._error(text)
-                out.append(x)
-            return tuple(out)
+            return tuple(self._int(p, text) for p in items)
         if self.kind == "bool":
             low = s.lower()
             if low in _TRUE:
@@ -206,14 +205,18 @@ class Experiment:
         raise ConfigError(f"unknown setting {key!r} for experiment {self.name!r}; valid keys: {valid}")
 
     def parse_settings(self, pairs: list[str]) -> dict:
-        """``["KEY=VALUE", ...]`` -> the defaults updated (later pairs win)."""
+        """``["KEY=VALUE", ...]`` -> the defaults updated; a key given twice is an error."""
         settings = self.defaults()
+        seen: dict[str, str] = {}
         for pair in pairs or ():
             key, sep, value = str(pair).partition("=")
             key = key.strip()
             if not sep or not key:
                 raise ConfigError(f"malformed setting {pair!r}: expected KEY=VALUE")
             opt = self.option(key)
+            if opt.name in seen:
+                raise ConfigError(f"setting {opt.name!r} given twice ({seen[opt.name]!r} and {pair!r}); give it once")
+            seen[opt.name] = str(pair)
             settings[opt.name] = opt.parse(value)
         if self.check is not None:
             self.check(settings)

@@ -47,12 +47,18 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
     ``seed_keys(s, 5, start=5)[2]`` are bitwise the same key and a seed's trajectory is the
     same whatever the batch it runs in.
     """
-    n, start = int(n), int(start)
+    for name, v in (("seed", seed), ("n", n), ("start", start)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise ValueError(f"seed_keys: {name} must be an integer, got {v!r}")
+    seed, n, start = int(seed), int(n), int(start)
+    if not 0 <= seed < 2**32:
+        # PRNGKey keeps 32 bits of a seed in this range: 2**32 would give seed 0's keys
+        raise ValueError(f"seed_keys: seed must be in [0, {2**32 - 1}], got {seed}")
     if n < 0 or start < 0:
         raise ValueError(f"seed_keys: n and start must be >= 0, got n={n}, start={start}")
     if start + n > 2**32:
         raise ValueError(f"seed_keys: seed indices must fit in uint32, got start+n={start + n}")
-    base = jax.random.PRNGKey(int(seed))
+    base = jax.random.PRNGKey(seed)
     idx = jnp.arange(start, start + n, dtype=jnp.uint32)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
 
@@ -136,12 +142,16 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
     tqdm bar over seeds (on stderr) labelled ``desc``.
     """
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"run_batched: chunk_size must be an integer >= 1, got {chunk_size!r}")
     chunk_size = int(chunk_size)
-    if chunk_size < 1:
-        raise ValueError(f"run_batched: chunk_size must be >= 1, got {chunk_size}")
     keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
-    if keys.ndim < 1:
-        raise ValueError("run_batched: keys must have a leading batch axis")
+    if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
+        if keys.ndim != 1:
+            raise ValueError(f"run_batched: typed keys must be a 1-D array of keys, got shape {keys.shape}")
+    elif keys.dtype != jnp.uint32 or keys.ndim != 2 or keys.shape[1] != 2:
+        raise ValueError(f"run_batched: keys must be raw uint32 keys of shape (n, 2) (from seed_keys) or a 1-D "
+                         f"array of typed keys, got {keys.dtype} of shape {keys.shape}")
     n = int(keys.shape[0])
     batched = _compiled(fn)
     if n == 0:
@@ -349,6 +359,15 @@ def load_results(path) -> dict:
     """Read a file written by :func:`save_results`; the strings "inf"/"-inf"/"nan" become floats.
 
     (Any string value exactly equal to one of those three is converted, wherever it is.)
+    Raises ValueError naming the file (and the line) when it is not valid JSON or not text;
+    OSError when it cannot be read.
     """
-    with open(path, encoding="utf-8") as f:
-        return _restore(json.load(f))
+    path = pathlib.Path(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            return _restore(json.load(f))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not a jaxnc results file (invalid JSON at line {e.lineno}, column {e.colno}: "
+                         f"{e.msg}; truncated or damaged?)") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a jaxnc results file (not UTF-8 text at byte {e.start})") from None

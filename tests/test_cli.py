@@ -60,8 +60,10 @@ def assert_one_line_error(capsys, *fragments):
 
 def test_option_parse_values():
     assert DUMMY.parse_settings([]) == {"case": "all", "N": 10, "dp": 0.5, "sigma": (0.1, 0.2), "plot": True}
-    s = DUMMY.parse_settings(["N=12", "dp=0", "case=DRH", "sigma=1, 2,3", "plot=no", "N=3"])
+    s = DUMMY.parse_settings(["dp=0", "case=DRH", "sigma=1, 2,3", "plot=no", "N=3"])
     assert s == {"case": "DRH", "N": 3, "dp": 0.0, "sigma": (1.0, 2.0, 3.0), "plot": False}
+    with pytest.raises(ConfigError, match=r"setting 'N' given twice \('N=12' and 'N=3'\)"):
+        DUMMY.parse_settings(["N=12", "N=3"])
     assert DUMMY.parse_settings(["case=drhe"])["case"] == "DRHE"      # unique case-insensitive
 
 
@@ -146,8 +148,8 @@ def test_run_defaults(tmp_path, monkeypatch):
     (["run", "dummy", "--set", "dp=abc"], ["dp must be a number in [0, 0.95], got 'abc'"]),
     (["run", "dummy", "--set", "case=XX"], ["case must be one of SR, DR, DRH, DRHE, all"]),
     (["run", "dummy", "--set", "N"], ["malformed setting 'N'"]),
-    (["run", "dummy", "--seeds", "0"], ["--seeds must be an integer >= 1, got '0'"]),
-    (["run", "dummy", "--seeds", "many"], ["--seeds must be an integer >= 1, got 'many'"]),
+    (["run", "dummy", "--seeds", "0"], ["--seeds must be an integer in [1, 4294967295], got '0'"]),
+    (["run", "dummy", "--seeds", "many"], ["--seeds must be an integer in [1, 4294967295], got 'many'"]),
     (["run", "dummy", "--bogus"], ["unrecognized arguments: --bogus"]),
     (["frobnicate"], ["invalid choice"]),
 ])
