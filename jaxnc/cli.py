@@ -71,6 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="KEY=VALUE", help="override a setting; repeatable (see 'jaxnc list')")
     r.add_argument("--no-progress", dest="progress", action="store_false",
                    help="do not show progress bars")
+    r.add_argument("--cache-dir", default=None, metavar="DIR",
+                   help="JAX's persistent compilation cache folder (default: $JAXNC_CACHE_DIR, else "
+                        "~/.cache/jaxnc/xla): a second run of the same programs skips compilation")
+    r.add_argument("--no-cache", dest="cache", action="store_false",
+                   help="do not use the persistent compilation cache")
     r.add_argument("--cpu-devices", default=None, metavar="N",
                    help="split the CPU into N JAX devices and shard the seeds over them "
                         "(an integer >= 1; default: JAX's, one)")
@@ -118,6 +123,12 @@ def _run(args) -> int:
             jax.config.update("jax_num_cpu_devices", n)
         except RuntimeError as e:              # the backend was already initialised
             raise ConfigError(f"--cpu-devices: {e}") from None
+    if args.cache:
+        from jaxnc.cache import enable_cache
+        try:
+            enable_cache(args.cache_dir)
+        except OSError as e:
+            raise ConfigError(f"--cache-dir: cannot create directory '{args.cache_dir}': {e.strerror or e}") from None
     out = pathlib.Path(args.out) if args.out is not None else pathlib.Path("results") / exp.name
     try:
         out.mkdir(parents=True, exist_ok=True)
