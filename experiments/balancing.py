@@ -82,11 +82,11 @@ def plot(loops: dict, key, out: Path, sevs) -> Path:
             loop = loops[(sev, d)]
             sc, ca = bal.traces(key, ch, ch, loop.steps)
             tr = jax.device_get(jax.jit(bal.simulate)(loop, sc, ca, jax.random.fold_in(key, 2)))
-            t = np.arange(loop.steps) * loop.plant.Ts
-            lab = f"{d}" + (" (fell)" if bool(tr.fallen) else "")
+            t = np.arange(loop.steps) * loop.T
+            lab = f"{d}" + (" (fell)" if bool(tr.failed) else "")
             axes[0, j].plot(t, np.rad2deg(tr.x[:, 1]), lw=0.8, label=lab)
             axes[1, j].plot(t, tr.x[:, 0], lw=0.8, label=lab)
-        axes[1, j].plot(t, tr.ref, "k--", lw=0.8, label="reference")
+        axes[1, j].plot(t, np.asarray(bal.reference(loop)), "k--", lw=0.8, label="reference")
         axes[0, j].set_title(f"network: {sev} (seed 0)")
         axes[0, j].set_ylabel("tilt (deg)")
         axes[1, j].set_ylabel("wheel angle (rad)")
@@ -106,8 +106,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     summary, raw = {}, {}
     for (sev, d), loop in loops.items():
-        ch = bal.SEVERITIES[sev]
-        m = montecarlo.run_batched(lambda k, loop=loop, ch=ch: bal.run(loop, k, ch, ch), keys,
+        # the loop's links carry the severity's channel in both directions
+        m = montecarlo.run_batched(lambda k, loop=loop: bal.run(loop, k), keys,
                                    chunk_size=min(settings["chunk"], seeds), progress=progress,
                                    desc=f"{sev:>8} {d:>9}")
         summary[f"{sev} / {d}"] = summarise(m)

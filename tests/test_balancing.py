@@ -90,7 +90,7 @@ def test_perfect_network_balances_and_tracks_the_step(design):
     assert float(m.tilt_max_deg) < 10.0
     tr = jax.jit(bal.simulate)(loop, np.zeros(loop.steps, np.int32), np.zeros(loop.steps, np.int32),
                                jax.random.PRNGKey(1))
-    pos = float(loop.plant.r) * (float(tr.x[-1, 0]) + float(tr.x[-1, 1]))
+    pos = float(loop.plant.robot.r) * (float(tr.x[-1, 0]) + float(tr.x[-1, 1]))
     assert abs(pos - 0.1) < 0.02                                  # within 2 cm of the 0.1 m step after 2 s
 
 

@@ -151,3 +151,36 @@ def test_newest_arrival_matches_bruteforce():
     for j in range(300):
         cand = [(k + t[k], k) for k in range(300) if t[k] >= 0 and k + t[k] <= j]
         assert got[j] == (max(cand)[1] if cand else -1)
+
+
+def test_link_in_arrival_order_replays_newest_arrival():
+    """jaxnc.loop.Link(order="arrival"), read every step, holds what wifi.newest_arrival
+    says (a packet later than capacity - 1 steps is overwritten in the ring: lost); the
+    "newest" order instead drops a packet older than one delivered before."""
+    from jaxnc import loop as nc
+
+    rng = np.random.default_rng(2)
+    t = rng.integers(-1, 9, 400).astype(np.int32)
+    t[50:120] = wifi.LOST                                      # an outage longer than the ring
+
+    def replay(order, C):
+        link = nc.Link(order=order, capacity=C)
+
+        def step(carry, inp):
+            state, held = carry
+            k, d = inp
+            state = link.send(state, jnp.float32(0.0), k, k, jnp.float32(1.0), d, k)
+            box, state = link.inbox(state, k)
+            _, stamp, w = box.newest()
+            held = jnp.where(w > 0, stamp, held)
+            return (state, held), held
+
+        carry0 = (link.init(jnp.float32(0.0)), jnp.int32(-1))
+        return jax.lax.scan(step, carry0, (jnp.arange(t.size, dtype=jnp.int32), t))[1]
+
+    for C in (4, 9, 32):
+        got = np.asarray(jax.jit(replay, static_argnums=(0, 1))("arrival", C))
+        np.testing.assert_array_equal(got, np.asarray(wifi.newest_arrival(t, max_delay=C - 1)))
+    newest = np.asarray(jax.jit(replay, static_argnums=(0, 1))("newest", 32))
+    assert np.all(np.diff(newest) >= 0)                        # stamps never go back
+    assert not np.array_equal(newest, np.asarray(wifi.newest_arrival(t)))

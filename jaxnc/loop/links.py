@@ -16,7 +16,10 @@ Ordering policies (``order``):
   delivered before (older ones arriving late, out of order, are dropped); of several
   arriving together, the newest;
 * ``"all"``: every packet is delivered at its arrival instant (a receiver with a
-  buffer, e.g. the time-stamped filter, sorts them by stamp itself).
+  buffer, e.g. the time-stamped filter, sorts them by stamp itself);
+* ``"arrival"``: a receiver without time stamps (seed 001's emulation design, eq. 5):
+  every arrival replaces what it holds, even a packet older than one delivered before;
+  of several arriving together, the newest (:func:`jaxnc.wifi.newest_arrival`).
 
 Loss models: :class:`NoLoss`, :class:`Bernoulli` (seed 000 eq. 5),
 :class:`GilbertElliott` (bursts), :class:`TraceLoss` (recorded). Delay models:
@@ -281,7 +284,7 @@ class Link:
       tau_max: seconds; later packets are discarded (None: never).
       reliable_first: static; the packet of the first slow instant is never lost or late
         (a start-up handshake).
-      order: static, ``"newest"`` or ``"all"`` (module docstring).
+      order: static, ``"newest"``, ``"all"`` or ``"arrival"`` (module docstring).
       capacity: static ring length C (transmissions remembered), >= 1.
     """
 
@@ -293,8 +296,8 @@ class Link:
     capacity: int = _static(2)
 
     def __post_init__(self):
-        if self.order not in ("newest", "all"):
-            raise ValueError(f"Link.order must be one of newest, all, got {self.order!r}")
+        if self.order not in ("newest", "all", "arrival"):
+            raise ValueError(f"Link.order must be one of newest, all, arrival, got {self.order!r}")
         check_int("Link.capacity", self.capacity, 1, 100_000)
         if self.tau_max is not None:
             check_range("Link.tau_max", self.tau_max, 0.0, None)
@@ -365,11 +368,13 @@ class Link:
         """What the receiver gets at fast instant ``t``, and the ring with it marked delivered."""
         arrived = state.arrival <= t
         now = arrived & ~state.delivered
-        if self.order == "newest":
+        if self.order in ("newest", "arrival"):
             key = jnp.where(now, state.stamp, -(2**30))
             i = jnp.argmax(key)
-            pick = (jnp.arange(self.capacity) == i) & now & (state.stamp > state.last)
-            last = jnp.where(jnp.any(pick), state.stamp[i], state.last)
+            pick = (jnp.arange(self.capacity) == i) & now
+            if self.order == "newest":
+                pick = pick & (state.stamp > state.last)
+            last = jnp.where(jnp.any(pick), jnp.maximum(state.stamp[i], state.last), state.last)
         else:
             pick = now
             last = jnp.maximum(state.last, jnp.max(jnp.where(now, state.stamp, -(2**30))))

@@ -1,119 +1,421 @@
-"""Balancing robot over Wi-Fi at 1 kHz (seed 001, sections 2, 3 and 5): two closed loops.
+"""Balancing robot over Wi-Fi at 1 kHz (seed 001, sections 2, 3 and 5): two loops on the runner.
 
-Both loops replay the same pair of one-way network traces (``jaxnc.wifi``): ``sc`` for
-robot -> controller packets (one measurement per step) and ``ca`` for controller ->
-robot packets (one command per step), so every design meets the identical network.
+Both designs are configurations of :class:`jaxnc.loop.Loop` at one rate (``N = 1``, the
+fast period is the robot's 1 ms step) and replay the same pair of one-way network traces
+(:mod:`jaxnc.wifi`): ``sc`` for robot -> controller packets (one measurement per step) and
+``ca`` for controller -> robot packets (one command per step). The traces go into the
+runner's :class:`~jaxnc.loop.Draws` as the links' delays (:func:`draws`), so every design
+meets the identical network and noise.
 
-**Model-based** (section 2): the controller runs the buffered Kalman filter (eq. 9-15,
-buffer ``N_buf``) to get ``x_{k|k-1}``, predicts ``lead`` steps ahead with the commands
-already sent, and sends ``u_{k+lead} = L (x_{k+lead} - x_ref)`` stamped ``k + lead``
-(eq. 16; ``L`` hold-aware, eq. 17-19, or plain LQR).  The actuator applies the command
-stamped ``k`` if it arrived in time (``theta_k^k = 1``), otherwise it holds the last one
-(eq. 4) or applies zero (zero strategy); out-of-time packets are discarded.  The filter
-assumes the stamped commands were applied (eq. 14).
+**Model-based** (``design="model"``, section 2):
 
-**Emulation** (section 2, eq. 5; section 5): no time stamps.  The controller uses the
-most recently arrived measurement, held when nothing new arrives (eq. 5), gets the rates
-by differentiating it (a first-order "dirty" derivative, time constant ``tau_d``; with
-``tau_d = 0`` the plain difference) and applies the LQR designed for the ideal loop.  The
-actuator applies the most recently arrived command and holds it.
+* uplink: every measurement is sent (``Periodic``); the link keeps a ring of
+  ``N_buf + 2`` packets and delivers all of them (``order="all"``);
+* estimator: :class:`BufferedKalman`, the buffered Kalman filter of eq. 9-15
+  (:mod:`jaxnc.estimators.buffered_kf`) over the ring: at step k the slots
+  ``t = k - N_buf .. k - 1`` with ``gamma_t^k`` = "packet t has arrived by k"; a
+  measurement later than ``N_buf`` steps is lost. It returns ``x_{k|k-1}`` and
+  propagates with the commands the controller sent for each step (eq. 14);
+* controller: :class:`LeadFeedback` predicts ``lead`` steps along its plan of the
+  commands already sent and sends ``u_{k+lead} = sat(L (x_{k+lead} - x_ref))`` stamped
+  ``k + lead`` (eq. 16; ``L`` hold-aware, eq. 17-19, or plain LQR);
+* actuator: :class:`~jaxnc.loop.PacketActuator` with one action per packet: the
+  command stamped k if it arrived in time (``theta_k^k = 1``, delay <= ``lead``),
+  otherwise hold the last applied (eq. 4) or zero. In the first ``lead`` steps no
+  command exists yet and it applies 0.
+
+**Emulation** (``design="emulation"``, eq. 5 and section 5): no time stamps. Both links
+use ``order="arrival"``: the receiver takes whatever arrives now, even an older packet
+than the one it holds. :class:`DirtyDerivative` holds the most recently arrived
+measurement and gets the rates by a first-order ("dirty") derivative with time constant
+``tau_d`` (the plain difference for ``tau_d = 0``); :class:`LeadFeedback` with
+``lead = 0`` applies the LQR designed for the ideal loop; :class:`ArrivalHold` applies the
+most recently arrived command and holds it (0 before the first).
+
+Start-up: both estimators know the first measurement ``y_0`` at k = 0 (a handshake), the
+robot at rest: the filter's prior mean is ``C' y_0``, the observer holds ``y_0``.
 
 Scenario (section 5): initial tilt 5 deg, wheel-angle step at 15 s for a 0.1 m
-translation.  A run *falls* when |theta| exceeds ``tilt_limit`` (30 deg) at any step;
-the plant is frozen from then on (divergence is data, never an exception).
+translation (:class:`StepReference`). A run *falls* when |theta| exceeds ``tilt_limit``
+(30 deg) or the state is not finite; the runner's :class:`~jaxnc.loop.Monitor` freezes
+the plant at its last state from then on (divergence is data, never an exception).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxnc import loop as nc
 from jaxnc import wifi
 from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
 from jaxnc.controllers.hold_lq import dlqr, hold_lq_gain
-from jaxnc.estimators.buffered_kf import BufferedKF, bkf_estimate, bkf_init, bkf_push
+from jaxnc.estimators.buffered_kf import BufferedKF, BufferedKFState, bkf_estimate, bkf_init, bkf_push
+from jaxnc.estimators.ekf import Gaussian
 from jaxnc.plants.balancing import Balancing
+
+__all__ = ["DESIGNS", "W_LQ", "U_LQ", "SEVERITIES", "Robot", "StepReference", "BufferedKalman",
+           "DirtyDerivative", "LeadFeedback", "ArrivalHold", "balancing_loop", "draws", "traces", "simulate",
+           "reference", "metrics", "run", "run_seed", "Metrics"]
 
 DESIGNS = ("model", "emulation")
 # LQ weights: 0.5 rad of wheel angle, 0.05 rad of tilt, 5 and 0.5 rad/s, 100 rad/s^2 of input
 W_LQ = np.diag([1 / 0.5**2, 1 / 0.05**2, 1 / 5.0**2, 1 / 0.5**2])
 U_LQ = np.array([[1 / 100.0**2]])
-_BIG = 2**30
+_F32 = jnp.float32
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class BalancingLoop:
-    """One closed-loop configuration; build it with :func:`balancing_loop`."""
+def _static(default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata=dict(static=True))
 
-    plant: Balancing
+
+def _dataclass(cls):
+    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
+
+
+# ----------------------------------------------------------------------------- plant
+
+
+@_dataclass
+class Robot(nc.AbstractPlant):
+    """The nonlinear robot of :mod:`jaxnc.plants.balancing` as a loop plant.
+
+    ``x = (delta, theta, delta', theta')``, ``u`` float[1] (wheel acceleration),
+    ``w`` float[2] (servo error, tilt acceleration; rad/s^2), measurement
+    ``z = (encoder-quantised delta, theta + sigma_theta v[1])`` with ``v[1]`` standard
+    normal (``v[0]`` unused: the encoder's error is its quantisation). Starts at rest with
+    tilt ``theta0`` (rad).
+    """
+
+    robot: Balancing
+    theta0: Any
+
+    state_dim = 4
+    input_dim = 1
+    noise_dim = 2
+    output_dim = 2
+
+    def dynamics(self, x, u, w):
+        return self.robot.dynamics(x, u, w)
+
+    def measure(self, x, v):
+        q = self.robot.encoder_step
+        return jnp.stack([q * jnp.round(x[0] / q), x[1] + self.robot.sigma_theta * v[1]])
+
+    def process_std(self):
+        return jnp.stack([self.robot.w_servo, self.robot.w_theta]).astype(_F32)
+
+    def measurement_std(self):
+        return jnp.asarray([0.0, 1.0], _F32)            # v[1] in units of sigma_theta
+
+    def init(self, key):
+        th = jnp.asarray(self.theta0, _F32)
+        return jnp.stack([0.0 * th, th, 0.0 * th, 0.0 * th])
+
+
+@_dataclass
+class StepReference:
+    """Wheel-angle step of ``step_m`` metres (``step_m / r`` rad) at ``t_step`` seconds:
+    ``x_ref(k) = (d(k), 0, 0, 0)`` at step k of period ``Ts`` (static)."""
+
+    step_m: Any
+    t_step: Any
+    r: Any
+    Ts: float = _static(1e-3)
+
+    def wheel(self, k):
+        """float[...]: the wheel-angle reference at steps ``k`` (int)."""
+        on = jnp.asarray(k).astype(_F32) * self.Ts >= self.t_step
+        return jnp.where(on, self.step_m / self.r, 0.0)
+
+    def __call__(self, k):
+        d = self.wheel(k)
+        return jnp.stack([d, 0.0 * d, 0.0 * d, 0.0 * d])
+
+
+# ----------------------------------------------------------------------------- estimators
+
+
+class BufferedKalmanState(NamedTuple):
+    buf: BufferedKFState   # base x_{k-N|k-N-1} and the slots t = k-N .. k-1
+    pred: Gaussian         # x_{k|k-1}, the estimate at this step
+    next_base: Gaussian    # x_{k-N+1|k-N}, the base after this step
+
+
+@_dataclass
+class BufferedKalman(nc.AbstractEstimator):
+    """Buffered Kalman filter (seed 001 eq. 9-15) over the uplink's ring, one rate (N = 1).
+
+    At step k it re-runs the slots ``t = k - kf.N .. k - 1`` (:func:`bkf_estimate`), using
+    the measurement of slot t where its packet has arrived by k (``Inbox.arrived`` and
+    the stamp t in the ring), and returns ``x_{k|k-1}``; then it drops the oldest slot and
+    appends step k with the command the controller sent for it (``inputs="believed"``,
+    eq. 14). The uplink's capacity must be >= ``kf.N + 1``. At k = 0 the prior mean is
+    ``C' y_0`` (the first measurement, robot at rest) with covariance ``cov0``.
+
+    Attributes: kf, the :class:`~jaxnc.estimators.buffered_kf.BufferedKF` (model and
+    buffer length); cov0 float[n, n].
+    """
+
     kf: BufferedKF
-    L: jax.Array            # (1, 4) model-based gain, u = L (x - x_ref)
-    K: jax.Array            # (1, 4) LQR gain of the emulation design, u = -K (x - x_ref)
-    P0: jax.Array           # (4, 4) prior covariance of the filter
-    tau_d: jax.Array        # differentiating observer time constant, s
-    theta0: jax.Array       # initial tilt, rad
-    step_m: jax.Array       # translation of the reference step, m
-    t_step: jax.Array       # time of the step, s
-    tilt_limit: jax.Array   # fallen when |theta| exceeds this, rad
-    design: str = dataclasses.field(default="model", metadata=dict(static=True))
-    hold: bool = dataclasses.field(default=True, metadata=dict(static=True))
-    lead: int = dataclasses.field(default=2, metadata=dict(static=True))
-    ring: int = dataclasses.field(default=32, metadata=dict(static=True))
-    steps: int = dataclasses.field(default=25_000, metadata=dict(static=True))
+    cov0: Any
+
+    inputs = "believed"
+
+    def init(self, ctx) -> BufferedKalmanState:
+        n, p, m = ctx.state_dim, ctx.output_dim, ctx.input_dim
+        buf = bkf_init(jnp.zeros((n,), _F32), jnp.asarray(self.cov0, _F32), self.kf.N, p, m)
+        return BufferedKalmanState(buf, buf.base, buf.base)
+
+    def correct(self, state: BufferedKalmanState, inbox: nc.Inbox, k) -> BufferedKalmanState:
+        buf = state.buf
+        C = inbox.stamp.shape[0]
+        if C < self.kf.N + 1:
+            raise ValueError(f"BufferedKalman needs an uplink capacity >= N_buf + 1 = {self.kf.N + 1}, got {C}")
+        idx = jnp.mod(buf.t, C)
+        y = inbox.data[idx]
+        gamma = inbox.arrived[idx] & (inbox.stamp[idx] == buf.t)
+        start = self.kf.C.T @ inbox.data[0]
+        base = buf.base._replace(mean=jnp.where(k == 0, start, buf.base.mean))
+        buf = buf._replace(base=base, y=y)
+        pred, next_base = bkf_estimate(self.kf, buf, gamma)
+        return BufferedKalmanState(buf, pred, next_base)
+
+    def estimate(self, state: BufferedKalmanState):
+        return state.pred.mean
+
+    def predict(self, state: BufferedKalmanState, u_applied, u_believed, k) -> BufferedKalmanState:
+        p = state.buf.y.shape[1]
+        buf = bkf_push(state.buf, state.next_base, jnp.zeros((p,), _F32), u_believed[0], k)
+        return state._replace(buf=buf)
+
+
+class DirtyDerivativeState(NamedTuple):
+    z: jax.Array      # float[p] the held measurement
+    rate: jax.Array   # float[p] its filtered derivative
+
+
+@_dataclass
+class DirtyDerivative(nc.AbstractEstimator):
+    """The differentiating observer of the emulation design (seed 001 eq. 5).
+
+    Holds the newest delivered measurement ``zbar`` (with the uplink's ``order="arrival"``,
+    the most recently arrived) and filters its difference,
+    ``r_k = a r_{k-1} + (1 - a) (zbar_k - zbar_{k-1}) / Ts``, ``a = exp(-Ts / tau_d)``
+    (``a = 0`` for ``tau_d = 0``: the plain difference). The estimate is ``(zbar, r)``
+    (for the robot: delta, theta and their rates). At k = 0 it holds ``y_0``.
+
+    Attributes: tau_d (s, >= 0); Ts, static period (s).
+    """
+
+    tau_d: Any
+    Ts: float = _static(1e-3)
+
+    inputs = "applied"
 
     def __post_init__(self):
-        if self.design not in DESIGNS:
-            raise ValueError(f"design must be one of {', '.join(DESIGNS)}, got {self.design!r}")
-        check_int("lead", self.lead, 1, 50)
-        check_int("ring", self.ring, 2, 10_000)
-        check_int("steps", self.steps, 1)
-        check_nonneg("tau_d", self.tau_d)
-        check_range("tilt_limit", self.tilt_limit, 0.0, np.pi / 2, low_open=True)
+        check_nonneg("DirtyDerivative.tau_d", self.tau_d)
+        check_positive("DirtyDerivative.Ts", self.Ts)
+
+    def init(self, ctx) -> DirtyDerivativeState:
+        z = jnp.zeros((ctx.output_dim,), _F32)
+        return DirtyDerivativeState(z, z)
+
+    def correct(self, state: DirtyDerivativeState, inbox: nc.Inbox, k) -> DirtyDerivativeState:
+        prev = jnp.where(k == 0, inbox.data[0], state.z)
+        z, _, w = inbox.newest()
+        z = jnp.where(w > 0.5, z, prev)
+        tau = jnp.asarray(self.tau_d, _F32)
+        a = jnp.where(tau > 0, jnp.exp(-self.Ts / jnp.maximum(tau, 1e-9)), 0.0)
+        rate = a * state.rate + (1.0 - a) * (z - prev) / self.Ts
+        return DirtyDerivativeState(z, rate)
+
+    def estimate(self, state: DirtyDerivativeState):
+        return jnp.concatenate([state.z, state.rate])
+
+    def predict(self, state, u_applied, u_believed, k):
+        return state
+
+
+# ----------------------------------------------------------------------------- controller
+
+
+@_dataclass
+class LeadFeedback(nc.AbstractController):
+    """State feedback on the estimate predicted ``lead`` steps ahead (seed 001 eq. 16).
+
+    ``x_{k+lead} = A^lead xhat_k + sum_i A^(lead-1-i) B u_{k+i}`` along the plan of the
+    commands already sent for steps ``k .. k+lead-1`` (the controller's state, zeros
+    before the first), then ``u_{k+lead} = clip(gain (x_{k+lead} - x_ref(k+lead)),
+    -u_max, u_max)`` is sent in a packet of one action stamped ``k + lead`` and appended
+    to the plan. ``lead = 0``: ``u_k = clip(gain (xhat_k - x_ref(k)))`` stamped k.
+
+    Attributes: gain float[m, n] (u = gain (x - x_ref)); A float[n, n], B float[n, m],
+    the model of the prediction; reference, a :class:`StepReference`; u_max (> 0); lead,
+    static int >= 0.
+    """
+
+    gain: Any
+    A: Any
+    B: Any
+    reference: StepReference
+    u_max: Any
+    lead: int = _static(2)
+
+    horizon = 1
+
+    def __post_init__(self):
+        check_int("LeadFeedback.lead", self.lead, 0, 50)
+        check_positive("LeadFeedback.u_max", self.u_max)
+
+    def init(self, ctx):
+        return jnp.zeros((self.lead,), _F32)
+
+    def step(self, plan, xhat, fresh, k, ctx):
+        xh = xhat
+        for i in range(self.lead):
+            xh = self.A @ xh + self.B[:, 0] * plan[i]
+        u = jnp.clip((self.gain @ (xh - self.reference(k + self.lead)))[0], -self.u_max, self.u_max)
+        if self.lead:
+            plan = jnp.concatenate([plan[1:], u[None]])
+        stamp = (k * ctx.N + self.lead).astype(jnp.int32)
+        return nc.Packet(u[None, None], stamp), jnp.ones((), _F32), plan
+
+
+# ----------------------------------------------------------------------------- actuator
+
+
+@_dataclass
+class ArrivalHold(nc.AbstractActuator):
+    """Applies the action of the packet delivered last (with ``order="arrival"``, the most
+    recently arrived, whatever its stamp) and holds it; 0 before the first. No time stamps
+    (the emulation design)."""
+
+    def init(self, ctx):
+        return jnp.zeros((ctx.input_dim,), _F32)
+
+    def receive(self, u, inbox: nc.Inbox):
+        data, _, w = inbox.newest()
+        return jnp.where(w > 0.5, data[0], u)
+
+    def output(self, u, t):
+        return u, u
+
+
+# ----------------------------------------------------------------------------- configuration
 
 
 def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gain: str = "hold",
-                   theta: float | None = None, ca: wifi.WifiChannel = wifi.NOMINAL, hold: bool = True,
-                   N_buf: int = 10, lead: int = 2, tau_d: float = 0.005, horizon_s: float = 25.0,
-                   theta0_deg: float = 5.0, step_m: float = 0.1, t_step: float = 15.0,
-                   tilt_limit_deg: float = 30.0, ring: int = 32) -> BalancingLoop:
-    """Validated configuration (plain Python, before tracing).
+                   theta: float | None = None, ca: wifi.WifiChannel = wifi.NOMINAL,
+                   sc: wifi.WifiChannel | None = None, hold: bool = True, N_buf: int = 10, lead: int = 2,
+                   tau_d: float = 0.005, horizon_s: float = 25.0, theta0_deg: float = 5.0, step_m: float = 0.1,
+                   t_step: float = 15.0, tilt_limit_deg: float = 30.0, ring: int = 32) -> nc.Loop:
+    """The loop of one design as a :class:`jaxnc.loop.Loop` (validated, plain Python).
 
-    ``gain``: ``"hold"`` (eq. 17-19 with ``theta`` = P(command applied in time), by default
-    computed from the ``ca`` channel model for the given ``lead``) or ``"lqr"``.
+    Args:
+      design: ``"model"`` or ``"emulation"`` (module docstring).
+      plant: the robot's parameters (default :class:`~jaxnc.plants.balancing.Balancing`).
+      gain: model design, ``"hold"`` (eq. 17-19 with ``theta`` = P(command applied in
+        time), by default computed from the ``ca`` channel for the given ``lead``) or
+        ``"lqr"``.
+      ca, sc: the controller -> robot and robot -> controller channels (``sc`` defaults
+        to ``ca``): the links' delay models, which :func:`run` replays by default.
+      hold: model design's actuator on a missing command: hold (True) or zero.
+      N_buf: the filter's buffer (steps a measurement may be late); lead: steps of
+        prediction (the stamp's lead), >= 1.
+      tau_d: the emulation observer's time constant (s); ring: the emulation links'
+        ring (a packet later than ``ring - 1`` steps is lost).
+      horizon_s, theta0_deg, step_m, t_step, tilt_limit_deg: the scenario.
+
+    Raises:
+      ValueError: naming the bad argument.
     """
     plant = plant or Balancing()
+    sc = ca if sc is None else sc
+    if design not in DESIGNS:
+        raise ValueError(f"design must be one of {', '.join(DESIGNS)}, got {design!r}")
     if gain not in ("hold", "lqr"):
         raise ValueError(f"gain must be one of hold, lqr, got {gain!r}")
     check_positive("horizon_s", horizon_s)
     check_range("theta0_deg", theta0_deg, -45.0, 45.0)
+    check_int("lead", lead, 1, 50)
+    check_int("N_buf", N_buf, 1, 10_000)
+    check_int("ring", ring, 2, 10_000)
+    check_nonneg("tau_d", tau_d)
+    check_range("tilt_limit_deg", tilt_limit_deg, 0.0, 90.0, low_open=True)
+    Ts = float(plant.Ts)
+    steps = int(round(horizon_s / Ts))
+    check_int("steps (horizon_s / Ts)", steps, 1)
     A, B, C = plant.discrete()
-    Q, R = plant.kalman_QR()
     K = dlqr(A, B, W_LQ, U_LQ)[0]
-    if gain == "lqr":
-        L = -K
-    else:
-        th = wifi.delivery_probability(ca, lead) if theta is None else float(theta)
-        L = hold_lq_gain(A, B, W_LQ, U_LQ, th)[0]
-    f32 = lambda a: jnp.asarray(a, jnp.float32)
-    kf = BufferedKF(f32(A), f32(B), f32(C), f32(Q), f32(R), N=N_buf)
-    return BalancingLoop(
-        plant=plant, kf=kf, L=f32(L), K=f32(K),
-        P0=f32(np.diag([1e-6, np.deg2rad(10.0) ** 2, 0.1, 0.1])),
-        tau_d=f32(tau_d), theta0=f32(np.deg2rad(theta0_deg)), step_m=f32(step_m), t_step=f32(t_step),
-        tilt_limit=f32(np.deg2rad(tilt_limit_deg)), design=design, hold=hold, lead=lead, ring=ring,
-        steps=int(round(horizon_s / plant.Ts)))
+    f32 = lambda a: jnp.asarray(a, _F32)
+    robot = Robot(plant, f32(np.deg2rad(theta0_deg)))
+    ref = StepReference(f32(step_m), f32(t_step), f32(plant.r), Ts=Ts)
+    bounds = np.array([np.inf, np.deg2rad(tilt_limit_deg), np.inf, np.inf], np.float32)
+    common = dict(plant=robot, trigger=nc.Periodic(), monitor=nc.Monitor(bounds=bounds), N=1, steps=steps, T=Ts)
+    if design == "model":
+        if gain == "lqr":
+            L = -K
+        else:
+            th = wifi.delivery_probability(ca, lead) if theta is None else float(theta)
+            L = hold_lq_gain(A, B, W_LQ, U_LQ, th)[0]
+        Q, R = plant.kalman_QR()
+        kf = BufferedKF(f32(A), f32(B), f32(C), f32(Q), f32(R), N=N_buf)
+        P0 = f32(np.diag([1e-6, np.deg2rad(10.0) ** 2, 0.1, 0.1]))
+        # tau_max half a period above the last useful delay: the float32 comparison of
+        # d T with tau_max never discards a packet of exactly N_buf (lead) periods
+        return nc.Loop(
+            **common,
+            uplink=nc.Link(delay=nc.WifiModel(sc), tau_max=(N_buf + 0.5) * Ts, order="all", capacity=N_buf + 2),
+            estimator=BufferedKalman(kf, P0),
+            controller=LeadFeedback(f32(L), kf.A, kf.B, ref, f32(plant.u_max), lead=lead),
+            downlink=nc.Link(delay=nc.WifiModel(ca), tau_max=(lead + 0.5) * Ts, order="all", capacity=lead + 2),
+            actuator=nc.PacketActuator(horizon=1, capacity=lead + 1, on_exhausted="hold" if hold else "zero"))
+    return nc.Loop(
+        **common,
+        uplink=nc.Link(delay=nc.WifiModel(sc), order="arrival", capacity=ring),
+        estimator=DirtyDerivative(f32(tau_d), Ts=Ts),
+        controller=LeadFeedback(f32(-K), f32(A), f32(B), ref, f32(plant.u_max), lead=0),
+        downlink=nc.Link(delay=nc.WifiModel(ca), order="arrival", capacity=ring),
+        actuator=ArrivalHold())
 
 
-class Trajectory(NamedTuple):
-    x: jax.Array          # (steps, 4) true state before each step
-    u: jax.Array          # (steps,) applied wheel acceleration
-    xhat: jax.Array       # (steps, 4) the controller's state estimate at k
-    ref: jax.Array        # (steps,) wheel-angle reference, rad
-    fallen: jax.Array     # bool: |theta| exceeded the limit
+# ----------------------------------------------------------------------------- runs
+
+
+def traces(key, sc_channel: wifi.WifiChannel, ca_channel: wifi.WifiChannel, steps: int):
+    """The seed's pair of one-way traces (robot -> controller, controller -> robot) from
+    ``fold_in(key, 1)``: int32[steps] delays in steps, ``wifi.LOST`` where lost."""
+    k_sc, k_ca = jax.random.split(jax.random.fold_in(key, 1))
+    return wifi.sample_trace(k_sc, sc_channel, steps), wifi.sample_trace(k_ca, ca_channel, steps)
+
+
+def draws(loop: nc.Loop, sc, ca, key) -> nc.Draws:
+    """The runner's :class:`~jaxnc.loop.Draws` replaying the traces ``sc``, ``ca``
+    (int[>= steps], ``wifi.LOST`` = lost) as the links' delays, with the noise from ``key``
+    (split in two): ``w`` float[K, 1, 2], the servo and tilt disturbances (standard normals
+    times the robot's stds), and ``v`` float[K, 2], the tilt sensor's standard normal in
+    ``v[:, 1]`` (:class:`Robot` scales it)."""
+    K = loop.steps
+    kw, kv = jax.random.split(key)
+    w = jax.random.normal(kw, (K, 2), _F32) * loop.plant.process_std()[None, :]
+    v = jax.random.normal(kv, (K,), _F32)
+    v = jnp.stack([0.0 * v, v], axis=1) * loop.plant.measurement_std()[None, :]
+    sc = jnp.asarray(sc, jnp.int32)[:K]
+    ca = jnp.asarray(ca, jnp.int32)[:K]
+    return nc.Draws(w.reshape(K, 1, 2), v, nc.LinkDraws(sc), nc.LinkDraws(ca), key)
+
+
+def simulate(loop: nc.Loop, sc, ca, key) -> nc.Trajectory:
+    """One run replaying the one-way traces ``sc``, ``ca`` (int32, ``wifi.LOST`` = lost; at
+    least ``loop.steps`` long); ``key`` draws the plant and sensor noise only
+    (:func:`draws`). Returns the runner's :class:`~jaxnc.loop.Trajectory`: ``x`` float[K, 4]
+    true state before each step, ``u`` float[K, 1] applied, ``xhat`` the controller's
+    estimate, ``failed`` (fallen)."""
+    return nc.simulate(loop, key, draws(loop, sc, ca, key))
 
 
 class Metrics(NamedTuple):
@@ -123,117 +425,19 @@ class Metrics(NamedTuple):
     tilt_max_deg: jax.Array
 
 
-def _noises(loop: BalancingLoop, key):
-    kw, kv = jax.random.split(key)
-    w = jax.random.normal(kw, (loop.steps, 2), jnp.float32) * jnp.stack([loop.plant.w_servo, loop.plant.w_theta]).astype(jnp.float32)[None, :]
-    v = jax.random.normal(kv, (loop.steps,), jnp.float32)
-    return w, v
+def reference(loop: nc.Loop) -> jax.Array:
+    """float[K]: the wheel-angle reference (rad) at each step of the run."""
+    return loop.controller.reference.wheel(jnp.arange(loop.steps, dtype=jnp.int32))
 
 
-def _ref(loop: BalancingLoop, k):
-    on = k.astype(jnp.float32) * loop.plant.Ts >= loop.t_step
-    d = jnp.where(on, loop.step_m / loop.plant.r, 0.0)
-    return jnp.stack([d, 0.0 * d, 0.0 * d, 0.0 * d])
-
-
-def _x0(loop):
-    return jnp.stack([0.0 * loop.theta0, loop.theta0, 0.0 * loop.theta0, 0.0 * loop.theta0])
-
-
-def _advance(loop, x, u, w, fallen):
-    x_new = loop.plant.dynamics(x, u[None], w)
-    fallen = fallen | (jnp.abs(x_new[1]) > loop.tilt_limit) | ~jnp.all(jnp.isfinite(x_new))
-    return jnp.where(fallen, x, x_new), fallen
-
-
-def _clip(loop, u):
-    return jnp.clip(u, -loop.plant.u_max, loop.plant.u_max)
-
-
-def _simulate_model(loop: BalancingLoop, sc, ca, key) -> Trajectory:
-    kf, N = loop.kf, loop.kf.N
-    w, v = _noises(loop, key)
-    a_sc = jnp.concatenate([jnp.full(N, _BIG, jnp.int32), wifi.arrival_steps(sc, max_delay=N)])
-    # theta_k^k: the command stamped k was sent at k - lead and arrived within lead steps
-    ok = (ca >= 0) & (ca <= loop.lead)
-    theta_k = jnp.concatenate([jnp.ones(loop.lead, bool), ok])[: loop.steps]
-    x0 = _x0(loop)
-    y0 = loop.plant.measure(x0, v[0])
-    state0 = bkf_init(jnp.stack([y0[0], y0[1], 0.0 * y0[0], 0.0 * y0[0]]), loop.P0, N, 2, 1)
-    carry0 = (x0, state0, jnp.zeros(loop.lead, jnp.float32), jnp.float32(0.0), jnp.asarray(False))
-
-    def step(carry, inp):
-        x, st, plan, u_prev, fallen = carry
-        k, wk, vk, th = inp
-        y = loop.plant.measure(x, vk)
-        avail = jax.lax.dynamic_slice(a_sc, (k,), (N,)) <= k
-        pred, nb = bkf_estimate(kf, st, avail)
-        xh = pred.mean
-        for i in range(loop.lead):                       # x_{k+lead|k-1} along the sent plan
-            xh = kf.A @ xh + kf.B[:, 0] * plan[i]
-        u_new = _clip(loop, (loop.L @ (xh - _ref(loop, k + loop.lead)))[0])
-        u_app = jnp.where(th, plan[0], u_prev if loop.hold else 0.0)
-        x_next, fallen = _advance(loop, x, u_app, wk, fallen)
-        st = bkf_push(st, nb, y, plan[:1], k)
-        plan = jnp.concatenate([plan[1:], u_new[None]])
-        return (x_next, st, plan, u_app, fallen), (x, u_app, pred.mean, _ref(loop, k)[0])
-
-    ks = jnp.arange(loop.steps, dtype=jnp.int32)
-    (_, _, _, _, fallen), (xs, us, xh, ref) = jax.lax.scan(step, carry0, (ks, w, v, theta_k))
-    return Trajectory(xs, us, xh, ref, fallen)
-
-
-def _simulate_emulation(loop: BalancingLoop, sc, ca, key) -> Trajectory:
-    w, v = _noises(loop, key)
-    R = loop.ring
-    last_sc = wifi.newest_arrival(sc, max_delay=R - 1)
-    last_ca = wifi.newest_arrival(ca, max_delay=R - 1)
-    a = jnp.exp(-loop.plant.Ts / jnp.maximum(loop.tau_d, 1e-9))
-    a = jnp.where(loop.tau_d > 0, a, 0.0)
-    x0 = _x0(loop)
-    y0 = loop.plant.measure(x0, v[0])
-    yring = jnp.zeros((R, 2), jnp.float32)               # yring[i] = y_{k-i}
-    uring = jnp.zeros((R,), jnp.float32)                 # uring[i] = u_{k-i}
-    carry0 = (x0, yring, uring, y0, jnp.zeros(2, jnp.float32), jnp.float32(0.0), jnp.asarray(False))
-
-    def step(carry, inp):
-        x, yring, uring, ybar, vel, u_prev, fallen = carry
-        k, wk, vk, ls, lc = inp
-        y = loop.plant.measure(x, vk)
-        yring = jnp.concatenate([y[None], yring[:-1]])
-        new = ls >= 0
-        ybar_new = jnp.where(new, yring[jnp.clip(k - ls, 0, R - 1)], ybar)          # eq. (5)
-        vel = a * vel + (1.0 - a) * (ybar_new - ybar) / loop.plant.Ts
-        xt = jnp.stack([ybar_new[0], ybar_new[1], vel[0], vel[1]])
-        u = _clip(loop, -(loop.K @ (xt - _ref(loop, k)))[0])
-        uring = jnp.concatenate([u[None], uring[:-1]])
-        u_app = jnp.where(lc >= 0, uring[jnp.clip(k - lc, 0, R - 1)], u_prev if loop.hold else 0.0)
-        x_next, fallen = _advance(loop, x, u_app, wk, fallen)
-        return (x_next, yring, uring, ybar_new, vel, u_app, fallen), (x, u_app, xt, _ref(loop, k)[0])
-
-    ks = jnp.arange(loop.steps, dtype=jnp.int32)
-    out, (xs, us, xt, ref) = jax.lax.scan(step, carry0, (ks, w, v, last_sc, last_ca))
-    return Trajectory(xs, us, xt, ref, out[-1])
-
-
-def simulate(loop: BalancingLoop, sc, ca, key) -> Trajectory:
-    """One run replaying the one-way traces ``sc``, ``ca`` (int32, ``wifi.LOST`` = lost;
-    at least ``loop.steps`` long); ``key`` draws the plant and sensor noise only."""
-    sc = jnp.asarray(sc, jnp.int32)[: loop.steps]
-    ca = jnp.asarray(ca, jnp.int32)[: loop.steps]
-    if loop.design == "model":
-        return _simulate_model(loop, sc, ca, key)
-    return _simulate_emulation(loop, sc, ca, key)
-
-
-def metrics(loop: BalancingLoop, tr: Trajectory) -> Metrics:
+def metrics(loop: nc.Loop, tr: nc.Trajectory) -> Metrics:
     """Upright flag, tilt RMS (deg), RMS position error over the last 5 s (mm), max tilt."""
+    r = loop.plant.robot.r
     th = tr.x[:, 1]
-    pos = loop.plant.r * (tr.x[:, 0] + th)
-    err = pos - loop.plant.r * tr.ref
-    tail = int(round(5.0 / loop.plant.Ts))
+    err = r * (tr.x[:, 0] + th) - r * reference(loop)
+    tail = int(round(5.0 / loop.T))
     inf = jnp.float32(jnp.inf)
-    up = ~tr.fallen
+    up = ~tr.failed
     return Metrics(
         upright=up,
         tilt_rms_deg=jnp.where(up, jnp.rad2deg(jnp.sqrt(jnp.mean(th**2))), inf),
@@ -241,17 +445,21 @@ def metrics(loop: BalancingLoop, tr: Trajectory) -> Metrics:
         tilt_max_deg=jnp.rad2deg(jnp.max(jnp.abs(th))))
 
 
-def traces(key, sc_channel: wifi.WifiChannel, ca_channel: wifi.WifiChannel, steps: int):
-    """The seed's pair of one-way traces (robot -> controller, controller -> robot)."""
-    k_sc, k_ca = jax.random.split(jax.random.fold_in(key, 1))
-    return wifi.sample_trace(k_sc, sc_channel, steps), wifi.sample_trace(k_ca, ca_channel, steps)
-
-
-def run(loop: BalancingLoop, key, sc_channel=wifi.NOMINAL, ca_channel=wifi.NOMINAL) -> Metrics:
-    """Metrics of one seed: network traces from ``fold_in(key, 1)``, noise from ``fold_in(key, 2)``
-    (common random numbers: every design run with the same key sees the same network and noise)."""
+def run(loop: nc.Loop, key, sc_channel: wifi.WifiChannel | None = None,
+        ca_channel: wifi.WifiChannel | None = None) -> Metrics:
+    """Metrics of one seed: network traces from ``fold_in(key, 1)`` (by default from the
+    loop's own channels), noise from ``fold_in(key, 2)``. Common random numbers: every
+    design run with the same key and channels sees the same network and noise."""
+    sc_channel = loop.uplink.delay.channel if sc_channel is None else sc_channel
+    ca_channel = loop.downlink.delay.channel if ca_channel is None else ca_channel
     sc, ca = traces(key, sc_channel, ca_channel, loop.steps)
     return metrics(loop, simulate(loop, sc, ca, jax.random.fold_in(key, 2)))
+
+
+def run_seed(key, loop: nc.Loop) -> Metrics:
+    """:func:`run` with the key first and the loop's channels, for
+    ``montecarlo.run_batched(run_seed, keys, args=(loop,))`` (one compilation per design)."""
+    return run(loop, key)
 
 
 def _pmf(d: dict, size: int = 19) -> np.ndarray:
