@@ -126,3 +126,66 @@ def test_case_orderings(case_metrics):
     assert abs(m[6].Uc.mean() - m[5].Uc.mean()) < 0.1 and abs(m[6].Ua.mean() - m[5].Ua.mean()) < 0.1
     assert m[5].NE.mean() < m[6].NE.mean() < 2.5 * m[5].NE.mean()
     assert not any(bool(np.any(v.unstable)) for v in m.values())
+
+
+def test_packet_actuator_applies_packet_index():
+    """The actuator of the loop (PacketActuator, h + 1 actions) applies
+    u_k = packet[clip(k - k_pkt, 0, h)] of the newest packet, zero before the first."""
+    import jaxnc.loop as jl
+    h, steps = 3, 40
+    rng = np.random.default_rng(0)
+    gamma = rng.random(steps) < 0.2
+    gamma[:3] = False
+    packets = rng.normal(size=(steps, h + 1)).astype(np.float32)
+    act = jl.PacketActuator(horizon=h + 1)
+    ctx = jl.Context(N=1, steps=steps, T=1.0, state_dim=1, input_dim=1, output_dim=1)
+
+    @jax.jit
+    def apply(s, pkt, g, k):
+        s = act.install(s, pkt[:, None], k, g.astype(jnp.float32))
+        return act.output(s, k)
+
+    s = act.init(ctx)
+    packet, k_pkt = np.zeros(h + 1, np.float32), 0
+    for k in range(steps):
+        u, s = apply(s, jnp.asarray(packets[k]), jnp.asarray(gamma[k]), jnp.int32(k))
+        if gamma[k]:
+            packet, k_pkt = packets[k], k
+        assert float(u[0]) == packet[min(max(k - k_pkt, 0), h)]
+
+
+def test_runner_loop_semantics():
+    """Case 4 with the safety condition (eq. 7, k_max = 5): the first sample is sent, the
+    sensor is never silent for k_max periods, the controller sends only when it works
+    (eq. 21-22 gated by arrivals), N is the gap since the last arrival (eq. 9), dhat and
+    yhat exist at arrivals, and 'current' marks the packets' own instants."""
+    loop = hdd.hdd_loop(4, h=8, k_max=5, steps=120)
+    tr = jax.device_get(jax.jit(hdd.simulate)(loop, jax.random.PRNGKey(3)))
+    beta, gamma, N = np.asarray(tr.beta), np.asarray(tr.gamma), np.asarray(tr.N)
+    assert beta[0] and not np.any(gamma & ~beta)
+    sent = np.flatnonzero(beta)
+    assert np.max(np.diff(sent)) <= 5
+    np.testing.assert_array_equal(N[sent[1:]], np.diff(sent))
+    assert N[0] == 0 and np.all(N[~beta] == 0)
+    assert np.all(np.isfinite(tr.dhat[beta])) and np.all(np.isnan(tr.dhat[~beta]))
+    assert np.all(np.isfinite(tr.yhat))
+    np.testing.assert_array_equal(tr.current[1:], gamma[1:])
+
+
+def test_controller_side_condition_only_on_arrival():
+    """Without an arrival the controller neither sends nor changes state (eq. 21-22 are
+    evaluated only when it works; nothing is forced at k = 0)."""
+    import jaxnc.loop as jl
+    loop = hdd.hdd_loop(2, h=4, thresholds=(1e-7, 1e6), steps=10)
+    rl = hdd.runner_loop(loop)
+    c, ctx = rl.controller, rl.ctx
+    s0 = c.init(ctx)
+    step = jax.jit(lambda s, y, f, k: c.step(s, jnp.array([y], jnp.float32), jnp.float32(f), jnp.int32(k), ctx))
+    pkt, send, s1 = step(s0, 0.0, 1.0, 0)            # arrival, but eq. (22) does not hold
+    assert float(send) == 0.0 and float(s1.ubar) == 0.0 and int(s1.k_last) == 0
+    pkt, send, s2 = step(s1, 0.3, 0.0, 1)            # no arrival
+    assert float(send) == 0.0 and int(s2.N) == 0 and np.isnan(float(s2.dhat))
+    for a, b in zip(jax.tree_util.tree_leaves((s1.ctrl, s1.ubar, s1.k_last)),
+                    jax.tree_util.tree_leaves((s2.ctrl, s2.ubar, s2.k_last))):
+        np.testing.assert_array_equal(a, b)
+    assert isinstance(rl.actuator, jl.PacketActuator) and rl.actuator.horizon == loop.h + 1

@@ -1,52 +1,64 @@
-"""Closed loops of seed 003 section 5 (HDD servo), Cases 1-6, one ``lax.scan`` each.
+"""Closed loops of seed 003 section 5 (HDD servo), Cases 1-6, as configurations of
+:mod:`jaxnc.loop` (N = 1: the slow period is the fast period T).
 
-Every fast period T (k = 0..steps-1):
+Every period T (k = 0..steps-1), in the runner's order (:mod:`jaxnc.loop.base`):
 
-1. The sensor measures y_k = C x_k + v_k. It sends (beta_k = 1) every period in TTS
-   (Case 1); otherwise when the PET condition (eq. 6), ||ybar_{k-1} - y_k||^2 >
-   sigma_s ||y_k||^2 + delta_s, holds, or when the time-triggered safety condition
-   (eq. 7) k - k_lm >= k_max holds (k_max = 0: off, as in the paper's example). The
-   first sample is always sent. ybar follows eq. (5). The network is ideal (no loss,
-   no delay), as in the paper's TrueTime study.
-2. On arrival the control side works (only then, section 2):
+1. Sensor (:class:`HddPlant`, trigger): y_k = C x_k + v_k. It sends every period in TTS
+   (Case 1, :class:`~jaxnc.loop.Periodic`); otherwise when the PET condition (eq. 6),
+   ||ybar_{k-1} - y_k||^2 > sigma_s ||y_k||^2 + delta_s, holds, or when the time-triggered
+   safety condition (eq. 7) k - k_lm >= k_max holds (k_max = 0: off, as in the paper's
+   example) (:class:`~jaxnc.loop.Petc`). The first sample is always sent; ybar follows
+   eq. (5). The network is ideal both ways (:class:`~jaxnc.loop.Link`, no loss, no
+   delay), as in the paper's TrueTime study.
+2. Estimator, on arrival: none in Cases 1-2 (:class:`~jaxnc.loop.Passthrough`, the
+   controller uses y_k); NUMRE in Cases 3-6 (:class:`NumreFilter`): multiplicity
+   N = k - k_lm (eq. 9), correction with K(N) (eq. 11-12). Its prior x(k|k-N) is
+   propagated with the actions actually applied (the control side knows them: the
+   network is ideal); this is eq. (14) evaluated period by period.
+3. Controller (:class:`HddController`), which works only when a measurement arrives
+   (section 2):
    * without estimator (Cases 1-2): e_k = r_k - y_k and one MRCI step (eq. 19, Fig. 4);
-   * with NUMRE (Cases 3-6): multiplicity N = k - k_ls (eq. 9), correction with K(N)
-     (eq. 11-12), then the cascade (eq. 14-15): for l = 0..h, yhat = C xhat(k+l|k),
+   * with NUMRE (Cases 3-6) the cascade (eq. 14-15): for l = 0..h, yhat = C xhat(k+l|k),
      dhat = Cbar xhat(k+l|k) (Cases 3-5, disturbance model known) or the DOB output
      (Case 6, eq. 16), u_{k+l} = MRCI(r_{k+l} - yhat) - dhat, xhat <- A xhat + B u.
      The control action *compensates* the disturbance: eq. (1) adds d to u, so the
      estimate is subtracted (the paper says "summed", which we read as summed with sign).
-3. The controller-side condition (eq. 21-22), ||ubar_{k-1} - u_k||^2 > sigma_c ||u_k||^2 +
-   delta_c, decides whether the packet {u_k..u_{k+h}} goes to the actuator (gamma_k);
-   TTS always sends. The actuator applies the current action of the newest packet, or
-   the future one for the present instant (section 3.2.4), holding the last beyond h.
-4. The controller's own state at the next arrival is the one its last cascade reached
-   at that instant (the MRCI and DOB states along the cascade are kept). The estimator's
-   prior x(k|k-N) is propagated with the actions actually applied (the control side
-   knows them: the network is ideal); this is eq. (14) evaluated period by period.
+   Its own state at the next arrival is the one its last cascade reached at that
+   instant (the MRCI and DOB states along the cascade are kept).
+   The controller-side condition (eq. 21-22), ||ubar_{k-1} - u_k||^2 > sigma_c ||u_k||^2 +
+   delta_c, evaluated only when the controller works, decides whether the packet
+   {u_k..u_{k+h}} goes to the actuator (gamma_k); TTS always sends.
+4. Actuator (:class:`~jaxnc.loop.PacketActuator`, h + 1 actions by time stamp): the
+   current action of the newest packet, or the future one for the present instant
+   (section 3.2.4), u_k = packet[min(k - k_pkt, h)], holding the last beyond h.
 
 Cases (section 5): 1 TTS; 2 PETC; 3 PETC + NUMRE; 4 = 3 + noise + disturbance;
 5 = 4 with narrower thresholds; 6 = 5 with a DOB instead of the disturbance model.
-Noises are drawn up front from the key (common random numbers across cases).
+Noises are drawn up front from the key (common random numbers across cases,
+:func:`draws`).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jaxnc.loop as jl
 from jaxnc._validate import check_int, check_nonneg, check_range
 from jaxnc.design import mrci as mrci_mod
 from jaxnc.design.mrci import Mrci, MrciState, mrci_init, mrci_step
 from jaxnc.disturbance import Dob, DobState, dob_design, dob_init, dob_output, dob_update
-from jaxnc.estimators.numre import NumreTables, numre_correct, numre_tables
+from jaxnc.estimators.numre import NumreTables, cascade, numre_correct, numre_tables
+from jaxnc.loop.base import AbstractController, AbstractEstimator, AbstractPlant, Inbox, Packet
 from jaxnc.plants import hdd as hdd_plant
 
 __all__ = ["CASES", "PAPER_THRESHOLDS", "NARROW_THRESHOLDS", "HddLoop", "hdd_loop", "simulate", "run",
-           "Trajectory", "Metrics", "ise", "isep", "gpi", "cc", "petc_fires", "controller_fires"]
+           "Trajectory", "Metrics", "ise", "isep", "gpi", "cc", "petc_fires", "controller_fires",
+           "HddPlant", "NumreFilter", "NumreState", "HddController", "HddControllerState", "CtrlState",
+           "runner_loop", "draws"]
 
 CASES = (1, 2, 3, 4, 5, 6)
 # Section 5: delta_s = sigma_s = 100e-7, delta_c = sigma_c = 1.32e-2 (the GPI optimum, Fig. 5);
@@ -63,6 +75,7 @@ H_DEFAULT = 64           # cascade horizon h (ours; the paper gives none)
 # simulation has none (Cases 1-3), so K(N) is defined.
 FILTER_SLOPE_STD = 1e-6
 FILTER_V = hdd_plant.V_STD ** 2
+P0_SCALE = 1e-6          # the filter's initial covariance, P0 = 1e-6 I
 
 
 def filter_disturbance_var(w_std: float) -> float:
@@ -166,22 +179,238 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int = H_DEF
                    noise=f(1.0 if case >= 4 else 0.0), case=case, h=h, k_max=k_max, steps=steps)
 
 
+# ----------------------------------------------------------------------------- the loop's roles
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class HddPlant(AbstractPlant):
+    """The augmented HDD model of eq. (4) (:class:`~jaxnc.plants.hdd.HddModel`) as a loop
+    plant: x float[12], u float[1], w float[1] (the broadband w_k of eq. 2), y float[1]."""
+
+    model: hdd_plant.HddModel
+
+    input_dim = 1
+    noise_dim = 1
+    output_dim = 1
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.model.A.shape[0])
+
+    def init(self, key):
+        return jnp.zeros((self.state_dim,), self.model.A.dtype)
+
+    def dynamics(self, x, u, w):
+        return self.model.step(x, u[0], w[0])
+
+    def measure(self, x, v):
+        return self.model.measure(x, v[0])[None]
+
+    def record(self, x):
+        """(y, d) = (C x, Cbar x) of a state: the noise-free output and the disturbance."""
+        return self.model.C @ x, self.model.Cbar @ x
+
+    def process_std(self):
+        return jnp.reshape(self.model.w_std, (1,))
+
+    def measurement_std(self):
+        return jnp.reshape(self.model.v_std, (1,))
+
+
+class NumreState(NamedTuple):
+    x: jax.Array       # float[n]: x(k|k) after a correction, else the prior x(k|k_lm)
+    P: jax.Array       # float[n, n]: posterior covariance at k_lm
+    k_lm: jax.Array    # int32: the last instant a measurement arrived
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class NumreFilter(AbstractEstimator):
+    """NUMRE (eq. 9-15) as a loop estimator, single output, ideal network.
+
+    A measurement delivered at slow instant k is taken as y_k (stamped now). On arrival:
+    N = clip(k - k_lm, 1, n_max) (eq. 9) and the correction with K(N) (eq. 11-12,
+    :func:`~jaxnc.estimators.numre.numre_correct`); otherwise the prior is kept. Between
+    instants the mean is propagated with the actions the actuator *applied*
+    (``inputs = "applied"``), x <- A x + B u_t for each fast period t.
+
+    Attributes:
+      tables: :class:`~jaxnc.estimators.numre.NumreTables` (A^N, We(N), C, V).
+      A: float[n, n]; B: float[n], the filter model.
+      P0: float[n, n], the initial covariance (the initial mean is 0).
+
+    ``record(state)`` is the output estimate C x (float scalar) after each correction.
+    """
+
+    tables: NumreTables
+    A: Any
+    B: Any
+    P0: Any
+
+    inputs = "applied"
+
+    def init(self, ctx) -> NumreState:
+        n = self.A.shape[0]
+        return NumreState(jnp.zeros((n,), self.A.dtype), jnp.asarray(self.P0), jnp.zeros((), jnp.int32))
+
+    def correct(self, state: NumreState, inbox: Inbox, k) -> NumreState:
+        z, _, w = inbox.newest()
+        fresh = w > 0.5
+        N = jnp.clip(k - state.k_lm, 1, self.tables.n_max)
+        xpost, Ppost, _ = numre_correct(self.tables, state.x, state.P, z[0], N)
+        return NumreState(jnp.where(fresh, xpost, state.x), jnp.where(fresh, Ppost, state.P),
+                          jnp.where(fresh, k, state.k_lm))
+
+    def estimate(self, state: NumreState):
+        return state.x
+
+    def predict(self, state: NumreState, u_applied, u_believed, k) -> NumreState:
+        x = state.x
+        for j in range(u_applied.shape[0]):           # the N fast periods (static)
+            x = self.A @ x + self.B * u_applied[j, 0]
+        return state._replace(x=x)
+
+    def record(self, state: NumreState):
+        return self.tables.C @ state.x
+
+
 class CtrlState(NamedTuple):
     mrci: MrciState
     dob: DobState
 
 
-class Carry(NamedTuple):
-    x: jax.Array           # true augmented state
-    ybar: jax.Array        # eq. (5)
-    k_lm: jax.Array        # last instant the sensor sent
-    xhat: jax.Array        # filter prior x(k|k_lm), propagated with the applied actions
-    P: jax.Array           # filter posterior covariance at k_lm
-    cas: CtrlState         # controller states along the last cascade (leading axis h + 1)
-    ctrl: CtrlState        # controller state (no-estimator cases)
-    packet: jax.Array      # (h + 1,) actions of the newest packet at the actuator
-    k_pkt: jax.Array       # its time stamp
-    ubar: jax.Array        # eq. (21)
+class HddControllerState(NamedTuple):
+    cas: CtrlState        # controller states along the last cascade (leading axis h + 1)
+    ctrl: CtrlState       # controller state (no-estimator cases)
+    ubar: jax.Array       # eq. (21): the last action sent
+    k_last: jax.Array     # int32: the last instant the controller worked
+    dhat: jax.Array       # disturbance estimate used at k (NaN when it did not work)
+    N: jax.Array          # int32: k - k_last at an arrival, 0 otherwise
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class HddController(AbstractController):
+    """The control side of seed 003: MRCI (eq. 19), the cascade (eq. 14-15) with the
+    disturbance model or the DOB (eq. 16), and the controller-side condition (eq. 21-22).
+
+    It works only at an arrival (``fresh``). Without NUMRE (``numre=False``) the estimate
+    is the measurement float[1] and one MRCI step gives u_k; the packet repeats it h + 1
+    times. With NUMRE the estimate is x(k|k) float[n] and the packet is the cascade's
+    u_k..u_{k+h}, started from the law's state at index N = clip(k - k_last, 1, h) of the
+    previous cascade (the state it had reached at k). The packet is sent when the
+    controller worked and, unless ``tts``, eq. (22) holds on u_k (ubar follows eq. 21).
+
+    Attributes:
+      ctrl: :class:`~jaxnc.design.mrci.Mrci`; dob: :class:`~jaxnc.disturbance.Dob`.
+      A: float[n, n]; B, C, Cbar: float[n], the prediction model (NUMRE's).
+      r: the reference (scalar, constant); sigma_c, delta_c: eq. (22) thresholds.
+      h: static horizon (packets of h + 1 actions); numre, use_dob, tts: static switches.
+
+    ``record(state)`` is (dhat, N) of the instant.
+    """
+
+    ctrl: Mrci
+    dob: Dob
+    A: Any
+    B: Any
+    C: Any
+    Cbar: Any
+    r: Any
+    sigma_c: Any
+    delta_c: Any
+    h: int = dataclasses.field(metadata=dict(static=True), default=H_DEFAULT)
+    numre: bool = dataclasses.field(metadata=dict(static=True), default=True)
+    use_dob: bool = dataclasses.field(metadata=dict(static=True), default=False)
+    tts: bool = dataclasses.field(metadata=dict(static=True), default=False)
+
+    def __post_init__(self):
+        check_int("HddController.h", self.h, 1, 10_000)
+        check_nonneg("HddController.sigma_c", self.sigma_c)
+        check_nonneg("HddController.delta_c", self.delta_c)
+
+    @property
+    def horizon(self) -> int:
+        return self.h + 1
+
+    def _init_law(self) -> CtrlState:
+        return CtrlState(mrci_init(self.ctrl), dob_init(self.dob))
+
+    def init(self, ctx) -> HddControllerState:
+        c0 = self._init_law()
+        cas = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (self.h + 1, *a.shape)), c0)
+        return HddControllerState(cas, c0, jnp.zeros(()), jnp.zeros((), jnp.int32),
+                                  jnp.full((), jnp.nan), jnp.zeros((), jnp.int32))
+
+    def law(self, cs: CtrlState, k, yhat, dhat_model):
+        """One period of the control law: (u, next CtrlState, dhat),
+        u = MRCI(r - yhat) - dhat, dhat the DOB's output or ``dhat_model``."""
+        dhat = dob_output(self.dob, cs.dob, yhat) if self.use_dob else dhat_model
+        uc, ms = mrci_step(self.ctrl, cs.mrci, k, self.r - yhat)
+        u = uc - dhat
+        ds = dob_update(self.dob, cs.dob, u, yhat) if self.use_dob else cs.dob
+        return u, CtrlState(ms, ds), dhat
+
+    def _predicted_law(self, cs, k, x):
+        return self.law(cs, k, self.C @ x, self.Cbar @ x)
+
+    def step(self, state: HddControllerState, xhat, fresh, k, ctx):
+        beta = fresh > 0.5
+        h = self.h
+        N = jnp.clip(k - state.k_last, 1, h)
+        if self.numre:
+            cs0 = jax.tree_util.tree_map(lambda a: a[N], state.cas)
+            cs0 = jax.tree_util.tree_map(lambda a, b: jnp.where(k == 0, b, a), cs0, self._init_law())
+            us, css, dh = cascade(self._predicted_law, self.A, self.B, xhat, cs0, k, h + 1)
+            u_new, packet, dhat = us[0], us, dh[0]
+            cas = jax.tree_util.tree_map(lambda a, b: jnp.where(beta, a, b), css, state.cas)
+            ctrl = state.ctrl
+        else:
+            u_new, cs1, dhat = self.law(state.ctrl, k, xhat[0], jnp.zeros(()))
+            ctrl = jax.tree_util.tree_map(lambda a, b: jnp.where(beta, a, b), cs1, state.ctrl)
+            packet = jnp.full(h + 1, u_new)        # no future actions: the actuator holds
+            cas = state.cas
+        gamma = beta if self.tts else beta & controller_fires(state.ubar, u_new, self.sigma_c, self.delta_c)
+        new = HddControllerState(cas, ctrl, jnp.where(gamma, u_new, state.ubar), jnp.where(beta, k, state.k_last),
+                                 jnp.where(beta, dhat, jnp.nan), jnp.where(beta, k - state.k_last, 0))
+        return Packet(packet[:, None], (k * ctx.N).astype(jnp.int32)), gamma.astype(jnp.float32), new
+
+    def record(self, state: HddControllerState):
+        return state.dhat, state.N
+
+
+def runner_loop(loop: HddLoop) -> jl.Loop:
+    """The :class:`jaxnc.loop.Loop` of a case (module docstring); traceable (thresholds
+    may be tracers, e.g. in the GPI grid)."""
+    ctrl = HddController(ctrl=loop.ctrl, dob=loop.dob, A=loop.Af, B=loop.Bf, C=loop.tables.C, Cbar=loop.Cbarf,
+                         r=loop.r, sigma_c=loop.sigma_c, delta_c=loop.delta_c, h=loop.h, numre=loop.numre,
+                         use_dob=loop.use_dob, tts=loop.tts)
+    if loop.numre:
+        nf = loop.Af.shape[0]
+        est = NumreFilter(loop.tables, loop.Af, loop.Bf, jnp.eye(nf) * P0_SCALE)
+    else:
+        est = jl.Passthrough()
+    trigger = jl.Periodic() if loop.tts else jl.Petc(loop.sigma_s, loop.delta_s, max_silence=loop.k_max)
+    # eq. (21)-(22) live in the controller, not in Loop.controller_trigger: that trigger sees
+    # every instant (it would move ubar when nothing arrived) and always sends at k = 0
+    return jl.Loop(plant=HddPlant(loop.model), trigger=trigger, uplink=jl.Link(), estimator=est, controller=ctrl,
+                   downlink=jl.Link(), actuator=jl.PacketActuator(horizon=loop.h + 1),
+                   monitor=jl.Monitor(freeze=False), N=1, steps=loop.steps, T=hdd_plant.T)
+
+
+def draws(loop: HddLoop, key, rl: jl.Loop | None = None) -> jl.Draws:
+    """The run's draws (:class:`jaxnc.loop.Draws`): ``kw, kv = split(key)``,
+    w_k = w_std N(0, 1) and v_k = v_std N(0, 1) (times ``loop.noise``), float[steps] each;
+    the links' draws from the runner's streams (:data:`jaxnc.loop.STREAMS`)."""
+    rl = runner_loop(loop) if rl is None else rl
+    m, S = loop.model, loop.steps
+    kw, kv = jax.random.split(key)
+    w = jax.random.normal(kw, (S,)) * m.w_std * loop.noise
+    v = jax.random.normal(kv, (S,)) * m.v_std * loop.noise
+    stream = lambda name: jax.random.fold_in(key, jl.STREAMS.index(name))
+    return jl.Draws(w.reshape(S, 1, 1), v.reshape(S, 1), rl.uplink.draw(stream("uplink"), S, rl.T),
+                    rl.downlink.draw(stream("downlink"), S, rl.T), stream("plant_init"))
 
 
 class Trajectory(NamedTuple):
@@ -197,93 +426,21 @@ class Trajectory(NamedTuple):
     current: jax.Array     # actuator applies the current action of a packet (k = k_pkt)
 
 
-def _ctrl_law(loop: HddLoop, cs: CtrlState, k, r, yhat, dhat_model):
-    """One period of the control side: (u, next CtrlState, dhat)."""
-    if loop.use_dob:
-        dhat = dob_output(loop.dob, cs.dob, yhat)
-    else:
-        dhat = dhat_model
-    uc, ms = mrci_step(loop.ctrl, cs.mrci, k, r - yhat)
-    u = uc - dhat
-    ds = dob_update(loop.dob, cs.dob, u, yhat) if loop.use_dob else cs.dob
-    return u, CtrlState(ms, ds), dhat
-
-
-def _cascade(loop: HddLoop, x0, cs0: CtrlState, k):
-    """Eq. (14)-(15) with the MRCI: actions u_k..u_{k+h} and the controller states at k..k+h."""
-    def body(c, l):
-        x, cs = c
-        u, cs_next, dhat = _ctrl_law(loop, cs, k + l, loop.r, loop.tables.C @ x, loop.Cbarf @ x)
-        return (loop.Af @ x + loop.Bf * u, cs_next), (u, cs, dhat)
-    _, (us, css, dh) = jax.lax.scan(body, (x0, cs0), jnp.arange(loop.h + 1))
-    return us, css, dh[0]
-
-
-def _init_ctrl(loop: HddLoop) -> CtrlState:
-    return CtrlState(mrci_init(loop.ctrl), dob_init(loop.dob))
-
-
 def simulate(loop: HddLoop, key) -> Trajectory:
-    """One run of ``loop.steps`` fast periods; pure, jit- and vmap-able."""
-    m = loop.model
-    kw, kv = jax.random.split(key)
-    w = jax.random.normal(kw, (loop.steps,)) * m.w_std * loop.noise
-    v = jax.random.normal(kv, (loop.steps,)) * m.v_std * loop.noise
-    nx, nf, h = m.A.shape[0], loop.Af.shape[0], loop.h
-    c0 = _init_ctrl(loop)
-    carry = Carry(x=jnp.zeros(nx), ybar=jnp.zeros(()), k_lm=jnp.zeros((), jnp.int32),
-                  xhat=jnp.zeros(nf), P=jnp.eye(nf) * 1e-6,
-                  cas=jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (h + 1, *a.shape)), c0),
-                  ctrl=c0, packet=jnp.zeros(h + 1), k_pkt=jnp.zeros((), jnp.int32), ubar=jnp.zeros(()))
-    Cp = m.C
-
-    def step(c: Carry, inp):
-        k, wk, vk = inp
-        y = Cp @ c.x + vk
-        if loop.tts:
-            beta = jnp.bool_(True)
-        else:
-            beta = petc_fires(c.ybar, y, loop.sigma_s, loop.delta_s) | (k == 0)
-            if loop.k_max > 0:
-                beta = beta | (k - c.k_lm >= loop.k_max)                      # eq. (7)
-        N = jnp.clip(k - c.k_lm, 1, h)
-        if loop.numre:
-            xpost, Ppost, _ = numre_correct(loop.tables, c.xhat, c.P, y, N)
-            cs0 = jax.tree_util.tree_map(lambda a: a[N], c.cas)
-            cs0 = jax.tree_util.tree_map(lambda a, b: jnp.where(k == 0, b, a), cs0, _init_ctrl(loop))
-            us, css, dhat = _cascade(loop, xpost, cs0, k)
-            u_new = us[0]
-            new_packet = us
-            yhat = loop.tables.C @ jnp.where(beta, xpost, c.xhat)
-            cas = jax.tree_util.tree_map(lambda a, b: jnp.where(beta, a, b), css, c.cas)
-            ctrl = c.ctrl
-        else:
-            u_new, cs1, dhat = _ctrl_law(loop, c.ctrl, k, loop.r, y, jnp.zeros(()))
-            ctrl = jax.tree_util.tree_map(lambda a, b: jnp.where(beta, a, b), cs1, c.ctrl)
-            new_packet = jnp.full(h + 1, u_new)        # no future actions: the actuator holds
-            yhat = jnp.full((), jnp.nan)
-            cas = c.cas
-            xpost, Ppost = c.xhat, c.P
-        if loop.tts:
-            gamma = beta
-        else:
-            gamma = beta & controller_fires(c.ubar, u_new, loop.sigma_c, loop.delta_c)
-        packet = jnp.where(gamma, new_packet, c.packet)
-        k_pkt = jnp.where(gamma, k, c.k_pkt)
-        ubar = jnp.where(gamma, u_new, c.ubar)
-        u = packet[jnp.clip(k - k_pkt, 0, h)]
-        x_now = jnp.where(beta, xpost, c.xhat)
-        out = Trajectory(y=Cp @ c.x, y_meas=y, yhat=yhat, u=u, d=m.Cbar @ c.x,
-                         dhat=jnp.where(beta, dhat, jnp.nan), beta=beta, gamma=gamma,
-                         N=jnp.where(beta, k - c.k_lm, 0), current=(k == k_pkt))
-        c = Carry(x=m.step(c.x, u, wk), ybar=jnp.where(beta, y, c.ybar), k_lm=jnp.where(beta, k, c.k_lm),
-                  xhat=loop.Af @ x_now + loop.Bf * u, P=jnp.where(beta, Ppost, c.P), cas=cas, ctrl=ctrl,
-                  packet=packet, k_pkt=k_pkt, ubar=ubar)
-        return c, out
-
-    ks = jnp.arange(loop.steps, dtype=jnp.int32)
-    _, traj = jax.lax.scan(step, carry, (ks, w, v))
-    return traj
+    """One run of ``loop.steps`` periods on :func:`jaxnc.loop.simulate`; pure, jit- and
+    vmap-able. ``current`` is True where a packet reached the actuator, and at k = 0
+    (k_pkt starts at 0)."""
+    rl = runner_loop(loop)
+    tr = jl.simulate(rl, key, draws=draws(loop, key, rl))
+    # plant_rec holds (y, d) after each period's step: row k is instant k + 1
+    y0, d0 = rl.plant.record(rl.plant.init(key))
+    y = jnp.concatenate([y0[None], tr.plant_rec[0][:-1]])
+    d = jnp.concatenate([d0[None], tr.plant_rec[1][:-1]])
+    yhat = tr.est_rec if loop.numre else jnp.full((loop.steps,), jnp.nan)
+    dhat, N = tr.ctrl_rec
+    k = jnp.arange(loop.steps)
+    return Trajectory(y=y, y_meas=tr.z[:, 0], yhat=yhat, u=tr.u[:, 0], d=d, dhat=dhat, beta=tr.sent_sc > 0.5,
+                      gamma=tr.sent_ca > 0.5, N=N, current=(tr.recv_ca > 0) | (k == 0))
 
 
 # ----------------------------------------------------------------------------- metrics, eq. (23)-(29)
