@@ -13,6 +13,8 @@ run; the closed loop then carries those roundings along. The tolerances below ar
 ten times the differences seen over a full run (``TOL_*``); the discrete outcomes
 (completion slot l, done, tube failure) must be equal.
 """
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,13 +32,19 @@ TOL_U_REL = 2e-4    # commands and wheel references before completion, relative 
 TOL_J_REL = 1e-4    # J1, J2 (and the printed-reference forms), relative
 
 
+def _batched(mod):
+    def one(loop, key):
+        tr = mod.simulate(loop, key)
+        return tr, mod.evaluate(loop, tr)
+    return jax.jit(jax.vmap(one, in_axes=(None, 0)))      # the loop traced: e and e_high share a compile
+
+
+_OLD, _NEW = _batched(old), _batched(dd)
+
+
 def _pair(loop):
     keys = jax.random.split(jax.random.PRNGKey(11), SEEDS)
-
-    def f(mod):
-        return jax.jit(jax.vmap(lambda k: (lambda t: (t, mod.evaluate(loop, t)))(mod.simulate(loop, k))))(keys)
-
-    return jax.device_get(f(old)), jax.device_get(f(dd))
+    return jax.device_get(_OLD(loop, keys)), jax.device_get(_NEW(loop, keys))
 
 
 _CACHE = {}
@@ -62,7 +70,8 @@ def test_runner_draws_are_the_legacy_streams():
     w = np.asarray(rd.w).reshape(S, ns, sub, 2)
     np.testing.assert_array_equal(w[:, :, 0].reshape(K, 2), np.asarray(d.w * loop.noise.process_std()[None, :]))
     assert not np.any(w[:, :, 1:])
-    np.testing.assert_array_equal(np.asarray(rd.v)[:, :5], np.asarray(d.v * loop.noise.measurement_std()[None, :])[::ns])
+    v = np.asarray(d.v * loop.noise.measurement_std()[None, :])[::ns]
+    np.testing.assert_array_equal(np.asarray(rd.v)[:, :5], v)
     assert not np.any(np.asarray(rd.v)[:, 5])
     tau = old.truncated_delay(d.u_rl[::ns], loop.eta, loop.phi, loop.tau_max)
     np.testing.assert_array_equal(np.asarray(rd.downlink.delay), np.asarray(quantise_delay(tau, loop.plant.dt)))
@@ -144,3 +153,21 @@ def test_runner_matches_legacy(case):
         np.testing.assert_array_equal(getattr(ma, f), getattr(mb, f), err_msg=f)
     for f in ("J1", "J1_mean", "J2", "J1_ref", "J2_ref"):
         np.testing.assert_allclose(getattr(mb, f), getattr(ma, f), rtol=TOL_J_REL, err_msg=f)
+
+
+def test_gradient_through_the_runner_matches_legacy():
+    """autotune-pi differentiates J1 in the PI gains (experiments/autotune.py): value and
+    gradient on the runner equal the legacy loop's within float32 rounding (as above)."""
+    from experiments.autotune import pi_ss
+    loop = dd.diffdrive_loop("b", F=0.1)
+    key = jax.random.PRNGKey(2)
+
+    def j1(mod, kp, ki):
+        lp = dataclasses.replace(loop, sr=pi_ss(kp, ki, loop.ns * loop.plant.T))
+        return mod.run(lp, key).J1
+
+    va, ga = jax.jit(jax.value_and_grad(lambda kp, ki: j1(old, kp, ki), argnums=(0, 1)))(6.0, 50.0)
+    vb, gb = jax.jit(jax.value_and_grad(lambda kp, ki: j1(dd, kp, ki), argnums=(0, 1)))(6.0, 50.0)
+    assert np.isfinite(float(va))
+    np.testing.assert_allclose(float(vb), float(va), rtol=TOL_J_REL)
+    np.testing.assert_allclose(np.asarray(gb), np.asarray(ga), rtol=TOL_J_REL)

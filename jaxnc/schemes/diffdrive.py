@@ -342,14 +342,17 @@ class Robot(AbstractPlant):
         u = jnp.where(stop, 0.0, u)
         x = jnp.where(i == 0, s.x.at[:2].add(w), s.x)
         x1 = lp.plant.substep(x, u)
-        idx, dist = closest_index(path, x1[2:4], s.idx, lp.window)
-        at_end = (idx >= (9 * M) // 10) & (jnp.sum((x1[2:4] - path.points[-1]) ** 2) < lp.end_tol ** 2)
-        bad = s.bad | (~s.done & ((dist > lp.max_dev) | ~jnp.all(jnp.isfinite(x1))))
-        l = jnp.where(s.done, s.l, s.t // sub + 1)
-        done = s.done | at_end
-        e = i == sub - 1
-        return RobotState(x1, s.t + 1, jnp.where(e, idx, s.idx), jnp.where(e, done, s.done), stop,
-                          jnp.where(e, l, s.l), jnp.where(e, bad, s.bad), x, u)
+
+        def monitor(_):
+            idx, dist = closest_index(path, x1[2:4], s.idx, lp.window)
+            at_end = (idx >= (9 * M) // 10) & (jnp.sum((x1[2:4] - path.points[-1]) ** 2) < lp.end_tol ** 2)
+            bad = s.bad | (~s.done & ((dist > lp.max_dev) | ~jnp.all(jnp.isfinite(x1))))
+            l = jnp.where(s.done, s.l, s.t // sub + 1)
+            return idx, s.done | at_end, l, bad
+
+        # the monitor advances at the end of each slot T (a cond: t is the same in every run of a batch)
+        idx, done, l, bad = jax.lax.cond(i == sub - 1, monitor, lambda _: (s.idx, s.done, s.l, s.bad), None)
+        return RobotState(x1, s.t + 1, idx, done, stop, l, bad, x, u)
 
     def measure(self, s: RobotState, v):
         return jnp.concatenate([self.loop.plant.measure(s.x, v[:OUTPUT_DIM]), s.done.astype(jnp.float32)[None]])
