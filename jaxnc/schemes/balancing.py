@@ -26,7 +26,8 @@ meets the identical network and noise.
 
 **Emulation** (``design="emulation"``, eq. 5 and section 5): no time stamps. Both links
 use ``order="arrival"``: the receiver takes whatever arrives now, even an older packet
-than the one it holds. :class:`DirtyDerivative` holds the most recently arrived
+than the one it holds (a packet later than ``ring - 1`` steps is lost: its slot of the
+ring is reused). :class:`DirtyDerivative` holds the most recently arrived
 measurement and gets the rates by a first-order ("dirty") derivative with time constant
 ``tau_d`` (the plain difference for ``tau_d = 0``); :class:`LeadFeedback` with
 ``lead = 0`` applies the LQR designed for the ideal loop; :class:`ArrivalHold` applies the
@@ -166,6 +167,8 @@ class BufferedKalman(nc.AbstractEstimator):
     inputs = "believed"
 
     def init(self, ctx) -> BufferedKalmanState:
+        if ctx.N != 1:
+            raise ValueError(f"BufferedKalman runs at one rate: the loop's N must be 1, got {ctx.N}")
         n, p, m = ctx.state_dim, ctx.output_dim, ctx.input_dim
         buf = bkf_init(jnp.zeros((n,), _F32), jnp.asarray(self.cov0, _F32), self.kf.N, p, m)
         return BufferedKalmanState(buf, buf.base, buf.base)
