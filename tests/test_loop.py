@@ -234,3 +234,13 @@ def _lin_f(x, u, w):
 
 def _lin_h(x, v):
     return x[:1] + v
+
+
+def test_controller_trigger_gates_the_packets():
+    key = jax.random.PRNGKey(0)
+    never = jax.jit(nc.simulate)(_lti_loop(controller_trigger=nc.Petc(delta=1e9)), key)
+    assert float(never.tx_ca) == 1.0                      # only the first (forced) packet
+    u = np.asarray(never.u)
+    assert np.all(u == u[0])                              # the actuator holds it
+    always = jax.jit(nc.simulate)(_lti_loop(controller_trigger=nc.Petc(delta=0.0)), key)
+    assert float(always.tx_ca) == 40.0

@@ -104,7 +104,8 @@ class Loop:
       controller: :mod:`jaxnc.loop.controllers`.
       downlink: controller -> actuator link.
       actuator: :mod:`jaxnc.loop.actuators` (its horizon must equal the controller's).
-      controller_trigger: optional trigger on the first action of each packet (seed 003
+      controller_trigger: optional trigger on the first action of each packet, evaluated
+        only at the instants the controller would send (its state unchanged otherwise) (seed 003
         eq. 21-22); None: every computed packet is sent.
       monitor: failure detection.
       cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`,
@@ -282,7 +283,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             pkt, send_ca, ctrl = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
         ctrig = c.ctrig
         if loop.controller_trigger is not None:
-            fire, ctrig = loop.controller_trigger.step(c.ctrig, pkt.data[0], k)
+            # evaluated only where the controller would send; otherwise its state stays
+            fire, ctrig_new = loop.controller_trigger.step(c.ctrig, pkt.data[0], k)
+            ctrig = jax.tree.map(lambda a, b: jnp.where(send_ca > 0.5, a, b), ctrig_new, c.ctrig)
             send_ca = send_ca * fire
         # 6. downlink; the controller's own copy as if delivered at once
         down = loop.downlink.send(c.down, pkt.data, pkt.stamp, k, send_ca, d_down, t0)
