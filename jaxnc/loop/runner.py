@@ -253,7 +253,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     carry0 = _Carry(
         x=x0, trig=loop.trigger.init(z0),
         up=loop.uplink.init(z0), est=est0, ctrl=ctrl0,
-        ctrig=None if loop.controller_trigger is None else loop.controller_trigger.init(pkt_zero.data[0][0]),
+        ctrig=None if loop.controller_trigger is None else loop.controller_trigger.init(pkt_zero.data[0]),
         down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0,
         failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32))
     believed_needed = getattr(loop.estimator, "inputs", "believed") == "believed"
