@@ -244,3 +244,11 @@ def test_controller_trigger_gates_the_packets():
     assert np.all(u == u[0])                              # the actuator holds it
     always = jax.jit(nc.simulate)(_lti_loop(controller_trigger=nc.Petc(delta=0.0)), key)
     assert float(always.tx_ca) == 40.0
+
+
+def test_tau_max_of_whole_periods_keeps_a_delay_of_exactly_that_many_periods():
+    T, N = 0.001, 10
+    link = nc.Link(delay=nc.PmfDelay([0.0] * 10 + [1.0]), tau_max=N * T)       # always 10 periods
+    assert np.all(np.asarray(link.draw(jax.random.PRNGKey(0), 50, T).delay) == 10)
+    link = nc.Link(delay=nc.PmfDelay([0.0] * 11 + [1.0]), tau_max=N * T)       # always 11: late
+    assert np.all(np.asarray(link.draw(jax.random.PRNGKey(0), 50, T).delay) == -1)

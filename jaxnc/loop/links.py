@@ -142,6 +142,8 @@ class TraceLoss:
 class NoDelay:
     """Zero delay: a packet is usable at the instant it is sent."""
 
+    in_steps = True   # delays are whole fast periods
+
     def sample(self, key, n: int, T):
         return jnp.zeros((n,), jnp.int32), jnp.zeros((n,), _F32)
 
@@ -201,6 +203,8 @@ class TruncatedExponential:
 class PmfDelay:
     """A discrete delay law: ``pmf[d]`` = P(delay = d fast periods)."""
 
+    in_steps = True   # delays are whole fast periods
+
     pmf: Any
 
     def __post_init__(self):
@@ -226,6 +230,8 @@ class PmfDelay:
 class TraceDelay:
     """Recorded delays in fast periods (int, negative = lost), replayed from the start."""
 
+    in_steps = True   # delays are whole fast periods
+
     steps: Any
 
     def sample(self, key, n: int, T):
@@ -241,6 +247,8 @@ class WifiModel:
     """The seed-001 Wi-Fi channel (:class:`jaxnc.wifi.WifiChannel`): bursty loss and the
     delay pmf drawn jointly by :func:`jaxnc.wifi.sample_trace`; use it as the link's delay
     model (a lost packet has delay -1)."""
+
+    in_steps = True   # delays are whole fast periods
 
     channel: wifi.WifiChannel = wifi.NOMINAL
 
@@ -328,7 +336,13 @@ class Link:
         steps, seconds = self.delay.sample(kd, n, T)
         bad = lost | (steps < 0)
         if self.tau_max is not None:
-            bad = bad | late(seconds, self.tau_max)
+            if getattr(self.delay, "in_steps", False):
+                # delays drawn in whole fast periods: compare periods, not float32 seconds
+                # (d * T can round above tau_max = d * T)
+                limit = jnp.floor(jnp.asarray(self.tau_max, _F32) / jnp.asarray(T, _F32) * (1 + 2.0**-21))
+                bad = bad | (steps > limit)
+            else:
+                bad = bad | late(seconds, self.tau_max)
         if self.reliable_first:
             bad = bad & (jnp.arange(n) > 0)
         return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))
