@@ -11,16 +11,21 @@ period (``ekf_predict``), along the control actions the remote side itself sent 
 cannot know whether the controller-to-actuator packet was lost). Propagating P along
 the whole horizon at every correction, as the text literally says, would compute
 h*N covariance steps of which only those up to the next correction are ever used.
+
+The scheme's roles in :mod:`jaxnc.loop` live here too: :class:`NudrekfEstimator`,
+:class:`ChainController` and :class:`ChainActuator` (packets as prediction chains).
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxnc.estimators.ekf import Gaussian, ekf_update, ekf_update_diag
+from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.estimators.sparsity import EKFStructure
+from jaxnc.loop.base import AbstractActuator, AbstractController, AbstractEstimator, Inbox, Packet
 
 
 def nudrekf_correct(model, belief: Gaussian, z, R, *, jacobian_grad: bool = True,
@@ -128,3 +133,233 @@ def advance_chain(model, controller_next: Callable, chain: PacketChain, horizon:
     # past the horizon the prediction is no longer used: freeze it
     x = jnp.where(j <= horizon, x, chain.x)
     return PacketChain(x, u, chain.c_after, c_after, jnp.minimum(j, horizon))
+
+
+# ----------------------------------------------------------------------------- loop roles
+# The NUDREKF scheme as roles of jaxnc.loop (seed 000, section 3.3.1): a packet is a
+# prediction chain; the remote side keeps its copy of its last packet (the runner's
+# "believed" actuator state), and the actuator installs that copy when the packet arrives.
+
+
+def keep_or_replace(flag, new, old):
+    """``new`` where the 0/1 float ``flag`` is 1, else ``old``, leaf by leaf: the float blend
+    ``flag * new + (1 - flag) * old`` (an exact select that lets a straight-through trigger
+    gradient pass) for floating leaves, a select for integer ones."""
+    def leaf(a, b):
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            return flag * a + (1.0 - flag) * b
+        return jnp.where(flag > 0.5, a, b)
+    return jax.tree.map(leaf, new, old)
+
+
+def _static(default=dataclasses.MISSING):
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+class ChainEstimate(NamedTuple):
+    """What :class:`NudrekfEstimator` hands the controller at a slow instant.
+
+    ``mean`` float[n] is the corrected estimate (eq. 13; computed whether or not a
+    measurement arrived), ``weight`` the 0/1 float "a measurement arrived and was used
+    now" (the sensor's send decision times the uplink's delivery, with the trigger's
+    straight-through gradient): the remote side sends a packet exactly then."""
+
+    mean: jax.Array
+    weight: jax.Array
+
+
+class NudrekfState(NamedTuple):
+    belief: Gaussian        # the remote belief (after the last correction / prediction)
+    est: ChainEstimate      # the estimate of the last correction
+    means: jax.Array        # float[N, n]: belief means after each fast period of the last prediction
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class NudrekfEstimator(AbstractEstimator):
+    """The remote NUDREKF as a loop estimator (seed 000 eq. 11-16).
+
+    At a slow instant it corrects with the delivered measurement (eq. 13, additive noise
+    with diagonal covariance: :func:`nudrekf_correct`); over the period it propagates the
+    belief once per fast period (eq. 11) along the actions the remote side *sent* (the
+    runner's ``u_believed``: it cannot know whether a control packet was lost).
+
+    Attributes:
+      model: the kinematic model (``dynamics``, ``measure``, ``noise_dim``).
+      Q: float[q], process noise variances per fast period; R: float[p], measurement
+        noise variances.
+      mean0: float[n], cov0: float[n, n], the prior at t = 0.
+      noise_dim: static, the model's process-noise dimension q.
+      jacobian_grad, structure: static, as in :func:`jaxnc.estimators.ekf.ekf_predict`.
+    """
+
+    model: Any
+    Q: Any
+    R: Any
+    mean0: Any
+    cov0: Any
+    noise_dim: int = _static(0)
+    jacobian_grad: bool = _static(True)
+    structure: EKFStructure | None = _static(None)
+    inputs = "believed"
+
+    def init(self, ctx) -> NudrekfState:
+        g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
+        return NudrekfState(g, ChainEstimate(g.mean, jnp.zeros((), jnp.float32)),
+                            jnp.zeros((ctx.N, g.mean.shape[0]), jnp.float32))
+
+    def correct(self, state: NudrekfState, inbox: Inbox, k) -> NudrekfState:
+        """Correct with the measurement of instant k (weight 0: keep the belief).
+
+        The uplink has no delay (seed 000 lumps the round trip on the downlink): the
+        measurement of instant k is in slot k mod C of the ring, with the weight
+        beta_k (1 - lost_k), which carries the trigger's straight-through gradient also
+        when the sensor stays silent (``Inbox.new`` is 0 without a gradient there)."""
+        slot = jnp.mod(k, inbox.stamp.shape[0])
+        z, w = jax.tree.map(lambda a: a[slot], inbox.data), inbox.weight[slot]
+        corrected = nudrekf_correct(self.model, state.belief, z, self.R, jacobian_grad=self.jacobian_grad,
+                                    structure=self.structure)
+        belief = keep_or_replace(w, corrected, state.belief)
+        return state._replace(belief=belief, est=ChainEstimate(corrected.mean, w))
+
+    def estimate(self, state: NudrekfState) -> ChainEstimate:
+        return state.est
+
+    def predict(self, state: NudrekfState, u_applied, u_believed, k) -> NudrekfState:
+        """N steps of eq. (11) along ``u_believed`` float[N, m]; keeps the N means."""
+        def body(g, u):
+            g = ekf_predict(self.model.dynamics, g, u, self.Q, self.noise_dim,
+                            jacobian_grad=self.jacobian_grad, structure=self.structure)
+            return g, g.mean
+
+        belief, means = jax.lax.scan(body, state.belief, u_believed)
+        return state._replace(belief=belief, means=means)
+
+    def record_predict(self, state: NudrekfState):
+        """float[N, n]: the belief means after each fast period of the last prediction."""
+        return state.means
+
+
+class ChainPacket(NamedTuple):
+    """The payload of a control packet: the prediction chain and its weight, the 0/1 float
+    "the remote side sent a new packet now" (with the trigger's straight-through gradient).
+    A packet of weight 0 still travels, so that this gradient reaches the actuator at the
+    instant the packet would have arrived, as in the hand-written loop."""
+
+    chain: PacketChain
+    weight: jax.Array
+
+
+class ChainActuatorState(NamedTuple):
+    chain: PacketChain      # the installed packet, at the current instant
+    stamp: jax.Array        # int32, its time stamp (-1: the idle chain before the first packet)
+    prev: PacketChain       # the chain held before the last ``receive`` (sender side only)
+    prev_stamp: jax.Array   # int32
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ChainActuator(AbstractActuator):
+    """The actuator of packet-based control with packets held as prediction chains (seed 000
+    section 2.4 and 3.3.1).
+
+    Every fast period it applies the action its chain holds for the instant and advances the
+    chain one period (:func:`advance_chain`; past h*N actions the last is held). The same
+    role is the remote side's copy of its last packet (the runner's ``u_believed`` state):
+    ``receive`` installs the controller's own packet there. At the real actuator
+    ``receive_from_sender(state, inbox, sent)`` installs, when a packet arrives, the
+    sender's *current* copy of that packet (``sent.chain``, or ``sent.prev`` for the packet
+    of the previous slow instant arriving exactly at this one, d = N), so both ends advance
+    one chain each per fast period whatever the delay.
+
+    Attributes:
+      model: the kinematic model the chain is predicted with; law: the control law,
+        ``law(model, mean, c, Ts, narrow=...) -> (u, c)`` with ``law.init()``
+        (:class:`jaxnc.controllers.path_following.PathFollower`).
+      Ts: the law's period (s); horizon: int32, actions per packet (h*N); hold: int32,
+        fast periods each action is held (N single rate, 1 dual rate).
+      mean0: float[n], the idle chain's state before the first packet (it applies zero).
+      noise_dim: static, the model's process-noise dimension (the chain is noise-free).
+    """
+
+    model: Any
+    law: Any
+    Ts: Any
+    horizon: Any
+    hold: Any
+    mean0: Any
+    noise_dim: int = _static(0)
+
+    def _idle(self, m):
+        return exhausted_chain(jnp.asarray(self.mean0, jnp.float32), jnp.zeros((m,), jnp.float32),
+                               self.law.init(), self.horizon)
+
+    def init(self, ctx) -> ChainActuatorState:
+        idle = self._idle(ctx.input_dim)
+        s = jnp.asarray(-1, jnp.int32)
+        return ChainActuatorState(idle, s, idle, s)
+
+    def receive(self, state: ChainActuatorState, inbox: Inbox) -> ChainActuatorState:
+        """Install the newest delivered chain (the sender's own copy) with the packet's weight;
+        remember the old one."""
+        pkt, stamp, wn = inbox.newest()
+        w = wn * pkt.weight
+        return ChainActuatorState(keep_or_replace(w, pkt.chain, state.chain),
+                                  jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32),
+                                  state.chain, state.stamp)
+
+    def receive_from_sender(self, state: ChainActuatorState, inbox: Inbox, sent: ChainActuatorState):
+        """At the arrival of a packet, install the sender's current copy of it (with the
+        packet's weight): ``sent.chain``, or ``sent.prev`` for a packet older than the
+        sender's newest (the previous slow instant's, arriving exactly now)."""
+        pkt, stamp, wn = inbox.newest()
+        w = wn * pkt.weight
+        copy = jax.tree.map(lambda a, b: jnp.where(stamp >= sent.stamp, a, b), sent.chain, sent.prev)
+        return state._replace(chain=keep_or_replace(w, copy, state.chain),
+                              stamp=jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32))
+
+    def output(self, state: ChainActuatorState, t):
+        """(u_t, state advanced one fast period)."""
+        nxt = lambda m, c: self.law(self.model, m, c, self.Ts, narrow=True)
+        chain = advance_chain(self.model, nxt, state.chain, self.horizon, self.hold, self.noise_dim)
+        return state.chain.u, state._replace(chain=chain)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ChainController(AbstractController):
+    """The remote controller of section 3.3.1: from the corrected estimate it starts a new
+    prediction chain (step 1, :func:`start_chain`) that continues the controller state its
+    last packet predicted for this instant; the packet's weight is ``ChainEstimate.weight``
+    (a new packet exactly when a measurement arrived). Every slow instant's packet is handed
+    to the link (send = 1, :class:`ChainPacket`): the runner's controller transmission
+    counts are therefore per slow instant, the scheme's are the weights.
+
+    ``step_from_sent(state, xhat, fresh, k, ctx, sent)`` (the runner's hook for controllers
+    whose packets continue the sender's copy of the last one, ``sent`` a
+    :class:`ChainActuatorState`) is the scheme; ``step`` alone starts from ``law.init()``.
+    The packet is the chain, stamped kN.
+
+    Attributes: model, law, Ts as in :class:`ChainActuator`.
+    """
+
+    model: Any
+    law: Any
+    Ts: Any
+
+    def init(self, ctx):
+        return ()
+
+    def _packet(self, xhat, fresh, k, ctx, c_before):
+        mean, w = (xhat.mean, xhat.weight) if isinstance(xhat, ChainEstimate) else (xhat, fresh)
+        chain = start_chain(lambda m, c: self.law(self.model, m, c, self.Ts), mean, c_before)
+        pkt = Packet(ChainPacket(chain, jnp.asarray(w, jnp.float32)), (k * ctx.N).astype(jnp.int32))
+        return pkt, jnp.ones((), jnp.float32)
+
+    def step(self, state, xhat, fresh, k, ctx):
+        pkt, w = self._packet(xhat, fresh, k, ctx, self.law.init())
+        return pkt, w, state
+
+    def step_from_sent(self, state, xhat, fresh, k, ctx, sent: ChainActuatorState):
+        pkt, w = self._packet(xhat, fresh, k, ctx, sent.chain.c_before)
+        return pkt, w, state

@@ -1,4 +1,12 @@
-"""Closed loops SR, DR, DRH and DRHE of seed 000 (section 4.1), one ``lax.scan`` each.
+"""Closed loops SR, DR, DRH and DRHE of seed 000 (section 4.1), as configurations of the
+one runner :mod:`jaxnc.loop` (:func:`build_loop`).
+
+Roles: the true robot with the path monitor (:class:`Robot`), the sensor's trigger
+(:class:`SensorTrigger`), an uplink with losses only, the remote NUDREKF
+(:class:`~jaxnc.estimators.nudrekf.NudrekfEstimator`) and controller
+(:class:`~jaxnc.estimators.nudrekf.ChainController`), a downlink with losses and the lumped
+round-trip delay (:class:`RoundTrip`), and the actuator
+(:class:`~jaxnc.estimators.nudrekf.ChainActuator`), whose packets are prediction chains.
 
 Timing (fast period T, slow period NT, k the slow index, t = kN the fast instant):
 
@@ -31,6 +39,8 @@ per fast instant, so that every case sees the same realisation at the same time
 A run is *unstable* when the robot leaves a tube of ``max_dev`` (0.5 m) around the
 path, a state becomes non-finite, or it has not reached the end of the path within
 the simulated horizon (1.6 x the nominal path time + 10 s). Its indexes are inf.
+(The runner applies zero in place of a non-finite action and marks the run failed; such
+a run is unstable.)
 """
 from __future__ import annotations
 
@@ -44,10 +54,12 @@ import numpy as np
 
 from jaxnc._validate import check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
-from jaxnc.estimators.ekf import Gaussian, ekf_predict
-from jaxnc.estimators.nudrekf import PacketChain, advance_chain, exhausted_chain, nudrekf_correct, start_chain
+from jaxnc.estimators.nudrekf import ChainActuator, ChainController, NudrekfEstimator, PacketChain
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2, local_distance
+from jaxnc.loop import AbstractPlant, AbstractTrigger, Bernoulli, Link, LinkDraws, Loop, Monitor
+from jaxnc.loop import Draws as LoopDraws
+from jaxnc.loop import simulate as run_loop
 from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
@@ -307,33 +319,188 @@ class Trajectory(NamedTuple):
     bad: jax.Array        # bool: left the tube or non-finite
 
 
-def _keep_or_replace(flag, new, old):
-    """``new`` where the 0/1 float ``flag`` is 1, else ``old``, leaf by leaf: a float
-    blend (so a straight-through trigger gradient passes) or a select for integers."""
-    def leaf(a, b):
-        if jnp.issubdtype(a.dtype, jnp.floating):
-            return hold_last_sent(flag, a, b)
-        return jnp.where(flag > 0.5, a, b)
-    return jax.tree.map(leaf, new, old)
+class Track(NamedTuple):
+    """The path-tracking monitor of a run (kept in :class:`Robot`'s state, recorded per fast period)."""
+
+    xv: jax.Array         # float[6] kinematic state after the period
+    idx: jax.Array        # int32, the robot's progress along the path (closest_index)
+    dist: jax.Array       # distance to the path (metrics.local_distance)
+    done: jax.Array       # bool: path completed
+    l: jax.Array          # int32: fast steps until the path was completed (K if never)
+    bad: jax.Array        # bool: left the tube (before completion) or non-finite state
+    t: jax.Array          # int32: fast periods simulated
 
 
-class _Carry(NamedTuple):
-    x: jax.Array
-    z_last: jax.Array
-    silent: jax.Array           # slow periods since the sensor last sent (int32)
-    belief: Gaussian
-    sent: PacketChain           # the last packet the remote side sent (its belief of the actions)
-    act: PacketChain            # the packet the actuator is applying
-    pending_ok: jax.Array       # the last sent packet arrives exactly at the next slow instant
-    idx_true: jax.Array
-    done: jax.Array
-    l: jax.Array
-    bad: jax.Array
+class RobotState(NamedTuple):
+    s: Any                # the true plant's state (kinematic float[6], or the MJX state)
+    track: Track
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Robot(AbstractPlant):
+    """The true robot as the loop's plant, with the path monitor of section 4.1 in its state.
+
+    ``truth`` is the kinematic model (eq. 1) or another plant with its interface (``init(key,
+    x0)``, ``step``, ``state``, ``measure``, e.g. the MJX robot). Each fast period, after the
+    step, the monitor advances the robot's progress along the path (``closest_index`` in a
+    window of TRACK_WINDOW points), its distance to the path, completion (within ``end_tol``
+    of the end, past 90 % of the points; ``l`` = the steps taken until then) and ``bad``
+    (left the ``max_dev`` tube before completion, or a non-finite state).
+    """
+
+    truth: Any
+    path: Path
+    x0: Any               # float[6], the start pose on the path, at rest
+    max_dev: Any
+    end_tol: Any
+    steps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    state_dim = STATE_DIM
+    input_dim = INPUT_DIM
+    noise_dim = PROCESS_NOISE_DIM
+    output_dim = OUTPUT_DIM
+
+    def init(self, key) -> RobotState:
+        s0 = self.truth.init(key, self.x0)
+        z = jnp.zeros((), jnp.int32)
+        no = jnp.zeros((), bool)
+        track = Track(self.truth.state(s0), z, jnp.zeros((), jnp.float32), no, jnp.asarray(self.steps, jnp.int32),
+                      no, z)
+        return RobotState(s0, track)
+
+    def dynamics(self, x: RobotState, u, w) -> RobotState:
+        s = self.truth.step(x.s, u, w)
+        xv = self.truth.state(s)
+        tr, path = x.track, self.path
+        idx, _ = closest_index(path, xv[3:5], tr.idx, TRACK_WINDOW)
+        dist = local_distance(path, xv[3:5], idx)
+        n_path = path.points.shape[0]
+        at_end = (idx >= (9 * n_path) // 10) & (jnp.sum((xv[3:5] - path.points[-1]) ** 2) < self.end_tol ** 2)
+        l = jnp.where(tr.done, tr.l, tr.t + 1)
+        done = tr.done | at_end
+        # only until the path is complete: afterwards the robot may coast off the end
+        off = (dist > self.max_dev) & ~done
+        bad = tr.bad | off | ~jnp.all(jnp.isfinite(xv))
+        return RobotState(s, Track(xv, idx, dist, done, l, bad, tr.t + 1))
+
+    def measure(self, x: RobotState, v):
+        return self.truth.measure(x.s, v)
+
+    def state_vector(self, x: RobotState):
+        return self.truth.state(x.s)
+
+    def record(self, x: RobotState) -> Track:
+        return x.track
+
+
+class SensorState(NamedTuple):
+    last: jax.Array       # zbar, the last value sent
+    silent: jax.Array     # int32, slow periods since the sensor last sent
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SensorTrigger(AbstractTrigger):
+    """The sensor of section 4.1: PETC (eq. 3-4, ``petc``) when ``event`` (DRHE), with the
+    optional time-triggered safety condition ``max_silence`` (0 = off); otherwise it sends
+    every slow instant. The first instant always sends (zbar_0 = z_0). ``event`` and
+    ``max_silence`` are leaves, so every case shares one compiled program."""
+
+    petc: PetcTrigger
+    event: Any
+    max_silence: Any
+
+    def init(self, s0) -> SensorState:
+        return SensorState(jnp.asarray(s0, jnp.float32), jnp.zeros((), jnp.int32))
+
+    def step(self, state: SensorState, z, k):
+        dtype = z.dtype
+        petc = (k > 0) & self.event
+        fires = self.petc.fires(state.last, z)
+        due = (self.max_silence > 0) & (state.silent + 1 >= self.max_silence)   # safety condition
+        fires = jnp.where(due, jnp.ones((), dtype), fires)
+        beta = jnp.where(petc, fires, jnp.ones((), dtype))
+        last = hold_last_sent(beta, z, state.last)
+        silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
+        return beta, SensorState(last, silent)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RoundTrip:
+    """The round-trip delay lumped on the controller -> actuator direction (eq. 6-7): the
+    sum of the two directions' shifted exponentials, (eta_ca + phi_ca e1) + (eta_sc + phi_sc
+    e2) seconds, quantised up to the fast period (a delay model of :class:`jaxnc.loop.Link`)."""
+
+    ca: Channel
+    sc: Channel
+
+    def seconds(self, e_ca, e_sc):
+        return (self.ca.eta + self.ca.phi * e_ca) + (self.sc.eta + self.sc.phi * e_sc)
+
+    def sample(self, key, n: int, T):
+        k1, k2 = jax.random.split(key)
+        tau = self.seconds(jax.random.exponential(k1, (n,)), jax.random.exponential(k2, (n,)))
+        return quantise_delay(tau, T), tau
+
+
+def build_loop(loop: MecanumLoop) -> Loop:
+    """The configuration ``loop`` as a :class:`jaxnc.loop.Loop` (module docstring).
+
+    Sensor :class:`SensorTrigger`; uplink: Bernoulli(p_sc) loss, no delay (the round trip is
+    lumped downstream), first exchange delivered; remote side
+    :class:`~jaxnc.estimators.nudrekf.NudrekfEstimator` and
+    :class:`~jaxnc.estimators.nudrekf.ChainController`; downlink: Bernoulli(p_ca) loss,
+    :class:`RoundTrip` delay, packets later than ``tau_max`` discarded, first exchange
+    delivered; actuator :class:`~jaxnc.estimators.nudrekf.ChainActuator` (h*N actions held
+    by the prediction chain, the last one held beyond). Plant :class:`Robot`."""
+    plant, fol, N, K = loop.plant, loop.follower, loop.N, loop.steps
+    truth = plant if loop.truth is None else loop.truth   # the robot; ``plant`` is the model
+    dtype = jnp.float32
+    start = fol.path.points[0]
+    x0 = jnp.concatenate([jnp.zeros(3, dtype), start.astype(dtype), jnp.zeros(1, dtype)])
+    Ts, hold, H = loop.Ts, loop.hold, loop.horizon
+    estimator = NudrekfEstimator(
+        model=plant, Q=loop.filter_noise.process_std() ** 2, R=loop.filter_noise.measurement_std() ** 2,
+        mean0=x0, cov0=jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2),
+        noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure)
+    return Loop(
+        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K),
+        trigger=SensorTrigger(loop.trigger, loop.event_triggered, loop.max_silence),
+        uplink=Link(loss=Bernoulli(loop.sc.p_loss), reliable_first=True, capacity=1),
+        estimator=estimator,
+        controller=ChainController(plant, fol, Ts),
+        downlink=Link(loss=Bernoulli(loop.ca.p_loss), delay=RoundTrip(loop.ca, loop.sc), tau_max=loop.tau_max,
+                      reliable_first=True, capacity=2),
+        actuator=ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM),
+        monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T))
+
+
+def runner_draws(loop: MecanumLoop, key) -> LoopDraws:
+    """The runner's draws of one run, bit for bit those of the hand-written loop: the
+    streams of :func:`draw` (``split(key, 5)`` and ``fold_in(key, 101)``) scaled by the true
+    noise, the losses and delays encoded per slow instant (-1: lost or later than tau_max;
+    a delay of N or more arrives at the next slow instant), and ``fold_in(key, 202)`` for
+    the true plant's initial state."""
+    K, N, T = loop.steps, loop.N, loop.plant.T
+    S = K // N
+    d = draw(key, K, N)
+    w = (d.w * loop.noise.process_std()[None, :]).reshape(S, N, PROCESS_NOISE_DIM)
+    v = d.v * loop.noise.measurement_std()[None, :]
+    first = jnp.arange(S) == 0
+    sc_lost = (d.sc_u < loop.sc.p_loss) & ~first
+    ca_lost = (d.ca_u < loop.ca.p_loss) & ~first
+    tau = RoundTrip(loop.ca, loop.sc).seconds(d.delay_e, d.delay_sc_e)
+    too_late = late(tau, loop.tau_max) & ~first
+    dsteps = jnp.minimum(quantise_delay(tau, T), N)
+    return LoopDraws(w, v, LinkDraws(jnp.where(sc_lost, -1, 0).astype(jnp.int32)),
+                     LinkDraws(jnp.where(ca_lost | too_late, -1, dsteps).astype(jnp.int32)),
+                     jax.random.fold_in(key, 202))
 
 
 def simulate(loop: MecanumLoop, key) -> Trajectory:
-    """One closed-loop run of ``loop.case``: a ``lax.scan`` over slow periods with the N
-    fast periods inside. Pure function of (loop, key); vmap it over keys.
+    """One closed-loop run of ``loop.case``: :func:`build_loop` run by :func:`jaxnc.loop.simulate`
+    on :func:`runner_draws`. Pure function of (loop, key); vmap it over keys.
 
     Packets are carried as prediction chains (:class:`PacketChain`): the remote side's
     copy of its last sent packet and the actuator's installed packet each advance one
@@ -341,100 +508,16 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     a run costs O(K) controller evaluations whatever h (materialising h*N actions per
     packet would cost O(K h)); the actions are the same.
     """
-    plant, fol, N, H, K = loop.plant, loop.follower, loop.N, loop.horizon, loop.steps
-    truth = plant if loop.truth is None else loop.truth   # the robot; ``plant`` is the model
-    Ts, hold = loop.Ts, loop.hold
-    path = fol.path
-    d = draw(key, K, N)
-    dtype = jnp.float32
-    w = d.w * loop.noise.process_std()[None, :]
-    v = d.v * loop.noise.measurement_std()[None, :]     # slow instants only (draw(..., every=N))
-    # additive, independent measurement noises: the correction processes them one by one
-    Qf, Rf = loop.filter_noise.process_std() ** 2, loop.filter_noise.measurement_std() ** 2   # diagonal
-    # Start-up handshake: the first exchange (k = 0) is delivered, or a PETC sensor
-    # watching a robot at rest would never fire again and the loop would never start.
-    first = jnp.arange(K // N) == 0
-    sc_lost = (d.sc_u < loop.sc.p_loss) & ~first
-    ca_lost = (d.ca_u < loop.ca.p_loss) & ~first
-    tau = (loop.ca.eta + loop.ca.phi * d.delay_e) + (loop.sc.eta + loop.sc.phi * d.delay_sc_e)
-    dsteps = quantise_delay(tau, plant.T)
-    too_late = late(tau, loop.tau_max) & ~first
-
-    start = path.points[0]
-    x0 = jnp.concatenate([jnp.zeros(3, dtype), start.astype(dtype), jnp.zeros(1, dtype)])
-    belief0 = Gaussian(x0, jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2))
-    ctrl = lambda m, c: fol(plant, m, c, Ts)
-    ctrl_next = lambda m, c: fol(plant, m, c, Ts, narrow=True)
-    advance = lambda ch: advance_chain(plant, ctrl_next, ch, H, hold, PROCESS_NOISE_DIM)
-    end = path.points[-1]
-    n_path = path.points.shape[0]
-
-    def slow_step(c: _Carry, inp):
-        k, w_k, v_k, sc_lost_k, ca_lost_k, d_k, late_k = inp
-        # the packet sent at the last slow instant with a delay of exactly N arrives now
-        act = _keep_or_replace(c.pending_ok, c.sent, c.act)
-        # 1. sensor, PETC (eq. 3-4)
-        z = truth.measure(c.x, v_k)
-        petc = (k > 0) & loop.event_triggered
-        fires = loop.trigger.fires(c.z_last, z)
-        due = (loop.max_silence > 0) & (c.silent + 1 >= loop.max_silence)   # safety condition
-        fires = jnp.where(due, jnp.ones((), dtype), fires)
-        beta = jnp.where(petc, fires, jnp.ones((), dtype))
-        z_last = hold_last_sent(beta, z, c.z_last)
-        silent = jnp.where(beta > 0.5, 0, c.silent + 1).astype(jnp.int32)
-        rec = beta * (1.0 - sc_lost_k.astype(dtype))
-        # 2. remote: correction (eq. 13) and a new packet (section 3.3.1) that continues
-        #    the controller state its last packet predicted for this instant
-        corrected = nudrekf_correct(plant, c.belief, z, Rf, jacobian_grad=loop.jacobian_grad,
-                                    structure=loop.structure)
-        belief = _keep_or_replace(rec, corrected, c.belief)
-        sent = _keep_or_replace(rec, start_chain(ctrl, corrected.mean, c.sent.c_before), c.sent)
-        # 3. controller -> actuator: lost, or arrives d_k fast periods later
-        arr = rec * (1.0 - ca_lost_k.astype(dtype)) * (1.0 - late_k.astype(dtype))
-
-        # 4. N fast periods: actuator, plant (eq. 1), remote belief propagation (eq. 11)
-        def fast_step(fc, inp_j):
-            x, belief, sent, act, idx_true, done, l, bad = fc
-            j, w_t = inp_j
-            t = k * N + j
-            act = _keep_or_replace(arr * (j == d_k).astype(dtype), sent, act)
-            u = act.u
-            x = truth.step(x, u, w_t)
-            xv = truth.state(x)
-            belief = ekf_predict(plant.dynamics, belief, sent.u, Qf, PROCESS_NOISE_DIM,
-                                 jacobian_grad=loop.jacobian_grad, structure=loop.structure)
-            act, sent = advance(act), advance(sent)
-            idx_true, _ = closest_index(path, xv[3:5], idx_true, TRACK_WINDOW)
-            dist = local_distance(path, xv[3:5], idx_true)
-            at_end = (idx_true >= (9 * n_path) // 10) & (jnp.sum((xv[3:5] - end) ** 2) < loop.end_tol ** 2)
-            l = jnp.where(done, l, t + 1)
-            done = done | at_end
-            # only until the path is complete: afterwards the robot may coast off the end
-            off = (dist > loop.max_dev) & ~done
-            bad = bad | off | ~jnp.all(jnp.isfinite(xv)) | ~jnp.all(jnp.isfinite(belief.mean))
-            return (x, belief, sent, act, idx_true, done, l, bad), (xv, belief.mean, u, dist)
-
-        fc = (c.x, belief, sent, act, c.idx_true, c.done, c.l, c.bad)
-        fc, (xs, means, uapp, dist) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
-        x, belief, sent, act, idx_true, done, l, bad = fc
-        pending_ok = arr * (d_k >= N).astype(dtype)
-        return (_Carry(x, z_last, silent, belief, sent, act, pending_ok, idx_true, done, l, bad),
-                (xs, means, uapp, dist, beta, rec, arr))
-
-    u0 = jnp.zeros((INPUT_DIM,), dtype)
-    idle = exhausted_chain(x0, u0, fol.init(), H)   # applies zero until the first packet
-    # the true plant's own stream: adding it left every other draw unchanged
-    s0 = truth.init(jax.random.fold_in(key, 202), x0)
-    carry0 = _Carry(s0, truth.measure(s0, jnp.zeros(OUTPUT_DIM, dtype)), jnp.zeros((), jnp.int32), belief0, idle, idle,
-                    jnp.zeros((), dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
-                    jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
-    n_slow = K // N
-    xs_in = (jnp.arange(n_slow, dtype=jnp.int32), w.reshape(n_slow, N, PROCESS_NOISE_DIM), v,
-             sc_lost, ca_lost, dsteps, too_late)
-    final, (xs, means, us, dist, beta, rec, arr) = jax.lax.scan(slow_step, carry0, xs_in)
-    return Trajectory(
-        x=xs.reshape(K, STATE_DIM), mean=means.reshape(K, STATE_DIM), u=us.reshape(K, INPUT_DIM),
-        dist=dist.reshape(K), sent=beta, received=rec, delivered=arr, l=final.l, done=final.done, bad=final.bad)
+    K, N = loop.steps, loop.N
+    draws = runner_draws(loop, key)
+    tr = run_loop(build_loop(loop), key, draws=draws)
+    track = tr.plant_rec
+    mean = tr.est_pred_rec.reshape(K, STATE_DIM)
+    received = tr.xhat.weight
+    delivered = received * (draws.downlink.delay >= 0).astype(received.dtype)
+    bad = track.bad[-1] | ~jnp.all(jnp.isfinite(mean)) | tr.failed
+    return Trajectory(x=track.xv, mean=mean, u=tr.u, dist=track.dist, sent=tr.sent_sc, received=received,
+                      delivered=delivered, l=track.l[-1], done=track.done[-1], bad=bad)
 
 
 class Metrics(NamedTuple):

@@ -1,0 +1,481 @@
+"""Test-only reference: the hand-written seed-000 loop (jaxnc/schemes/mecanum.py before it
+became a configuration of jaxnc.loop), kept verbatim so the rebuilt loop can be compared
+with it (tests/test_mecanum_runner.py) and timed against it (benchmarks).
+
+Closed loops SR, DR, DRH and DRHE of seed 000 (section 4.1), one ``lax.scan`` each.
+
+Timing (fast period T, slow period NT, k the slow index, t = kN the fast instant):
+
+1. The sensor samples z_k = h(xi_t) + n2 and, in DRHE, sends only when the PETC
+   condition (eq. 4) holds; the other cases send every NT. The first sample is
+   always sent (zbar_0 = z_0).
+2. A sent packet is lost with probability p_sc (eq. 5). When it arrives, the remote
+   NUDREKF corrects (eq. 13) and its prediction stage computes h*N estimates and
+   actions from instant t on (section 3.3.1); they are sent as one packet, stamped t.
+3. The controller-to-actuator packet is lost with probability p_ca; otherwise it
+   reaches the actuator after the round-trip delay tau (eq. 6-7) quantised up to
+   whole fast periods. Packets later than tau_max (default NT, so there is never
+   disorder, as the paper arranges) are discarded.
+4. Every fast period the actuator applies the action of its buffer indexed by time
+   stamp and holds the last when the buffer is exhausted (section 2.4); the plant
+   moves (eq. 1) and the remote filter propagates its belief (eq. 11) along the
+   actions it sent.
+
+Cases (section 4.1):
+
+* SR   single rate: the controller runs once per NT and its action is held (h = 1);
+* DR   dual rate: N fast actions per packet (h = 1), hold the last on loss;
+* DRH  dual rate + h-step prediction: h*N actions per packet;
+* DRHE DRH + PETC at the sensor (eq. 4).
+
+The network draws (losses, delays) and the noises are drawn up front from the key,
+per fast instant, so that every case sees the same realisation at the same time
+(common random numbers), whatever N.
+
+A run is *unstable* when the robot leaves a tube of ``max_dev`` (0.5 m) around the
+path, a state becomes non-finite, or it has not reached the end of the path within
+the simulated horizon (1.6 x the nominal path time + 10 s). Its indexes are inf.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import check_int, check_range
+from jaxnc.controllers.path_following import PathFollower
+from jaxnc.estimators.ekf import Gaussian, ekf_predict
+from jaxnc.estimators.nudrekf import PacketChain, advance_chain, exhausted_chain, nudrekf_correct, start_chain
+from jaxnc.estimators.sparsity import EKFStructure, detect_structure
+from jaxnc.metrics import J1, J2, local_distance
+from jaxnc.network import Channel, late, quantise_delay
+from jaxnc.paths import Path, closest_index, get_path
+from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
+from jaxnc.rows import exponential_rows, normal_rows, uniform_rows
+from jaxnc.triggers import PetcTrigger, hold_last_sent
+
+CASES = ("SR", "DR", "DRH", "DRHE")
+
+# Paper, section 4.1: delta(i) = 0.1; sigma(i) = 0.1 for the four wheel speeds, 0.05 else.
+PAPER_SIGMA = (0.1, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05, 0.05)
+PAPER_DELTA = (0.1,) * 9
+# Our default sigma(i) = 0 (eq. 4 text: sigma(i) in {0, 1}), delta(i) as in the paper.
+# With the paper's sigma in SI units the relative term sum sigma(i) z(i)^2 is about 8
+# (wheel speeds of 4 rad/s, beacon distances of 3 m): the sensor then fires on a few
+# per cent of slow instants (J4 ~ 0.02) and DRHE loses the path at every N (README,
+# EXPERIMENTS.md). With sigma = 0 the firing rates are the paper's (J4 0.07-0.19).
+DEFAULT_SIGMA = (0.0,) * 9
+PAPER_ETA, PAPER_PHI = 0.01, 0.02   # delay distribution, eq. (7), section 4.1
+# The filter's wheel-speed process noise (rad/s), 15x the true 0.2 rad/s: the remote
+# side propagates its belief along the actions it *sent*, and a lost control packet
+# leaves the robot doing something else. A filter tuned to the true noise becomes
+# overconfident after a few lost packets and a correction then moves it only part of
+# the way (the robot cuts across the path); this Q keeps corrections decisive and
+# costs nothing in the nominal case (J1 4.24 vs 4.19 cm, 32 seeds).
+FILTER_OMEGA_STD = 3.0
+# Path points searched ahead of the robot's progress each fast period: it moves at most
+# omega_max R T = 0.1 m (10 points at the 1 cm spacing) per period.
+TRACK_WINDOW = 32
+
+
+def default_h(case: str, N: int, dp: float, n_slow: int) -> int:
+    """Prediction horizon h in slow periods: our reading of section 4.1.
+
+    The paper asks h*N to cover the longest run of missing data. A slow period
+    delivers nothing with probability q = 1 - (1 - DP)^2 (either direction lost);
+    over n_slow periods the longest such run reaches r with probability about
+    1 - exp(-n_slow (1 - q) q^r) (Erdos-Renyi law of runs). DRH takes h = r + 1 with
+    that probability at 5 %; DRHE, whose sensor is also silent between events, takes
+    at least hN = 100 fast periods as in the paper (hN in {100, 156}). SR and DR: h = 1.
+    The paper's DRH range hN in [10, 50] is smaller: with our kinematic plant,
+    whose held actions drive it straight off the path, that range leaves DRH
+    unstable at DP = 0.5 (see README).
+    """
+    if case in ("SR", "DR"):
+        return 1
+    q = 1.0 - (1.0 - dp) ** 2
+    if q > 0:
+        r = math.log(-math.log(0.95) / (n_slow * (1.0 - q))) / math.log(q)
+        h_drh = max(1, math.ceil(r) + 1)
+    else:
+        h_drh = 1
+    if case == "DRH":
+        return h_drh
+    return max(math.ceil(100 / N), h_drh)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class MecanumLoop:
+    """Everything one closed-loop run needs.
+
+    Static (they shape arrays): N and steps. Everything else is a leaf, the scheme and
+    the horizon h included, so the four cases and every DP of a given N share one
+    compiled program (the grid experiment passes the configuration as an argument).
+    """
+
+    plant: Mecanum
+    noise: MecanumNoise            # true process / measurement noise
+    filter_noise: MecanumNoise     # the covariances the NUDREKF assumes
+    follower: PathFollower
+    trigger: PetcTrigger
+    sc: Channel                    # sensor -> controller
+    ca: Channel                    # controller -> actuator (carries the lumped round-trip delay)
+    tau_max: jax.Array             # s; later packets are discarded
+    P0_std: jax.Array              # initial estimation uncertainty (std per state)
+    max_dev: jax.Array = 0.5       # m; leaving this tube around the path = unstable
+    end_tol: jax.Array = 0.1       # m; the path is complete within this of its end
+    scheme: jax.Array = 3          # index into CASES (SR, DR, DRH, DRHE)
+    # DRHE only: the sensor also sends when it has been silent for this many slow
+    # periods (a time-triggered safety condition like seed 003 eq. 7; not in seed 000,
+    # whose eq. 4 alone lets a resting robot's sensor fall silent for good). 0 = off.
+    max_silence: jax.Array = 0
+    h: jax.Array = 1               # prediction horizon in slow periods: h*N actions per packet
+    # The plant the robot really is, when it differs from the model ``plant`` the
+    # estimator and controller use (e.g. jaxnc.plants.mecanum_mjx.MjxMecanum, the
+    # multibody robot of the paper's section 4). None: the kinematic model itself.
+    truth: Any = None
+    N: int = dataclasses.field(default=1, metadata=dict(static=True))
+    # False: gradients hold the EKF's Jacobians constant (values unchanged): reverse mode
+    # about 2x cheaper, gradient of a tracking cost 0.3-4.8 % from exact (benchmarks/RESULTS.md).
+    jacobian_grad: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    # The sparsity patterns of the EKF's Jacobians (``ekf_structure(plant)``): the filter
+    # then skips products with structural zeros (same values up to float32 rounding).
+    # None: dense.
+    structure: EKFStructure | None = dataclasses.field(default=None, metadata=dict(static=True))
+    steps: int = dataclasses.field(default=100, metadata=dict(static=True))
+
+    def __post_init__(self):
+        check_int("MecanumLoop.N", self.N, 1, 100)
+        check_int("MecanumLoop.steps", self.steps, self.N)
+        if self.steps % self.N:
+            raise ValueError(f"MecanumLoop.steps must be a multiple of N={self.N}, got {self.steps}")
+        check_range("MecanumLoop.scheme", self.scheme, 0, len(CASES) - 1)
+        check_range("MecanumLoop.h", self.h, 1, 1000)
+        check_range("MecanumLoop.max_silence", self.max_silence, 0, 100_000)
+        check_range("MecanumLoop.tau_max", self.tau_max, 0.0, self.N * self.plant.T * (1 + 1e-6), low_open=True)
+        if self.truth is not None and abs(float(self.truth.T) - float(self.plant.T)) > 1e-9:
+            raise ValueError(f"MecanumLoop.truth must have the model's period T={self.plant.T}, got {self.truth.T}")
+
+    @property
+    def case(self) -> str:
+        """The scheme's name (needs a concrete, unbatched ``scheme``)."""
+        return CASES[int(self.scheme)]
+
+    @property
+    def single_rate(self):
+        return jnp.asarray(self.scheme) == 0
+
+    @property
+    def horizon(self):
+        """Actions per packet: h*N."""
+        return jnp.asarray(self.h, jnp.int32) * self.N
+
+    @property
+    def Ts(self):
+        """Controller period: NT for SR, T otherwise."""
+        return jnp.where(self.single_rate, self.N * self.plant.T, self.plant.T)
+
+    @property
+    def hold(self):
+        """Fast periods each controller action is held inside a packet: N for SR, else 1."""
+        return jnp.where(self.single_rate, self.N, 1).astype(jnp.int32)
+
+    @property
+    def event_triggered(self):
+        """The sensor uses the PETC condition, eq. (4) (DRHE)."""
+        return jnp.asarray(self.scheme) == 3
+
+
+def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | Path = "lissajous", *,
+                 h: int | None = None, sigma=None, delta=None, eta: float = PAPER_ETA, phi: float = PAPER_PHI,
+                 tau_max: float | None = None, noise: MecanumNoise | None = None,
+                 filter_noise: MecanumNoise | None = None,
+                 plant: Mecanum | None = None, follower_kw: dict | None = None,
+                 trigger_temperature: float = 0.0, horizon_s: float | None = None,
+                 max_silence: int = 0, truth=None, jacobian_grad: bool = True, sparse: bool = True) -> MecanumLoop:
+    """Build a validated configuration with the paper's defaults (section 4.1).
+
+    ``dp`` is the dropout probability of both directions, DP = p_sc = p_ca. ``truth``
+    is the true plant when it is not the kinematic model (e.g. ``mjx_mecanum()``).
+    ``jacobian_grad=False`` makes gradients hold the EKF's Jacobians constant (the
+    simulation is unchanged; reverse mode about 2x cheaper, an approximate gradient).
+    ``sparse=False`` runs the EKF dense instead of with the model's Jacobian sparsity
+    (:func:`ekf_structure`; same values up to float32 rounding, about 1.3x slower).
+    """
+    if case not in CASES:
+        raise ValueError(f"case must be one of {', '.join(CASES)}, got {case!r}")
+    check_int("N", N, 1, 100)
+    check_range("dp", dp, 0.0, 1.0, high_open=True)
+    plant = plant or Mecanum()
+    noise = noise or MecanumNoise()
+    if filter_noise is None:
+        # the filter's design covariances, independent of the true noise (which may be 0)
+        filter_noise = MecanumNoise(omega=FILTER_OMEGA_STD)
+    p = path if isinstance(path, Path) else get_path(path)
+    follower = PathFollower(path=p, **(follower_kw or {}))
+    if h is None:
+        n_slow = math.ceil(float(p.length) / float(follower.V_ref) / (N * plant.T))
+        h = default_h(case, N, float(dp), n_slow)
+    check_int("h", h, 1, 1000)
+    check_int("max_silence", max_silence, 0, 100_000)
+    sigma = np.asarray(DEFAULT_SIGMA if sigma is None else sigma, np.float32)
+    delta = np.asarray(PAPER_DELTA if delta is None else delta, np.float32)
+    for name, v in (("sigma", sigma), ("delta", delta)):
+        if v.shape not in ((), (1,), (OUTPUT_DIM,)):
+            raise ValueError(f"{name} must be a scalar or have {OUTPUT_DIM} entries (one per output), got shape {v.shape}")
+    sigma = np.broadcast_to(sigma, (OUTPUT_DIM,)).copy()
+    delta = np.broadcast_to(delta, (OUTPUT_DIM,)).copy()
+    T = plant.T
+    tau_max = N * T if tau_max is None else tau_max
+    if horizon_s is None:
+        horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0
+    steps = N * math.ceil(horizon_s / (N * T))
+    return MecanumLoop(
+        plant=plant, noise=noise, filter_noise=filter_noise, follower=follower,
+        trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
+        sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
+        P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
+        scheme=np.int32(CASES.index(case)), h=np.int32(h), max_silence=np.int32(max_silence), truth=truth,
+        N=N, steps=steps, jacobian_grad=bool(jacobian_grad), structure=ekf_structure(plant) if sparse else None)
+
+
+_STRUCTURES: dict = {}
+
+
+def ekf_structure(plant: Mecanum) -> EKFStructure:
+    """The sparsity patterns of the NUDREKF's Jacobians for this (concrete) model, detected
+    once per distinct parameter set (:func:`jaxnc.estimators.sparsity.detect_structure`).
+
+    For the kinematics of eq. (1) A = df/dxi is nonzero only in its pose block, on the
+    diagonal and in the yaw column; H = dh/dxi has the encoder rows on the velocities,
+    the yaw row on psi and the beacon rows on (X, Y)."""
+    leaves, treedef = jax.tree.flatten(plant)
+    try:
+        key = (type(plant), treedef, tuple(np.asarray(v).tobytes() for v in leaves))
+    except jax.errors.TracerArrayConversionError as e:
+        raise ValueError("ekf_structure: the plant holds traced values; build the loop outside jit/vmap, "
+                         "or pass sparse=False") from e
+    if key not in _STRUCTURES:
+        _STRUCTURES[key] = detect_structure(plant.dynamics, plant.measure, STATE_DIM, INPUT_DIM,
+                                            PROCESS_NOISE_DIM, OUTPUT_DIM)
+    return _STRUCTURES[key]
+
+
+class Draws(NamedTuple):
+    """Exogenous randomness of one run (common random numbers). The draws are defined per
+    fast instant, so that every N meets the same realisation at the same time; those used
+    only at slow instants are kept at the slow instants alone (``every`` = N, rows 0, N, 2N,
+    ...: :mod:`jaxnc.rows` computes exactly those rows of the per-fast-instant draw)."""
+
+    w: jax.Array         # [K, 7] process noise n1
+    v: jax.Array         # [K/every, 9] measurement noise n2
+    sc_u: jax.Array      # [K/every] uniforms: sensor packet lost when < p_sc
+    ca_u: jax.Array      # [K/every] uniforms: actuator packet lost when < p_ca
+    delay_e: jax.Array   # [K/every] Exponential(1) draws: ca delay = eta + phi * e
+    delay_sc_e: jax.Array  # [K/every] independent Exponential(1) draws for the sc delay
+
+
+def draw(key, steps: int, every: int = 1) -> Draws:
+    """All random draws of a run, split per purpose from one key; the slow-instant ones
+    (all but ``w``) at every ``every``-th fast instant, bit for bit the rows of the
+    per-fast-instant draw (``every=1``)."""
+    kw, kv, ks, kc, kd = jax.random.split(key, 5)
+    return Draws(
+        w=jax.random.normal(kw, (steps, PROCESS_NOISE_DIM)),
+        v=normal_rows(kv, (steps, OUTPUT_DIM), every),
+        sc_u=uniform_rows(ks, (steps,), every),
+        ca_u=uniform_rows(kc, (steps,), every),
+        delay_e=exponential_rows(kd, (steps,), every),
+        # its own stream, folded in so that adding it left the other streams unchanged
+        delay_sc_e=exponential_rows(jax.random.fold_in(key, 101), (steps,), every))
+
+
+class Trajectory(NamedTuple):
+    """Per fast instant: true state, estimate (remote belief), applied action;
+    per slow instant: sent / received / delivered flags; and run summaries."""
+
+    x: jax.Array          # [K, 6]
+    mean: jax.Array       # [K, 6]
+    u: jax.Array          # [K, 4]
+    dist: jax.Array       # [K] distance to the path (robot's own branch, metrics.local_distance)
+    sent: jax.Array       # [K/N] sensor transmissions (beta)
+    received: jax.Array   # [K/N] sensor packet reached the controller
+    delivered: jax.Array  # [K/N] control packet reached the actuator
+    l: jax.Array          # fast steps until the path was completed (K if never)
+    done: jax.Array       # bool: path completed
+    bad: jax.Array        # bool: left the tube or non-finite
+
+
+def _keep_or_replace(flag, new, old):
+    """``new`` where the 0/1 float ``flag`` is 1, else ``old``, leaf by leaf: a float
+    blend (so a straight-through trigger gradient passes) or a select for integers."""
+    def leaf(a, b):
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            return hold_last_sent(flag, a, b)
+        return jnp.where(flag > 0.5, a, b)
+    return jax.tree.map(leaf, new, old)
+
+
+class _Carry(NamedTuple):
+    x: jax.Array
+    z_last: jax.Array
+    silent: jax.Array           # slow periods since the sensor last sent (int32)
+    belief: Gaussian
+    sent: PacketChain           # the last packet the remote side sent (its belief of the actions)
+    act: PacketChain            # the packet the actuator is applying
+    pending_ok: jax.Array       # the last sent packet arrives exactly at the next slow instant
+    idx_true: jax.Array
+    done: jax.Array
+    l: jax.Array
+    bad: jax.Array
+
+
+def simulate(loop: MecanumLoop, key) -> Trajectory:
+    """One closed-loop run of ``loop.case``: a ``lax.scan`` over slow periods with the N
+    fast periods inside. Pure function of (loop, key); vmap it over keys.
+
+    Packets are carried as prediction chains (:class:`PacketChain`): the remote side's
+    copy of its last sent packet and the actuator's installed packet each advance one
+    fast period at a time and yield the action the packet holds for that instant, so
+    a run costs O(K) controller evaluations whatever h (materialising h*N actions per
+    packet would cost O(K h)); the actions are the same.
+    """
+    plant, fol, N, H, K = loop.plant, loop.follower, loop.N, loop.horizon, loop.steps
+    truth = plant if loop.truth is None else loop.truth   # the robot; ``plant`` is the model
+    Ts, hold = loop.Ts, loop.hold
+    path = fol.path
+    d = draw(key, K, N)
+    dtype = jnp.float32
+    w = d.w * loop.noise.process_std()[None, :]
+    v = d.v * loop.noise.measurement_std()[None, :]     # slow instants only (draw(..., every=N))
+    # additive, independent measurement noises: the correction processes them one by one
+    Qf, Rf = loop.filter_noise.process_std() ** 2, loop.filter_noise.measurement_std() ** 2   # diagonal
+    # Start-up handshake: the first exchange (k = 0) is delivered, or a PETC sensor
+    # watching a robot at rest would never fire again and the loop would never start.
+    first = jnp.arange(K // N) == 0
+    sc_lost = (d.sc_u < loop.sc.p_loss) & ~first
+    ca_lost = (d.ca_u < loop.ca.p_loss) & ~first
+    tau = (loop.ca.eta + loop.ca.phi * d.delay_e) + (loop.sc.eta + loop.sc.phi * d.delay_sc_e)
+    dsteps = quantise_delay(tau, plant.T)
+    too_late = late(tau, loop.tau_max) & ~first
+
+    start = path.points[0]
+    x0 = jnp.concatenate([jnp.zeros(3, dtype), start.astype(dtype), jnp.zeros(1, dtype)])
+    belief0 = Gaussian(x0, jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2))
+    ctrl = lambda m, c: fol(plant, m, c, Ts)
+    ctrl_next = lambda m, c: fol(plant, m, c, Ts, narrow=True)
+    advance = lambda ch: advance_chain(plant, ctrl_next, ch, H, hold, PROCESS_NOISE_DIM)
+    end = path.points[-1]
+    n_path = path.points.shape[0]
+
+    def slow_step(c: _Carry, inp):
+        k, w_k, v_k, sc_lost_k, ca_lost_k, d_k, late_k = inp
+        # the packet sent at the last slow instant with a delay of exactly N arrives now
+        act = _keep_or_replace(c.pending_ok, c.sent, c.act)
+        # 1. sensor, PETC (eq. 3-4)
+        z = truth.measure(c.x, v_k)
+        petc = (k > 0) & loop.event_triggered
+        fires = loop.trigger.fires(c.z_last, z)
+        due = (loop.max_silence > 0) & (c.silent + 1 >= loop.max_silence)   # safety condition
+        fires = jnp.where(due, jnp.ones((), dtype), fires)
+        beta = jnp.where(petc, fires, jnp.ones((), dtype))
+        z_last = hold_last_sent(beta, z, c.z_last)
+        silent = jnp.where(beta > 0.5, 0, c.silent + 1).astype(jnp.int32)
+        rec = beta * (1.0 - sc_lost_k.astype(dtype))
+        # 2. remote: correction (eq. 13) and a new packet (section 3.3.1) that continues
+        #    the controller state its last packet predicted for this instant
+        corrected = nudrekf_correct(plant, c.belief, z, Rf, jacobian_grad=loop.jacobian_grad,
+                                    structure=loop.structure)
+        belief = _keep_or_replace(rec, corrected, c.belief)
+        sent = _keep_or_replace(rec, start_chain(ctrl, corrected.mean, c.sent.c_before), c.sent)
+        # 3. controller -> actuator: lost, or arrives d_k fast periods later
+        arr = rec * (1.0 - ca_lost_k.astype(dtype)) * (1.0 - late_k.astype(dtype))
+
+        # 4. N fast periods: actuator, plant (eq. 1), remote belief propagation (eq. 11)
+        def fast_step(fc, inp_j):
+            x, belief, sent, act, idx_true, done, l, bad = fc
+            j, w_t = inp_j
+            t = k * N + j
+            act = _keep_or_replace(arr * (j == d_k).astype(dtype), sent, act)
+            u = act.u
+            x = truth.step(x, u, w_t)
+            xv = truth.state(x)
+            belief = ekf_predict(plant.dynamics, belief, sent.u, Qf, PROCESS_NOISE_DIM,
+                                 jacobian_grad=loop.jacobian_grad, structure=loop.structure)
+            act, sent = advance(act), advance(sent)
+            idx_true, _ = closest_index(path, xv[3:5], idx_true, TRACK_WINDOW)
+            dist = local_distance(path, xv[3:5], idx_true)
+            at_end = (idx_true >= (9 * n_path) // 10) & (jnp.sum((xv[3:5] - end) ** 2) < loop.end_tol ** 2)
+            l = jnp.where(done, l, t + 1)
+            done = done | at_end
+            # only until the path is complete: afterwards the robot may coast off the end
+            off = (dist > loop.max_dev) & ~done
+            bad = bad | off | ~jnp.all(jnp.isfinite(xv)) | ~jnp.all(jnp.isfinite(belief.mean))
+            return (x, belief, sent, act, idx_true, done, l, bad), (xv, belief.mean, u, dist)
+
+        fc = (c.x, belief, sent, act, c.idx_true, c.done, c.l, c.bad)
+        fc, (xs, means, uapp, dist) = jax.lax.scan(fast_step, fc, (jnp.arange(N, dtype=jnp.int32), w_k))
+        x, belief, sent, act, idx_true, done, l, bad = fc
+        pending_ok = arr * (d_k >= N).astype(dtype)
+        return (_Carry(x, z_last, silent, belief, sent, act, pending_ok, idx_true, done, l, bad),
+                (xs, means, uapp, dist, beta, rec, arr))
+
+    u0 = jnp.zeros((INPUT_DIM,), dtype)
+    idle = exhausted_chain(x0, u0, fol.init(), H)   # applies zero until the first packet
+    # the true plant's own stream: adding it left every other draw unchanged
+    s0 = truth.init(jax.random.fold_in(key, 202), x0)
+    carry0 = _Carry(s0, truth.measure(s0, jnp.zeros(OUTPUT_DIM, dtype)), jnp.zeros((), jnp.int32), belief0, idle, idle,
+                    jnp.zeros((), dtype), jnp.zeros((), jnp.int32), jnp.zeros((), bool),
+                    jnp.asarray(K, jnp.int32), jnp.zeros((), bool))
+    n_slow = K // N
+    xs_in = (jnp.arange(n_slow, dtype=jnp.int32), w.reshape(n_slow, N, PROCESS_NOISE_DIM), v,
+             sc_lost, ca_lost, dsteps, too_late)
+    final, (xs, means, us, dist, beta, rec, arr) = jax.lax.scan(slow_step, carry0, xs_in)
+    return Trajectory(
+        x=xs.reshape(K, STATE_DIM), mean=means.reshape(K, STATE_DIM), u=us.reshape(K, INPUT_DIM),
+        dist=dist.reshape(K), sent=beta, received=rec, delivered=arr, l=final.l, done=final.done, bad=final.bad)
+
+
+class Metrics(NamedTuple):
+    """Per-run cost indexes, seed 000 eq. (21)-(24) (J4 is formed against the nominal run)."""
+
+    J1: jax.Array         # mean distance to the path, m
+    J2: jax.Array         # max distance to the path, m
+    J3: jax.Array         # time to complete the path, s
+    tx_sc: jax.Array      # sensor transmissions up to completion
+    tx_ca: jax.Array      # controller transmissions up to completion
+    l: jax.Array          # fast steps to completion
+    unstable: jax.Array   # bool
+
+
+def evaluate(loop: MecanumLoop, traj: Trajectory) -> Metrics:
+    """Cost indexes of one run; inf when it is unstable."""
+    K, N, T = loop.steps, loop.N, loop.plant.T
+    dist = traj.dist
+    mask = jnp.arange(K) < traj.l
+    unstable = traj.bad | ~traj.done
+    inf = jnp.asarray(jnp.inf, jnp.float32)
+    slow_mask = (jnp.arange(K // N) * N) < traj.l
+    tx_sc = jnp.sum(traj.sent * slow_mask)
+    tx_ca = jnp.sum(traj.received * slow_mask)
+    return Metrics(
+        J1=jnp.where(unstable, inf, J1(dist, mask)),
+        J2=jnp.where(unstable, inf, J2(dist, mask)),
+        J3=jnp.where(unstable, inf, traj.l * T),
+        tx_sc=tx_sc, tx_ca=tx_ca, l=traj.l, unstable=unstable)
+
+
+def tracking_cost(loop: MecanumLoop, key):
+    """Mean distance to the path over the whole horizon: a smooth objective for
+    gradients (no instability mask, no completion time)."""
+    return jnp.mean(simulate(loop, key).dist)
+
+
+def run(loop: MecanumLoop, key) -> Metrics:
+    """simulate + evaluate: the per-seed function the Monte-Carlo engine vmaps."""
+    return evaluate(loop, simulate(loop, key))
