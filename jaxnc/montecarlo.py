@@ -138,7 +138,8 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     ``jax.config.update("jax_num_cpu_devices", n)`` / ``jaxnc run --cpu-devices n``) each
     chunk is sharded over them along the seed axis (``jax.sharding``, ``args``
     replicated); ``chunk_size`` is rounded up to a multiple of the device count (times :data:`LANES`). After
-    ``jax.distributed.initialize()`` the same code spans several hosts' devices.  The compiled function is cached per ``fn`` object (weakly), so calling
+    ``jax.distributed.initialize()`` it does not work yet (several processes are not
+    supported: the replicated arguments are not placed consistently).  The compiled function is cached per ``fn`` object (weakly), so calling
     again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
     tqdm bar over seeds (on stderr) labelled ``desc``.
     """
