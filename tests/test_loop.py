@@ -252,3 +252,16 @@ def test_tau_max_of_whole_periods_keeps_a_delay_of_exactly_that_many_periods():
     assert np.all(np.asarray(link.draw(jax.random.PRNGKey(0), 50, T).delay) == 10)
     link = nc.Link(delay=nc.PmfDelay([0.0] * 11 + [1.0]), tau_max=N * T)       # always 11: late
     assert np.all(np.asarray(link.draw(jax.random.PRNGKey(0), 50, T).delay) == -1)
+
+
+def test_selective_recording_keeps_the_values_and_drops_the_rest():
+    key = jax.random.PRNGKey(4)
+    full = jax.jit(nc.simulate)(_lti_loop(), key)
+    part = jax.jit(nc.simulate)(_lti_loop(record=("xhat", "sent_sc")), key)
+    np.testing.assert_array_equal(np.asarray(part.xhat), np.asarray(full.xhat))
+    np.testing.assert_array_equal(np.asarray(part.sent_sc), np.asarray(full.sent_sc))
+    assert part.x.size == 0 and part.u.size == 0 and part.z.size == 0
+    np.testing.assert_array_equal(np.asarray(part.final_plant), np.asarray(full.final_plant))
+    assert np.isnan(float(nc.evaluate(_lti_loop(record=("xhat",)), part).cost_raw))   # no x, u: no cost
+    with pytest.raises(ValueError, match="Loop.record must be True, False or a tuple of names"):
+        _lti_loop(record=("states",))

@@ -43,6 +43,17 @@ def test_every_case_is_bit_identical_to_the_hand_written_loop(N, dp):
         _assert_same(ev(a), ev(b))          # J1-J3, transmissions, l, unstable
 
 
+@pytest.mark.parametrize("N,dp", [(3, 0.4)])
+def test_the_metrics_only_run_is_bit_identical_to_the_hand_written_loop(N, dp):
+    """``run`` and ``tracking_cost`` record only what the metrics need (build_loop(full=False));
+    the metrics and the cost equal the hand-written loop's bit for bit."""
+    for case in mec.CASES:
+        loop = mec.mecanum_loop(case, N, dp, horizon_s=5.0)
+        _assert_same(_batched(legacy, "run")(loop, KEYS), _batched(mec, "run")(loop, KEYS))
+        np.testing.assert_array_equal(np.asarray(_batched(legacy, "tracking_cost")(loop, KEYS)),
+                                      np.asarray(_batched(mec, "tracking_cost")(loop, KEYS)), err_msg=case)
+
+
 def test_variants_are_bit_identical():
     """Dense EKF, Jacobians held constant, a paper-sigma trigger, a short tau_max (late
     packets discarded) and a horizon h beyond the default."""

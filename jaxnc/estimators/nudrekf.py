@@ -191,6 +191,8 @@ class NudrekfEstimator(AbstractEstimator):
       mean0: float[n], cov0: float[n, n], the prior at t = 0.
       noise_dim: static, the model's process-noise dimension q.
       jacobian_grad, structure: static, as in :func:`jaxnc.estimators.ekf.ekf_predict`.
+      record_means: static; ``record_predict`` gives the N means (True) or only whether
+        they are all finite (False).
     """
 
     model: Any
@@ -201,6 +203,7 @@ class NudrekfEstimator(AbstractEstimator):
     noise_dim: int = _static(0)
     jacobian_grad: bool = _static(True)
     structure: EKFStructure | None = _static(None)
+    record_means: bool = _static(True)
     inputs = "believed"
 
     def init(self, ctx) -> NudrekfState:
@@ -235,9 +238,17 @@ class NudrekfEstimator(AbstractEstimator):
         belief, means = jax.lax.scan(body, state.belief, u_believed)
         return state._replace(belief=belief, means=means)
 
+    def predict_fast(self, state: NudrekfState, u_applied, u_believed, t, j) -> NudrekfState:
+        """One fast period of eq. (11) along the believed action: the runner calls it every
+        fast period instead of :meth:`predict` (same values)."""
+        g = ekf_predict(self.model.dynamics, state.belief, u_believed, self.Q, self.noise_dim,
+                        jacobian_grad=self.jacobian_grad, structure=self.structure)
+        return state._replace(belief=g, means=state.means.at[j].set(g.mean))
+
     def record_predict(self, state: NudrekfState):
-        """float[N, n]: the belief means after each fast period of the last prediction."""
-        return state.means
+        """float[N, n]: the belief means after each fast period of the last prediction (or,
+        without ``record_means``, bool: all of them finite)."""
+        return state.means if self.record_means else jnp.all(jnp.isfinite(state.means))
 
 
 class ChainPacket(NamedTuple):

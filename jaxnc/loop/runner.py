@@ -113,7 +113,10 @@ class Loop:
       N: static, fast periods per slow period (>= 1).
       steps: static, fast periods simulated (a multiple of N).
       T: static, the fast period in seconds (links quantise delays to it).
-      record: static, False to return only the summaries (no per-instant signals).
+      record: static: True records every signal; False only the summaries; or a tuple of
+        :class:`Trajectory` field names to record (the others are empty), e.g.
+        ``("plant_rec", "sent_sc")`` for a loop whose metrics need only those: a signal
+        that is not recorded is not computed or stored.
     """
 
     plant: Any
@@ -129,9 +132,13 @@ class Loop:
     N: int = _static(1)
     steps: int = _static(100)
     T: float = _static(1.0)
-    record: bool = _static(True)
+    record: Any = _static(True)
 
     def __post_init__(self):
+        if not isinstance(self.record, bool):
+            if not isinstance(self.record, tuple) or any(r not in _RECORDABLE for r in self.record):
+                raise ValueError(f"Loop.record must be True, False or a tuple of names among "
+                                 f"{', '.join(_RECORDABLE)}, got {self.record!r}")
         check_int("Loop.N", self.N, 1, 100_000)
         check_int("Loop.steps", self.steps, self.N, None)
         if self.steps % self.N:
@@ -199,6 +206,15 @@ class Trajectory(NamedTuple):
     act_rec: Any = ()     # [K, ...] actuator.record(state, t) after each output, if defined
     plant_rec: Any = ()   # [K, ...] plant.record(x) of the state after each fast period's step, if defined
     est_pred_rec: Any = ()  # [S, ...] estimator.record_predict(state) after each prediction, if defined
+    final_plant: Any = ()   # the plant's state at the end of the run
+
+
+_RECORDABLE = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca", "est_rec", "ctrl_rec", "act_rec",
+               "plant_rec", "est_pred_rec")
+
+
+def _wanted(record, name: str) -> bool:
+    return record is True or (isinstance(record, tuple) and name in record)
 
 
 class _Carry(NamedTuple):
@@ -236,7 +252,11 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     ``sent``, the actuator-role state of its own packets (what ``u_believed`` is read from);
     an actuator that defines ``receive_from_sender(state, inbox, sent)`` is called instead
     of ``receive`` at each fast instant with that state as it is at the instant (it may
-    install the sender's current copy of a delivered packet rather than its payload)."""
+    install the sender's current copy of a delivered packet rather than its payload). An
+    estimator that defines ``predict_fast(state, u_applied, u_believed, t, j)`` (fast
+    instant t, j = t - kN) is called after each fast period's plant step instead of
+    ``predict`` once per period: the same propagation inside the fast loop, where the
+    compiler fuses it with the actuator's and the plant's work."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
     d = draw(loop, key) if draws is None else draws
@@ -262,6 +282,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     est_pred_rec = getattr(loop.estimator, "record_predict", None)
     step_from_sent = getattr(loop.controller, "step_from_sent", None) if believed_needed else None
     receive_from_sender = getattr(act_role, "receive_from_sender", None) if believed_needed else None
+    predict_fast = getattr(loop.estimator, "predict_fast", None)
+
+    want = lambda name: _wanted(loop.record, name)
 
     def slow(c: _Carry, inp):
         k, w_k, v_k, d_up, d_down = inp
@@ -296,7 +319,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             bel = act_role.receive(bel, own)
 
         def fast(fc, inp_j):
-            x, down, act, bel, failed, fail_step = fc
+            x, down, act, bel, failed, fail_step, est = fc
             j, w_t = inp_j
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
@@ -311,38 +334,47 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             failed = failed | bad
             if loop.monitor.freeze:
                 x_new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), x, x_new)
-            arec = act_rec(act, t) if act_rec is not None and loop.record else ()
-            arec = (arec, plant_rec(x_new) if plant_rec is not None and loop.record else ())
-            out = (plant.state_vector(x), u, ub, jnp.sum(box.new), arec)
-            return (x_new, down, act, bel, failed, fail_step), out
+            if predict_fast is not None:
+                est = predict_fast(est, u, ub, t, j)
+            out = (plant.state_vector(x) if want("x") else (), u, ub if believed_needed else (),
+                   jnp.sum(box.new) if want("recv_ca") else (),
+                   act_rec(act, t) if act_rec is not None and want("act_rec") else (),
+                   plant_rec(x_new) if plant_rec is not None and want("plant_rec") else ())
+            return (x_new, down, act, bel, failed, fail_step, est), out
 
-        fc0 = (c.x, down, c.act, bel, c.failed, c.fail_step)
-        fc, (xs, us, ubs, rca, arec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
-        x, down, act, bel, failed, fail_step = fc
-        # 7. estimator prediction over the period
-        est = loop.estimator.predict(est, us, ubs, k)
+        fc0 = (c.x, down, c.act, bel, c.failed, c.fail_step, est)
+        fc, (xs, us, ubs, rca, arec, prec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
+        x, down, act, bel, failed, fail_step, est = fc
+        # 7. estimator prediction over the period (or, with predict_fast, fast period by fast period above)
+        if predict_fast is None:
+            est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
         c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, failed, fail_step)
-        erec = est_rec(est_c) if est_rec is not None and loop.record else ()
-        crec = ctrl_rec(ctrl) if ctrl_rec is not None and loop.record else ()
-        erec = (erec, est_pred_rec(est) if est_pred_rec is not None and loop.record else ())
-        outs = ((xs, us, z, xhat, send_sc, inbox.fresh, send_ca, rca, erec, crec, arec) if loop.record
-                else (send_sc, send_ca))
+        outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
+                    sent_sc=send_sc, recv_sc=inbox.fresh if want("recv_sc") else (), sent_ca=send_ca,
+                    recv_ca=rca, act_rec=arec, plant_rec=prec,
+                    est_rec=est_rec(est_c) if est_rec is not None and want("est_rec") else (),
+                    ctrl_rec=ctrl_rec(ctrl) if ctrl_rec is not None and want("ctrl_rec") else (),
+                    est_pred_rec=est_pred_rec(est) if est_pred_rec is not None and want("est_pred_rec") else ())
         return c, outs
 
     xs_in = (jnp.arange(S, dtype=jnp.int32), d.w, d.v, d.uplink.delay, d.downlink.delay)
-    final, outs = jax.lax.scan(slow, carry0, xs_in)
-    if loop.record:
-        xs, us, z, xhat, s_sc, r_sc, s_ca, r_ca, erec, crec, arec = outs
-        K = loop.steps
-        x, u, r_ca = xs.reshape(K, -1), us.reshape(K, -1), r_ca.reshape(K)
-        arec, prec = jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), arec)
-        erec, perec = erec
-    else:
-        s_sc, s_ca = outs
-        x = u = z = xhat = r_sc = r_ca = jnp.zeros((0,), jnp.float32)
-        erec = crec = arec = prec = perec = ()
-    return Trajectory(x, u, z, xhat, s_sc, r_sc, s_ca, r_ca, final.failed, final.fail_step,
-                      jnp.sum(s_sc), jnp.sum(s_ca), erec, crec, arec, prec, perec)
+    final, o = jax.lax.scan(slow, carry0, xs_in)
+    K = loop.steps
+    fast_rows = lambda tree: jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), tree)   # [S, N, ...] -> [K, ...]
+    empty = jnp.zeros((0,), jnp.float32)
+
+    def pick(name, fast=False):
+        v = o[name]
+        if not _wanted(loop.record, name) or (isinstance(v, tuple) and not v):
+            return empty
+        return fast_rows(v) if fast else v
+
+    return Trajectory(
+        x=pick("x", True), u=pick("u", True), z=pick("z"), xhat=pick("xhat"), sent_sc=o["sent_sc"],
+        recv_sc=pick("recv_sc"), sent_ca=o["sent_ca"], recv_ca=pick("recv_ca", True),
+        failed=final.failed, fail_step=final.fail_step, tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
+        est_rec=o["est_rec"], ctrl_rec=o["ctrl_rec"], act_rec=fast_rows(o["act_rec"]),
+        plant_rec=fast_rows(o["plant_rec"]), est_pred_rec=o["est_pred_rec"], final_plant=final.x)
 
 
 class Metrics(NamedTuple):
@@ -358,7 +390,7 @@ class Metrics(NamedTuple):
 def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
     """Metrics of one recorded run."""
     S = loop.steps // loop.N
-    if loop.cost is not None and loop.record:
+    if loop.cost is not None and _wanted(loop.record, "x") and _wanted(loop.record, "u"):
         raw = loop.cost(traj.x, traj.u)
     else:
         raw = jnp.asarray(jnp.nan, jnp.float32)

@@ -355,6 +355,8 @@ class Robot(AbstractPlant):
     max_dev: Any
     end_tol: Any
     steps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    # False: ``record`` gives the distance to the path only (what the metrics need)
+    record_all: bool = dataclasses.field(default=True, metadata=dict(static=True))
     state_dim = STATE_DIM
     input_dim = INPUT_DIM
     noise_dim = PROCESS_NOISE_DIM
@@ -389,8 +391,10 @@ class Robot(AbstractPlant):
     def state_vector(self, x: RobotState):
         return self.truth.state(x.s)
 
-    def record(self, x: RobotState) -> Track:
-        return x.track
+    def record(self, x: RobotState):
+        """The monitor after each fast period (:class:`Track`; its ``dist`` alone when not
+        ``record_all``)."""
+        return x.track if self.record_all else x.track.dist
 
 
 class SensorState(NamedTuple):
@@ -444,7 +448,7 @@ class RoundTrip:
         return quantise_delay(tau, T), tau
 
 
-def build_loop(loop: MecanumLoop) -> Loop:
+def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
     """The configuration ``loop`` as a :class:`jaxnc.loop.Loop` (module docstring).
 
     Sensor :class:`SensorTrigger`; uplink: Bernoulli(p_sc) loss, no delay (the round trip is
@@ -463,9 +467,10 @@ def build_loop(loop: MecanumLoop) -> Loop:
     estimator = NudrekfEstimator(
         model=plant, Q=loop.filter_noise.process_std() ** 2, R=loop.filter_noise.measurement_std() ** 2,
         mean0=x0, cov0=jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2),
-        noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure)
+        noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure,
+        record_means=full)
     return Loop(
-        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K),
+        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K, record_all=full),
         trigger=SensorTrigger(loop.trigger, loop.event_triggered, loop.max_silence),
         uplink=Link(loss=Bernoulli(loop.sc.p_loss), reliable_first=True, capacity=1),
         estimator=estimator,
@@ -473,7 +478,8 @@ def build_loop(loop: MecanumLoop) -> Loop:
         downlink=Link(loss=Bernoulli(loop.ca.p_loss), delay=RoundTrip(loop.ca, loop.sc), tau_max=loop.tau_max,
                       reliable_first=True, capacity=2),
         actuator=ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM),
-        monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T))
+        monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T),
+        record=True if full else ("plant_rec", "est_pred_rec", "sent_sc", "xhat"))
 
 
 def runner_draws(loop: MecanumLoop, key) -> LoopDraws:
@@ -508,16 +514,29 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     a run costs O(K) controller evaluations whatever h (materialising h*N actions per
     packet would cost O(K h)); the actions are the same.
     """
+    return _simulate(loop, key, full=True)
+
+
+def _simulate(loop: MecanumLoop, key, full: bool) -> Trajectory:
+    """:func:`simulate`; ``full=False`` leaves x, mean and u empty (:func:`build_loop`)."""
     K, N = loop.steps, loop.N
     draws = runner_draws(loop, key)
-    tr = run_loop(build_loop(loop), key, draws=draws)
-    track = tr.plant_rec
-    mean = tr.est_pred_rec.reshape(K, STATE_DIM)
+    tr = run_loop(build_loop(loop, full), key, draws=draws)
     received = tr.xhat.weight
     delivered = received * (draws.downlink.delay >= 0).astype(received.dtype)
-    bad = track.bad[-1] | ~jnp.all(jnp.isfinite(mean)) | tr.failed
-    return Trajectory(x=track.xv, mean=mean, u=tr.u, dist=track.dist, sent=tr.sent_sc, received=received,
-                      delivered=delivered, l=track.l[-1], done=track.done[-1], bad=bad)
+    end = tr.final_plant.track
+    if full:
+        track = tr.plant_rec
+        mean = tr.est_pred_rec.reshape(K, STATE_DIM)
+        finite = jnp.all(jnp.isfinite(mean))
+        x, dist, u = track.xv, track.dist, tr.u
+    else:
+        mean = x = u = jnp.zeros((0, STATE_DIM), jnp.float32)
+        finite = jnp.all(tr.est_pred_rec)
+        dist = tr.plant_rec
+    bad = end.bad | ~finite | tr.failed
+    return Trajectory(x=x, mean=mean, u=u, dist=dist, sent=tr.sent_sc, received=received,
+                      delivered=delivered, l=end.l, done=end.done, bad=bad)
 
 
 class Metrics(NamedTuple):
@@ -552,9 +571,10 @@ def evaluate(loop: MecanumLoop, traj: Trajectory) -> Metrics:
 def tracking_cost(loop: MecanumLoop, key):
     """Mean distance to the path over the whole horizon: a smooth objective for
     gradients (no instability mask, no completion time)."""
-    return jnp.mean(simulate(loop, key).dist)
+    return jnp.mean(_simulate(loop, key, full=False).dist)
 
 
 def run(loop: MecanumLoop, key) -> Metrics:
-    """simulate + evaluate: the per-seed function the Monte-Carlo engine vmaps."""
-    return evaluate(loop, simulate(loop, key))
+    """simulate + evaluate: the per-seed function the Monte-Carlo engine vmaps (recording
+    only what the metrics need)."""
+    return evaluate(loop, _simulate(loop, key, full=False))
