@@ -43,13 +43,20 @@ class PetcTrigger:
 
     def fires(self, z_last, z):
         """beta_k in {0., 1.} (float, so it can weight updates), eq. (4)."""
-        g = self.gap(z_last, z)
-        hard = (g > 0).astype(z.dtype)
-        tau = jnp.maximum(jnp.asarray(self.temperature, z.dtype), 1e-12)
-        soft = jax.nn.sigmoid(g / tau)
-        soft = jnp.where(jnp.asarray(self.temperature) > 0, soft, 0.0)
-        # hard + (soft - sg(soft)): forward value is exactly 0 or 1, gradient is d soft.
-        return hard + (soft - jax.lax.stop_gradient(soft))
+        return fires_straight_through(self.gap(z_last, z), self.temperature)
+
+
+def soft_decision(gap, temperature):
+    """sigmoid(gap / temperature), in the dtype of ``gap``; 0 where ``temperature`` is 0."""
+    tau = jnp.maximum(jnp.asarray(temperature, gap.dtype), 1e-12)
+    return jnp.where(jnp.asarray(temperature) > 0, jax.nn.sigmoid(gap / tau), 0.0)
+
+
+def fires_straight_through(gap, temperature):
+    """1[gap > 0] as a float: with ``temperature`` > 0, the gradient is that of
+    :func:`soft_decision` (hard + (soft - sg(soft)): the forward value is exactly 0 or 1)."""
+    soft = soft_decision(gap, temperature)
+    return (gap > 0).astype(gap.dtype) + (soft - jax.lax.stop_gradient(soft))
 
 
 def hold_last_sent(beta, z, z_last):

@@ -16,25 +16,31 @@ from jaxnc.cli import run_cli  # noqa: E402
 from jaxnc.tune.check import gradient_check  # noqa: E402
 
 
+def _assigned(node) -> set:
+    """Names a top-level assignment binds (``T, STEPS = ...`` binds both)."""
+    names = set()
+    for t in node.targets:
+        names |= {e.id for e in (t.elts if isinstance(t, ast.Tuple) else [t]) if isinstance(e, ast.Name)}
+    return names
+
+
 def _code_lines(src: str, names) -> int:
     """Lines of code (no blank lines, comments or docstrings) of the named top-level
-    definitions and assignments, plus the imports."""
+    functions and assignments, plus the imports."""
     tree = ast.parse(src)
     lines = src.splitlines()
     count = 0
     for node in tree.body:
         keep = isinstance(node, (ast.Import, ast.ImportFrom)) or \
             (isinstance(node, ast.FunctionDef) and node.name in names) or \
-            (isinstance(node, ast.Assign) and any(getattr(t, "id", None) in names or isinstance(t, ast.Tuple)
-                                                   for t in node.targets) and node.lineno < tree.body[-1].lineno
-             and any(getattr(e, "id", "") in ("T", "STEPS") for t in node.targets for e in getattr(t, "elts", [t])))
+            (isinstance(node, ast.Assign) and bool(_assigned(node) & set(names)))
         if not keep:
             continue
-        doc = ast.get_docstring(node) if isinstance(node, ast.FunctionDef) else None
-        for i in range(node.lineno - 1, node.end_lineno):
-            s = lines[i].strip()
-            if s and not s.startswith("#") and not (doc and s.strip('"') in doc.splitlines()[0]):
-                count += 1
+        skip = set()
+        if isinstance(node, ast.FunctionDef) and ast.get_docstring(node) is not None:
+            skip = set(range(node.body[0].lineno - 1, node.body[0].end_lineno))
+        count += sum(1 for i in range(node.lineno - 1, node.end_lineno)
+                     if i not in skip and lines[i].strip() and not lines[i].strip().startswith("#"))
     return count
 
 

@@ -16,6 +16,7 @@ import pytest
 from jaxnc import cli
 from jaxnc import experiment as ex
 from jaxnc.experiment import ConfigError, Experiment
+from tests.test_cli import assert_one_line_error
 
 USER_MODULE = '''
 import types
@@ -89,17 +90,6 @@ def user_dir(tmp_path, monkeypatch):
             del sys.modules[name]
 
 
-def one_line_error(capsys, *fragments):
-    err = capsys.readouterr().err
-    lines = err.strip("\n").splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("jaxnc: error: "), err
-    assert "Traceback" not in err
-    for f in fragments:
-        assert f in lines[0], (f, err)
-    return lines[0]
-
-
 def load(path):
     doc = json.loads(pathlib.Path(path).read_text())
     return doc["experiment"], doc["config"], doc["results"]
@@ -160,7 +150,7 @@ def test_resolve_experiment_api(user_dir):
 ])
 def test_set_validation_applies(user_dir, capsys, pairs, fragments):
     assert cli.run_cli(["run", "mymod:experiment", "--out", "o", "--set", *pairs]) == 2
-    one_line_error(capsys, *fragments)
+    assert_one_line_error(capsys, *fragments)
     assert not (user_dir / "o").exists()
 
 
@@ -190,13 +180,13 @@ def test_set_validation_applies(user_dir, capsys, pairs, fragments):
 ])
 def test_bad_specs_exit_2_one_line(user_dir, capsys, spec, fragments):
     assert cli.run_cli(["run", spec, "--out", "o"]) == 2
-    one_line_error(capsys, *fragments)
+    assert_one_line_error(capsys, *fragments)
     assert not (user_dir / "o").exists()
 
 
 def test_unknown_registered_name_mentions_module_form(capsys):
     assert cli.run_cli(["run", "nope"]) == 2
-    one_line_error(capsys, "unknown experiment 'nope'", "MODULE:ATTR")
+    assert_one_line_error(capsys, "unknown experiment 'nope'", "MODULE:ATTR")
 
 
 def test_help_mentions_module_attr(capsys):

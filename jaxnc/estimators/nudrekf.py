@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.loop.base import AbstractActuator, AbstractController, AbstractEstimator, Inbox, Packet
+from jaxnc.loop.base import static_field as _static
 
 
 def nudrekf_correct(model, belief: Gaussian, z, R, *, jacobian_grad: bool = True,
@@ -150,10 +151,6 @@ def keep_or_replace(flag, new, old):
             return flag * a + (1.0 - flag) * b
         return jnp.where(flag > 0.5, a, b)
     return jax.tree.map(leaf, new, old)
-
-
-def _static(default=dataclasses.MISSING):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 class ChainEstimate(NamedTuple):

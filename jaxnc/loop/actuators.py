@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from jaxnc._validate import check_int
 from jaxnc.loop.base import AbstractActuator, Inbox, blend
+from jaxnc.loop.base import static_field as _static
 
 __all__ = ["PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder"]
 
@@ -29,10 +30,6 @@ class ActuatorState(NamedTuple):
     u: jax.Array         # float[B, H, m] actions of the buffered packets
     stamp: jax.Array     # int32[B] their stamps (_EMPTY: free slot)
     last: jax.Array      # float[m] the last action applied
-
-
-def _static(default):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 @jax.tree_util.register_dataclass

@@ -32,13 +32,26 @@ relaxation, link weights) are 0/1 floats; selections on them use blends
 from __future__ import annotations
 
 import abc
+import dataclasses
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-__all__ = ["Packet", "Inbox", "blend", "AbstractPlant", "AbstractTrigger", "AbstractEstimator",
+__all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger", "AbstractEstimator",
            "AbstractController", "AbstractActuator"]
+
+
+def static_field(default=dataclasses.MISSING):
+    """A dataclass field that is static in the pytree (an integer that shapes arrays, a
+    string or function that selects code): part of the compiled program, not a leaf."""
+    return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+def pytree_dataclass(cls):
+    """``cls`` as a frozen dataclass registered as a pytree (fields made with
+    :func:`static_field` are static, the others leaves)."""
+    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
 
 
 class Packet(NamedTuple):

@@ -22,12 +22,9 @@ import numpy as np
 
 from jaxnc._validate import array_fields, check_int, fields_concrete
 from jaxnc.loop.base import AbstractController, Packet
+from jaxnc.loop.base import static_field as _static
 
 __all__ = ["StateFeedback", "Function", "Predictive"]
-
-
-def _static(default=dataclasses.MISSING):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 class _OneAction(AbstractController):

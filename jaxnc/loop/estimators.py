@@ -26,12 +26,9 @@ import numpy as np
 from jaxnc._validate import array_fields, check_int, fields_concrete
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
 from jaxnc.loop.base import AbstractEstimator, Inbox, blend
+from jaxnc.loop.base import static_field as _static
 
 __all__ = ["EKF", "EKFState", "Passthrough", "PassthroughState"]
-
-
-def _static(default=dataclasses.MISSING):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 class EKFState(NamedTuple):

@@ -32,8 +32,6 @@ float32[n])`` for delays or ``bool[n]`` for losses; ``n`` is static.
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 from typing import Any, NamedTuple
 
 import jax
@@ -43,6 +41,8 @@ import numpy as np
 from jaxnc import wifi
 from jaxnc._validate import array_fields, check_int, check_nonneg, check_range, concrete
 from jaxnc.loop.base import Inbox
+from jaxnc.loop.base import pytree_dataclass as _dataclass
+from jaxnc.loop.base import static_field as _static
 from jaxnc.network import late, quantise_delay
 
 __all__ = ["Link", "LinkDraws", "LinkState", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay",
@@ -51,14 +51,6 @@ __all__ = ["Link", "LinkDraws", "LinkState", "NoLoss", "Bernoulli", "GilbertElli
 
 NEVER = 2**30          # arrival instant of a packet that never arrives
 _F32 = jnp.float32
-
-
-def _dataclass(cls):
-    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
-
-
-def _static(default):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 # ----------------------------------------------------------------------------- loss models
@@ -264,6 +256,17 @@ class WifiModel:
 # ----------------------------------------------------------------------------- the link
 
 
+def _periods(seconds, T):
+    """A concrete delay bound in whole fast periods, quantised as the draws are
+    (:func:`jaxnc.network.quantise_delay`); None for a traced bound."""
+    try:
+        seconds = float(seconds)
+    except TypeError:          # a tracer (jax's concretisation errors are TypeErrors)
+        return None
+    with jax.ensure_compile_time_eval():   # eager, also while a jit is tracing
+        return int(quantise_delay(seconds, T))
+
+
 class LinkDraws(NamedTuple):
     """Per slow instant: the packet's delay in fast periods; NEVER-like when lost or late."""
 
@@ -314,19 +317,13 @@ class Link:
     def max_delay_steps(self, T: float):
         """An upper bound on the delay in fast periods, when one is known (else None)."""
         if self.tau_max is not None:
-            try:
-                return int(math.ceil(float(self.tau_max) / float(T) * (1 - 2.0**-21)))
-            except TypeError:
-                return None
+            return _periods(self.tau_max, T)
         if isinstance(self.delay, NoDelay):
             return 0
         if isinstance(self.delay, (PmfDelay, WifiModel)):
             return self.delay.max_steps
         if isinstance(self.delay, TruncatedExponential):
-            try:
-                return int(math.ceil(float(self.delay.tau_max) / float(T) * (1 - 2.0**-21)))
-            except TypeError:
-                return None
+            return _periods(self.delay.tau_max, T)
         return None
 
     def draw(self, key, n: int, T) -> LinkDraws:

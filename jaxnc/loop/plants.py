@@ -26,12 +26,9 @@ import scipy.linalg
 
 from jaxnc._validate import array_fields, check_int, check_nonneg, check_positive, fields_concrete
 from jaxnc.loop.base import AbstractPlant
+from jaxnc.loop.base import static_field as _static
 
 __all__ = ["Discrete", "Continuous", "LTI", "rk4"]
-
-
-def _static(default=dataclasses.MISSING):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 def _vec(name, v, n):

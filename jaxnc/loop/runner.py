@@ -25,6 +25,7 @@ import numpy as np
 from jaxnc._validate import array_fields, check_int
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import Inbox
+from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.links import Link, LinkDraws
 
 __all__ = ["Loop", "Monitor", "Quadratic", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
@@ -32,10 +33,6 @@ __all__ = ["Loop", "Monitor", "Quadratic", "Context", "Draws", "Trajectory", "Me
 
 #: the draw streams of a run: stream i uses ``fold_in(key, i)``
 STREAMS = ("process", "measurement", "uplink", "downlink", "plant_init")
-
-
-def _static(default=dataclasses.MISSING):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 class Context(NamedTuple):
@@ -155,7 +152,7 @@ class Loop:
                 raise ValueError(f"Loop.{name} must be a jaxnc.loop.Link, got {type(link).__name__}")
             d = link.max_delay_steps(self.T)
             if d is not None:
-                need = -(-d // self.N) + 1 if name == "downlink" else -(-d // self.N) + 1
+                need = -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
                 if link.capacity < need:
                     raise ValueError(f"Loop.{name}.capacity must be >= {need} for delays up to {d} fast periods "
                                      f"with N={self.N}, got {link.capacity}")

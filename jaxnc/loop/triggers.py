@@ -25,12 +25,10 @@ import jax.numpy as jnp
 
 from jaxnc._validate import array_fields, check_int, check_nonneg
 from jaxnc.loop.base import AbstractTrigger, blend
+from jaxnc.loop.base import static_field as _static
+from jaxnc.triggers import fires_straight_through, soft_decision
 
 __all__ = ["Periodic", "Petc", "PetcState"]
-
-
-def _static(default):
-    return dataclasses.field(default=default, metadata=dict(static=True))
 
 
 class PetcState(NamedTuple):
@@ -105,10 +103,7 @@ class Petc(AbstractTrigger):
 
     def step(self, state, s, k):
         g = self.gap(state.last, s)
-        hard = (g > 0).astype(s.dtype)
-        tau = jnp.maximum(jnp.asarray(self.temperature, s.dtype), 1e-12)
-        soft = jnp.where(jnp.asarray(self.temperature) > 0, jax.nn.sigmoid(g / tau), 0.0)
-        beta = soft if self.relaxed else hard + (soft - jax.lax.stop_gradient(soft))
+        beta = soft_decision(g, self.temperature) if self.relaxed else fires_straight_through(g, self.temperature)
         forced = k == 0
         if self.max_silence > 0:
             forced = forced | (state.silent + 1 >= self.max_silence)

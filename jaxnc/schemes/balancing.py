@@ -56,6 +56,8 @@ from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
 from jaxnc.controllers.hold_lq import dlqr, hold_lq_gain
 from jaxnc.estimators.buffered_kf import BufferedKF, BufferedKFState, bkf_estimate, bkf_init, bkf_push
 from jaxnc.estimators.ekf import Gaussian
+from jaxnc.loop.base import pytree_dataclass as _dataclass
+from jaxnc.loop.base import static_field as _static
 from jaxnc.plants.balancing import Balancing
 
 __all__ = ["DESIGNS", "W_LQ", "U_LQ", "SEVERITIES", "Robot", "StepReference", "BufferedKalman",
@@ -67,14 +69,6 @@ DESIGNS = ("model", "emulation")
 W_LQ = np.diag([1 / 0.5**2, 1 / 0.05**2, 1 / 5.0**2, 1 / 0.5**2])
 U_LQ = np.array([[1 / 100.0**2]])
 _F32 = jnp.float32
-
-
-def _static(default=dataclasses.MISSING):
-    return dataclasses.field(default=default, metadata=dict(static=True))
-
-
-def _dataclass(cls):
-    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
 
 
 # ----------------------------------------------------------------------------- plant
