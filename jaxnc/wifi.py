@@ -31,7 +31,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
+import math
 import os
+import re
 from typing import NamedTuple
 
 import jax
@@ -130,20 +133,25 @@ NOMINAL = WifiChannel(
 )
 
 
-def stationary_loss(ch: WifiChannel, n_terms: int = 4096) -> float:
+def stationary_loss(ch: WifiChannel) -> float:
     """Long-run packet loss probability of one direction (numpy, for design and tests).
 
     The good regime's renewal process has mean gap ``E[G] + 1`` packets per loss, where
-    ``G`` is the number of delivered packets between losses; the regimes are weighted by
+    ``G = gap_min + min(X, gap_max - gap_min)`` is the number of delivered packets between
+    losses and ``X`` is geometric, ``P(X = k) = (1 - q)^k q`` with ``q = loss_good``.  Its
+    truncated mean is the closed form ``E[min(X, M)] = (1 - q) (1 - (1 - q)^M) / q``
+    (``M`` for ``q = 0``), so any ``gap_max`` costs the same; the regimes are weighted by
     the chain's stationary law.  (Regime switches restart nothing, so this is exact only
     in the limit of slow switching, which is the fitted case: ``p_gb, p_bg << 1/E[G]``.)
     """
     q = float(ch.loss_good)
     gmin, gmax = int(ch.gap_min), int(ch.gap_max)
-    c = np.arange(gmin, gmax + 1)
-    # P(G = c) for c in [gmin, gmax): (1-q)^(c-gmin) q ; P(G = gmax) = (1-q)^(gmax-gmin)
-    pg = np.where(c < gmax, (1 - q) ** (c - gmin) * q, (1 - q) ** (gmax - gmin))
-    mean_gap = float(np.sum(pg * c))
+    m = gmax - gmin
+    if q == 0.0:
+        trunc = float(m)
+    else:   # (1-q)^m = exp(m log1p(-q)), accurate for q near 0 and m up to 1e18
+        trunc = (1.0 - q) / q * -math.expm1(m * math.log1p(-q)) if q < 1.0 else 0.0
+    mean_gap = gmin + trunc
     loss_good = 1.0 / (mean_gap + 1.0)
     pb = float(ch.p_gb) / (float(ch.p_gb) + float(ch.p_bg))
     return (1 - pb) * loss_good + pb * float(ch.loss_bad)
@@ -161,8 +169,10 @@ def sample_trace(key, ch: WifiChannel, n: int) -> jax.Array:
     The chain starts in its stationary regime (good with probability p_bg/(p_gb+p_bg))
     and with a gap counter uniform on [0, gap_max), so a trace has no start-up transient.
     Delays use their own subkey (drawn for lost packets too), so changing a loss
-    parameter leaves the delays of the surviving packets unchanged.  ``n`` is static.
+    parameter leaves the delays of the surviving packets unchanged.  ``n`` is static: a
+    non-negative integer (ValueError otherwise, before tracing).
     """
+    check_int("sample_trace: n", n, 0)
     n = int(n)
     k0, k_sw, k_loss, k_delay = jax.random.split(key, 4)
     p_gb = jnp.asarray(ch.p_gb, _DTYPE)
@@ -282,29 +292,54 @@ def write_trace(path, trace) -> None:
             w.writerow([k, "" if d < 0 else int(d)])
 
 
+_DIGITS = re.compile(r"[0-9]+\Z")       # plain ASCII digits: int() also takes "１" and "1_0"
+_INT32_MAX = 2**31 - 1
+
+
 def read_trace(path) -> np.ndarray:
     """Read a CSV trace (see :func:`write_trace`) into an int32 array, ``LOST`` where empty.
 
-    Rows may be in any order; steps must be 0..n-1, each exactly once, and delays
-    non-negative integers.  A malformed file raises ``ValueError`` naming the line.
+    Rows may be in any order; steps must be 0..n-1, each exactly once, and a delay is
+    empty (lost) or a non-negative integer below 2**31 in plain ASCII digits.
+
+    Raises:
+      OSError: the file cannot be opened (its message names the file).
+      ValueError: the file is not UTF-8, has no ``step,delay`` header, or a row is
+        malformed (a negative, huge or non-integer step/delay, a repeated step) -- the
+        message starts with ``<path>:<line>:`` -- or the steps are not 0..n-1.
     """
+    with open(os.fspath(path), "rb") as f:
+        data = f.read()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data[: e.start].count(b"\n") + 1
+        raise ValueError(f"{path}:{line}: not a UTF-8 text file (byte {data[e.start]:#04x} "
+                         f"at offset {e.start})") from None
     rows = {}
-    with open(os.fspath(path), newline="", encoding="utf-8") as f:
-        r = csv.reader(f)
-        header = next(r, None)
-        if header is None or [h.strip().lower() for h in header[:2]] != ["step", "delay"]:
-            raise ValueError(f"{path}: expected the header 'step,delay', got {header!r}")
-        for line, row in enumerate(r, start=2):
-            if not row:
-                continue
-            try:
-                k = int(row[0])
-                d = LOST if len(row) < 2 or row[1].strip() == "" else int(row[1])
-            except ValueError:
-                raise ValueError(f"{path}:{line}: expected 'step,delay' integers, got {row!r}") from None
-            if k < 0 or d < LOST or k in rows:
-                raise ValueError(f"{path}:{line}: bad or repeated step/delay {row!r}")
-            rows[k] = d
+    r = csv.reader(io.StringIO(text, newline=""))
+    header = next(r, None)
+    if header is None or [h.strip().lower() for h in header[:2]] != ["step", "delay"]:
+        raise ValueError(f"{path}:1: expected the header 'step,delay', got {header!r}")
+    for row in r:
+        line = r.line_num
+        if not row:
+            continue
+        step = row[0].strip()
+        delay = row[1].strip() if len(row) > 1 else ""
+        if delay.startswith("-") and _DIGITS.match(delay[1:]):
+            raise ValueError(f"{path}:{line}: delay must be empty (a lost packet) or a non-negative "
+                             f"integer, got {delay}")
+        if len(row) > 2 or not _DIGITS.match(step) or not (delay == "" or _DIGITS.match(delay)):
+            raise ValueError(f"{path}:{line}: expected 'step,delay' with a non-negative integer step and "
+                             f"a non-negative integer delay (empty when lost), got {row!r}")
+        k = int(step)
+        d = LOST if delay == "" else int(delay)
+        if d > _INT32_MAX:
+            raise ValueError(f"{path}:{line}: delay must be in [0, {_INT32_MAX}] steps, got {d}")
+        if k in rows:
+            raise ValueError(f"{path}:{line}: step {k} repeated")
+        rows[k] = d
     n = len(rows)
     if sorted(rows) != list(range(n)):
         raise ValueError(f"{path}: steps must be 0..{n - 1}, each once")

@@ -184,3 +184,45 @@ def test_link_in_arrival_order_replays_newest_arrival():
     newest = np.asarray(jax.jit(replay, static_argnums=(0, 1))("newest", 32))
     assert np.all(np.diff(newest) >= 0)                        # stamps never go back
     assert not np.array_equal(newest, np.asarray(wifi.newest_arrival(t)))
+
+
+def _stationary_loss_by_sum(ch):
+    """The former array formula: P(G = c) summed over the whole gap range."""
+    q, gmin, gmax = float(ch.loss_good), int(ch.gap_min), int(ch.gap_max)
+    c = np.arange(gmin, gmax + 1)
+    pg = np.where(c < gmax, (1 - q) ** (c - gmin) * q, (1 - q) ** (gmax - gmin))
+    loss_good = 1.0 / (float(np.sum(pg * c)) + 1.0)
+    pb = float(ch.p_gb) / (float(ch.p_gb) + float(ch.p_bg))
+    return (1 - pb) * loss_good + pb * float(ch.loss_bad)
+
+
+@pytest.mark.parametrize("q, gmin, gmax", [(0.3, 15, 39), (0.0, 3, 10), (1.0, 2, 9), (1e-6, 0, 500), (0.05, 0, 2000)])
+def test_stationary_loss_closed_form_matches_the_sum(q, gmin, gmax):
+    ch = dataclasses.replace(wifi.NOMINAL, loss_good=q, gap_min=gmin, gap_max=gmax)
+    assert wifi.stationary_loss(ch) == pytest.approx(_stationary_loss_by_sum(ch), rel=1e-12)
+
+
+def test_stationary_loss_huge_gap_max_is_the_geometric_limit():
+    # gap_max = 1e9 used to build a 1e9-element array (finding 7 of issue 25); the closed
+    # form's limit is the untruncated geometric gap: E[G] = gap_min + (1 - q) / q
+    ch = dataclasses.replace(wifi.NOMINAL, p_gb=0.0, loss_good=0.3, gap_min=15, gap_max=10**9)
+    assert wifi.stationary_loss(ch) == pytest.approx(1.0 / (15 + 0.7 / 0.3 + 1.0), rel=1e-12)
+    ch = dataclasses.replace(ch, loss_good=0.0)                 # no random loss: every gap is gap_max
+    assert wifi.stationary_loss(ch) == pytest.approx(1.0 / (10**9 + 1), rel=1e-12)
+
+
+@pytest.mark.parametrize("content, fragment", [
+    (b"step,delay\n0,1\n1,\xff\n", "bad.csv:3: not a UTF-8 text file"),
+    (b"step,delay\n0,1\n1,99999999999\n", "bad.csv:3: delay must be in [0, 2147483647]"),
+    (b"step,delay\n0,-1\n", "bad.csv:2: delay must be empty (a lost packet) or a non-negative integer"),
+    (b"step,delay\n0,\xef\xbc\x91\n", "bad.csv:2: expected 'step,delay'"),       # a full-width digit
+    (b"step,delay\n0,1_0\n", "bad.csv:2: expected 'step,delay'"),
+    (b"step,delay\n0,1\n0,2\n", "bad.csv:3: step 0 repeated"),
+    (b"time,delay\n0,1\n", "bad.csv:1: expected the header"),
+])
+def test_read_trace_errors_name_the_file_and_line(tmp_path, content, fragment):
+    bad = tmp_path / "bad.csv"
+    bad.write_bytes(content)
+    with pytest.raises(ValueError) as e:
+        wifi.read_trace(bad)
+    assert fragment in str(e.value), str(e.value)
