@@ -4,7 +4,8 @@ For each network severity (nominal Table 1 fit, more loss, more delay) and each 
 designs replay the same pair of network traces and the same noise (common random
 numbers).  Reports the fraction of runs that stay upright (|theta| < limit for the whole
 run) with a 95 % Wilson interval, the tilt RMS and the final tracking error over the
-upright runs, writes ``results.json`` and ``balancing.png`` (like Fig. 7: tilt and wheel
+upright runs, writes ``results.json``, the per-seed metrics (``seeds.npz``,
+:func:`jaxnc.load`; dimensions severity, design, seed) and ``balancing.png`` (like Fig. 7: tilt and wheel
 angle of both designs for seed 0 at the nominal and the harshest severity).
 """
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxnc import montecarlo
+from jaxnc import montecarlo, results as per_seed
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import balancing as bal
@@ -104,18 +105,19 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     t0 = time.perf_counter()
     loops = build_loops(settings)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
-    summary, raw = {}, {}
+    summary, runs = {}, {}
     for (sev, d), loop in loops.items():
         # the loop's links carry the severity's channel in both directions
         m = montecarlo.run_batched(lambda k, loop=loop: bal.run(loop, k), keys,
                                    chunk_size=min(settings["chunk"], seeds), progress=progress,
                                    desc=f"{sev:>8} {d:>9}")
         summary[f"{sev} / {d}"] = summarise(m)
-        raw[f"{sev} / {d}"] = np.asarray(m.upright, bool)
+        runs[(sev, d)] = {**m._asdict(), "unstable": ~np.asarray(m.upright, bool)}   # what summarise leaves out
     print(f"\nseed 001 balancing robot, {seeds} seeds, {settings['horizon']} s, gain={settings['gain']}, "
           f"strategy={settings['strategy']}, N_buf={settings['N_buf']}\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
+    per_seed.save_per_seed(out, runs, dims=("severity", "design"))
     fig = plot(loops, keys[0], out, _sevs(settings))
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,

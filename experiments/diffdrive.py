@@ -2,7 +2,7 @@
 
 Runs the five scenarios on the same seeds (common random numbers), prints Table 2
 (J1, J2, J3 absolute with 95 % intervals and normalised to scenario a, network packets),
-writes ``results.json`` (full configuration), ``paths.png`` (Figs. 5-9, seed 0) and
+writes ``results.json`` (full configuration), the per-seed metrics (``seeds.npz``, :func:`jaxnc.load`), ``paths.png`` (Figs. 5-9, seed 0) and
 ``control.png`` (Fig. 10: control signal of scenario e, seed 0).  ``F`` sets the noise
 factor of scenario e (0.1 low, 0.45 high); ``e_high=true`` adds a run of e at F = 0.45.
 """
@@ -15,7 +15,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import montecarlo
+from jaxnc import montecarlo, results as per_seed
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import diffdrive as dd
@@ -143,6 +143,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           " path; 'paper' Table 2's values\n")
     print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
+    per_seed.save_per_seed(out, results, dims=("case",))
     f1, f2 = plot_paths(loops, keys[0], out)
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,

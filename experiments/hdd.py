@@ -2,7 +2,7 @@
 
 ``hdd`` runs Cases 1-6 on the same seeds (common random numbers), prints the table of
 Uc, Ua, Cc, ISE, ISEP, NE and GPI (eq. 23-29) next to the paper's values, writes
-``results.json``, one figure per case like Figs 6-9, 11, 13 (output, control, utilisation
+``results.json``, the per-seed metrics (``seeds.npz``, :func:`jaxnc.load`), one figure per case like Figs 6-9, 11, 13 (output, control, utilisation
 bars; a black dot where the actuator applies a packet's current action) and the plant's
 frequency response (``plant_bode.png``).
 
@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import montecarlo
+from jaxnc import montecarlo, results as per_seed
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.plants import hdd as hdd_plant
 from jaxnc.report import fmt, markdown_table
@@ -134,14 +134,16 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     cs = hdd.controller_design(settings["m"]).cs
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     f = _batched()
-    summary = {}
+    summary, runs = {}, {}
     for c, loop in (tqdm(loops.items(), desc="cases") if progress else loops.items()):
         m = jax.device_get(f(loop, keys, y_tts, ise_tts, cs))
         summary[c] = summarise(m)
+        runs[str(c)] = m
     print(f"\nseed 003 HDD servo, {seeds} seeds, ISE (TTS, eq. 23) = {float(ise_tts):.3f} (paper 3.75), "
           f"CS = {100 * cs:.0f} % (paper 33 %)\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
+    per_seed.save_per_seed(out, runs, dims=("case",))
     figs = [plot_bode(out, settings["reading"])]
     for c, loop in loops.items():
         figs.append(plot_case(loop, jax.jit(hdd.simulate)(loop, keys[0]), out, c))

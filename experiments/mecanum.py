@@ -4,7 +4,8 @@ Runs the requested cases (SR, DR, DRH, DRHE or all) and the nominal single-rate 
 (SR, N = 1, DP = 0) on the same seeds, normalises J1-J3 to the nominal run as the
 paper does (J4 is normalised by definition), prints the table, writes
 ``results.json`` (full configuration, per-metric mean and 95 % interval, unstable
-fraction, version, wall time) and a path-tracking figure like Fig. 4.
+fraction, version, wall time), the per-seed metrics (``seeds.npz``, read by
+:func:`jaxnc.load`) and a path-tracking figure like Fig. 4.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxnc import montecarlo
+from jaxnc import montecarlo, results as per_seed
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS, Path as RefPath
@@ -180,6 +181,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print("J1-J3 normalised to nominal SR (N=1, DP=0) on the same seeds; J4 = sensor transmission rate / nominal\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
+    per_seed.save_per_seed(out, results, dims=("case",))
     fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)")
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,

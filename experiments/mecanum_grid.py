@@ -19,7 +19,8 @@ cell (1000 by default), event parameters of section 4.1 and h by the rule of
   over nominal, inf for unstable cells, "-" where the paper has none), the whole
   grid as ``grid_<path>.csv``, heat maps ``fig_<path>.png`` (Figs 7-10: each index
   over (N, DP) for each case), and ``paper_comparison.md`` (Lissajous: ours beside
-  Tables 1-4, cell by cell).
+  Tables 1-4, cell by cell). ``results.json`` lists the cells' per-seed files, so
+  :func:`jaxnc.load` gives the whole grid as one Dataset (path, N, case, dp, seed).
 
 A cell is infinite when more than half of its runs are unstable (``UNSTABLE_CELL``);
 a run is unstable when the robot leaves the 0.5 m tube around the path, a state
@@ -30,8 +31,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -39,7 +38,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import montecarlo
+from jaxnc import montecarlo, results as per_seed
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
@@ -99,20 +98,7 @@ def cell_file(out: Path, path: str, N: int, case: str, dp: float) -> Path:
     return out / "cells" / path / f"N{N:02d}_{case}_dp{dp:.2f}.json"
 
 
-def _atomic_write(target: Path, write) -> None:
-    """Write through a temporary file in the same directory, then rename (atomic)."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix="." + target.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+_atomic_write = montecarlo.atomic_write   # write through a temporary file, then rename
 
 
 def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path: str, h: int) -> dict:
@@ -214,7 +200,10 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
     results = collect(out, settings, seeds, cells, loops)
     written = write_outputs(out, results, settings) if complete else []
     summary = {"cells": len(cells), "computed": computed, "reused": done_before, "complete": complete,
-               "wall_time_s": elapsed, "files": [str(f) for f in written]}
+               "wall_time_s": elapsed, "files": [str(f) for f in written],
+               # the stored cells of this configuration, for jaxnc.load
+               "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, c[0], c[1], c[2], c[3]).with_suffix(".npz")
+                                                         for c in results}, dims=("path", "N", "case", "dp"))}
     montecarlo.save_results(out / "results.json", experiment="mecanum-grid",
                             config={"settings": settings, "seeds": seeds}, results=summary, wall_time_s=elapsed)
     print(f"\n{computed} cells computed, {done_before} reused, in {elapsed:.1f} s"

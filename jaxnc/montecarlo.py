@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import io
 import json
 import math
 import os
@@ -33,7 +34,8 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results"]
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results",
+           "atomic_write"]
 
 
 # ----------------------------------------------------------------------------- keys
@@ -317,12 +319,29 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
         "jax_version": jax.__version__,
         "platform": _platform_string(),
     })
+
+    def write(f):
+        text = io.TextIOWrapper(f, encoding="utf-8")
+        json.dump(doc, text, indent=2, allow_nan=False)
+        text.write("\n")
+        text.flush()
+        text.detach()                          # leave f open for atomic_write's fsync
+
+    atomic_write(path, write)
+
+
+def atomic_write(path, write: Callable) -> None:
+    """Write a file atomically: ``write(f)`` fills a temporary file (binary mode) in the
+    same directory, which is flushed, fsynced and moved over ``path`` with ``os.replace``
+    (the directory is fsynced too). A reader sees the old file or the complete new one;
+    an exception (Ctrl-C included) leaves the old file untouched and no temporary file
+    behind. Parent directories are created; the file gets the usual mode (umask)."""
+    path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(doc, f, indent=2, allow_nan=False)
-            f.write("\n")
+        with os.fdopen(fd, "wb") as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         umask = os.umask(0)

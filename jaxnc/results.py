@@ -1,0 +1,298 @@
+"""Results as labelled arrays: a run's per-seed metrics as an ``xarray.Dataset``.
+
+Every experiment writes ``results.json`` (summaries and the full configuration,
+:func:`jaxnc.montecarlo.save_results`); the per-seed metrics behind the summaries are
+kept too, so that a seed-level histogram or a plot over N and DP is one line:
+
+* a single run (``mecanum``, ``hdd``, ``balancing``, ``diffdrive``) writes
+  ``seeds.npz`` beside ``results.json`` (:func:`save_per_seed`): every metric of every
+  seed of every case;
+* a grid (``mecanum-grid``) keeps one ``.npz`` per cell under ``cells/`` (written as
+  each cell is done) and lists the cells of its configuration, with their coordinates,
+  in ``results.json`` (``results["per_seed"]``).
+
+:func:`load` reads either into one Dataset with named dimensions -- ``case`` (or
+``severity`` and ``design`` for ``balancing``; ``path``, ``N``, ``case``, ``dp`` for a
+grid) and ``seed`` last -- and the run's metadata as attributes (``experiment``,
+``settings``, ``seeds``, ``config``, versions, ``created``, ``wall_time_s``). Every
+Dataset has a boolean ``unstable`` variable: the runs the experiment's summaries leave
+out. :func:`summary` / :func:`to_pandas` reduce it over seeds exactly as the printed
+tables do (:func:`jaxnc.montecarlo.summarize`: mean, 95 % interval over the stable runs,
+unstable fraction); the same are methods of the ``.jaxnc`` accessor
+(``jaxnc.load(folder).jaxnc.to_pandas()``).
+
+Writing needs only numpy; reading needs xarray (and pandas), imported when first used.
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+import zipfile
+from typing import Mapping, Sequence
+
+import numpy as np
+
+__all__ = ["PER_SEED_FILE", "FORMAT", "save_per_seed", "per_seed_index", "load", "summary", "to_pandas"]
+
+PER_SEED_FILE = "seeds.npz"
+#: format tag stored in every per-seed file (and checked when reading one)
+FORMAT = "jaxnc-per-seed-1"
+_META = "__meta__"
+
+
+def _coord_value(v):
+    """A coordinate label as a JSON value (numpy scalars to Python)."""
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        raise TypeError(f"save_per_seed: coordinate values must be str, int or float, got {v!r}")
+    return v
+
+
+def _fields(metrics) -> dict[str, np.ndarray]:
+    """A NamedTuple, dataclass or mapping of per-seed arrays -> {name: 1-D numpy array}."""
+    if hasattr(metrics, "_asdict"):
+        metrics = metrics._asdict()
+    elif not isinstance(metrics, Mapping):
+        raise TypeError(f"save_per_seed: metrics must be a NamedTuple or a mapping, got {type(metrics).__name__}")
+    return {str(k): np.asarray(v) for k, v in metrics.items()}
+
+
+def _stack(runs: Mapping[tuple, Mapping], dims: Sequence[str]):
+    """{coords: metrics} -> (coords per dim, {name: array (*dims, seed)}, present mask).
+
+    Coordinates are listed per dimension in order of first appearance; a combination with
+    no run has NaN metrics, ``unstable`` True and ``present`` False."""
+    dims = tuple(dims)
+    if not runs:
+        raise ValueError("save_per_seed: no runs")
+    coords = {d: [] for d in dims}
+    rows = {}
+    for key, metrics in runs.items():
+        key = key if isinstance(key, tuple) else (key,)
+        if len(key) != len(dims):
+            raise ValueError(f"save_per_seed: run {key!r} has {len(key)} coordinates, dims are {dims}")
+        key = tuple(_coord_value(v) for v in key)
+        for d, v in zip(dims, key):
+            if v not in coords[d]:
+                coords[d].append(v)
+        rows[key] = _fields(metrics)
+    first = next(iter(rows.values()))
+    if "unstable" not in first:
+        raise ValueError("save_per_seed: the metrics need an 'unstable' field (the runs the summaries leave out)")
+    n = None
+    for key, fields in rows.items():
+        if set(fields) != set(first):
+            raise ValueError(f"save_per_seed: run {key!r} has fields {sorted(fields)}, expected {sorted(first)}")
+        for name, a in fields.items():
+            if a.ndim != 1 or (n is not None and a.shape[0] != n):
+                raise ValueError(f"save_per_seed: {name} of run {key!r} has shape {a.shape}; every metric must "
+                                 f"be one value per seed ({n if n is not None else 'n'},)")
+            n = a.shape[0]
+    shape = tuple(len(coords[d]) for d in dims)
+    present = np.zeros(shape, bool)
+    complete = len(rows) == present.size
+    data = {}
+    for name, a in first.items():
+        if name == "unstable":
+            fill, dtype = True, bool
+        elif a.dtype == bool:
+            fill, dtype = False, bool
+        elif complete:
+            fill, dtype = 0, a.dtype
+        else:
+            fill, dtype = np.nan, np.result_type(a.dtype, np.float32)
+        data[name] = np.full((*shape, n), fill, dtype)
+    for key, fields in rows.items():
+        idx = tuple(coords[d].index(v) for d, v in zip(dims, key))
+        present[idx] = True
+        for name, a in fields.items():
+            data[name][idx] = a
+    return coords, data, present
+
+
+def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",)) -> pathlib.Path:
+    """Write the per-seed metrics of a run to ``folder/seeds.npz`` (atomically); returns the file.
+
+    ``runs`` maps a run's coordinates (a tuple with one label per entry of ``dims``, or a
+    single label for one dimension) to its metrics: a NamedTuple or mapping of 1-D arrays,
+    one value per seed (all runs the same fields and seed count), with a boolean
+    ``unstable`` field. Raises ValueError / TypeError for runs that do not fit that shape.
+    """
+    from jaxnc.montecarlo import atomic_write
+    coords, data, present = _stack(runs, dims)
+    meta = {"format": FORMAT, "dims": list(dims), "coords": coords, "variables": sorted(data)}
+    if not present.all():
+        data["present"] = present
+    arrays = {_META: np.asarray(json.dumps(meta)), **data}
+    f = pathlib.Path(folder) / PER_SEED_FILE
+    atomic_write(f, lambda fh: np.savez_compressed(fh, **arrays))
+    return f
+
+
+def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -> dict:
+    """The ``results["per_seed"]`` entry of a grid: ``{"dims", "cells": [[*coords, file]]}``,
+    each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``."""
+    folder = pathlib.Path(folder)
+    rows = [[*(_coord_value(v) for v in key), pathlib.Path(f).relative_to(folder).as_posix()]
+            for key, f in cells.items()]
+    return {"format": FORMAT, "dims": list(dims), "cells": rows}
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _read_npz(f: pathlib.Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(f, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise
+    except (zipfile.BadZipFile, EOFError, ValueError, OSError, KeyError) as e:
+        raise ValueError(f"{f}: damaged per-seed file ({type(e).__name__}: {' '.join(str(e).split())}); "
+                         f"rerun the experiment to write it again") from None
+
+
+def _load_single(f: pathlib.Path):
+    if not f.exists():
+        raise FileNotFoundError(f"{f}: no per-seed file (this folder was written by a jaxnc older than per-seed "
+                                f"results, or by an experiment that saves only summaries); rerun the experiment")
+    z = _read_npz(f)
+    try:
+        meta = json.loads(str(z.pop(_META)))
+        assert meta.get("format") == FORMAT, f"format {meta.get('format')!r}, expected {FORMAT!r}"
+        dims, coords = list(meta["dims"]), meta["coords"]
+        shape = tuple(len(coords[d]) for d in dims)
+        for name in meta["variables"]:
+            a = z[name]
+            assert a.ndim == len(dims) + 1 and a.shape[:-1] == shape, f"{name} has shape {a.shape}"
+    except (KeyError, TypeError, ValueError, AssertionError) as e:
+        raise ValueError(f"{f}: damaged per-seed file ({type(e).__name__}: {e})") from None
+    return dims, coords, z
+
+
+def _load_cells(folder: pathlib.Path, index: dict, results_file: pathlib.Path):
+    try:
+        dims, rows = list(index["dims"]), index["cells"]
+    except (KeyError, TypeError):
+        raise ValueError(f"{results_file}: damaged per-seed index (results['per_seed'])") from None
+    runs = {}
+    for row in rows:
+        key, rel = tuple(row[:-1]), row[-1]
+        f = folder / rel
+        if not f.exists():
+            raise FileNotFoundError(f"{f}: cell file listed in {results_file} is missing")
+        runs[key] = _read_npz(f)
+    try:
+        coords, data, present = _stack(runs, dims)
+    except ValueError as e:
+        raise ValueError(f"{folder / 'cells'}: cell files do not fit together ({e})") from None
+    if not present.all():
+        data["present"] = present
+    return dims, coords, data
+
+
+def _xarray():
+    import xarray as xr
+    if not hasattr(xr.Dataset, "jaxnc"):
+        xr.register_dataset_accessor("jaxnc")(_Accessor)
+    return xr
+
+
+def load(folder):
+    """The per-seed metrics of the run in ``folder`` as an ``xarray.Dataset`` (module docstring).
+
+    Dimensions: the run's own (``case``; ``severity``, ``design``; ``path``, ``N``,
+    ``case``, ``dp``) and ``seed`` (the seed index i of ``fold_in(PRNGKey(seed), i)``).
+    Variables: the experiment's per-seed metrics (float32 / int32 / bool as computed;
+    a grid with combinations it did not compute has NaN there, ``unstable`` True and a
+    boolean ``present`` variable). Attributes: ``experiment``, ``settings``, ``seeds``,
+    ``config`` (the whole configuration), ``jaxnc_version``, ``jax_version``,
+    ``platform``, ``created``, ``wall_time_s``.
+
+    Raises FileNotFoundError naming the file when ``folder`` has no ``results.json`` or
+    no per-seed data (a folder written before per-seed results existed), ValueError
+    naming the file when one is damaged.
+    """
+    xr = _xarray()
+    from jaxnc.montecarlo import load_results
+    folder = pathlib.Path(folder)
+    rj = folder / "results.json"
+    if not rj.exists():
+        raise FileNotFoundError(f"{rj}: no results file; is {folder} a jaxnc results folder?")
+    doc = load_results(rj)
+    if not isinstance(doc, dict) or "experiment" not in doc or not isinstance(doc.get("results"), dict):
+        raise ValueError(f"{rj}: not a jaxnc results file (no 'experiment' or 'results')")
+    index = doc["results"].get("per_seed")
+    if index is not None:
+        dims, coords, data = _load_cells(folder, index, rj)
+    elif (folder / "cells").is_dir() and not (folder / PER_SEED_FILE).exists():
+        raise FileNotFoundError(f"{rj}: lists no per-seed cells (written by a jaxnc older than per-seed results); "
+                                f"rerun the same command: the stored cells are reused and indexed")
+    else:
+        dims, coords, data = _load_single(folder / PER_SEED_FILE)
+    n = next(iter(data.values())).shape[-1]
+    all_dims = (*dims, "seed")
+    variables = {k: ((tuple(dims) if k == "present" else all_dims), v) for k, v in data.items()}
+    config = doc.get("config") or {}
+    attrs = {"experiment": doc["experiment"], "settings": config.get("settings", {}),
+             "seeds": config.get("seeds", n), "config": config}
+    attrs |= {k: doc[k] for k in ("jaxnc_version", "jax_version", "platform", "created", "wall_time_s") if k in doc}
+    return xr.Dataset(variables, coords={**{d: list(coords[d]) for d in dims}, "seed": np.arange(n)}, attrs=attrs)
+
+
+# ----------------------------------------------------------------------------- summaries
+
+_STATS = ("mean", "ci95", "std", "n_stable")
+
+
+def summary(ds):
+    """Each numeric per-seed metric reduced over ``seed`` as the printed tables do
+    (:func:`jaxnc.montecarlo.summarize` over the runs that are not ``unstable``):
+    variables ``<metric>`` (the mean; inf if no run is stable), ``<metric>_ci95``,
+    ``<metric>_std``, ``<metric>_n_stable``, and ``n``, ``unstable_fraction``; the
+    other dimensions are kept. Boolean metrics other than ``unstable`` are averaged over
+    all seeds (the fraction of runs where they hold)."""
+    xr = _xarray()
+    from jaxnc.montecarlo import summarize
+
+    def stats(v, u):
+        s = summarize(v, u)
+        return np.array([s.mean, s.ci95, s.std, s.n_stable], float)
+
+    unstable = ds["unstable"]
+    out = {}
+    for name, v in ds.data_vars.items():
+        if "seed" not in v.dims or name == "unstable":
+            continue
+        if v.dtype == bool:
+            out[name] = v.astype(float).mean("seed")
+            continue
+        r = xr.apply_ufunc(stats, v, unstable, input_core_dims=[["seed"], ["seed"]], output_core_dims=[["stat"]],
+                           vectorize=True, dask_gufunc_kwargs={"output_sizes": {"stat": len(_STATS)}})
+        for i, s in enumerate(_STATS):
+            out[name if s == "mean" else f"{name}_{s}"] = r.isel(stat=i, drop=True)
+    out["n"] = xr.full_like(unstable.isel(seed=0, drop=True), ds.sizes["seed"], dtype=int)
+    out["unstable_fraction"] = unstable.astype(float).mean("seed")
+    if "present" in ds:
+        out["present"] = ds["present"]
+    return xr.Dataset(out, attrs=ds.attrs)
+
+
+def to_pandas(ds):
+    """:func:`summary` as a ``pandas.DataFrame``: one row per case (a MultiIndex over the
+    run's dimensions), one column per statistic."""
+    return summary(ds).to_dataframe()
+
+
+class _Accessor:
+    """``ds.jaxnc.summary()`` / ``ds.jaxnc.to_pandas()`` on a Dataset from :func:`load`."""
+
+    def __init__(self, ds):
+        self._ds = ds
+
+    def summary(self):
+        return summary(self._ds)
+
+    def to_pandas(self):
+        return to_pandas(self._ds)

@@ -1,0 +1,178 @@
+"""jaxnc.load: per-seed metrics as an xarray.Dataset whose means are the printed tables."""
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+import jaxnc
+from jaxnc import montecarlo, results
+from jaxnc.experiment import get_experiment, load_builtin
+from jaxnc.report import fmt
+
+load_builtin()
+
+
+def _settings(name, **kw):
+    return dict(get_experiment(name).defaults(), **kw)
+
+
+def _row(table: str, label: str) -> list[str]:
+    """The cells of the printed Markdown row whose first cell is ``label``."""
+    for line in table.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if cells and cells[0] == label:
+            return cells
+    raise AssertionError(f"no row {label!r} in\n{table}")
+
+
+def _same(a, b):
+    """Equal floats, inf and nan included."""
+    return (math.isnan(a) and math.isnan(b)) or a == b
+
+
+# ----------------------------------------------------------------------------- format
+
+
+def _metrics(n, shift=0.0):
+    return {"J1": np.arange(n, dtype=np.float32) + shift, "tx": np.arange(n, dtype=np.int32),
+            "unstable": np.arange(n) % 3 == 0}
+
+
+def test_save_and_load_round_trip_with_attributes(tmp_path):
+    runs = {"A": _metrics(5), "B": _metrics(5, 10.0)}
+    results.save_per_seed(tmp_path, runs, dims=("case",))
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 5},
+                            results={}, wall_time_s=1.5)
+    ds = jaxnc.load(tmp_path)
+    assert ds["J1"].dims == ("case", "seed") and list(ds["case"].values) == ["A", "B"]
+    assert ds["J1"].dtype == np.float32 and ds["tx"].dtype == np.int32 and ds["unstable"].dtype == bool
+    np.testing.assert_array_equal(ds["J1"].sel(case="B").values, runs["B"]["J1"])
+    assert ds.attrs["experiment"] == "toy" and ds.attrs["settings"] == {"k": 1} and ds.attrs["seeds"] == 5
+    # the summary is montecarlo.summarize over the stable runs, per case
+    s = ds.jaxnc.summary()
+    ref = montecarlo.summarize(runs["B"]["J1"], runs["B"]["unstable"])
+    assert float(s["J1"].sel(case="B")) == ref.mean and float(s["J1_ci95"].sel(case="B")) == ref.ci95
+    assert float(s["unstable_fraction"].sel(case="A")) == 2 / 5
+    df = results.to_pandas(ds)
+    assert df.loc["B", "J1"] == ref.mean and df.loc["B", "n"] == 5
+
+
+def test_missing_combinations_are_nan_and_marked(tmp_path):
+    runs = {("x", 1): _metrics(3), ("y", 2): _metrics(3, 1.0)}
+    results.save_per_seed(tmp_path, runs, dims=("p", "N"))
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
+    ds = jaxnc.load(tmp_path)
+    assert ds["J1"].dims == ("p", "N", "seed")
+    assert ds["present"].values.tolist() == [[True, False], [False, True]]
+    assert np.isnan(ds["J1"].sel(p="x", N=2)).all() and ds["unstable"].sel(p="x", N=2).all()
+    assert float(ds.jaxnc.summary()["J1"].sel(p="y", N=2)) == montecarlo.summarize(
+        runs[("y", 2)]["J1"], runs[("y", 2)]["unstable"]).mean
+
+
+def test_old_and_damaged_folders_give_errors_naming_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "results.json"))):
+        jaxnc.load(tmp_path)
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "seeds.npz")) + ".*older"):
+        jaxnc.load(tmp_path)                      # a folder from before per-seed results
+    (tmp_path / "seeds.npz").write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path / "seeds.npz")) + ": damaged"):
+        jaxnc.load(tmp_path)
+    f = results.save_per_seed(tmp_path, {"A": _metrics(4)})
+    f.write_bytes(f.read_bytes()[:-40])           # cut short
+    with pytest.raises(ValueError, match=re.escape(str(f)) + ": damaged"):
+        jaxnc.load(tmp_path)
+    (tmp_path / "results.json").write_text('{"experiment": ')
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path / "results.json"))):
+        jaxnc.load(tmp_path)
+
+
+def test_save_per_seed_refuses_ragged_runs(tmp_path):
+    with pytest.raises(ValueError, match="unstable"):
+        results.save_per_seed(tmp_path, {"A": {"J1": np.zeros(3)}})
+    with pytest.raises(ValueError, match="one value per seed"):
+        results.save_per_seed(tmp_path, {"A": _metrics(3), "B": _metrics(4)})
+
+
+# ----------------------------------------------------------------------------- the experiments
+
+
+def test_mecanum_dataset_means_are_the_printed_table(tmp_path, capsys):
+    from experiments import mecanum
+    settings = _settings("mecanum", case="DRH", N=2, dp=0.1, path="turn180")
+    summary = mecanum.run(settings, seeds=4, out=tmp_path, progress=False)
+    printed = capsys.readouterr().out
+    ds = jaxnc.load(tmp_path)
+    assert ds.attrs["experiment"] == "mecanum" and ds.attrs["settings"]["N"] == 2
+    assert list(ds["case"].values) == ["SR nominal", "DRH"] and ds.sizes["seed"] == 4
+    s = ds.jaxnc.summary()
+    for case in ("SR nominal", "DRH"):
+        for j in ("J1", "J2", "J3"):                   # exactly the numbers in results.json
+            assert _same(float(s[j].sel(case=case)), summary[case]["absolute"][j]["mean"])
+        j1 = float(s["J1"].sel(case=case)) / float(s["J1"].sel(case="SR nominal"))
+        assert _row(printed, case)[1] == fmt(j1)       # J1 normalised, as printed
+        assert _row(printed, case)[6] == f"{100 * float(s['unstable_fraction'].sel(case=case)):.1f}"
+
+
+def test_mecanum_grid_dataset_means_are_the_tables(tmp_path):
+    from experiments import mecanum_grid as mg
+    settings = _settings("mecanum-grid", path="turn180", N=(2,), dp=(0.0, 0.3), chunk=4)
+    mg.run_grid(settings, seeds=4, out=tmp_path, progress=False)
+    ds = jaxnc.load(tmp_path)
+    assert ds["J1"].dims == ("path", "N", "case", "dp", "seed") and ds.attrs["experiment"] == "mecanum-grid"
+    assert ds.sizes == {"path": 1, "N": 2, "case": 4, "dp": 2, "seed": 4}     # N = 1: the nominal SR cell only
+    assert int(ds["present"].sum()) == len(mg.grid_cells(settings))
+    s = ds.jaxnc.summary()
+    import csv
+    with open(tmp_path / "grid_turn180.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(mg.grid_cells(settings))
+    nom = float(s["J1"].sel(path="turn180", N=1, case="SR", dp=0.0))
+    for r in rows:
+        cell = dict(path=r["path"], N=int(r["N"]), case=r["case"], dp=float(r["DP"]))
+        assert _same(float(s["J1"].sel(**cell)), float(r["J1_abs_m"]))
+        assert _same(float(s["unstable_fraction"].sel(**cell)), float(r["unstable_fraction"]))
+        if float(r["unstable_fraction"]) <= mg.UNSTABLE_CELL:
+            assert float(r["J1"]) == float(s["J1"].sel(**cell)) / nom
+
+
+def test_grid_folder_without_index_says_rerun(tmp_path):
+    from experiments import mecanum_grid as mg
+    settings = _settings("mecanum-grid", path="turn180", N=(2,), dp=(0.0,), case="SR", chunk=4)
+    mg.run_grid(settings, seeds=2, out=tmp_path, progress=False)
+    doc = json.loads((tmp_path / "results.json").read_text())
+    del doc["results"]["per_seed"]                            # as an older jaxnc wrote it
+    (tmp_path / "results.json").write_text(json.dumps(doc))
+    with pytest.raises(FileNotFoundError, match="results.json: lists no per-seed cells.*rerun"):
+        jaxnc.load(tmp_path)
+
+
+def test_hdd_dataset_means_are_the_printed_table(tmp_path, capsys):
+    from experiments import hdd
+    summary = hdd.run(_settings("hdd", case="2"), seeds=3, out=tmp_path, progress=False)
+    printed = capsys.readouterr().out
+    ds = jaxnc.load(tmp_path)
+    assert list(ds["case"].values) == ["2"] and ds.sizes["seed"] == 3
+    s = ds.jaxnc.summary()
+    for k in hdd.METRICS:
+        assert _same(float(s[k].sel(case="2")), summary[2][k]["mean"])
+    row = _row(printed, "2 PETC")
+    assert row[1] == fmt(float(s["Uc"].sel(case="2"))) and row[10] == fmt(float(s["GPI"].sel(case="2")), 3)
+
+
+def test_balancing_dataset_means_are_the_printed_table(tmp_path, capsys):
+    from experiments import balancing
+    settings = _settings("balancing", severity="nominal", horizon=16.0)
+    summary = balancing.run(settings, seeds=3, out=tmp_path, progress=False)
+    printed = capsys.readouterr().out
+    ds = jaxnc.load(tmp_path)
+    assert ds["tilt_rms_deg"].dims == ("severity", "design", "seed")
+    s = ds.jaxnc.summary()
+    for d in ds["design"].values:
+        name = f"nominal / {d}"
+        assert float(s["upright"].sel(severity="nominal", design=d)) == summary[name]["upright_fraction"]
+        assert _same(float(s["tilt_rms_deg"].sel(severity="nominal", design=d)),
+                     summary[name]["tilt_rms_deg"]["mean"])
+        assert _row(printed, name)[1].startswith(f"{100 * float(s['upright'].sel(severity='nominal', design=d)):.1f}")
