@@ -15,7 +15,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import montecarlo, results as per_seed
+from jaxnc import __version__, montecarlo, results as per_seed, sweep
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import diffdrive as dd
@@ -182,37 +182,62 @@ EXPERIMENT = register(Experiment(
 # ----------------------------------------------------------------------------- sensitivity
 
 
-def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+def sensitivity_cell(settings: dict, v: float, lad: float, keys) -> dict:
+    """One (v_ref, look-ahead) cell of the sensitivity grid: scenarios a-e on ``keys``."""
+    loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False))
+    results = {}
+    for name, loop in loops.items():
+        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=min(64, max(len(keys), 1)),
+                                   progress=False)
+        results[name] = {k: np.asarray(v_) for k, v_ in m._asdict().items()}
+    s = summarise(results)
+    return {"v_ref": v, "lad": lad,
+            "J1_a": s["a"]["absolute"]["J1"]["mean"], "J1_ref_a": s["a"]["absolute"]["J1_ref"]["mean"],
+            "ratios": {n: {j: s[n]["normalised"][j] for j in ("J1", "J1_ref")} for n in s},
+            "unstable": {n: s[n]["unstable_fraction"] for n in s}}
+
+
+def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = True,
+                    shard: sweep.Shard | None = None) -> dict:
     """Table 2's ratios over the two path-tracking parameters the paper does not give:
-    the reference speed v_ref and the look-ahead distance (a grid), both J1 readings."""
+    the reference speed v_ref and the look-ahead distance (a grid), both J1 readings.
+
+    Each cell is stored as ``OUT/cells/sensitivity/v<v_ref>_lad<look-ahead>.json`` when
+    done (a rerun computes only the missing ones; ``shard``: only its share,
+    :mod:`jaxnc.sweep`); the table, figure and ``results.json`` are written by the run
+    that finds every cell stored."""
+    t0 = time.perf_counter()
+    keys = montecarlo.seed_keys(settings["seed"], seeds)
+    v_refs, lads = settings["v_refs"], settings["lads"]
+    out.mkdir(parents=True, exist_ok=True)
+    cells = [(v, lad) for lad in lads for v in v_refs]
+    cell_f = lambda c: out / "cells" / "sensitivity" / f"v{c[0]:.10g}_lad{c[1]:.10g}.json"
+    common = {k: settings[k] for k in settings if k not in ("v_refs", "lads")}
+    cfg = lambda c: {"settings": common, "v_ref": c[0], "lad": c[1], "seeds": seeds, "devices": len(jax.devices()),
+                     "version": __version__}
+    mine = shard.share(cells) if shard is not None else cells
+    todo = [c for c in mine if sweep.load_cell(cell_f(c), cfg(c)) is None]
+    bar = tqdm(todo, desc="(v_ref, look-ahead)", disable=not progress, dynamic_ncols=True)
+    for c in bar:
+        sweep.save_cell(cell_f(c), {"config": cfg(c), "cell": sensitivity_cell(settings, c[0], c[1], keys)})
+        bar.set_postfix(v_ref=c[0], lad=c[1])
+    with sweep.assembly_lock(out):
+        stored = {c: sweep.load_cell(cell_f(c), cfg(c)) for c in cells}
+        missing = [c for c in cells if stored[c] is None]
+        if missing:
+            print(f"\nsensitivity grid: {len(todo)} cells computed. " + sweep.missing_report(
+                cells, missing, shard, describe=lambda c: f"v_ref {c[0]:g}, look-ahead {c[1]:g}"))
+            return {"complete": False, "missing": len(missing)}
+        return _write_sensitivity(settings, seeds, out, [stored[c]["cell"] for c in cells], t0)
+
+
+def _write_sensitivity(settings: dict, seeds: int, out: Path, grid: list, t0: float) -> dict:
+    """Table, figure and results.json of the sensitivity grid from all its cells."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    t0 = time.perf_counter()
-    keys = montecarlo.seed_keys(settings["seed"], seeds)
     v_refs, lads = settings["v_refs"], settings["lads"]
-    grid = []
-    out.mkdir(parents=True, exist_ok=True)
-    bar = tqdm([(v, lad) for lad in lads for v in v_refs], desc="(v_ref, look-ahead)", disable=not progress,
-               dynamic_ncols=True)
-    for v, lad in bar:
-        loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False))
-        results = {}
-        for name, loop in loops.items():
-            m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=min(64, max(seeds, 1)),
-                                       progress=False)
-            results[name] = {k: np.asarray(v_) for k, v_ in m._asdict().items()}
-        s = summarise(results)
-        grid.append({"v_ref": v, "lad": lad,
-                     "J1_a": s["a"]["absolute"]["J1"]["mean"], "J1_ref_a": s["a"]["absolute"]["J1_ref"]["mean"],
-                     "ratios": {n: {j: s[n]["normalised"][j] for j in ("J1", "J1_ref")} for n in s},
-                     "unstable": {n: s[n]["unstable_fraction"] for n in s}})
-        bar.set_postfix(v_ref=v, lad=lad)
-        # the cells so far, in case the run is interrupted
-        montecarlo.save_results(out / "results.json", experiment="diffdrive-sensitivity",
-                                config={"settings": settings, "seeds": seeds}, results={"grid": grid, "complete": False},
-                                wall_time_s=time.perf_counter() - t0)
     paper = {n: PAPER_TABLE2[n][0] / PAPER_TABLE2["a"][0] for n in dd.SCENARIOS}
     rows = []
     for g in grid:

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import montecarlo, results as per_seed
+from jaxnc import __version__, montecarlo, results as per_seed, sweep
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.plants import hdd as hdd_plant
 from jaxnc.report import fmt, markdown_table
@@ -166,8 +166,12 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
 
 
 def gpi_grid(loop: hdd.HddLoop, ts_values, tc_values, keys, y_tts, ise_tts, cs, *, progress=True,
-             W=(0.45, 0.45, 0.1)):
-    """Mean GPI, Uc, Ua, NE over ``keys`` for every (delta_s = sigma_s, delta_c = sigma_c) pair."""
+             W=(0.45, 0.45, 0.1), points=None, on_point=None):
+    """Mean GPI, Uc, Ua, NE and the unstable fraction over ``keys`` for every
+    (delta_s = sigma_s, delta_c = sigma_c) pair: float[len(ts), len(tc), 5].
+
+    ``points``: only these (i, j) (the others are NaN); ``on_point(i, j, values)`` is
+    called as each is done (the sweep stores it)."""
     @jax.jit
     def point(ts, tc, keys):
         l = dataclasses.replace(loop, sigma_s=ts, delta_s=ts, sigma_c=tc, delta_c=tc)
@@ -176,12 +180,15 @@ def gpi_grid(loop: hdd.HddLoop, ts_values, tc_values, keys, y_tts, ise_tts, cs, 
         mean = lambda a: jnp.sum(jnp.where(ok, a, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
         return jnp.stack([mean(m.GPI), mean(m.Uc), mean(m.Ua), mean(m.NE), jnp.mean(m.unstable)])
 
-    res = np.zeros((len(ts_values), len(tc_values), 5))
-    bar = tqdm(total=res.shape[0] * res.shape[1], desc="GPI grid", disable=not progress)
-    for i, ts in enumerate(ts_values):
-        for j, tc in enumerate(tc_values):
-            res[i, j] = np.asarray(point(jnp.float32(ts), jnp.float32(tc), keys))
-            bar.update(1)
+    res = np.full((len(ts_values), len(tc_values), 5), np.nan)
+    if points is None:
+        points = [(i, j) for i in range(len(ts_values)) for j in range(len(tc_values))]
+    bar = tqdm(total=len(points), desc="GPI grid", disable=not progress)
+    for i, j in points:
+        res[i, j] = np.asarray(point(jnp.float32(ts_values[i]), jnp.float32(tc_values[j]), keys))
+        if on_point is not None:
+            on_point(i, j, res[i, j])
+        bar.update(1)
     bar.close()
     return res
 
@@ -214,7 +221,12 @@ def plot_gpi(ts, tc, res, out: Path, imin) -> Path:
     return p
 
 
-def run_gpi(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+def run_gpi(settings: dict, *, seeds: int, out: Path, progress: bool = True,
+            shard: sweep.Shard | None = None) -> dict:
+    """The GPI surface. Each (i, j) point is stored as ``OUT/cells/gpi/ts<i>_tc<j>.json`` when
+    done (a rerun computes only the missing ones; ``shard``: only its share,
+    :mod:`jaxnc.sweep`); the surface, figure and ``results.json`` are written by the run
+    that finds every point stored."""
     t0 = time.perf_counter()
     if settings["ts_min"] >= settings["ts_max"] or settings["tc_min"] >= settings["tc_max"]:
         raise ConfigError("ts_min must be < ts_max and tc_min < tc_max")
@@ -228,7 +240,28 @@ def run_gpi(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> 
     y_tts, ise_tts = hdd.tts_reference(reading=settings["reading"], m=settings["m"])
     cs = hdd.controller_design(settings["m"]).cs
     keys = montecarlo.seed_keys(settings["seed"], seeds)
-    res = gpi_grid(loop, ts, tc, keys, y_tts, ise_tts, cs, progress=progress)
+    points = [(i, j) for i in range(n) for j in range(n)]
+    cell_f = lambda i, j: out / "cells" / "gpi" / f"ts{i:02d}_tc{j:02d}.json"
+    cfg = lambda i, j: {"settings": settings, "seeds": seeds, "i": i, "j": j, "ts": float(ts[i]), "tc": float(tc[j]),
+                        "version": __version__}
+    mine = shard.share(points) if shard is not None else points
+    todo = [p for p in mine if sweep.load_cell(cell_f(*p), cfg(*p)) is None]
+    gpi_grid(loop, ts, tc, keys, y_tts, ise_tts, cs, progress=progress, points=todo,
+             on_point=lambda i, j, v: sweep.save_cell(cell_f(i, j), {"config": cfg(i, j), "values": v.tolist()}))
+    with sweep.assembly_lock(out):
+        stored = {p: sweep.load_cell(cell_f(*p), cfg(*p)) for p in points}
+        missing = [p for p in points if stored[p] is None]
+        if missing:
+            print(f"\nGPI surface: {len(todo)} points computed. " + sweep.missing_report(
+                points, missing, shard, describe=lambda p: f"delta_s {ts[p[0]]:.3g}, delta_c {tc[p[1]]:.3g}"))
+            return {"complete": False, "missing": len(missing)}
+        res = np.array([[stored[(i, j)]["values"] for j in range(n)] for i in range(n)], float)
+        return _write_gpi(settings, seeds, out, ts, tc, res, t0)
+
+
+def _write_gpi(settings, seeds, out, ts, tc, res, t0) -> dict:
+    """The surface's minimum, figure and results.json from all points ``res``."""
+    n = len(ts)
     g = np.where(np.isfinite(res[..., 0]), res[..., 0], np.inf)
     imin = np.unravel_index(np.argmin(g), g.shape)
     out.mkdir(parents=True, exist_ok=True)

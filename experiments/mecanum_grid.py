@@ -8,6 +8,10 @@ cell (1000 by default), event parameters of section 4.1 and h by the rule of
   (with its per-seed indexes in a ``.npz`` beside it) atomically, as soon as it is
   done; a rerun with the same settings computes only the missing cells. A cell file
   whose configuration differs from the current one is recomputed.
+* **Across machines.** ``--shard I/N`` computes only shard I's share of the cells
+  (:mod:`jaxnc.sweep`) into the shared ``OUT``; the run that finds every cell present
+  (a shard, or a run without ``--shard``) writes the outputs, the same bytes however
+  the cells were split.
 * **One compiled program per (path, N).** The scheme, h and DP are runtime arguments
   (``run_batched(..., args=(loop,))``), so the four cases and all DPs of an N share
   one compilation; compiled programs are also cached on disk under
@@ -29,7 +33,6 @@ becomes non-finite, or it does not reach the end within 1.6 x the nominal time +
 from __future__ import annotations
 
 import csv
-import json
 import math
 import time
 from pathlib import Path
@@ -38,7 +41,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import montecarlo, results as per_seed
+from jaxnc import montecarlo, results as per_seed, sweep
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
@@ -98,9 +101,6 @@ def cell_file(out: Path, path: str, N: int, case: str, dp: float) -> Path:
     return out / "cells" / path / f"N{N:02d}_{case}_dp{dp:.2f}.json"
 
 
-_atomic_write = montecarlo.atomic_write   # write through a temporary file, then rename
-
-
 def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path: str, h: int) -> dict:
     """What a cell's result depends on; a stored cell is reused only if this matches."""
     return {"case": case, "N": N, "dp": dp, "path": path, "h": h, "seeds": seeds, "seed": settings["seed"],
@@ -115,14 +115,8 @@ def _version() -> str:
 
 
 def _load_cell(f: Path, config: dict) -> dict | None:
-    try:
-        with open(f) as fh:
-            data = json.load(fh)
-    except (OSError, ValueError):
-        return None
-    stored = data.get("config") or {}
-    stored.setdefault("devices", 1)          # cells written before the device count was recorded
-    return data if stored == config else None
+    # cells written before the device count was recorded ran on one device
+    return sweep.load_cell(f, config, defaults={"devices": 1})
 
 
 def _summary(m: mec.Metrics) -> dict:
@@ -149,11 +143,14 @@ def grid_cells(settings: dict) -> list[tuple[str, int, str, float]]:
     return cells
 
 
-def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, stop_after: int | None = None) -> dict:
-    """Compute the missing cells (at most ``stop_after`` of them: a controlled
-    interruption, for tests), then write tables and figures from all stored cells."""
+def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, stop_after: int | None = None,
+             shard: sweep.Shard | None = None) -> dict:
+    """Compute the missing cells (only ``shard``'s share of them if given; at most
+    ``stop_after`` of them: a controlled interruption, for tests), then, if every cell of
+    the grid is stored (by this run or any other), write tables and figures from them."""
     out = Path(out)
     cells = grid_cells(settings)
+    mine = set(shard.share(cells)) if shard is not None else set(cells)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     todo, loops = [], {}
     for cell in cells:
@@ -165,13 +162,13 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
             raise ConfigError(str(e)) from None
         loops[cell] = loop
         cfg = _cell_config(settings, seeds, case, N, dp, p, int(loop.h))
-        if _load_cell(cell_file(out, p, N, case, dp), cfg) is None:
+        if cell in mine and _load_cell(cell_file(out, p, N, case, dp), cfg) is None:
             todo.append((cell, cfg))
-    done_before = len(cells) - len(todo)
+    done_before = len(mine) - len(todo)
     computed = 0
     t0 = time.perf_counter()
-    bar = tqdm(total=len(cells), initial=done_before, desc="cells", unit="cell", disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(total=len(mine), initial=done_before, desc="cells" if shard is None else f"cells of shard {shard}",
+               unit="cell", disable=not progress, dynamic_ncols=True)
     try:
         for cell, cfg in todo:
             if stop_after is not None and computed >= stop_after:
@@ -182,23 +179,21 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
             m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[cell]),),
                                        chunk_size=min(settings["chunk"], seeds), progress=False)
             wall = time.perf_counter() - tc
-            f = cell_file(out, p, N, case, dp)
-            arrays = {k: np.asarray(getattr(m, k)) for k in m._fields}
-            _atomic_write(f.with_suffix(".npz"), lambda fh: np.savez_compressed(fh, **arrays))
-            record = {"config": cfg, "summary": _summary(m), "wall_time_s": wall}
-            _atomic_write(f, lambda fh: fh.write(json.dumps(record, indent=1).encode()))
+            sweep.save_cell(cell_file(out, p, N, case, dp), {"config": cfg, "summary": _summary(m), "wall_time_s": wall},
+                            arrays={k: np.asarray(getattr(m, k)) for k in m._fields})
             computed += 1
             bar.update(1)
     except KeyboardInterrupt:
         bar.close()
-        print(f"\ninterrupted: {done_before + computed} of {len(cells)} cells are saved in {out / 'cells'}; "
+        print(f"\ninterrupted: {done_before + computed} of {len(mine)} cells are saved in {out / 'cells'}; "
               "run the same command again to compute the rest", flush=True)
         raise SystemExit(130) from None
     bar.close()
     elapsed = time.perf_counter() - t0
-    complete = done_before + computed == len(cells)
-    results = collect(out, settings, seeds, cells, loops)
-    written = write_outputs(out, results, settings) if complete else []
+    with sweep.assembly_lock(out):
+        results = collect(out, settings, seeds, cells, loops)      # this run's cells and other shards'
+        complete = len(results) == len(cells)
+        written = write_outputs(out, results, settings) if complete else []
     summary = {"cells": len(cells), "computed": computed, "reused": done_before, "complete": complete,
                "wall_time_s": elapsed, "files": [str(f) for f in written],
                # the stored cells of this configuration, for jaxnc.load
@@ -206,8 +201,13 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
                                                          for c in results}, dims=("path", "N", "case", "dp"))}
     montecarlo.save_results(out / "results.json", experiment="mecanum-grid",
                             config={"settings": settings, "seeds": seeds}, results=summary, wall_time_s=elapsed)
-    print(f"\n{computed} cells computed, {done_before} reused, in {elapsed:.1f} s"
-          + ("" if complete else f"; {len(cells) - done_before - computed} missing: rerun to finish"))
+    print(f"\n{computed} cells computed, {done_before} reused, in {elapsed:.1f} s")
+    if not complete:
+        missing = [c for c in cells if c not in results]
+        if done_before + computed < len(mine):
+            print(f"{len(mine) - done_before - computed} cells of this run missing: rerun to finish")
+        else:
+            print(sweep.missing_report(cells, missing, shard, describe=lambda c: f"{c[0]} N={c[1]} {c[2]} DP={c[3]:.2f}"))
     return summary
 
 
@@ -414,11 +414,11 @@ def heatmaps(out: Path, results: dict, p: str) -> Path:
     return f
 
 
-def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+def run(settings: dict, *, seeds: int, out: Path, progress: bool = True, shard: sweep.Shard | None = None) -> dict:
     # compiled programs persist beside the results: a resumed run does not compile again
     if jax.config.jax_compilation_cache_dir is None:
         jax.config.update("jax_compilation_cache_dir", str((Path(out) / ".xla_cache").resolve()))
-    return run_grid(settings, seeds=seeds, out=out, progress=progress)
+    return run_grid(settings, seeds=seeds, out=out, progress=progress, shard=shard)
 
 
 EXPERIMENT = register(Experiment(

@@ -1,7 +1,7 @@
 """The ``jaxnc`` command line.
 
     jaxnc list
-    jaxnc run EXPERIMENT [--seeds N] [--out DIR] [--set KEY=VALUE ...] [--no-progress]
+    jaxnc run EXPERIMENT [--seeds N] [--out DIR] [--set KEY=VALUE ...] [--no-progress] [--shard I/N]
     jaxnc --version
 
 EXPERIMENT is a registered name (see ``jaxnc list``) or ``MODULE:ATTR`` for an experiment in
@@ -20,6 +20,7 @@ inside an experiment is a bug and propagates with its traceback (exit code 1).
 from __future__ import annotations
 
 import argparse
+import inspect
 import pathlib
 import sys
 import warnings
@@ -76,6 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "~/.cache/jaxnc/xla): a second run of the same programs skips compilation")
     r.add_argument("--no-cache", dest="cache", action="store_false",
                    help="do not use the persistent compilation cache")
+    r.add_argument("--shard", default=None, metavar="I/N",
+                   help="sweeps (mecanum-grid, hdd-gpi, diffdrive-sensitivity): compute only shard I of N "
+                        "(0 <= I < N) of the cells into the shared --out folder; the run that finds every "
+                        "cell present writes the tables (README: 'Sweeps across machines')")
     r.add_argument("--cpu-devices", default=None, metavar="N",
                    help="split the CPU into N JAX devices and shard the seeds over them "
                         "(an integer >= 1; default: JAX's, one)")
@@ -117,6 +122,16 @@ def _run(args) -> int:
     exp = _exp.resolve_experiment(args.experiment)
     settings = exp.parse_settings(args.settings)
     seeds = _SEEDS.parse(args.seeds)
+    run_kw = {}
+    if args.shard is not None:
+        from jaxnc.sweep import parse_shard
+        if "shard" not in inspect.signature(exp.run).parameters:
+            raise ConfigError(f"--shard: experiment {exp.name!r} is not a sweep (its run takes no shard); "
+                              f"sweeps: mecanum-grid, hdd-gpi, diffdrive-sensitivity")
+        try:
+            run_kw["shard"] = parse_shard(args.shard)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     if args.cpu_devices is not None:
         n = _CPU_DEVICES.parse(args.cpu_devices)
         try:
@@ -134,7 +149,7 @@ def _run(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"--out: cannot create directory '{out}': {e.strerror or e}") from None
-    exp.run(settings, seeds=seeds, out=out, progress=args.progress)
+    exp.run(settings, seeds=seeds, out=out, progress=args.progress, **run_kw)
     return 0
 
 

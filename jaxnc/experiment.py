@@ -176,7 +176,9 @@ class Experiment:
     seeds, the output directory (already created) and whether to show progress bars; it
     prints its own table, writes its own files and returns the results.  ``check(settings)``,
     if given, validates combinations of options (raising :class:`ConfigError`) when the
-    settings are parsed, before anything is built.
+    settings are parsed, before anything is built. A sweep's ``run`` also takes
+    ``shard`` (a :class:`jaxnc.sweep.Shard`, or None for all cells), which
+    ``jaxnc run --shard I/N`` passes; the CLI refuses ``--shard`` for the others.
     """
     name: str
     description: str

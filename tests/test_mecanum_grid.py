@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from experiments import mecanum_grid as mg
+from jaxnc import montecarlo
 from jaxnc.experiment import get_experiment
 
 SETTINGS = dict(get_experiment("mecanum-grid").defaults(), path="turn180", N=(2,), dp=(0.0, 0.3), chunk=4)
@@ -44,7 +45,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
         fh.write(b"{partial")
         raise KeyboardInterrupt
     with pytest.raises(KeyboardInterrupt):
-        mg._atomic_write(target, boom)
+        montecarlo.atomic_write(target, boom)
     assert not target.exists() and not list(tmp_path.iterdir())
 
 

@@ -1,0 +1,132 @@
+"""Sweeps whose cells are spread over processes, machines or a job array (``--shard I/N``).
+
+A sweep experiment (``mecanum-grid``, ``hdd-gpi``, ``diffdrive-sensitivity``) is a list
+of cells, each computed independently and stored as its own file in the output folder
+as soon as it is done (atomically: a cell file is complete or absent). Shard ``I`` of
+``N`` computes only its share of the list (:meth:`Shard.share`: the ``I``-th of ``N``
+contiguous blocks, so that cells sharing a compiled program stay together); whichever
+run finds every cell present -- a shard, or a run without ``--shard`` (which computes
+whatever is missing) -- assembles the tables from the cell files, under a lock
+(:func:`assembly_lock`), so the tables are the same bytes however the cells were
+computed. A cell file whose configuration differs from the current run's is not used.
+
+This module does not import jax.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import pathlib
+import re
+from typing import Callable, Iterator, Sequence
+
+__all__ = ["Shard", "parse_shard", "load_cell", "save_cell", "missing_report", "assembly_lock"]
+
+_SHARD_RE = re.compile(r"\s*([0-9]+)\s*/\s*([0-9]+)\s*\Z")
+
+
+@dataclasses.dataclass(frozen=True)
+class Shard:
+    """Shard ``index`` of ``count`` (0 <= index < count)."""
+    index: int
+    count: int
+
+    def __post_init__(self):
+        for name in ("index", "count"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ValueError(f"Shard: {name} must be an integer, got {v!r}")
+        if self.count < 1 or not 0 <= self.index < self.count:
+            raise ValueError(f"Shard: need 0 <= index < count, got {self.index}/{self.count}")
+
+    def share(self, cells: Sequence) -> list:
+        """This shard's cells: block ``index`` of ``count`` contiguous blocks of ``cells``
+        (sizes differ by at most one; the blocks cover every cell exactly once)."""
+        n = len(cells)
+        return list(cells[self.index * n // self.count:(self.index + 1) * n // self.count])
+
+    def owner(self, position: int, n: int) -> int:
+        """The shard (of ``count``) whose share holds cell ``position`` of ``n``."""
+        return next(i for i in range(self.count) if (i + 1) * n // self.count > position)
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"
+
+
+def parse_shard(text) -> Shard:
+    """``"I/N"`` -> :class:`Shard`; ValueError (one line, naming ``--shard`` and the
+    allowed values) unless I and N are integers with 0 <= I < N."""
+    m = _SHARD_RE.match(str(text))
+    if m is not None:
+        i, n = int(m.group(1)), int(m.group(2))
+        if n >= 1 and i < n:
+            return Shard(i, n)
+    raise ValueError(f"--shard must be I/N with integers 0 <= I < N (shard I of N, e.g. 0/4), got {str(text)!r}")
+
+
+def load_cell(f, config: dict, *, defaults: dict | None = None) -> dict | None:
+    """The record stored in cell file ``f`` (JSON) if its ``"config"`` equals ``config``;
+    None when the file is missing, damaged or was computed with another configuration
+    (``defaults`` fill keys that older files lack)."""
+    try:
+        with open(f, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    stored = data.get("config")
+    if not isinstance(stored, dict):
+        return None
+    stored = {**(defaults or {}), **stored}
+    return data if stored == json.loads(json.dumps(config)) else None     # tuples as the lists JSON stores
+
+
+def save_cell(f, record: dict, arrays: dict | None = None) -> None:
+    """Write cell file ``f`` (``record`` as JSON, with its ``"config"``), atomically;
+    ``arrays`` (per-seed metrics) go first to ``f`` with the suffix ``.npz``, so a cell
+    whose JSON exists always has its arrays."""
+    import numpy as np
+    from jaxnc.montecarlo import atomic_write
+    f = pathlib.Path(f)
+    if arrays is not None:
+        atomic_write(f.with_suffix(".npz"), lambda fh: np.savez_compressed(fh, **arrays))
+    text = json.dumps(record, indent=1)          # inf/nan as JSON's Infinity/NaN (read back by json)
+    atomic_write(f, lambda fh: fh.write(text.encode("utf-8")))
+
+
+def missing_report(cells: Sequence, missing: Sequence, shard: Shard | None, describe: Callable = str,
+                   command_hint: str = "the same command without --shard") -> str:
+    """One paragraph for a run that ends with cells still missing: how many, which
+    shards owe them, a few by name, and how the tables get written."""
+    pos = {c: i for i, c in enumerate(cells)}
+    head = f"{len(missing)} of {len(cells)} cells are missing"
+    if shard is not None:
+        owners = sorted({shard.owner(pos[c], len(cells)) for c in missing})
+        k = len(shard.share(cells))
+        head = (f"shard {shard} has done its share ({k} cell{'' if k == 1 else 's'}); {head} (shard"
+                f"{'s' if len(owners) > 1 else ''} {', '.join(f'{i}/{shard.count}' for i in owners)})")
+    some = "; ".join(describe(c) for c in missing[:4]) + ("; ..." if len(missing) > 4 else "")
+    return (f"{head}: {some}. The tables are written by the run that finds every cell present: "
+            f"run the missing shards, or {command_hint}, which computes what is missing.")
+
+
+@contextlib.contextmanager
+def assembly_lock(folder) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder/.assemble.lock`` (``fcntl.flock``; no lock where
+    fcntl does not exist), so two shards finishing together write the tables one after
+    the other, never interleaved."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:                      # not POSIX
+        yield
+        return
+    with open(folder / ".assemble.lock", "a") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)

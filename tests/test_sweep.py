@@ -1,0 +1,198 @@
+"""Sweeps over shards (--shard I/N): shares, validation, and tables assembled from the cell
+files byte for byte as an unsharded run writes them; a shard killed midway loses nothing."""
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from jaxnc.cli import main
+from jaxnc.experiment import get_experiment, load_builtin
+from jaxnc.sweep import Shard, load_cell, missing_report, parse_shard, save_cell
+
+load_builtin()
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _cli(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    return e.value.code, capsys.readouterr()
+
+
+# ----------------------------------------------------------------------------- shares
+
+
+@pytest.mark.parametrize("n_cells", [0, 1, 7, 9, 1152])
+@pytest.mark.parametrize("count", [1, 2, 3, 8])
+def test_shards_cover_every_cell_once_in_contiguous_blocks(n_cells, count):
+    cells = list(range(n_cells))
+    shares = [Shard(i, count).share(cells) for i in range(count)]
+    assert sum(shares, []) == cells                               # in order, each cell once
+    assert max(map(len, shares)) - min(map(len, shares)) <= 1
+    for i, share in enumerate(shares):
+        assert all(Shard(0, count).owner(c, n_cells) == i for c in share)
+
+
+@pytest.mark.parametrize("text, shard", [("0/1", Shard(0, 1)), ("3/4", Shard(3, 4)), (" 1 / 2 ", Shard(1, 2))])
+def test_parse_shard(text, shard):
+    assert parse_shard(text) == shard and str(shard) == text.replace(" ", "")
+
+
+@pytest.mark.parametrize("text", ["4/4", "-1/4", "1/0", "0/0", "a/2", "1", "1/2/3", "1.0/2", "", "\uff11/2"])
+def test_parse_shard_refuses_bad_values(text):
+    with pytest.raises(ValueError, match=r"--shard must be I/N with integers 0 <= I < N"):
+        parse_shard(text)
+
+
+def test_cli_shard_errors_are_one_line(tmp_path, capsys):
+    code, cap = _cli(["run", "mecanum-grid", "--shard", "2/2", "--out", str(tmp_path)], capsys)
+    assert code == 2 and cap.err.count("\n") == 1 and "--shard must be I/N" in cap.err and "'2/2'" in cap.err
+    code, cap = _cli(["run", "mecanum", "--shard", "0/2", "--out", str(tmp_path)], capsys)
+    assert code == 2 and cap.err.count("\n") == 1 and "not a sweep" in cap.err
+
+
+def test_cell_files_are_reused_only_with_their_configuration(tmp_path):
+    f = tmp_path / "cells" / "c.json"
+    assert load_cell(f, {"a": 1}) is None                             # missing
+    save_cell(f, {"config": {"a": 1, "t": (0.1, 0.2)}, "value": float("inf")})
+    assert load_cell(f, {"a": 1, "t": (0.1, 0.2)})["value"] == float("inf")
+    assert load_cell(f, {"a": 2, "t": (0.1, 0.2)}) is None            # other configuration
+    f.write_text('{"config": {"a"')                                    # damaged: computed again
+    assert load_cell(f, {"a": 1}) is None
+
+
+def test_missing_report_names_the_shards_that_owe_cells():
+    cells = list(range(10))
+    text = missing_report(cells, [5, 9], Shard(0, 3), describe=lambda c: f"cell {c}")
+    assert text.startswith("shard 0/3 has done its share (3 cells); 2 of 10 cells are missing (shards 1/3, 2/3): cell 5; cell 9")
+
+
+# ----------------------------------------------------------------------------- mecanum-grid
+
+GRID = dict(get_experiment("mecanum-grid").defaults(), path="turn180", N=(2,), dp=(0.0, 0.3), chunk=4)
+SEEDS = 4
+
+
+def _tables(out):
+    files = sorted(out.glob("tables_*")) + sorted(out.glob("grid_*")) + sorted(out.glob("fig_*"))
+    return {f.name: f.read_bytes() for f in files}
+
+
+_CHILD = """
+import os, sys
+sys.path.insert(0, {root!r})
+os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+if not os.environ.get("JAXNC_NO_CACHE"):
+    from jaxnc.cache import enable_cache
+    enable_cache()
+from pathlib import Path
+from experiments import mecanum_grid as mg
+from jaxnc.sweep import Shard
+mg.run_grid({settings!r}, seeds={seeds}, out=Path({out!r}), progress=False, shard=Shard(0, 2))
+"""
+
+
+def test_two_shards_assemble_the_tables_of_an_unsharded_run_and_a_killed_shard_loses_nothing(tmp_path, capsys):
+    from experiments import mecanum_grid as mg
+    whole, shared = tmp_path / "whole", tmp_path / "shared"
+    cells = mg.grid_cells(GRID)
+    first, second = Shard(0, 2).share(cells), Shard(1, 2).share(cells)
+    assert len(cells) == 9 and len(first) == 4
+    mg.run_grid(GRID, seeds=SEEDS, out=whole, progress=False)
+    reference = _tables(whole)
+    assert {"tables_turn180.md", "tables_turn180.csv", "grid_turn180.csv", "fig_turn180.png"} <= set(reference)
+
+    # shard 0 in a process of its own, killed (SIGKILL) once its first cell is stored
+    script = _CHILD.format(root=str(ROOT), settings=GRID, seeds=SEEDS, out=str(shared))
+    child = subprocess.Popen([sys.executable, "-c", textwrap.dedent(script)], cwd=ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    files = [mg.cell_file(shared, *c) for c in first]
+    try:
+        deadline = time.monotonic() + 240
+        while not any(f.exists() for f in files):
+            assert child.poll() is None, child.stderr.read().decode()[-2000:]
+            assert time.monotonic() < deadline, "shard 0 stored no cell in 240 s"
+            time.sleep(0.02)
+        os.kill(child.pid, signal.SIGKILL)
+    finally:
+        child.kill()
+        child.wait(timeout=30)
+    saved = [f for f in files if f.exists()]
+    assert 1 <= len(saved) < len(first), "the kill came after shard 0 had finished"
+    assert all(f.with_suffix(".npz").exists() for f in saved)       # arrays written before each cell's JSON
+
+    # shard 1: its share done, shard 0's missing -> says so, no tables, exits normally
+    r = mg.run_grid(GRID, seeds=SEEDS, out=shared, progress=False, shard=Shard(1, 2))
+    out = capsys.readouterr().out
+    assert (r["computed"], r["complete"]) == (len(second), False)
+    assert f"shard 1/2 has done its share ({len(second)} cells); {len(first) - len(saved)} of 9 cells are missing (shard 0/2)" in out
+    assert not _tables(shared)
+
+    # shard 0 again: reuses what the killed run stored, computes the rest, assembles
+    r = mg.run_grid(GRID, seeds=SEEDS, out=shared, progress=False, shard=Shard(0, 2))
+    assert (r["reused"], r["computed"], r["complete"]) == (len(saved), len(first) - len(saved), True)
+    assert _tables(shared) == reference
+    # a final run without --shard finds everything and rewrites the same bytes
+    assert mg.run_grid(GRID, seeds=SEEDS, out=shared, progress=False)["computed"] == 0
+    assert _tables(shared) == reference
+
+
+def test_cli_shards_of_the_grid(tmp_path, capsys):
+    """The commands of the README's recipe: two shards through `jaxnc run --shard`."""
+    sets = ["--set", "path=turn180", "--set", "N=2", "--set", "dp=0.3", "--set", "case=DRH", "--set", "chunk=4"]
+    code, cap = _cli(["run", "mecanum-grid", "--seeds", "2", "--no-progress", "--out", str(tmp_path),
+                      "--shard", "1/2", *sets], capsys)
+    assert code == 0 and "shard 1/2 has done its share (1 cell); 1 of 2 cells are missing (shard 0/2)" in cap.out
+    code, cap = _cli(["run", "mecanum-grid", "--seeds", "2", "--no-progress", "--out", str(tmp_path),
+                      "--shard", "0/2", *sets], capsys)
+    assert code == 0 and (tmp_path / "tables_turn180.md").exists()
+
+
+# ----------------------------------------------------------------------------- hdd-gpi, diffdrive-sensitivity
+
+
+def test_gpi_shards_assemble_the_unsharded_surface(tmp_path, capsys):
+    from experiments import hdd
+    from jaxnc.montecarlo import load_results
+    settings = dict(get_experiment("hdd-gpi").defaults(), n=2, case="3")
+    best = hdd.run_gpi(settings, seeds=2, out=tmp_path / "whole", progress=False)
+    assert hdd.run_gpi(settings, seeds=2, out=tmp_path / "s", progress=False, shard=Shard(1, 2)) == \
+        {"complete": False, "missing": 2}
+    assert "shard 1/2 has done its share (2 cells); 2 of 4 cells are missing (shard 0/2)" in capsys.readouterr().out
+    assert hdd.run_gpi(settings, seeds=2, out=tmp_path / "s", progress=False, shard=Shard(0, 2)) == best
+    a, b = (load_results(tmp_path / d / "results.json")["results"] for d in ("whole", "s"))
+    assert a == b
+
+
+def test_sensitivity_shards_assemble_the_unsharded_table(tmp_path, capsys, monkeypatch):
+    """The sweep's bookkeeping, with a stand-in for the (expensive) cell: the real cell
+    runs in tests/test_diffdrive.py::test_sensitivity_experiment_smoke."""
+    from experiments import diffdrive
+    calls = []
+
+    def cell(settings, v, lad, keys):
+        calls.append((v, lad))
+        ratios = {n: {"J1": 1.0 + v + lad * i, "J1_ref": 1.0 + v * i} for i, n in enumerate("abcde")}
+        return {"v_ref": v, "lad": lad, "J1_a": 1000 * v, "J1_ref_a": 900 * lad, "ratios": ratios,
+                "unstable": {n: 0.0 for n in "abcde"}}
+    monkeypatch.setattr(diffdrive, "sensitivity_cell", cell)
+    settings = dict(diffdrive.SENSITIVITY.defaults(), v_refs=(0.12, 0.14), lads=(0.1, 0.15))
+    diffdrive.run_sensitivity(settings, seeds=2, out=tmp_path / "whole", progress=False)
+    table = capsys.readouterr().out
+    assert len(calls) == 4
+    assert diffdrive.run_sensitivity(settings, seeds=2, out=tmp_path / "s", progress=False,
+                                     shard=Shard(0, 2))["complete"] is False
+    capsys.readouterr()
+    diffdrive.run_sensitivity(settings, seeds=2, out=tmp_path / "s", progress=False, shard=Shard(1, 2))
+    sharded = capsys.readouterr().out
+    assert len(calls) == 8
+    strip = lambda text: text.split("\nwrote")[0]
+    assert strip(sharded) == strip(table) and "| 0.140 |" in table
+    diffdrive.run_sensitivity(settings, seeds=2, out=tmp_path / "s", progress=False)   # nothing left to compute
+    assert len(calls) == 8
