@@ -52,7 +52,7 @@ def mecanum_terms(loop: mec.MecanumLoop, key, j1_nom):
 
     The completion step l and the instability flag carry no gradient; the mean and
     maximum distance and the transmission count do (through the trigger's estimator)."""
-    traj = mec.simulate(loop, key)
+    traj = mec.simulate(loop, key, full=False)
     K, N = loop.steps, loop.N
     l = jax.lax.stop_gradient(traj.l)
     mask = jnp.arange(K) < l

@@ -80,3 +80,64 @@ def test_search_over_a_static_buffer_length_prefers_using_late_measurements():
     r = tune_loop(lp, search={"estimator.buffer": [0, 3]}, search_budget=64, eval_seeds=64, progress=False)
     assert r.params["estimator.buffer"] == 3
     assert r.tune is None and r.paired_diff[0] < 0
+
+
+def test_with_temperature_reaches_nested_triggers_and_leaves_static_fields():
+    from jaxnc.tune import has_temperature, with_temperature
+    lp = _loop()
+    hot = with_temperature(lp, 0.25)
+    assert float(hot.trigger.temperature) == 0.25 and float(lp.trigger.temperature) == 0.0
+    assert hot.estimator.buffer == lp.estimator.buffer and hot.N == lp.N
+    assert has_temperature(lp)
+    assert not has_temperature(dataclasses.replace(lp, trigger=nc.Periodic()))
+    # a configuration that is not a runner Loop, with the trigger one level deeper
+    @dataclasses.dataclass(frozen=True)
+    class Outer:
+        inner: nc.Loop
+        gain: float = 1.0
+    o = with_temperature(Outer(lp), 0.5)
+    assert float(o.inner.trigger.temperature) == 0.5 and o.gain == 1.0
+
+
+def test_tied_paths_move_together_and_must_start_equal():
+    lp = dataclasses.replace(_loop(delta=1e-2), trigger=nc.Petc(sigma=1e-2, delta=1e-2))
+    r = tune_loop(lp, {("trigger.delta", "trigger.sigma"): Positive()}, lambda m: m.cost_raw + 0.5 * m.rate_sc,
+                  steps=3, batch=4, check_seeds=4, eval_seeds=8, progress=False)
+    assert list(r.params) == ["trigger.delta=trigger.sigma"]
+    assert r.start["trigger.delta=trigger.sigma"] == pytest.approx(1e-2)
+    assert r.tuning_simulations == r.n_simulations - 16
+    with pytest.raises(ValueError, match=r"tied paths 'trigger.delta=trigger.sigma' must start with equal values"):
+        tune_loop(_loop(delta=1e-2), {("trigger.delta", "trigger.sigma"): Positive()})
+
+
+def test_run_argument_takes_any_per_seed_function_of_the_configuration():
+    """``run=`` returns whatever the objective reads (here a tuple): the result is the same
+    as the default run with the equivalent objective, on the same seeds."""
+    lp = _loop(K=(0.5, 0.3))
+    kw = dict(steps=3, batch=4, estimator="straight_through", eval_seeds=16, progress=False)
+    a = tune_loop(lp, {"controller.K": Positive()}, lambda m: m.cost_raw + 0.1 * m.rate_sc, **kw)
+    b = tune_loop(lp, {"controller.K": Positive()}, lambda t: t[0] + 0.1 * t[1],
+                  run=lambda l, k: (nc.run(l, k).cost_raw, nc.run(l, k).rate_sc), **kw)
+    np.testing.assert_allclose(a.params["controller.K"], b.params["controller.K"], rtol=1e-5)
+    np.testing.assert_allclose(a.eval_values[1], b.eval_values[1], rtol=1e-5)
+    with pytest.raises(ValueError, match="run must be a function"):
+        tune_loop(lp, {"controller.K": Positive()}, run=3)
+    with pytest.raises(ValueError, match="does not fit what run"):
+        tune_loop(lp, {"controller.K": Positive()}, lambda m: m.J1)
+
+
+def test_check_loop_on_a_gain_agrees_with_finite_differences_at_two_points():
+    """A gain has a pathwise derivative (no event depends on it here: periodic sensor), so the
+    straight-through (= exact pathwise) gradient must agree with central differences on
+    the same seeds and, with its smaller standard error, be recommended; at both points."""
+    from jaxnc.tune import check_loop
+    lp = dataclasses.replace(_loop(K=(1.0, 0.6)), trigger=nc.Periodic())
+    for at in (None, {"controller.K": [[2.0, 1.0]]}):
+        c = check_loop(lp, {"controller.K": Positive()}, at=at, seeds=16, fd_step=0.01)
+        assert c.names == ("controller.K[0]", "controller.K[1]")
+        assert c.consistent["straight_through"], c.table()
+        assert c.recommended == "straight_through", c.table()
+        g, fd = c.estimates["straight_through"][0], c.estimates["finite_difference"][0]
+        np.testing.assert_allclose(g, fd, rtol=2e-2, atol=1e-4)
+    with pytest.raises(ValueError, match=r"the point names \['K'\]"):
+        check_loop(lp, {"controller.K": Positive()}, at={"K": 1.0})

@@ -504,9 +504,11 @@ def runner_draws(loop: MecanumLoop, key) -> LoopDraws:
                      jax.random.fold_in(key, 202))
 
 
-def simulate(loop: MecanumLoop, key) -> Trajectory:
+def simulate(loop: MecanumLoop, key, full: bool = True) -> Trajectory:
     """One closed-loop run of ``loop.case``: :func:`build_loop` run by :func:`jaxnc.loop.simulate`
-    on :func:`runner_draws`. Pure function of (loop, key); vmap it over keys.
+    on :func:`runner_draws`. Pure function of (loop, key); vmap it over keys. ``full=False``
+    records only what the metrics need (``x``, ``mean`` and ``u`` come back empty; the
+    rest is bit for bit the same).
 
     Packets are carried as prediction chains (:class:`PacketChain`): the remote side's
     copy of its last sent packet and the actuator's installed packet each advance one
@@ -514,7 +516,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
     a run costs O(K) controller evaluations whatever h (materialising h*N actions per
     packet would cost O(K h)); the actions are the same.
     """
-    return _simulate(loop, key, full=True)
+    return _simulate(loop, key, full=full)
 
 
 def _simulate(loop: MecanumLoop, key, full: bool) -> Trajectory:

@@ -4,7 +4,9 @@
 a loop built with the runner (attribute paths from the loop: ``"trigger.delta"``,
 ``"controller.K"``, ``"uplink.loss.p"``) to minimise the Monte-Carlo mean of
 ``objective(metrics)`` (default: the run's finite cost, ``Metrics.cost_raw``), e.g.
-``lambda m: m.cost_raw + 0.5 * m.rate_sc``. It
+``lambda m: m.cost_raw + 0.5 * m.rate_sc``; ``run=`` takes any per-seed function of a
+configuration (a paper's scheme: ``run=mecanum.run``), and a tuple of paths ties them to
+one parameter. It
 
 1. checks everything before tracing: the paths exist and are dynamic leaves (an integer
    that shapes arrays is static: give it in ``search``), the budget, the objective is a
@@ -20,7 +22,8 @@ a loop built with the runner (attribute paths from the loop: ``"trigger.delta"``
 
 :func:`mc_mean` is the differentiable Monte-Carlo mean over seeds in chunks (bounded
 memory in the forward and the backward pass: each chunk is recomputed in the backward
-pass, ``jax.checkpoint``), for objectives a user writes by hand.
+pass, ``jax.checkpoint``), for objectives a user writes by hand. :func:`check_loop` is the
+gradient check alone, at any point, for a user to run before trusting an estimator.
 """
 from __future__ import annotations
 
@@ -39,7 +42,8 @@ from jaxnc.tune.check import GradientCheck, gradient_check
 from jaxnc.tune.gradient import Interval, Positive, TuneResult, Unconstrained, constrain, tune, unconstrain
 from jaxnc.tune.search import halving_schedule, mean_ci, paired_ci, successive_halving
 
-__all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "tune_loop"]
+__all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "tune_loop", "check_loop",
+           "with_temperature", "has_temperature"]
 
 _CONSTRAINTS = (Positive, Interval, Unconstrained)
 
@@ -115,10 +119,11 @@ def mc_mean(fn: Callable, keys, *, chunk_size: int = 256):
 
 
 class LoopTuneResult(NamedTuple):
-    """What :func:`tune_loop` found."""
+    """What :func:`tune_loop` found (parameters keyed by their names: a path, or
+    ``"a=b"`` for tied paths)."""
 
-    params: dict              # path -> tuned value (numpy), natural units
-    start: dict               # path -> starting value
+    params: dict              # name -> tuned value (numpy), natural units
+    start: dict               # name -> starting value
     estimator: str            # the gradient estimator used
     estimator_reason: str     # why (the check's verdict, or "given")
     check: GradientCheck | None
@@ -127,8 +132,16 @@ class LoopTuneResult(NamedTuple):
     start_eval: tuple         # (mean, 95 % half-width) of the objective at the start, fresh seeds
     tuned_eval: tuple         # the same at the tuned point
     paired_diff: tuple        # tuned - start on the same fresh seeds: (mean, 95 % half-width)
-    n_simulations: int
+    n_simulations: int        # every simulation, the final evaluation's included
     wall_time_s: float
+    eval_values: tuple = ()   # (start, tuned): per-seed objective on the fresh seeds, float[eval_seeds] each
+
+    @property
+    def tuning_simulations(self) -> int:
+        """Simulations spent on finding the point (check, search, gradient steps), without
+        the final evaluation: the budget an equal-budget search should get."""
+        n_eval = len(self.eval_values[0]) if self.eval_values else 0
+        return self.n_simulations - 2 * n_eval
 
     def summary(self) -> str:
         s, t, d = self.start_eval, self.tuned_eval, self.paired_diff
@@ -141,31 +154,173 @@ class LoopTuneResult(NamedTuple):
         return "\n".join(lines)
 
 
-def _with_temperature(loop, temp):
-    trig = loop.trigger
-    if dataclasses.is_dataclass(trig) and "temperature" in _fields(trig):
-        return dataclasses.replace(loop, trigger=dataclasses.replace(trig, temperature=temp))
-    return loop
+def has_temperature(cfg) -> bool:
+    """True when some configuration object inside ``cfg`` has a ``temperature`` field (a
+    trigger whose straight-through gradient can be switched on)."""
+    if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
+        return False
+    for f in dataclasses.fields(cfg):
+        if f.metadata.get("static", False):
+            continue
+        if f.name == "temperature" or has_temperature(getattr(cfg, f.name)):
+            return True
+    return False
+
+
+def with_temperature(cfg, temp):
+    """``cfg`` with every (non-static) ``temperature`` field at any depth set to ``temp``:
+    0 gives the hard simulation, > 0 the straight-through gradient of every trigger that
+    has one (:func:`jaxnc.triggers.fires_straight_through`)."""
+    if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
+        return cfg
+    changes = {}
+    for f in dataclasses.fields(cfg):
+        if f.metadata.get("static", False):
+            continue
+        v = getattr(cfg, f.name)
+        if f.name == "temperature":
+            changes[f.name] = temp
+        elif dataclasses.is_dataclass(v) and not isinstance(v, type):
+            nv = with_temperature(v, temp)
+            if nv is not v:
+                changes[f.name] = nv
+    return dataclasses.replace(cfg, **changes) if changes else cfg
+
+
+class _Spec(NamedTuple):
+    """The checked request: parameter name -> its paths and constraint."""
+    paths: dict          # name -> tuple of paths set to the same value
+    constraints: dict    # name -> constraint
+    run: Callable
+    objective: Callable
+
+
+def _name(key) -> str:
+    return key if isinstance(key, str) else "=".join(key)
+
+
+def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
+    """Check ``params`` / ``objective`` / ``run`` against ``loop`` before anything is traced."""
+    from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
+    if isinstance(params, (list, tuple)):
+        params = {p: Unconstrained() for p in params}
+    if not isinstance(params, dict):
+        raise ValueError(f"{fn_name}: params must be a dict {{path: constraint}} or a list of paths, "
+                         f"got {type(params).__name__}")
+    paths, constraints = {}, {}
+    for key, c in params.items():
+        group = (key,) if isinstance(key, str) else tuple(key)
+        if not group:
+            raise ValueError(f"{fn_name}: an empty tuple of tied paths")
+        name = _name(group)
+        values = []
+        for path in group:
+            values.append(np.asarray(get_path(loop, path)))
+            if is_static(loop, path):
+                raise ValueError(f"{fn_name}: {path!r} is static (it shapes arrays or selects code) and has no "
+                                 f"gradient; give its candidate values in search={{{path!r}: [...]}}")
+        if any(v.shape != values[0].shape or not np.array_equal(v, values[0]) for v in values[1:]):
+            raise ValueError(f"{fn_name}: the tied paths {name!r} must start with equal values, got "
+                             + ", ".join(f"{p}={np.array2string(v, precision=4)}" for p, v in zip(group, values)))
+        if not isinstance(c, _CONSTRAINTS):
+            raise ValueError(f"{fn_name}: the constraint of {name!r} must be Positive, Interval or Unconstrained, "
+                             f"got {type(c).__name__}")
+        paths[name], constraints[name] = group, c
+    run = nc.run if run is None else run
+    if not callable(run):
+        raise ValueError(f"{fn_name}: run must be a function run(loop, key) -> metrics, got {type(run).__name__}")
+    objective = objective or (lambda m: m.cost_raw)
+    if not callable(objective):
+        raise ValueError(f"{fn_name}: objective must be a function objective(metrics) -> scalar, "
+                         f"got {type(objective).__name__}")
+    try:
+        shape = jax.eval_shape(lambda k: objective(run(loop, k)), jax.random.PRNGKey(0))
+    except AttributeError as e:
+        raise ValueError(f"{fn_name}: the objective does not fit what run(loop, key) returns: {e}") from None
+    if not hasattr(shape, "shape") or shape.shape != ():
+        raise ValueError(f"{fn_name}: the objective must return a scalar per seed, got "
+                         f"{getattr(shape, 'shape', type(shape).__name__)}")
+    return _Spec(paths, constraints, run, objective)
+
+
+def _set(loop, spec: _Spec, values: dict):
+    """``loop`` with each named value written at all of its paths."""
+    return set_paths(loop, {p: values[n] for n in values for p in spec.paths[n]})
+
+
+def _flat(loop, spec: _Spec, at: dict | None = None):
+    """(flat raw start, unravel, flat_objective(theta, key, temperature)) in the
+    unconstrained coordinates (log for Positive, logit for Interval)."""
+    init = {n: np.asarray(get_path(loop, spec.paths[n][0]), np.float32) for n in spec.paths}
+    if at:
+        unknown = [k for k in at if k not in spec.paths]
+        if unknown:
+            raise ValueError(f"the point names {unknown}, which are not among the parameters {list(spec.paths)}")
+        init.update({k: np.broadcast_to(np.asarray(v, np.float32), init[k].shape).copy() for k, v in at.items()})
+    raw0 = unconstrain(init, spec.constraints)
+    flat0, unravel = ravel_pytree(raw0)
+
+    def flat_objective(theta, key, temp):
+        lp = with_temperature(_set(loop, spec, constrain(unravel(theta), spec.constraints)), temp)
+        return spec.objective(spec.run(lp, key))
+    return np.asarray(flat0), unravel, flat_objective
+
+
+def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
+               run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
+               temperature: float = 1e-3, score_scale: float = 0.1) -> GradientCheck:
+    """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
+    loop's values of ``params`` (or at ``at``, ``{name: value}`` in natural units), the
+    straight-through and score-function estimates of d E[objective] / d theta beside
+    central finite differences on the same ``seeds`` seeds (base ``seed``).
+
+    theta is the *unconstrained* coordinate the tuner moves (log of a ``Positive``
+    parameter, logit of an ``Interval``), so ``fd_step`` and ``score_scale`` are relative
+    steps. ``params``, ``objective`` and ``run`` as in :func:`tune_loop`.
+
+    Returns:
+      :class:`jaxnc.tune.check.GradientCheck` (``names``: the coordinates' labels).
+
+    Raises:
+      ValueError: as :func:`tune_loop`, fewer than 2 seeds, non-positive steps.
+    """
+    spec = _prepare("check_loop", loop, params, objective, run)
+    if not spec.paths:
+        raise ValueError("check_loop: name at least one parameter")
+    check_int("seeds", seeds, 2)
+    check_int("seed", seed, 0, 2**32 - 1)
+    flat0, unravel, fobj = _flat(loop, spec, at)
+    labels = []
+    for n in spec.paths:
+        size = int(np.asarray(get_path(loop, spec.paths[n][0])).size)
+        labels += [n] if size == 1 else [f"{n}[{i}]" for i in range(size)]
+    chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), fd_step=fd_step, temperature=temperature,
+                         score_scale=score_scale)
+    return chk._replace(names=tuple(labels))
 
 
 def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None = None, *,
-              search: dict | None = None, search_budget: int | None = None, steps: int = 30, batch: int = 16,
-              estimator: str = "auto", temperature: tuple = (1e-2, 1e-3), learning_rate: float = 0.05,
-              score_scale: float = 0.1, seed: int = 0, check_seeds: int = 32, eval_seeds: int = 256,
-              eval_seed: int = 100_000, progress: bool = True) -> LoopTuneResult:
+              run: Callable | None = None, search: dict | None = None, search_budget: int | None = None,
+              steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
+              learning_rate: float = 0.05, score_scale: float = 0.1, seed: int = 0, check_seeds: int = 32,
+              eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
     Args:
-      loop: a :class:`jaxnc.loop.Loop` (or any configuration whose per-seed metrics
-        ``jaxnc.loop.run`` computes).
+      loop: a :class:`jaxnc.loop.Loop`, or any configuration dataclass ``run`` accepts
+        (e.g. :class:`jaxnc.schemes.mecanum.MecanumLoop` with ``run=mecanum.run``).
       params: ``{path: constraint}`` (``Positive()``, ``Interval(lo, hi)``,
-        ``Unconstrained()``) or a list of paths (unconstrained).
+        ``Unconstrained()``) or a list of paths (unconstrained). A key may be a tuple of
+        paths, *tied*: one parameter written at all of them (they must start equal), e.g.
+        ``{("delta_s", "sigma_s"): Positive()}``; it is reported as ``"delta_s=sigma_s"``.
       objective: ``objective(metrics) -> scalar`` per seed; default ``m.cost_raw``.
+      run: ``run(loop, key) -> metrics`` for one seed; default :func:`jaxnc.loop.run`.
       search: ``{path: [values]}`` searched first by successive halving (static integer
         fields allowed); ``search_budget`` simulations (default 16 per candidate).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
       estimator: ``"auto"`` (the gradient check decides), ``"straight_through"`` or ``"score"``.
-      temperature: (start, end) of the trigger's annealed temperature (pathwise estimators).
+      temperature: (start, end) of the annealed temperature of every trigger with a
+        ``temperature`` field (:func:`with_temperature`; pathwise estimator only).
       learning_rate: Adam's step size on the raw (unconstrained) parameters.
       check_seeds, eval_seeds: seeds of the gradient check and of the final evaluation;
         ``eval_seed``: base seed of the evaluation (fresh: different from ``seed``).
@@ -174,28 +329,19 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
       :class:`LoopTuneResult`.
 
     Raises:
-      ValueError: a path that does not exist, a static leaf in ``params``, a budget below one
-        step, a non-scalar objective, an unknown estimator or constraint.
+      ValueError: a path that does not exist, a static leaf in ``params``, tied paths that
+        start unequal, a budget below one step, a non-scalar objective, an unknown
+        estimator or constraint.
     """
-    from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
     t0 = time.perf_counter()
-    if isinstance(params, (list, tuple)):
-        params = {p: Unconstrained() for p in params}
-    params = dict(params)
+    spec = _prepare("tune_loop", loop, params, objective, run)
     search = dict(search or {})
-    if not params and not search:
+    if not spec.paths and not search:
         raise ValueError("tune_loop: name at least one parameter to tune (params or search)")
-    for path, c in params.items():
-        get_path(loop, path)
-        if is_static(loop, path):
-            raise ValueError(f"tune_loop: {path!r} is static (it shapes arrays or selects code) and has no "
-                             f"gradient; give its candidate values in search={{{path!r}: [...]}}")
-        if not isinstance(c, _CONSTRAINTS):
-            raise ValueError(f"tune_loop: the constraint of {path!r} must be Positive, Interval or Unconstrained, "
-                             f"got {type(c).__name__}")
+    tuned_paths = {p for g in spec.paths.values() for p in g}
     for path, vals in search.items():
         get_path(loop, path)
-        if path in params:
+        if path in tuned_paths:
             raise ValueError(f"tune_loop: {path!r} is both searched and tuned by gradient")
         if not isinstance(vals, (list, tuple)) or not vals:
             raise ValueError(f"tune_loop: search[{path!r}] must be a non-empty list of values")
@@ -203,21 +349,24 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
     check_int("eval_seeds", eval_seeds, 2)
+    check_int("seed", seed, 0, 2**32 - 3)
+    check_int("eval_seed", eval_seed, 0, 2**32 - 1)
     check_positive("learning_rate", learning_rate)
+    check_positive("score_scale", score_scale)
     if estimator not in ("auto", "straight_through", "score"):
         raise ValueError(f"tune_loop: estimator must be auto, straight_through or score, got {estimator!r}")
-    objective = objective or (lambda m: m.cost_raw)
-    shape = jax.eval_shape(lambda k: objective(nc.run(loop, k)), jax.random.PRNGKey(0))
-    if not hasattr(shape, "shape") or shape.shape != ():
-        raise ValueError(f"tune_loop: the objective must return a scalar per seed, got "
-                         f"{getattr(shape, 'shape', type(shape).__name__)}")
+    if (not isinstance(temperature, (tuple, list)) or len(temperature) != 2):
+        raise ValueError(f"tune_loop: temperature must be a (start, end) pair, got {temperature!r}")
+    for t in temperature:
+        check_positive("temperature", t)
+    run, objective = spec.run, spec.objective
 
     def per_seed(point, key, temp=jnp.float32(0.0)):
-        return objective(nc.run(_with_temperature(set_paths(loop, point), temp), key))
+        return objective(run(with_temperature(set_paths(loop, point), temp), key))
 
     sims = 0
-    base = dict(loop=loop)
     result_search = None
+    loop1 = loop
     if search:
         static = tuple(p for p in search if is_static(loop, p))
         names = list(search)
@@ -231,22 +380,17 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         result_search = successive_halving(lambda p, k: per_seed(p, k), points, keys, budget=budget, static=static,
                                            progress=progress, desc="search")
         sims += result_search.n_simulations
-        base["loop"] = set_paths(loop, result_search.best_point)
-    loop1 = base["loop"]
-    start = {p: np.asarray(get_path(loop, p)) for p in list(params) + list(search)}
+        loop1 = set_paths(loop, result_search.best_point)
+    start = {n: np.asarray(get_path(loop, g[0])) for n, g in spec.paths.items()}
+    start.update({p: np.asarray(get_path(loop, p)) for p in search})
 
     chk, reason, used, tres = None, "given", estimator, None
-    tuned = {p: np.asarray(get_path(loop1, p)) for p in params}
-    if params:
-        init = {p: np.asarray(get_path(loop1, p), np.float32) for p in params}
-        raw0 = unconstrain(init, params)
-        flat0, unravel = ravel_pytree(raw0)
-
-        def flat_objective(theta, key, temp):
-            return objective(nc.run(_with_temperature(set_paths(loop1, constrain(unravel(theta), params)), temp), key))
-
+    tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
+    if spec.paths:
+        init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
+        flat0, _, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
-            chk = gradient_check(flat_objective, np.asarray(flat0), montecarlo.seed_keys(seed + 2, check_seeds),
+            chk = gradient_check(flat_objective, flat0, montecarlo.seed_keys(seed + 2, check_seeds),
                                  temperature=float(temperature[0]), score_scale=score_scale)
             sims += check_seeds * (2 * flat0.size + 3)
             if chk.recommended is None:
@@ -259,19 +403,19 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             if progress:
                 print(f"tune_loop: estimator {used} ({reason})")
         import optax
-        tres = tune(lambda p, k, temp: per_seed(p, k, temp), init, params, steps=steps, batch=batch,
-                    optimizer=optax.adam(learning_rate), estimator=used, temperature=temperature, seed=seed,
-                    score_scale=score_scale, progress=progress, desc="tune_loop")
+        tres = tune(lambda p, k, temp: objective(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
+                    spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate), estimator=used,
+                    temperature=temperature, seed=seed, score_scale=score_scale, progress=progress, desc="tune_loop")
         sims += tres.n_simulations
         tuned = tres.params
+    final_loop = _set(set_paths(loop, result_search.best_point) if result_search else loop, spec, tuned)
     final = {**tuned, **(result_search.best_point if result_search else {})}
 
     ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
-    run_hard = lambda key, lp: objective(nc.run(_with_temperature(lp, jnp.float32(0.0)), key))
+    run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
     v0 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(loop,), chunk_size=eval_seeds, progress=False))
-    v1 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(set_paths(loop, final),), chunk_size=eval_seeds,
+    v1 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(final_loop,), chunk_size=eval_seeds,
                                            progress=False))
     sims += 2 * eval_seeds
     return LoopTuneResult(final, start, used, reason, chk, result_search, tres, mean_ci(v0), mean_ci(v1),
-                          paired_ci(v1, v0), sims, time.perf_counter() - t0)
-
+                          paired_ci(v1, v0), sims, time.perf_counter() - t0, (v0, v1))

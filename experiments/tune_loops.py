@@ -1,0 +1,317 @@
+"""Experiment ``tune-loops``: the gradient check and one-call tuning on three loops, each
+against a Monte-Carlo search of the same simulation budget (docs/tuning_loops.md).
+
+The three loops:
+
+* ``drhe`` -- seed 000's DRHE loop (N = 10, DP = 0.3, Lissajous; the paper's loop, no
+  safety condition), thresholds delta and sigma (one value for every output), objective
+  L_w = J1'/J1_nom + w J4 (``experiments/autotune.py``: a run that leaves the tube costs
+  the tube radius), run by :func:`jaxnc.schemes.mecanum.simulate`;
+* ``hdd`` -- seed 003's HDD servo (Case 3, PETC + NUMRE), thresholds delta_s = sigma_s and
+  delta_c = sigma_c (tied pairs), objective the GPI of eq. (29) (an unstable run costs
+  ``GPI_UNSTABLE``);
+* ``cartpole`` -- the user's example (``examples/cartpole.py``), the sensor's delta, the
+  objective the run's quadratic cost plus ``w`` times the sensor's rate.
+
+For each loop: :func:`jaxnc.tune.check_loop` at two points (the start and a second one),
+:func:`jaxnc.tune.tune_loop` from the start (one call: the check picks the estimator), and
+successive halving over a log grid of the same parameters with the budget ``tune_loop``
+spent (check + gradient steps); the start, the tuned point and the search's best are
+evaluated with hard triggers on the same fresh seeds, with paired 95 % intervals.
+Each loop's results are written as soon as it finishes (``<loop>.json``) and reused by a
+re-run with the same settings, so an interrupted study loses at most one loop.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc import montecarlo
+from jaxnc.experiment import ConfigError, Experiment, Option, register
+from jaxnc.report import markdown_table
+from jaxnc.tune import Positive, check_loop, mean_ci, paired_ci, set_paths, successive_halving, tune_loop
+
+LOOPS = ("drhe", "hdd", "cartpole")
+GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
+EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
+
+
+class Problem(NamedTuple):
+    name: str
+    loop: object                 # the configuration at the start point
+    params: dict                 # {path or tuple of tied paths: constraint}
+    objective: Callable
+    run: Callable
+    second: dict                 # the second point of the gradient check, {name: value}
+    axes: dict                   # search grid: {name: values}
+    describe: str
+
+
+def _drhe(settings) -> Problem:
+    from jaxnc.experiments.autotune import mecanum_terms
+    from jaxnc.schemes import mecanum as mec
+    from jaxnc.triggers import PetcTrigger
+    nominal = mec.mecanum_loop("SR", 1, 0.0)
+    keys = montecarlo.seed_keys(90_001, 64)
+    j1_nom = float(np.mean(montecarlo.run_batched(lambda k: mec.run(nominal, k).J1, keys, chunk_size=64,
+                                                  progress=False)))
+    w = float(settings["w_drhe"])
+    loop = mec.mecanum_loop("DRHE", 10, 0.3)
+    loop = dataclasses.replace(loop, trigger=PetcTrigger(sigma=np.float32(1e-3), delta=np.float32(0.1)))
+    return Problem(
+        "drhe", loop, {"trigger.delta": Positive(), "trigger.sigma": Positive()},
+        lambda t: t[0] + w * t[1], lambda lp, k: mecanum_terms(lp, k, j1_nom),
+        {"trigger.delta": 0.02, "trigger.sigma": 3e-3},
+        {"trigger.delta": np.geomspace(0.003, 1.0, 6), "trigger.sigma": np.geomspace(1e-4, 0.1, 4)},
+        f"seed 000 DRHE, N = 10, DP = 0.3, Lissajous; L_w = J1'/J1_nom + {w:g} J4 (J1_nom = {100 * j1_nom:.3f} cm)")
+
+
+def _hdd(settings) -> Problem:
+    from jaxnc.schemes import hdd
+    y_tts, ise_tts = hdd.tts_reference()
+    cs = hdd.controller_design().cs
+    loop = hdd.hdd_loop(3, thresholds=(1e-4, 1e-3))
+
+    def objective(m):
+        return jnp.where(m.unstable | ~jnp.isfinite(m.GPI), GPI_UNSTABLE, m.GPI)
+    return Problem(
+        "hdd", loop, {("delta_s", "sigma_s"): Positive(), ("delta_c", "sigma_c"): Positive()}, objective,
+        lambda lp, k: hdd.run(lp, k, y_tts, ise_tts, cs),
+        {"delta_s=sigma_s": 1e-5, "delta_c=sigma_c": 1.32e-2},
+        {"delta_s=sigma_s": np.geomspace(1e-7, 1e-3, 5), "delta_c=sigma_c": np.geomspace(1e-5, 1e-1, 5)},
+        "seed 003 HDD, Case 3 (PETC + NUMRE); GPI of eq. (29), W = (0.45, 0.45, 0.1)")
+
+
+def _cartpole_module():
+    """examples/cartpole.py of the source tree (the user's example is not part of the package)."""
+    import importlib.util
+    import sys
+    if "examples.cartpole" in sys.modules:
+        return sys.modules["examples.cartpole"]
+    path = Path(__file__).resolve().parents[1] / "examples" / "cartpole.py"
+    if not path.exists():
+        raise ConfigError(f"loops=cartpole needs the user example examples/cartpole.py of the source tree "
+                          f"(looked for {path})")
+    spec = importlib.util.spec_from_file_location("jaxnc_example_cartpole", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _cartpole(settings) -> Problem:
+    from jaxnc import loop as nc
+    cartpole = _cartpole_module().cartpole
+    w = float(settings["w_cartpole"])
+    return Problem(
+        "cartpole", cartpole(delta=1e-3), {"trigger.delta": Positive()}, lambda m: m.cost_raw + w * m.rate_sc,
+        nc.run, {"trigger.delta": 1e-2}, {"trigger.delta": np.geomspace(1e-5, 1e-1, 9)},
+        f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate")
+
+
+BUILDERS = {"drhe": _drhe, "hdd": _hdd, "cartpole": _cartpole}
+
+
+def _names(problem: Problem) -> dict:
+    """parameter name -> its paths."""
+    return {(k if isinstance(k, str) else "=".join(k)): ((k,) if isinstance(k, str) else tuple(k))
+            for k in problem.params}
+
+
+def _check_row(chk) -> dict:
+    return {"point": chk.theta.tolist(), "value": chk.value, "recommended": chk.recommended,
+            "estimates": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.estimates.items()},
+            "paired_z": {k: np.asarray(v).tolist() for k, v in chk.paired_z.items()},
+            "consistent": chk.consistent, "reason": chk.reason, "table": chk.table()}
+
+
+def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_seeds: int, seed: int,
+          progress: bool = True) -> dict:
+    """The check at two points, tune_loop, the equal-budget search and the evaluation of one loop."""
+    t0 = time.perf_counter()
+    names = _names(problem)
+    start = {n: float(np.asarray(_get(problem.loop, p[0]))) for n, p in names.items()}
+    checks = []
+    for i, at in enumerate((None, problem.second)):
+        chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, seeds=check_seeds,
+                         seed=seed + 11 + i)
+        checks.append(dict(_check_row(chk), at=at or start))
+        if progress:
+            print(f"[{problem.name}] gradient check at {at or start}:\n{chk.table()}\n")
+    r = tune_loop(problem.loop, problem.params, problem.objective, run=problem.run, steps=steps, batch=batch,
+                  seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED, progress=progress)
+    budget = r.tuning_simulations
+    axes = {n: [float(v) for v in vals] for n, vals in problem.axes.items()}
+    grid_names = list(axes)
+    mesh = np.meshgrid(*[np.arange(len(axes[n])) for n in grid_names], indexing="ij")
+    points = [{p: axes[n][int(idx[j])] for j, n in enumerate(grid_names) for p in names[n]}
+              for idx in zip(*[m.reshape(-1) for m in mesh])]
+    per_seed = lambda point, key: problem.objective(problem.run(set_paths(problem.loop, point), key))
+    sh = successive_halving(per_seed, points, montecarlo.seed_keys(seed + 50_000, budget), budget=budget,
+                            progress=progress, desc=f"{problem.name} search")
+    best = {n: sh.best_point[names[n][0]] for n in grid_names}
+    ekeys = montecarlo.seed_keys(EVAL_SEED, eval_seeds)
+    v_search = np.asarray(montecarlo.run_batched(lambda k, pt: per_seed(pt, k), ekeys, args=(sh.best_point,),
+                                                 chunk_size=eval_seeds, progress=False), np.float64)
+    v_start, v_tuned = (np.asarray(v, np.float64) for v in r.eval_values)
+    out = {
+        "loop": problem.name, "describe": problem.describe, "checks": checks,
+        "tune": {"start": start, "tuned": {n: float(np.asarray(v)) for n, v in r.params.items()},
+                 "estimator": r.estimator, "estimator_reason": r.estimator_reason,
+                 "objective_history": r.tune.history.objective.tolist() if r.tune else [],
+                 "simulations": budget},
+        "search": {"axes": axes, "best": best, "simulations": int(sh.n_simulations),
+                   "candidates": [{n: pt[names[n][0]] for n in grid_names} for pt in sh.points],
+                   "candidate_mean": [float(m) if np.isfinite(m) else "inf" for m in sh.mean],
+                   "candidate_seeds": np.sum(~np.isnan(sh.values), axis=1).tolist()},
+        "eval": {"seeds": eval_seeds, "start": mean_ci(v_start), "tuned": mean_ci(v_tuned),
+                 "search": mean_ci(v_search), "tuned_minus_start": paired_ci(v_tuned, v_start),
+                 "tuned_minus_search": paired_ci(v_tuned, v_search)},
+        "wall_time_s": time.perf_counter() - t0,
+    }
+    d, ci = out["eval"]["tuned_minus_search"]
+    out["verdict"] = ("better than the search" if d + ci < 0 else
+                      "within the search's interval" if d - ci <= 0 else "worse than the search")
+    return out
+
+
+def _get(loop, path):
+    from jaxnc.tune import get_path
+    return get_path(loop, path)
+
+
+def _fmt_pt(pt: dict) -> str:
+    return ", ".join(f"{k} = {v:.3g}" for k, v in pt.items())
+
+
+def _ci(x) -> str:
+    return f"{x[0]:.4g} ± {x[1]:.2g}"
+
+
+def tables(results: list[dict]) -> str:
+    """The study's two tables (markdown): the checks, and tuned vs search."""
+    rows = []
+    for res in results:
+        for c in res["checks"]:
+            for est in ("straight_through", "score"):
+                m, s = c["estimates"][est]["mean"], c["estimates"][est]["se"]
+                fm, fs = c["estimates"]["finite_difference"]["mean"], c["estimates"]["finite_difference"]["se"]
+                z = max(abs(v) for v in c["paired_z"][est])
+                rows.append([res["loop"], _fmt_pt(c["at"]), est,
+                             ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(m, s)),
+                             ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(fm, fs)), f"{z:.2f}",
+                             "yes" if c["consistent"][est] else f"no: {c['reason'][est]}",
+                             "**yes**" if c["recommended"] == est else ""])
+    t1 = markdown_table(["loop", "point", "estimator", "gradient (95 %)", "finite differences (95 %)", "max |z|",
+                         "consistent", "recommended"], rows)
+    rows = []
+    for res in results:
+        e, tn, sr = res["eval"], res["tune"], res["search"]
+        rows.append([res["loop"], _fmt_pt(tn["start"]), _fmt_pt(tn["tuned"]), tn["estimator"], _fmt_pt(sr["best"]),
+                     str(tn["simulations"]), str(sr["simulations"]), _ci(e["start"]), _ci(e["tuned"]),
+                     _ci(e["search"]), _ci(e["tuned_minus_search"]), res["verdict"]])
+    t2 = markdown_table(["loop", "start", "tuned", "estimator", "search's best", "tuner sims", "search sims",
+                         "start", "tuned", "search", "tuned − search (paired)", "verdict"], rows)
+    return ("Gradient check (coordinates: log of each parameter; 95 % intervals over the check's seeds):\n\n" + t1
+            + "\n\nTuned (one tune_loop call) vs successive halving of the same budget, hard triggers, the same "
+              "fresh seeds:\n\n" + t2 + "\n")
+
+
+def plot(results: list[dict], out: Path) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, len(results), figsize=(5 * len(results), 4.2), squeeze=False)
+    for ax, res in zip(axes[0], results):
+        sr, tn = res["search"], res["tune"]
+        names = list(sr["axes"])
+        mean = np.asarray([np.inf if m == "inf" else m for m in sr["candidate_mean"]], float)
+        if len(names) == 1:
+            x = [c[names[0]] for c in sr["candidates"]]
+            ax.semilogx(x, np.where(np.isfinite(mean), mean, np.nan), "o-", label="search candidates (their seeds)")
+            for lab, pt, st in (("start", tn["start"], "ks"), ("tuned", tn["tuned"], "r*"), ("search's best", sr["best"], "bD")):
+                ax.axvline(pt[names[0]], color=st[0], ls=":", lw=1)
+                ax.plot([pt[names[0]]], [np.nanmin(mean)], st, ms=10, label=lab)
+            ax.set_xlabel(names[0])
+            ax.set_ylabel("objective")
+        else:
+            x = np.asarray([c[names[0]] for c in sr["candidates"]])
+            y = np.asarray([c[names[1]] for c in sr["candidates"]])
+            fin = np.isfinite(mean)
+            sc = ax.scatter(x[fin], y[fin], c=np.log10(mean[fin]), s=20 + 4 * np.asarray(sr["candidate_seeds"])[fin] ** 0.5,
+                            cmap="viridis")
+            fig.colorbar(sc, ax=ax, label="log10 objective (search's seeds)")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            for lab, pt, st in (("start", tn["start"], "ks"), ("tuned", tn["tuned"], "r*"), ("search's best", sr["best"], "bD")):
+                ax.plot([pt[names[0]]], [pt[names[1]]], st, ms=11, mfc="none" if st[0] != "r" else "r", label=lab)
+            ax.set_xlabel(names[0])
+            ax.set_ylabel(names[1])
+        ax.set_title(f"{res['loop']}: {res['verdict']}", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = out / "tune_loops.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def _config(settings: dict, seeds: int) -> dict:
+    return {k: v for k, v in settings.items() if k != "loops"} | {"seeds": seeds}
+
+
+def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+    t0 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    loops = LOOPS if settings["loops"] == "all" else (settings["loops"],)
+    cfg = _config(settings, seeds)
+    results = []
+    for name in loops:
+        f = out / f"{name}.json"
+        if f.exists():
+            try:
+                doc = montecarlo.load_results(f)
+            except ValueError:
+                doc = None
+            if doc and doc["config"] == json.loads(json.dumps(cfg)):
+                if progress:
+                    print(f"[{name}] reusing {f}")
+                results.append(doc["results"])
+                continue
+        problem = BUILDERS[name](settings)
+        res = study(problem, check_seeds=settings["check_seeds"], steps=settings["steps"], batch=settings["batch"],
+                    eval_seeds=seeds, seed=settings["seed"], progress=progress)
+        montecarlo.save_results(f, experiment="tune-loops", config=cfg, results=res, wall_time_s=res["wall_time_s"])
+        results.append(montecarlo.load_results(f)["results"])
+    text = tables(results)
+    print("\n" + text)
+    (out / "tables.md").write_text(text, encoding="utf-8")
+    fig = plot(results, out)
+    montecarlo.save_results(out / "results.json", experiment="tune-loops", config=dict(cfg, loops=list(loops)),
+                            results={r["loop"]: r for r in results}, wall_time_s=time.perf_counter() - t0)
+    print(f"wrote {out / 'results.json'}, {out / 'tables.md'} and {fig}")
+    return {r["loop"]: r for r in results}
+
+
+register(Experiment(
+    name="tune-loops",
+    description="gradient check + one-call tuning on the DRHE, HDD and cart-pole loops vs equal-budget search",
+    options=(
+        Option("loops", "choice", "all", "which loop(s)", choices=(*LOOPS, "all")),
+        Option("steps", "int", 30, "gradient steps of tune_loop", low=1, high=10_000),
+        Option("batch", "int", 16, "seeds per gradient step", low=2, high=4096),
+        Option("check_seeds", "int", 128, "seeds of each gradient check", low=2, high=100_000),
+        Option("w_drhe", "float", 30.0, "DRHE: weight of J4 in L_w", low=0.0, high=1e4),
+        Option("w_cartpole", "float", 2.0, "cart-pole: weight of the sensor rate", low=0.0, high=1e4),
+        Option("seed", "int", 0, "base seed of checks, tuning and search (evaluation: 5000011)", low=0,
+               high=1_000_000),
+    ),
+    run=run,
+))
