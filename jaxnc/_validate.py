@@ -5,6 +5,8 @@ checked: validation is for configurations a person writes.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 
@@ -30,19 +32,58 @@ def _concrete(v, name="value"):
     return None
 
 
-def check_range(name, v, low=None, high=None, *, low_open=False, high_open=False):
+def check_range(name, v, low=None, high=None, *, low_open=False, high_open=False, finite=True):
+    """Every element of ``v`` (a number or array, checked when concrete) in the interval,
+    and finite (``finite=False``: +-inf allowed where the interval has no bound, NaN never);
+    ValueError naming ``name`` and the interval, or for a string."""
     a = _concrete(v, name)
     if a is None:
         return
     lo_ok = True if low is None else (np.all(a > low) if low_open else np.all(a >= low))
     hi_ok = True if high is None else (np.all(a < high) if high_open else np.all(a <= high))
-    if not (lo_ok and hi_ok and np.all(np.isfinite(a))):
-        lb = "(" if low_open else "["
-        rb = ")" if high_open else "]"
+    fin_ok = np.all(np.isfinite(a)) if finite else not np.any(np.isnan(a))
+    if not (lo_ok and hi_ok and fin_ok):
+        if not finite:
+            low_open, high_open = low_open and low is not None, high_open and high is not None
+            lb, rb = "(" if low_open else "[", ")" if high_open else "]"
+            lo, hi = ("-inf" if low is None else f"{low:g}"), ("inf" if high is None else f"{high:g}")
+            got = a.tolist() if a.ndim else float(a)
+            raise ValueError(f"{name} must be in {lb}{lo}, {hi}{rb} (not NaN), got {got}")
+        lb = "(" if low_open or low is None else "["      # an infinite bound is excluded
+        rb = ")" if high_open or high is None else "]"
+        got = a.tolist() if a.ndim else float(a)
+        if low is None and high is None:
+            raise ValueError(f"{name} must be finite, got {got}")
         lo = "-inf" if low is None else f"{low:g}"
         hi = "inf" if high is None else f"{high:g}"
-        got = a.tolist() if a.ndim else float(a)
         raise ValueError(f"{name} must be in {lb}{lo}, {hi}{rb}, got {got}")
+
+
+def check_finite(name, v):
+    """Every element of ``v`` a finite number (strings refused; tracers not checked)."""
+    check_range(name, v)
+
+
+def check_given(name, v, what: str = "a number or an array of numbers"):
+    """``v`` is not None (a field that a person must give a value)."""
+    if v is None:
+        raise ValueError(f"{name} must be {what}, got None")
+
+
+def check_bool(name, v):
+    if not isinstance(v, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {v!r}")
+
+
+def check_callable(name, v, what: str = "a function"):
+    if not callable(v):
+        raise ValueError(f"{name} must be {what}, got {type(v).__name__} {v!r}")
+
+
+def check_instance(name, v, cls, what: str):
+    """``v`` is an instance of ``cls`` (a class or tuple); ``what`` says it in words."""
+    if not isinstance(v, cls):
+        raise ValueError(f"{name} must be {what}, got {type(v).__name__}")
 
 
 def check_positive(name, v):
@@ -55,8 +96,8 @@ def check_nonneg(name, v):
 
 def check_int(name, v, low, high=None):
     if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < low or (high is not None and v > high):
-        hi = "inf" if high is None else str(high)
-        raise ValueError(f"{name} must be an integer in [{low}, {hi}], got {v!r}")
+        hi = "inf)" if high is None else f"{high}]"
+        raise ValueError(f"{name} must be an integer in [{low}, {hi}, got {v!r}")
 
 
 def concrete(*values) -> bool:
@@ -89,3 +130,58 @@ def array_fields(obj, *names) -> None:
             except (TypeError, ValueError):
                 raise ValueError(f"{type(obj).__name__}.{n} must be a number or an array of numbers, got {v!r}") from None
             object.__setattr__(obj, n, a)
+
+
+def checked_pytree(cls):
+    """``cls`` as a frozen dataclass registered as a pytree (fields whose metadata has
+    ``static`` are auxiliary data, the others leaves) that jax rebuilds *without* calling
+    ``__init__``: its ``__post_init__`` validation runs when a person builds one, never when
+    jax rebuilds one from tracers, the None of a ``vmap`` ``in_axes`` prefix or its own
+    placeholders. So ``__post_init__`` may refuse None and anything that is not a number;
+    build an ``in_axes`` prefix (fields that are axes or None) with :func:`unchecked`."""
+    import jax
+    if "__dataclass_fields__" not in cls.__dict__:           # not yet a dataclass itself
+        cls = dataclasses.dataclass(frozen=True)(cls)
+    fields = dataclasses.fields(cls)
+    data = tuple(f.name for f in fields if not f.metadata.get("static", False))
+    meta = tuple(f.name for f in fields if f.metadata.get("static", False))
+    keys = tuple(jax.tree_util.GetAttrKey(n) for n in data)
+
+    def flatten_with_keys(obj):
+        return tuple(zip(keys, (getattr(obj, n) for n in data))), tuple(getattr(obj, n) for n in meta)
+
+    def flatten(obj):
+        return tuple(getattr(obj, n) for n in data), tuple(getattr(obj, n) for n in meta)
+
+    def unflatten(aux, children):
+        obj = object.__new__(cls)
+        for n, v in zip(data, children):
+            object.__setattr__(obj, n, v)
+        for n, v in zip(meta, aux):
+            object.__setattr__(obj, n, v)
+        return obj
+
+    jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
+    return cls
+
+
+def unchecked(cls, **fields):
+    """An instance of the dataclass ``cls`` built without ``__init__`` (no validation):
+    the fields given, the others their defaults. For ``vmap`` ``in_axes`` prefixes, e.g.
+    ``unchecked(Channel, p_loss=0, eta=None, phi=None)``."""
+    obj = object.__new__(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(fields) - names
+    if unknown:
+        raise ValueError(f"{cls.__name__} has no field(s) {', '.join(sorted(unknown))}")
+    for f in dataclasses.fields(cls):
+        if f.name in fields:
+            v = fields[f.name]
+        elif f.default is not dataclasses.MISSING:
+            v = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            v = f.default_factory()
+        else:
+            v = None
+        object.__setattr__(obj, f.name, v)
+    return obj

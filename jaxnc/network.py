@@ -18,7 +18,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_nonneg, check_range
+from jaxnc._validate import check_given, check_int, check_nonneg, check_range, checked_pytree, unchecked
 
 __all__ = [
     "Channel",
@@ -37,7 +37,7 @@ _DTYPE = jnp.float32
 _QUANT_RTOL = 2.0**-21
 
 
-@jax.tree_util.register_dataclass
+@checked_pytree
 @dataclasses.dataclass(frozen=True)
 class Channel:
     """One direction of the network: Bernoulli loss (eq. 5) and shifted-exponential delay (eq. 7).
@@ -49,14 +49,26 @@ class Channel:
         ``phi = 0`` means the deterministic delay ``eta``.
 
     All three are dynamic pytree leaves, so they can be vmapped or
-    differentiated.  Validation runs only on concrete Python/NumPy values.
+    differentiated.  Validation runs only on concrete Python/NumPy values (a
+    number, or an array checked element-wise), when a person builds a Channel:
+    ValueError for None, a string, a value out of range or not finite. jax
+    rebuilds Channels (tracers, gradients) without validating them; a ``vmap``
+    ``in_axes`` prefix, whose fields are axes or None, is :meth:`in_axes`.
     """
 
     p_loss: float | jax.Array = 0.0
     eta: float | jax.Array = 0.0
     phi: float | jax.Array = 0.0
 
+    @classmethod
+    def in_axes(cls, p_loss=None, eta=None, phi=None) -> "Channel":
+        """A ``vmap`` ``in_axes`` prefix for a Channel argument: each field an axis or
+        None (not validated), e.g. ``Channel.in_axes(p_loss=0)`` maps over p_loss only."""
+        return unchecked(cls, p_loss=p_loss, eta=eta, phi=phi)
+
     def __post_init__(self):
+        for name in ("p_loss", "eta", "phi"):
+            check_given(f"Channel.{name}", getattr(self, name))
         check_range("Channel.p_loss", self.p_loss, 0.0, 1.0, high_open=True)
         check_nonneg("Channel.eta", self.eta)
         check_nonneg("Channel.phi", self.phi)
@@ -75,8 +87,10 @@ def sample_channel(key, channel: Channel, n: int) -> Arrivals:
     Common random numbers: ``u ~ U(0, 1)`` and ``lost = u < p_loss``, so with
     the same key the loss pattern at a lower ``p_loss`` is a subset of that at
     a higher one.  The delay ``eta + phi * Exponential(1)`` uses a separate
-    subkey and does not depend on ``p_loss``.  ``n`` is a static Python int.
+    subkey and does not depend on ``p_loss``.  ``n`` is a static Python int >= 0
+    (ValueError otherwise, before tracing).
     """
+    check_int("sample_channel: n", n, 0)
     n = int(n)
     k_loss, k_delay = jax.random.split(key)
     p = jnp.asarray(channel.p_loss, _DTYPE)

@@ -214,7 +214,7 @@ def test_vmap_over_channel_pytree_in_axes():
     f = jax.jit(
         jax.vmap(
             functools.partial(sample_channel, key, n=n),
-            in_axes=(Channel(p_loss=0, eta=None, phi=None),),
+            in_axes=(Channel.in_axes(p_loss=0),),
         )
     )
     out = f(chans)

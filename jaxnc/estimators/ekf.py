@@ -8,6 +8,19 @@ differentiation (``jax.jacfwd``, or one ``jvp`` per live direction) of the model
 Kalman filter. ``ekf_predict`` and ``ekf_update_diag`` accept the Jacobians' sparsity
 patterns (``structure``, :mod:`jaxnc.estimators.sparsity`) and then skip the structural
 zeros.
+
+The square-root form (:class:`SqrtGaussian`, :func:`ekf_predict_sqrt`,
+:func:`ekf_update_sqrt`) carries a factor S with P = S S' and updates it by orthogonal
+(QR) transformations of the pre-arrays, so the covariance it represents is positive
+semi-definite by construction. The Joseph form above stays the reference (the papers'
+equations, and the loops' saved results); the square-root form is for the degenerate
+float32 cases where the Joseph form loses definiteness: no process noise and very
+precise measurements (docs/build_your_own_loop.md, "Covariance in float32").
+
+Every function checks the static shapes of its noise covariance against the model when
+it is traced (ValueError naming ``Q``/``R``/``r``/``noise_dim``/``z`` and the expected
+shape), and, when the covariance is concrete (not a tracer), that it is positive
+semi-definite (``R``: definite).
 """
 from __future__ import annotations
 
@@ -16,6 +29,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import numpy as np
 
 from jaxnc.estimators.covariance import predict_cov
 from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns, take
@@ -26,6 +40,72 @@ class Gaussian(NamedTuple):
 
     mean: jax.Array
     cov: jax.Array
+
+
+class SqrtGaussian(NamedTuple):
+    """Belief N(mean, S S') carried by a square-root factor ``S`` (float[n, n], lower
+    triangular up to column signs): the square-root form's belief. ``cov`` is S S'."""
+
+    mean: jax.Array
+    sqrt: jax.Array
+
+    @property
+    def cov(self):
+        return self.sqrt @ self.sqrt.T
+
+    @classmethod
+    def of(cls, g: Gaussian) -> "SqrtGaussian":
+        """The square-root belief of ``g`` (its covariance's PSD square root)."""
+        return cls(g.mean, _psd_sqrt(g.cov))
+
+
+def _psd_sqrt(M):
+    """A factor F with F F' = M for a symmetric positive semi-definite M (by its
+    eigendecomposition: works for a singular M, e.g. zero process noise)."""
+    M = jnp.asarray(M)
+    lam, V = jnp.linalg.eigh(0.5 * (M + M.T))
+    return V * jnp.sqrt(jnp.maximum(lam, 0.0))[None, :]
+
+
+def _tria(M):
+    """Lower-triangular T with T T' = M M' (M: float[n, k], k >= n), by QR of M'."""
+    return jnp.linalg.qr(M.T, mode="r").T
+
+
+def _noise_dim(where: str, noise_dim) -> int:
+    if isinstance(noise_dim, bool) or not isinstance(noise_dim, (int, np.integer)) or noise_dim < 1:
+        raise ValueError(f"{where}: noise_dim must be an integer >= 1 (the dimension of the model's noise "
+                         f"input), got {noise_dim!r}")
+    return int(noise_dim)
+
+
+def _check_cov(where: str, name: str, M, dim: int, *, form: str, definite: bool) -> None:
+    """``M`` is (dim, dim) (``form="matrix"``), (dim,) variances (``"vector"``) or either;
+    when concrete, positive semi-definite (``definite``: definite)."""
+    shape = tuple(np.shape(M))
+    ok = {"matrix": ((dim, dim),), "vector": ((dim,),), "either": ((dim, dim), (dim,))}[form]
+    if shape not in ok:
+        want = {"matrix": f"{dim}x{dim}", "vector": f"a vector of {dim} variances",
+                "either": f"{dim}x{dim} or a vector of {dim} variances"}[form]
+        raise ValueError(f"{where}: {name} must be {want} (noise_dim={dim}), got shape {shape}")
+    if isinstance(M, jax.core.Tracer):
+        return
+    try:
+        a = np.asarray(M, float)
+    except (TypeError, ValueError, jax.errors.ConcretizationTypeError):
+        return
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{where}: {name} must be finite")
+    low = a.min() if a.ndim == 1 else np.linalg.eigvalsh(0.5 * (a + a.T)).min()
+    if low < 0 or (definite and low <= 0):
+        raise ValueError(f"{where}: {name} must be positive {'definite' if definite else 'semi-definite'} "
+                         f"(a covariance), got smallest eigenvalue {low:g}")
+
+
+def _check_z(where: str, h: Callable, mean, z, noise_dim: int) -> None:
+    zhat = jax.eval_shape(h, mean, jnp.zeros((noise_dim,), mean.dtype))
+    if tuple(np.shape(z)) != tuple(zhat.shape):
+        raise ValueError(f"{where}: z must have the shape of h(x, v), {tuple(zhat.shape)}, got {tuple(np.shape(z))}")
 
 
 def _symmetrize(P):
@@ -66,7 +146,12 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
     ``jacobian_grad=False`` (static) gives the same values, but gradients of anything
     downstream hold A and L constant: an approximation of the gradient (the covariance's
     dependence on where the model is linearised is dropped) that makes reverse mode through
-    a closed loop about 2x cheaper (benchmarks/RESULTS.md)."""
+    a closed loop about 2x cheaper (benchmarks/RESULTS.md).
+
+    Raises ValueError (at trace time) when ``noise_dim`` is not an integer >= 1 or ``Q`` is
+    not (noise_dim, noise_dim) / (noise_dim,), or (a concrete Q) not PSD."""
+    noise_dim = _noise_dim("ekf_predict", noise_dim)
+    _check_cov("ekf_predict", "Q", Q, noise_dim, form="either", definite=False)
     n = belief.mean.shape[0]
     w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     mean = f(belief.mean, u, w0)
@@ -96,7 +181,14 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
 
 
 def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
-    """Correction with measurement z, eq. (13)-(16), Joseph form covariance."""
+    """Correction with measurement z, eq. (13)-(16), Joseph form covariance.
+
+    ``R`` is the covariance of the measurement noise v, (noise_dim, noise_dim); ValueError
+    (at trace time) for another shape, a ``noise_dim`` that is not an integer >= 1, a ``z``
+    not shaped like h(x, v), or a concrete R that is not positive definite."""
+    noise_dim = _noise_dim("ekf_update", noise_dim)
+    _check_cov("ekf_update", "R", R, noise_dim, form="matrix", definite=True)
+    _check_z("ekf_update", h, belief.mean, z, noise_dim)
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     zhat = h(belief.mean, v0)
     H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
@@ -127,7 +219,13 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
 
     ``structure`` (static): with H's pattern, H is computed only along its nonzero
     columns and each scalar step sums only over the states its row depends on.
+
+    ValueError (at trace time) when ``r`` is not (p,) with p = len(z) = noise_dim, or (a
+    concrete r) has an entry <= 0.
     """
+    noise_dim = _noise_dim("ekf_update_diag", noise_dim)
+    _check_cov("ekf_update_diag", "r", r, noise_dim, form="vector", definite=True)
+    _check_z("ekf_update_diag", h, belief.mean, z, noise_dim)
     n = belief.mean.shape[0]
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     innovation = z - h(belief.mean, v0)
@@ -149,3 +247,53 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
         delta = delta + k * (innovation[i] - jnp.sum(Hi * take(delta, live, axis=0)))
         P = P - (PHt[:, None] * PHt[None, :]) / s   # products commute: exactly symmetric
     return Gaussian(belief.mean + delta, P)
+
+
+def ekf_predict_sqrt(f: Callable, belief: SqrtGaussian, u, Q, noise_dim: int) -> SqrtGaussian:
+    """:func:`ekf_predict` in square-root form: mean = f(mean, u, 0) and the factor of
+    A P A' + L Q L' = [A S, L Q^(1/2)] [A S, L Q^(1/2)]', triangularised by QR, so the
+    covariance stays positive semi-definite in float32 (Q may be singular, e.g. zero).
+    ``Q``: (noise_dim, noise_dim) or a vector of variances; the same checks as
+    :func:`ekf_predict`. Dense Jacobians (no ``structure``)."""
+    noise_dim = _noise_dim("ekf_predict_sqrt", noise_dim)
+    _check_cov("ekf_predict_sqrt", "Q", Q, noise_dim, form="either", definite=False)
+    n = belief.mean.shape[0]
+    w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
+    mean = f(belief.mean, u, w0)
+    J = jax.jacfwd(lambda xw: f(xw[:n], u, xw[n:]))(jnp.concatenate([belief.mean, w0]))
+    A, L = J[:, :n], J[:, n:]
+    Q = jnp.asarray(Q, belief.sqrt.dtype)
+    LQh = L * jnp.sqrt(jnp.maximum(Q, 0.0))[None, :] if Q.ndim == 1 else L @ _psd_sqrt(Q)
+    return SqrtGaussian(mean, _tria(jnp.concatenate([A @ belief.sqrt, LQh], axis=1)))
+
+
+def ekf_update_sqrt(h: Callable, belief: SqrtGaussian, z, R, noise_dim: int) -> SqrtGaussian:
+    """:func:`ekf_update` in square-root form (the array algorithm: e.g. Kailath, Sayed &
+    Hassibi, "Linear Estimation", section 12.3): the pre-array
+    [[(M R M')^(1/2), H S], [0, S]] is triangularised by QR into [[Se, 0], [Kb, S+]], so
+    that Se Se' = H P H' + M R M', the gain is K = Kb Se^-1 and the posterior factor is
+    S+: P+ = S+ S+' is positive semi-definite by construction, also when the measurement
+    is far more precise than the prior (where the Joseph form's float32 result can become
+    indefinite, or the rank-one downdate of :func:`ekf_update_diag` cancel to 0).
+    ``R``: (noise_dim, noise_dim), or a vector of variances (diagonal); the same checks
+    as :func:`ekf_update`."""
+    noise_dim = _noise_dim("ekf_update_sqrt", noise_dim)
+    _check_cov("ekf_update_sqrt", "R", R, noise_dim, form="either", definite=True)
+    _check_z("ekf_update_sqrt", h, belief.mean, z, noise_dim)
+    n = belief.mean.shape[0]
+    v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
+    zhat = h(belief.mean, v0)
+    H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
+    M = jax.jacfwd(h, argnums=1)(belief.mean, v0)
+    R = jnp.asarray(R, belief.sqrt.dtype)
+    MRh = M * jnp.sqrt(R)[None, :] if R.ndim == 1 else M @ _psd_sqrt(R)
+    p = H.shape[0]
+    if MRh.shape[1] < p:                                    # fewer noise inputs than outputs
+        MRh = jnp.concatenate([MRh, jnp.zeros((p, p - MRh.shape[1]), MRh.dtype)], axis=1)
+    k = MRh.shape[1]
+    pre = jnp.concatenate([jnp.concatenate([MRh, H @ belief.sqrt], axis=1),
+                           jnp.concatenate([jnp.zeros((n, k), H.dtype), belief.sqrt], axis=1)], axis=0)
+    post = _tria(pre)                                       # (p + n) x (p + n) lower triangular
+    Se, Kb, S_post = post[:p, :p], post[p:, :p], post[p:, p:]
+    K = jsl.solve_triangular(Se, Kb.T, lower=True, trans=1).T     # K Se = Kb
+    return SqrtGaussian(belief.mean + K @ (z - zhat), S_post)

@@ -11,7 +11,6 @@ future (seed 001's commands stamped k + lead) until their time comes.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -19,6 +18,7 @@ import jax.numpy as jnp
 
 from jaxnc._validate import check_int
 from jaxnc.loop.base import AbstractActuator, Inbox, blend
+from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
 __all__ = ["PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder"]
@@ -32,8 +32,7 @@ class ActuatorState(NamedTuple):
     last: jax.Array      # float[m] the last action applied
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class PacketActuator(AbstractActuator):
     """Packet buffer by time stamp (module docstring).
 

@@ -38,6 +38,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxnc._validate import checked_pytree
+
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger", "AbstractEstimator",
            "AbstractController", "AbstractActuator"]
 
@@ -50,8 +52,10 @@ def static_field(default=dataclasses.MISSING):
 
 def pytree_dataclass(cls):
     """``cls`` as a frozen dataclass registered as a pytree (fields made with
-    :func:`static_field` are static, the others leaves)."""
-    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
+    :func:`static_field` are static, the others leaves). jax rebuilds it without calling
+    ``__init__`` (:func:`jaxnc._validate.checked_pytree`), so ``__post_init__`` validates
+    only what a person builds."""
+    return checked_pytree(dataclasses.dataclass(frozen=True)(cls))
 
 
 class Packet(NamedTuple):

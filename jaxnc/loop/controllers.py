@@ -13,15 +13,16 @@ A controller runs at every slow instant; its packet carries the stamp kN.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_int, fields_concrete
-from jaxnc.loop.base import AbstractController, Packet
+from jaxnc._validate import (array_fields, check_callable, check_finite, check_given, check_instance, check_int,
+                             check_range, fields_concrete)
+from jaxnc.loop.base import AbstractController, AbstractPlant, Packet
+from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
 __all__ = ["StateFeedback", "Function", "Predictive"]
@@ -40,8 +41,7 @@ class _OneAction(AbstractController):
         return Packet(u[None, :], (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32), state
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class StateFeedback(_OneAction):
     """u = clip(-K (xhat - x_ref), u_min, u_max).
 
@@ -54,6 +54,12 @@ class StateFeedback(_OneAction):
     u_max: Any = None
 
     def __post_init__(self):
+        check_given("StateFeedback.K", self.K, "a gain matrix (m x n)")
+        check_finite("StateFeedback.K", self.K)
+        check_given("StateFeedback.x_ref", self.x_ref)
+        check_finite("StateFeedback.x_ref", self.x_ref)
+        for n in ("u_min", "u_max"):        # None or +-inf: unbounded
+            check_range(f"StateFeedback.{n}", getattr(self, n), finite=False)
         array_fields(self, "K", "x_ref", "u_min", "u_max")
         if not fields_concrete(self):
             return
@@ -71,20 +77,21 @@ class StateFeedback(_OneAction):
         return u
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Function(_OneAction):
     """u = fn(params, xhat) (``fn`` static: define it at module level)."""
 
     params: Any
     fn: Callable = _static()
 
+    def __post_init__(self):
+        check_callable("Function.fn", self.fn, "a function fn(params, xhat) -> u")
+
     def action(self, xhat):
         return jnp.atleast_1d(self.fn(self.params, xhat))
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Predictive(AbstractController):
     """A packet of ``horizon`` actions predicted along the noise-free model.
 
@@ -97,6 +104,11 @@ class Predictive(AbstractController):
     horizon: int = _static(1)
 
     def __post_init__(self):
+        if not callable(getattr(self.law, "action", None)):
+            raise ValueError(f"Predictive.law must be a one-action controller (StateFeedback, Function), "
+                             f"got {type(self.law).__name__}")
+        check_instance("Predictive.model", self.model, AbstractPlant,
+                       "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
         check_int("Predictive.horizon", self.horizon, 1, 1_000_000)
 
     def init(self, ctx):

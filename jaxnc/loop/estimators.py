@@ -16,22 +16,24 @@ only a measurement stamped now is used.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_int, fields_concrete
-from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
-from jaxnc.loop.base import AbstractEstimator, Inbox, blend
+from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, fields_concrete
+from jaxnc.estimators.ekf import Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_sqrt
+from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
+from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
 __all__ = ["EKF", "EKFState", "Passthrough", "PassthroughState"]
 
 
 class EKFState(NamedTuple):
+    """Gaussians, or :class:`~jaxnc.estimators.ekf.SqrtGaussian` with ``EKF(form="sqrt")``."""
+
     base: Gaussian      # prior at the first instant of the window (k - buffer)
     u: jax.Array        # float[buffer, N, m] inputs of the window's periods
     post: Gaussian      # posterior at the current instant (the estimate)
@@ -42,8 +44,7 @@ class PassthroughState(NamedTuple):
     z: jax.Array
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class EKF(AbstractEstimator):
     """EKF with intermittent, time-stamped measurements (module docstring).
 
@@ -56,6 +57,12 @@ class EKF(AbstractEstimator):
       buffer: static int >= 0, slow periods a measurement may be late.
       inputs: static, ``"believed"`` (the actions of the controller's own packets, what a
         remote filter knows) or ``"applied"`` (a filter collocated with the actuator).
+      form: static, ``"joseph"`` (the reference: :func:`~jaxnc.estimators.ekf.ekf_update`'s
+        Joseph form) or ``"sqrt"`` (the square-root form, a factor S with P = S S' updated
+        by QR: :func:`~jaxnc.estimators.ekf.ekf_update_sqrt`; positive semi-definite in
+        float32 also with zero process noise and very precise measurements, where the Joseph
+        form can lose definiteness; the state's Gaussians are then
+        :class:`~jaxnc.estimators.ekf.SqrtGaussian`).
     """
 
     model: Any
@@ -65,12 +72,19 @@ class EKF(AbstractEstimator):
     cov0: Any
     buffer: int = _static(0)
     inputs: str = _static("believed")
+    form: str = _static("joseph")
 
     def __post_init__(self):
+        check_instance("EKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
+        for n in ("Q", "R", "mean0", "cov0"):
+            check_given(f"EKF.{n}", getattr(self, n), "a number or an array of numbers")
+            check_finite(f"EKF.{n}", getattr(self, n))
         array_fields(self, "Q", "R", "mean0", "cov0")
         check_int("EKF.buffer", self.buffer, 0, 10_000)
         if self.inputs not in ("believed", "applied"):
             raise ValueError(f"EKF.inputs must be one of believed, applied, got {self.inputs!r}")
+        if self.form not in ("joseph", "sqrt"):
+            raise ValueError(f"EKF.form must be one of joseph, sqrt, got {self.form!r}")
         if not fields_concrete(self):
             return
         n, q, p = self.model.state_dim, self.model.noise_dim, self.model.output_dim
@@ -99,12 +113,15 @@ class EKF(AbstractEstimator):
 
     def init(self, ctx) -> EKFState:
         g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
+        if self.form == "sqrt":
+            g = SqrtGaussian.of(g)
         u = jnp.zeros((self.buffer, ctx.N, ctx.input_dim), jnp.float32)
         return EKFState(g, u, g, g)
 
     def _predict_period(self, g: Gaussian, us):
         def body(g, u):
-            return ekf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
+            predict = ekf_predict_sqrt if self.form == "sqrt" else ekf_predict
+            return predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
         g, _ = jax.lax.scan(body, g, us)
         return g
 
@@ -113,7 +130,8 @@ class EKF(AbstractEstimator):
         ok = (inbox.stamp[slot] == stamp) & inbox.arrived[slot] & (stamp >= 0)
         w = jnp.where(ok, inbox.weight[slot], 0.0)
         z = jax.tree.map(lambda a: a[slot], inbox.data)
-        return blend(w, ekf_update(self.model.measure, g, z, self.R, self.model.output_dim), g)
+        update = ekf_update_sqrt if self.form == "sqrt" else ekf_update
+        return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
 
     def correct(self, state: EKFState, inbox: Inbox, k) -> EKFState:
         C = inbox.stamp.shape[0]
@@ -141,12 +159,15 @@ class EKF(AbstractEstimator):
         return state._replace(base=state.next_base, u=u)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Passthrough(AbstractEstimator):
     """The newest delivered measurement, held (no model). ``z0``: float[p] before the first."""
 
     z0: Any = 0.0
+
+    def __post_init__(self):
+        check_given("Passthrough.z0", self.z0)
+        check_finite("Passthrough.z0", self.z0)
 
     def init(self, ctx):
         return PassthroughState(jnp.broadcast_to(jnp.asarray(self.z0, jnp.float32), (ctx.output_dim,)))

@@ -39,7 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc import wifi
-from jaxnc._validate import array_fields, check_int, check_nonneg, check_range, concrete
+from jaxnc._validate import (array_fields, check_bool, check_given, check_instance, check_int, check_nonneg,
+                             check_range, concrete)
 from jaxnc.loop.base import Inbox
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -72,6 +73,7 @@ class Bernoulli:
     p: Any = 0.0
 
     def __post_init__(self):
+        check_given("Bernoulli.p", self.p)
         check_range("Bernoulli.p", self.p, 0.0, 1.0, high_open=True)
 
     def sample(self, key, n: int):
@@ -91,6 +93,7 @@ class GilbertElliott:
 
     def __post_init__(self):
         for n in ("p_gb", "p_bg", "loss_good", "loss_bad"):
+            check_given(f"GilbertElliott.{n}", getattr(self, n))
             check_range(f"GilbertElliott.{n}", getattr(self, n), 0.0, 1.0)
         check_range("GilbertElliott.p_bg", self.p_bg, 0.0, 1.0, low_open=True)
 
@@ -120,11 +123,36 @@ class TraceLoss:
 
     lost: Any
 
+    def __post_init__(self):
+        _trace("TraceLoss.lost", self, "lost", "a 1-D array of booleans (True = lost) or 0/1",
+               lambda a: a.dtype.kind == "b" or bool(np.all((a == 0) | (a == 1))), bool)
+
     def sample(self, key, n: int):
         lost = jnp.asarray(self.lost, bool)
         if lost.shape[0] < n:
             raise ValueError(f"TraceLoss.lost has {lost.shape[0]} entries, the run needs {n}")
         return lost[:n]
+
+
+def _trace(name, obj, field, what, ok, dtype):
+    """Validate a recorded sequence field (concrete values only) and store it as a numpy
+    array of ``dtype``: 1-D, non-empty, numbers, ``ok(array)``."""
+    v = getattr(obj, field)
+    check_given(name, v, what)
+    if isinstance(v, (str, bytes)):
+        raise ValueError(f"{name} must be {what}, got {v!r}")
+    if not concrete(v):
+        return
+    try:
+        a = np.asarray(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {what}, got {v!r}") from None
+    if a.dtype.kind not in "biuf" or a.ndim != 1 or a.size == 0:
+        raise ValueError(f"{name} must be {what}, got an array of {a.dtype} of shape {a.shape}")
+    check_range(name, a)                                     # finite
+    if not ok(a):
+        raise ValueError(f"{name} must be {what}, got {a.tolist()[:8]}{' ...' if a.size > 8 else ''}")
+    object.__setattr__(obj, field, a.astype(dtype))
 
 
 # ----------------------------------------------------------------------------- delay models
@@ -148,6 +176,8 @@ class ShiftedExponential:
     phi: Any = 0.0
 
     def __post_init__(self):
+        check_given("ShiftedExponential.eta", self.eta)
+        check_given("ShiftedExponential.phi", self.phi)
         check_nonneg("ShiftedExponential.eta", self.eta)
         check_nonneg("ShiftedExponential.phi", self.phi)
 
@@ -176,6 +206,8 @@ class TruncatedExponential:
     tau_max: Any = 1.0
 
     def __post_init__(self):
+        for n in ("eta", "phi", "tau_max"):
+            check_given(f"TruncatedExponential.{n}", getattr(self, n))
         check_nonneg("TruncatedExponential.eta", self.eta)
         check_nonneg("TruncatedExponential.phi", self.phi)
         check_range("TruncatedExponential.tau_max", self.tau_max, 0.0, None)
@@ -200,6 +232,7 @@ class PmfDelay:
     pmf: Any
 
     def __post_init__(self):
+        check_given("PmfDelay.pmf", self.pmf, "a non-empty 1-D array of probabilities")
         array_fields(self, "pmf")
         p = np.asarray(self.pmf, float) if concrete(self.pmf) else None
         if p is not None:
@@ -226,6 +259,10 @@ class TraceDelay:
 
     steps: Any
 
+    def __post_init__(self):
+        _trace("TraceDelay.steps", self, "steps", "a 1-D array of integer delays in fast periods (negative = lost)",
+               lambda a: bool(np.all(a == np.round(a)) and np.all(np.abs(a) < 2**31)), np.int32)
+
     def sample(self, key, n: int, T):
         d = jnp.asarray(self.steps, jnp.int32)
         if d.shape[0] < n:
@@ -243,6 +280,9 @@ class WifiModel:
     in_steps = True   # delays are whole fast periods
 
     channel: wifi.WifiChannel = wifi.NOMINAL
+
+    def __post_init__(self):
+        check_instance("WifiModel.channel", self.channel, wifi.WifiChannel, "a jaxnc.wifi.WifiChannel")
 
     @property
     def max_steps(self) -> int:
@@ -307,9 +347,16 @@ class Link:
     capacity: int = _static(2)
 
     def __post_init__(self):
+        if not callable(getattr(self.loss, "sample", None)):
+            raise ValueError(f"Link.loss must be a loss model (NoLoss, Bernoulli, GilbertElliott, TraceLoss: "
+                             f"sample(key, n) -> bool[n]), got {type(self.loss).__name__}")
+        if not callable(getattr(self.delay, "sample", None)):
+            raise ValueError(f"Link.delay must be a delay model (NoDelay, ShiftedExponential, TruncatedExponential, "
+                             f"PmfDelay, TraceDelay, WifiModel: sample(key, n, T)), got {type(self.delay).__name__}")
         if self.order not in ("newest", "all", "arrival"):
             raise ValueError(f"Link.order must be one of newest, all, arrival, got {self.order!r}")
         check_int("Link.capacity", self.capacity, 1, 100_000)
+        check_bool("Link.reliable_first", self.reliable_first)
         if self.tau_max is not None:
             check_range("Link.tau_max", self.tau_max, 0.0, None)
 

@@ -16,7 +16,6 @@ noises and scales them by ``w_std`` / ``v_std``; the same object is an estimator
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, Callable
 
 import jax
@@ -24,8 +23,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from jaxnc._validate import array_fields, check_int, check_nonneg, check_positive, fields_concrete
+from jaxnc._validate import (array_fields, check_callable, check_finite, check_given, check_int, check_nonneg,
+                             check_positive, fields_concrete)
 from jaxnc.loop.base import AbstractPlant
+from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
 __all__ = ["Discrete", "Continuous", "LTI", "rk4"]
@@ -55,8 +56,7 @@ def _dims(f, h, x0, input_dim, noise_dim):
     return x0
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Discrete(AbstractPlant):
     """x_{t+1} = f(x_t, u_t, w_t), z = h(x, v) (additive noise is the usual h(x, v) = g(x) + v).
 
@@ -77,6 +77,12 @@ class Discrete(AbstractPlant):
     output_dim: int = _static(1)
 
     def __post_init__(self):
+        cls = type(self).__name__
+        check_callable(f"{cls}.f", self.f, "a function f(x, u, w)")
+        check_callable(f"{cls}.h", self.h, "a function h(x, v)")
+        for n in ("x0", "w_std", "v_std"):
+            check_given(f"{cls}.{n}", getattr(self, n))
+        check_finite(f"{cls}.x0", self.x0)
         array_fields(self, "x0", "w_std", "v_std")
         check_int("Discrete.input_dim", self.input_dim, 1, 10_000)
         check_int("Discrete.noise_dim", self.noise_dim, 1, 10_000)
@@ -122,8 +128,7 @@ def rk4(f, x, u, w, dt, n: int):
     return x
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Continuous(Discrete):
     """dx/dt = f(x, u, w) integrated over the fast period ``T`` by ``substeps`` RK4 steps
     (u and w held over the period); z = h(x, v) at the sampling instants.
@@ -136,6 +141,7 @@ class Continuous(Discrete):
     substeps: int = _static(4)
 
     def __post_init__(self):
+        check_given("Continuous.T", self.T, "a number > 0 (seconds)")
         check_positive("Continuous.T", self.T)
         check_int("Continuous.substeps", self.substeps, 1, 100_000)
         super().__post_init__()
@@ -144,14 +150,15 @@ class Continuous(Discrete):
         return rk4(self.f, x, u, w, jnp.asarray(self.T, x.dtype), self.substeps)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class LTI(AbstractPlant):
     """x+ = A x + B u + G w, z = C x + D u + v (discrete, period T).
 
-    Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m], G float[n, q]
-    (default identity: w is additive state noise), x0 float[n], w_std float[q],
-    v_std float[p], T seconds (informative).
+    Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m] (must be 0 or
+    None: z is sampled before u is applied), G float[n, q] (default identity: w is
+    additive state noise), x0 float[n], w_std float[q], v_std float[p], T seconds
+    (informative). Raises ValueError (naming the field) for shapes that do not match, a
+    non-finite entry, a nonzero D, negative stds or T <= 0.
     """
 
     A: Any
@@ -165,6 +172,12 @@ class LTI(AbstractPlant):
     T: Any = 1.0
 
     def __post_init__(self):
+        for n in ("A", "B", "C"):
+            check_given(f"LTI.{n}", getattr(self, n), "a matrix of numbers")
+        for n in ("A", "B", "C", "D", "G", "x0"):
+            check_finite(f"LTI.{n}", getattr(self, n))
+        for n in ("w_std", "v_std", "T"):
+            check_given(f"LTI.{n}", getattr(self, n))
         array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std")
         if not fields_concrete(self):
             return
@@ -172,13 +185,22 @@ class LTI(AbstractPlant):
         n = A.shape[0]
         if A.shape != (n, n):
             raise ValueError(f"LTI.A must be square, got shape {A.shape}")
-        B = np.asarray(self.B, np.float32).reshape(n, -1)
+        B = np.asarray(self.B, np.float32)
+        if B.ndim > 2 or (B.ndim == 2 and B.shape[0] != n) or (B.ndim < 2 and B.size != n):
+            raise ValueError(f"LTI.B must have {n} rows (one per state), got shape {B.shape}")
+        B = B.reshape(n, -1)
         C = np.atleast_2d(np.asarray(self.C, np.float32))
-        if C.shape[1] != n:
+        if C.ndim != 2 or C.shape[1] != n:
             raise ValueError(f"LTI.C must have {n} columns (one per state), got shape {C.shape}")
         m, p = B.shape[1], C.shape[0]
-        D = np.zeros((p, m), np.float32) if self.D is None else np.asarray(self.D, np.float32).reshape(p, m)
-        G = np.eye(n, dtype=np.float32) if self.G is None else np.asarray(self.G, np.float32).reshape(n, -1)
+        if self.D is not None and np.any(np.asarray(self.D) != 0):
+            raise ValueError("LTI.D must be 0 (or None): z = C x + v is sampled before u is applied, a "
+                             "networked loop has no direct feedthrough")
+        D = np.zeros((p, m), np.float32)
+        G = np.eye(n, dtype=np.float32) if self.G is None else np.asarray(self.G, np.float32)
+        if G.ndim > 2 or (G.ndim == 2 and G.shape[0] != n) or (G.ndim < 2 and G.size != n):
+            raise ValueError(f"LTI.G must have {n} rows (one per state), got shape {G.shape}")
+        G = G.reshape(n, -1)
         x0 = np.zeros(n, np.float32) if self.x0 is None else np.asarray(self.x0, np.float32)
         if x0.shape != (n,):
             raise ValueError(f"LTI.x0 must have {n} entries, got shape {x0.shape}")

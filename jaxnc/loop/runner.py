@@ -15,16 +15,18 @@ is data (inf in :class:`Metrics`), never an exception or a NaN in a batch.
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_int
+from jaxnc._validate import (array_fields, check_bool, check_callable, check_finite, check_given, check_instance,
+                             check_int, check_range, concrete, fields_concrete)
 from jaxnc.loop.actuators import PacketActuator
-from jaxnc.loop.base import Inbox
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractPlant, AbstractTrigger,
+                             Inbox)
+from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.links import Link, LinkDraws
 
@@ -46,8 +48,7 @@ class Context(NamedTuple):
     output_dim: int
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Monitor:
     """Failure detection: non-finite state, or |x_i| > bounds_i for any i (bounds float[n],
     inf where unbounded; None: only non-finite). ``freeze`` (static): hold the plant at its
@@ -57,6 +58,8 @@ class Monitor:
     freeze: bool = _static(True)
 
     def __post_init__(self):
+        check_bool("Monitor.freeze", self.freeze)
+        check_range("Monitor.bounds", self.bounds, 0.0, None, low_open=True, finite=False)   # None: unbounded
         array_fields(self, "bounds")
 
     def failed(self, xv):
@@ -66,8 +69,7 @@ class Monitor:
         return bad
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Quadratic:
     """Cost J = (1/K) sum_t (x_t - x_ref)' Q (x_t - x_ref) + u_t' R u_t over the fast instants.
 
@@ -78,7 +80,19 @@ class Quadratic:
     x_ref: Any = 0.0
 
     def __post_init__(self):
+        for n in ("Q", "R", "x_ref"):
+            check_given(f"Quadratic.{n}", getattr(self, n))
+            check_finite(f"Quadratic.{n}", getattr(self, n))
         array_fields(self, "Q", "R", "x_ref")
+        for n in ("Q", "R"):
+            if concrete(getattr(self, n)):
+                M = np.asarray(getattr(self, n), float)
+                if M.ndim > 2 or (M.ndim == 2 and M.shape[0] != M.shape[1]):
+                    raise ValueError(f"Quadratic.{n} must be a vector of weights or a square matrix, got shape {M.shape}")
+                if M.ndim < 2:
+                    check_range(f"Quadratic.{n}", M, 0.0, None)
+                elif not np.allclose(M, M.T) or np.linalg.eigvalsh(M).min() < -1e-9 * max(1.0, np.abs(M).max()):
+                    raise ValueError(f"Quadratic.{n} must be symmetric positive semi-definite")
 
     def __call__(self, x, u):
         e = x - jnp.asarray(self.x_ref, x.dtype)
@@ -88,8 +102,7 @@ class Quadratic:
         return jnp.mean(qx + ru)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Loop:
     """A networked closed loop: one value per role, and the static sizes.
 
@@ -132,6 +145,14 @@ class Loop:
     record: Any = _static(True)
 
     def __post_init__(self):
+        for name, cls, what in _ROLES:
+            check_instance(f"Loop.{name}", getattr(self, name), cls, what)
+        if self.controller_trigger is not None:
+            check_instance("Loop.controller_trigger", self.controller_trigger, AbstractTrigger,
+                           "a trigger (a jaxnc.loop.AbstractTrigger: Periodic, Petc) or None")
+        check_instance("Loop.monitor", self.monitor, Monitor, "a jaxnc.loop.Monitor")
+        if self.cost is not None:
+            check_callable("Loop.cost", self.cost, "a function cost(x, u) -> scalar (e.g. jaxnc.loop.Quadratic) or None")
         if not isinstance(self.record, bool):
             if not isinstance(self.record, tuple) or any(r not in _RECORDABLE for r in self.record):
                 raise ValueError(f"Loop.record must be True, False or a tuple of names among "
@@ -148,19 +169,67 @@ class Loop:
                              f"horizon ({H})")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
-            if not isinstance(link, Link):
-                raise ValueError(f"Loop.{name} must be a jaxnc.loop.Link, got {type(link).__name__}")
             d = link.max_delay_steps(self.T)
             if d is not None:
                 need = -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
                 if link.capacity < need:
                     raise ValueError(f"Loop.{name}.capacity must be >= {need} for delays up to {d} fast periods "
                                      f"with N={self.N}, got {link.capacity}")
+        if fields_concrete(self):
+            self._check_dims()
+
+    def _check_dims(self):
+        """The roles fit together: the controller acts on the estimator's estimate and its
+        actions have the plant's input dimension (shapes only, by jax.eval_shape)."""
+        if hasattr(self.controller, "step_from_sent"):
+            return                      # a controller the runner calls with its own hook
+        leaves, treedef = jax.tree.flatten(self)
+        key = (treedef, tuple((np.shape(a), str(getattr(a, "dtype", type(a)))) for a in leaves))
+        if key in _FITTED:
+            return
+        ctx = self.ctx
+        try:
+            xhat = jax.eval_shape(lambda: self.estimator.estimate(self.estimator.init(ctx)))
+        except Exception as e:  # noqa: BLE001 - re-raised naming the role
+            raise ValueError(f"Loop.estimator does not fit the plant (state_dim={ctx.state_dim}, "
+                             f"output_dim={ctx.output_dim}): {_one_line(e)}") from e
+        shapes = [a.shape for a in jax.tree.leaves(xhat)]
+        try:
+            pkt = jax.eval_shape(lambda: self.controller.step(
+                self.controller.init(ctx), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), xhat),
+                jnp.float32(1), jnp.int32(0), ctx)[0])
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"Loop.controller cannot act on the estimator's estimate "
+                             f"(shape {shapes[0] if len(shapes) == 1 else shapes}): {_one_line(e)}") from e
+        u = pkt.data
+        if isinstance(u, jax.ShapeDtypeStruct) and u.shape[-1:] != (ctx.input_dim,):
+            raise ValueError(f"Loop.controller's actions have shape {u.shape[1:]}, the plant takes "
+                             f"input_dim={ctx.input_dim} inputs")
+        if len(_FITTED) > 256:
+            _FITTED.clear()
+        _FITTED.add(key)
 
     @property
     def ctx(self) -> Context:
         p = self.plant
         return Context(self.N, self.steps, float(self.T), int(p.state_dim), int(p.input_dim), int(p.output_dim))
+
+
+_ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, Continuous)"),
+          ("trigger", AbstractTrigger, "a trigger (a jaxnc.loop.AbstractTrigger: Periodic, Petc)"),
+          ("uplink", Link, "a jaxnc.loop.Link"),
+          ("estimator", AbstractEstimator, "an estimator (a jaxnc.loop.AbstractEstimator: EKF, Passthrough)"),
+          ("controller", AbstractController,
+           "a controller (a jaxnc.loop.AbstractController: StateFeedback, Function, Predictive)"),
+          ("downlink", Link, "a jaxnc.loop.Link"),
+          ("actuator", AbstractActuator, "an actuator (a jaxnc.loop.AbstractActuator: PacketActuator, HoldLast)"))
+
+
+_FITTED: set = set()     # loop structures (treedef, leaf shapes) whose roles were found to fit
+
+
+def _one_line(e: BaseException) -> str:
+    return f"{type(e).__name__}: {' '.join(str(e).split())}"
 
 
 class Draws(NamedTuple):

@@ -17,14 +17,14 @@ the gradient of sigmoid(gap / temperature) backward (:mod:`jaxnc.tune.estimators
 """
 from __future__ import annotations
 
-import dataclasses
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import array_fields, check_int, check_nonneg
+from jaxnc._validate import array_fields, check_bool, check_given, check_int, check_nonneg
 from jaxnc.loop.base import AbstractTrigger, blend
+from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.triggers import fires_straight_through, soft_decision
 
@@ -36,8 +36,7 @@ class PetcState(NamedTuple):
     silent: jax.Array    # int32: slow instants since the last send
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Periodic(AbstractTrigger):
     """Sends every ``every`` slow instants (static; 1 = always), starting at k = 0."""
 
@@ -53,8 +52,7 @@ class Periodic(AbstractTrigger):
         return (jnp.mod(k, self.every) == 0).astype(jnp.float32), state
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@_dataclass
 class Petc(AbstractTrigger):
     """Periodic event-triggered condition (module docstring).
 
@@ -74,6 +72,9 @@ class Petc(AbstractTrigger):
     relaxed: bool = _static(False)
 
     def __post_init__(self):
+        for n in ("sigma", "delta", "temperature"):
+            check_given(f"Petc.{n}", getattr(self, n))
+        check_bool("Petc.relaxed", self.relaxed)
         array_fields(self, "sigma", "delta")
         check_nonneg("Petc.sigma", self.sigma)
         check_nonneg("Petc.delta", self.delta)
