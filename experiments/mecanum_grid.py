@@ -194,8 +194,14 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
         results = collect(out, settings, seeds, cells, loops)      # this run's cells and other shards'
         complete = len(results) == len(cells)
         written = write_outputs(out, results, settings) if complete else []
+    # this run's counts and time, and the totals over every run that stored a cell (a resume
+    # that only reuses cells computes 0 in 0 s, but the grid's cells took their time)
     summary = {"cells": len(cells), "computed": computed, "reused": done_before, "complete": complete,
-               "wall_time_s": elapsed, "files": [str(f) for f in written],
+               "wall_time_s": elapsed, "stored": len(results),
+               "compute_time_total_s": float(sum(r.get("compute_s") or 0.0 for r in results.values())),
+               "meaning": "computed, reused, wall_time_s: this run; stored, compute_time_total_s: all the "
+                          "stored cells of this grid, whichever run (or shard) computed them",
+               "files": [str(f) for f in written],
                # the stored cells of this configuration, for jaxnc.load
                "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, c[0], c[1], c[2], c[3]).with_suffix(".npz")
                                                          for c in results}, dims=("path", "N", "case", "dp"))}
@@ -222,7 +228,7 @@ def collect(out: Path, settings: dict, seeds: int, cells, loops) -> dict:
         cfg = _cell_config(settings, seeds, case, N, dp, p, int(loops[cell].h))
         data = _load_cell(cell_file(out, p, N, case, dp), cfg)
         if data is not None:
-            res[cell] = dict(data["summary"], h=int(loops[cell].h))
+            res[cell] = dict(data["summary"], h=int(loops[cell].h), compute_s=data.get("wall_time_s"))
     return res
 
 
@@ -239,47 +245,67 @@ def normalised(results: dict, cell) -> dict:
     return out
 
 
-def _table_value(results, p, N, case, dp):
-    if N == 1 and case != "SR":
+def _table_value(results, p, N, case, dp, paper: bool = True):
+    if paper and N == 1 and case != "SR":
         return None                      # the paper has "-" there
     cell = (p, N, case, dp)
     return normalised(results, cell) if cell in results else None
 
 
+def table_layout(results: dict, p: str) -> tuple[list[tuple[int, float]], tuple[str, ...], bool]:
+    """(rows (N, DP), columns (cases), paper) of path ``p``'s tables: the paper's Tables 1-4
+    (rows N in TABLE_N x DP in TABLE_DP, the four cases; ``paper`` True) when this grid
+    computed all of them, as the default grid does; otherwise the (N, DP) and the cases
+    this grid computed (a custom grid shows what it ran, not the paper's rows)."""
+    cells = [c for c in results if c[0] == p]
+    computed = {(c[1], c[3]) for c in cells}
+    cases = tuple(c for c in mec.CASES if any(cell[2] == c for cell in cells))
+    paper_rows = [(N, dp) for N in TABLE_N for dp in TABLE_DP]
+    if cases == mec.CASES and all(r in computed for r in paper_rows):
+        return paper_rows, cases, True
+    return sorted(computed), cases, False
+
+
 def paper_tables(results: dict, p: str) -> tuple[str, list[list]]:
-    """Markdown (Tables 1-4) and CSV rows for path ``p``."""
+    """Markdown and CSV rows of path ``p``'s tables, laid out by :func:`table_layout`
+    (the paper's Tables 1-4 for the default grid, the computed rows otherwise)."""
+    rows_nd, cases, paper = table_layout(results, p)
     md, rows = [], []
     for j in INDEXES:
         body = []
-        for N in TABLE_N:
-            for dp in TABLE_DP:
-                vals = [_table_value(results, p, N, c, dp) for c in mec.CASES]
-                cells = [fmt(v[j], 3 if j == "J4" else 2) if v is not None else "\u2013" for v in vals]
-                body.append([f"{dp:.1f}", str(N), *cells])
-                rows.append([j, dp, N, *[("" if v is None else v[j]) for v in vals]])
-        md.append(f"**{j}** ({p})\n\n" + markdown_table(["DP", "N", *mec.CASES], body))
+        for N, dp in rows_nd:
+            vals = [_table_value(results, p, N, c, dp, paper) for c in cases]
+            cells = [fmt(v[j], 3 if j == "J4" else 2) if v is not None else "\u2013" for v in vals]
+            body.append([f"{dp:.1f}" if paper or round(dp, 1) == dp else f"{dp:g}", str(N), *cells])
+            rows.append([j, dp, N, *[("" if v is None else v[j]) for v in vals]])
+        md.append(f"**{j}** ({p})\n\n" + markdown_table(["DP", "N", *cases], body))
     return "\n\n".join(md), rows
 
 
 def comparison(results: dict, p: str = "lissajous") -> str:
-    """Ours beside the paper's Tables 1-4, cell by cell, with the ratio ours / paper."""
+    """Ours beside the paper's Tables 1-4, cell by cell, with the ratio ours / paper: the
+    rows of Tables 1-4 that this grid computed (all of them for the default grid)."""
+    computed = {(c[1], c[3]) for c in results if c[0] == p}
+    rows_nd = [(N, dp) for N in TABLE_N for dp in TABLE_DP if (N, dp) in computed]
+    if not rows_nd:
+        return (f"No cell of this grid is in Tables 1-4 (their rows are N in {{{', '.join(map(str, TABLE_N))}}} "
+                f"x DP in {{{', '.join(f'{d:g}' for d in TABLE_DP)}}}).")
     parts = []
     for j in INDEXES:
         body = []
-        for N in TABLE_N:
-            for dp in TABLE_DP:
-                row = [f"{dp:.1f}", str(N)]
-                for i, c in enumerate(mec.CASES):
-                    ours = _table_value(results, p, N, c, dp)
-                    paper = PAPER[j][(dp, N)][i]
-                    d = 3 if j == "J4" else 2
-                    if ours is None or paper is None:
-                        row.append("\u2013")
-                        continue
-                    o = ours[j]
-                    ratio = "" if (math.isinf(o) or math.isinf(paper)) else f" ({o / paper:.2f}\u00d7)"
-                    row.append(f"{fmt(o, d)} vs {fmt(paper, d)}{ratio}")
-                body.append(row)
+        for N, dp in rows_nd:
+            row = [f"{dp:.1f}", str(N)]
+            for i, c in enumerate(mec.CASES):
+                ours = _table_value(results, p, N, c, dp)
+                paper = PAPER[j][(dp, N)][i]
+                d = 3 if j == "J4" else 2
+                if ours is None or paper is None:
+                    row.append("\u2013")
+                    continue
+                o = ours[j]
+                ratio = "" if (math.isinf(o) or math.isinf(paper)) else f" ({o / paper:.2f}\u00d7)"
+                row.append(f"{fmt(o, d)} vs {fmt(paper, d)}{ratio}")
+            body.append(row)
         parts.append(f"**{j}**: ours vs paper (ours / paper)\n\n" + markdown_table(["DP", "N", *mec.CASES], body))
     return "\n\n".join(parts)
 
@@ -343,14 +369,14 @@ def write_outputs(out: Path, results: dict, settings: dict) -> list[Path]:
     paths = sorted({c[0] for c in results}, key=lambda p: tuple(PATHS).index(p))
     for p in paths:
         md, rows = paper_tables(results, p)
+        _, cases, paper = table_layout(results, p)
         f = out / f"tables_{p}.md"
-        f.write_text(f"# Seed 000, {p}: Tables 1-4 (J normalised to nominal SR; \u221e unstable)\n\n{md}\n\n"
-                     f"{trends_markdown(results, p)}\n")
+        f.write_text(f"# Seed 000, {p}: {_table_title(paper)}\n\n{md}\n\n{trends_markdown(results, p)}\n")
         files.append(f)
         f = out / f"tables_{p}.csv"
         with open(f, "w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["index", "DP", "N", *mec.CASES])
+            w.writerow(["index", "DP", "N", *cases])
             w.writerows(rows)
         files.append(f)
         f = out / f"grid_{p}.csv"
@@ -367,8 +393,18 @@ def write_outputs(out: Path, results: dict, settings: dict) -> list[Path]:
         f = out / "paper_comparison.md"
         f.write_text("# Seed 000, Lissajous: ours vs the paper's Tables 1-4\n\n" + comparison(results) + "\n")
         files.append(f)
-        print("\n" + paper_tables(results, "lissajous")[0])
+    for p in (("lissajous",) if "lissajous" in paths else paths):     # stdout: what the files show
+        if not table_layout(results, p)[2]:
+            print(f"\n{p}: {_table_title(False)}")
+        print("\n" + paper_tables(results, p)[0])
     return files
+
+
+def _table_title(paper: bool) -> str:
+    if paper:
+        return "Tables 1-4 (J normalised to nominal SR; \u221e unstable)"
+    return ("the N and DP this grid computed (J normalised to nominal SR; \u221e unstable; "
+            "\u2013 not computed; the paper's Tables 1-4 have N in {1, 2, 6, 12} x DP in {0, 0.2, 0.4, 0.6})")
 
 
 def heatmaps(out: Path, results: dict, p: str) -> Path:

@@ -70,6 +70,28 @@ def check_given(name, v, what: str = "a number or an array of numbers"):
         raise ValueError(f"{name} must be {what}, got None")
 
 
+def choice(v, choices):
+    """The element of ``choices`` that ``v`` names: an exact match, else the one match
+    ignoring case (the command line's rule, :meth:`jaxnc.experiment.Option.parse`); None
+    when there is none or more than one."""
+    for c in choices:
+        if (v == str(c)) if isinstance(v, str) else (type(v) is type(c) and v == c):
+            return c
+    if isinstance(v, str):
+        folded = [c for c in choices if str(c).lower() == v.lower()]
+        if len(folded) == 1:
+            return folded[0]
+    return None
+
+
+def check_choice(name, v, choices):
+    """:func:`choice`, or ValueError naming ``name`` and the choices."""
+    c = choice(v, choices)
+    if c is None:
+        raise ValueError(f"{name} must be one of {', '.join(str(c) for c in choices)} (any case), got {v!r}")
+    return c
+
+
 def check_bool(name, v):
     if not isinstance(v, (bool, np.bool_)):
         raise ValueError(f"{name} must be True or False, got {v!r}")

@@ -158,13 +158,11 @@ class Option:
                 return False
             raise self._error(text)
         # choice: exact match first, then a unique case-insensitive match
-        for c in self.choices:
-            if s == str(c):
-                return c
-        folded = [c for c in self.choices if str(c).lower() == s.lower()]
-        if len(folded) == 1:
-            return folded[0]
-        raise self._error(text)
+        from jaxnc._validate import choice
+        c = choice(s, self.choices)
+        if c is None:
+            raise self._error(text)
+        return c
 
 
 @dataclasses.dataclass(frozen=True)

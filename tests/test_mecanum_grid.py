@@ -1,5 +1,7 @@
 """The seed-000 grid experiment: resumable cell by cell, identical tables after an interruption."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -28,6 +30,17 @@ def test_interrupted_grid_resumes_and_gives_identical_tables(tmp_path):
     assert _outputs(a) == _outputs(b) and _outputs(a)
     # nothing left to do; a damaged cell file counts as missing and is recomputed
     assert mg.run_grid(SETTINGS, seeds=4, out=a, progress=False)["computed"] == 0
+    # a resume that only reuses cells keeps the grid's totals (finding 9 of issue 25: it
+    # wrote computed 0, wall_time_s 0.0 as if that were the grid's)
+    from jaxnc.montecarlo import load_results
+    r = load_results(a / "results.json")["results"]
+    assert (r["computed"], r["reused"], r["stored"]) == (0, len(cells), len(cells))
+    cell_times = [json.loads(f.read_text())["wall_time_s"] for f in (a / "cells").rglob("*.json")]
+    assert len(cell_times) == len(cells) and r["compute_time_total_s"] == pytest.approx(sum(cell_times))
+    assert r["compute_time_total_s"] > 0 and "this run" in r["meaning"]
+    # cell files get the same mode as results.json (they were 0600 from mkstemp)
+    modes = {f.name: f.stat().st_mode & 0o777 for f in [a / "results.json", *(a / "cells").rglob("*.*")]}
+    assert len(set(modes.values())) == 1, modes
     f = mg.cell_file(a, "turn180", 2, "DRH", 0.3)
     f.write_text('{"config": ')
     assert mg.run_grid(SETTINGS, seeds=4, out=a, progress=False)["computed"] == 1
@@ -52,6 +65,11 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
 def test_tables_show_paper_layout_and_infinity():
     res = {("lissajous", 1, "SR", 0.0): {"J1": {"mean": 0.04}, "J2": {"mean": 0.1}, "J3": {"mean": 50.0},
                                          "rate_sc": {"mean": 1.0}, "unstable_fraction": 0.0, "h": 1}}
+    for N in mg.TABLE_N:                   # the paper's rows are all computed: the paper's layout
+        for dp in mg.TABLE_DP:
+            for c in mg.mec.CASES:
+                if (N, c, dp) not in ((1, "SR", 0.0), (2, "SR", 0.2), (2, "DRHE", 0.2)):
+                    res[("lissajous", N, c, dp)] = dict(res[("lissajous", 1, "SR", 0.0)])
     res[("lissajous", 2, "DR", 0.2)] = dict(res[("lissajous", 1, "SR", 0.0)], unstable_fraction=0.6)
     res[("lissajous", 2, "DRH", 0.2)] = {"J1": {"mean": 0.05}, "J2": {"mean": 0.1}, "J3": {"mean": 51.0},
                                         "rate_sc": {"mean": 0.5}, "unstable_fraction": 0.1, "h": 3}
@@ -89,3 +107,62 @@ def test_trend_checks_find_violations():
         res[(p, 6, "DR", dp)]["J1"]["ci95"] = 0.01
     assert {s: ok for s, ok, _ in mg.trend_checks(res, p)}[
         "for a fixed case and N, J1 grows with DP (beyond the 95 % intervals)"]
+
+
+def _cell(J, rate=1.0, unstable=0.0, h=1):
+    return {"J1": {"mean": J, "ci95": 0.0}, "J2": {"mean": J}, "J3": {"mean": J}, "rate_sc": {"mean": rate},
+            "unstable_fraction": unstable, "h": h}
+
+
+def test_custom_grid_tables_show_the_cells_it_computed(tmp_path, capsys):
+    # finding 2 of issue 25: N = 2, 4, 6 and DP = 0, 0.3, 0.5 were shown as the paper's fixed
+    # rows (N in 1, 2, 6, 12 x DP in 0, 0.2, 0.4, 0.6), mostly "-"; N = 4 and DP = 0.3, 0.5
+    # only in grid_*.csv
+    p, Ns, dps = "lissajous", (2, 4, 6), (0.0, 0.3, 0.5)
+    res = {(p, 1, "SR", 0.0): _cell(1.0)}
+    for N in Ns:
+        for dp in dps:
+            res[(p, N, "DRH", dp)] = _cell(1.0 + N / 10 + dp, rate=1 / N)
+    rows, cases, paper = mg.table_layout(res, p)
+    assert not paper and cases == ("SR", "DRH")
+    assert rows == [(1, 0.0)] + [(N, dp) for N in Ns for dp in dps]
+    files = mg.write_outputs(tmp_path, res, {})
+    md = (tmp_path / "tables_lissajous.md").read_text()
+    assert "the N and DP this grid computed" in md and "Tables 1-4 (" not in md
+    j1 = md.split("**J1**")[1].split("**J2**")[0]
+    assert "| 0.3 | 4 |    – | 1.70 |" in j1 and "| 0.5 | 6 |    – | 2.10 |" in j1
+    assert " 12 |" not in j1 and "| 0.2 |" not in j1 and "DRHE" not in j1
+    csv_rows = (tmp_path / "tables_lissajous.csv").read_text().splitlines()
+    assert csv_rows[0] == "index,DP,N,SR,DRH" and len(csv_rows) == 1 + 4 * 10
+    assert "J4,0.3,4,,0.25" in csv_rows
+    out = capsys.readouterr().out                                 # stdout: the same tables
+    assert "| 0.3 | 4 |    – | 1.70 |" in out and "the N and DP this grid computed" in out
+    cmp = (tmp_path / "paper_comparison.md").read_text()           # only the paper's rows computed
+    assert "| 0.0 | 2 |" in cmp and "| 0.3 |" not in cmp and "| 0.2 |" not in cmp
+    assert tmp_path / "fig_lissajous.png" in files
+
+
+def test_default_grid_tables_are_the_saved_seed000_tables():
+    # the default grid keeps the paper's layout: rebuilt from the saved grid CSV (nominal
+    # means 1, so the ratios are the saved values exactly), the tables are byte for byte the
+    # saved tables_lissajous.csv and the table part of tables_lissajous.md
+    import csv
+    from pathlib import Path
+    saved = Path(__file__).resolve().parent.parent / "docs" / "results" / "seed000"
+    res = {}
+    with open(saved / "grid_lissajous.csv") as fh:
+        for r in csv.DictReader(fh):
+            cell = (r["path"], int(r["N"]), r["case"], float(r["DP"]))
+            res[cell] = {"J1": {"mean": float(r["J1"]), "ci95": 0.0}, "J2": {"mean": float(r["J2"])},
+                         "J3": {"mean": float(r["J3"])}, "rate_sc": {"mean": float(r["J4"])},
+                         "unstable_fraction": float(r["unstable_fraction"]), "h": int(r["h"])}
+    assert mg.table_layout(res, "lissajous")[2]
+    md, rows = mg.paper_tables(res, "lissajous")
+    text = (saved / "tables_lissajous.md").read_text()
+    assert text.startswith("# Seed 000, lissajous: Tables 1-4 (J normalised to nominal SR; \u221e unstable)\n\n" + md + "\n\n")
+    import io
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\r\n")
+    w.writerow(["index", "DP", "N", *mg.mec.CASES])
+    w.writerows(rows)
+    assert buf.getvalue().encode() == (saved / "tables_lissajous.csv").read_bytes()

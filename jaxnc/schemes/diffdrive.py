@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
+from jaxnc._validate import check_choice, check_int, check_nonneg, check_positive, check_range
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, DualRateState, dualrate_design, pi_controller, \
     single_rate_pi
 from jaxnc.controllers.prediction import predict_periods
@@ -170,8 +170,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
     runs noise-free, 0.1 for e).  The controllers are designed here, at configuration
     time: ``single_rate_pi`` at T (a) or NT (b) and ``dualrate_design`` (c-e).
     """
-    if scenario not in SCENARIOS:
-        raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}")
+    scenario = check_choice("scenario", scenario, SCENARIOS)
     check_int("N", N, 1, 50)
     check_int("h", h, 1, 100)
     F = (0.1 if scenario == "e" else 0.0) if F is None else F

@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, check_range
+from jaxnc._validate import check_choice, check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.nudrekf import ChainActuator, ChainController, NudrekfEstimator, PacketChain
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
@@ -214,11 +214,19 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     simulation is unchanged; reverse mode about 2x cheaper, an approximate gradient).
     ``sparse=False`` runs the EKF dense instead of with the model's Jacobian sparsity
     (:func:`ekf_structure`; same values up to float32 rounding, about 1.3x slower).
+
+    ``case`` is matched as on the command line (exact, else ignoring case: "drhe" is
+    DRHE). Every argument is checked here, before anything is built: ValueError naming
+    the argument and its allowed range.
     """
-    if case not in CASES:
-        raise ValueError(f"case must be one of {', '.join(CASES)}, got {case!r}")
+    case = check_choice("case", case, CASES)
     check_int("N", N, 1, 100)
     check_range("dp", dp, 0.0, 1.0, high_open=True)
+    check_range("eta", eta, 0.0, None)
+    check_range("phi", phi, 0.0, None)
+    check_range("trigger_temperature", trigger_temperature, 0.0, None)
+    if horizon_s is not None:
+        check_range("horizon_s", horizon_s, 0.0, None, low_open=True)
     plant = plant or Mecanum()
     noise = noise or MecanumNoise()
     if filter_noise is None:
@@ -231,6 +239,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         h = default_h(case, N, float(dp), n_slow)
     check_int("h", h, 1, 1000)
     check_int("max_silence", max_silence, 0, 100_000)
+    for name, v in (("sigma", sigma), ("delta", delta)):
+        check_range(name, v, 0.0, None)                   # None: the paper's
     sigma = np.asarray(DEFAULT_SIGMA if sigma is None else sigma, np.float32)
     delta = np.asarray(PAPER_DELTA if delta is None else delta, np.float32)
     for name, v in (("sigma", sigma), ("delta", delta)):
@@ -239,6 +249,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     sigma = np.broadcast_to(sigma, (OUTPUT_DIM,)).copy()
     delta = np.broadcast_to(delta, (OUTPUT_DIM,)).copy()
     T = plant.T
+    if tau_max is not None:          # (0, N T]: no packet disorder (seed 000 section 2.3)
+        check_range("tau_max", tau_max, 0.0, N * float(T) * (1 + 1e-6), low_open=True)
     tau_max = N * T if tau_max is None else tau_max
     if horizon_s is None:
         horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0
