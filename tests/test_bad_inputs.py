@@ -1,18 +1,24 @@
 """Bad inputs over the CLI and the Python API: each a clear error naming the parameter
-(no traceback, nothing silently accepted), raised before anything is traced."""
+(no traceback, nothing silently accepted), raised before anything is traced.
+
+Every case is one distinct bad input; ``test_the_battery_has_at_least_60_cases`` counts
+them (issue 25 asks for at least 60)."""
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxnc import loop as nc
-from jaxnc import montecarlo
+from jaxnc import montecarlo, wifi
 from jaxnc.cli import run_cli
-from jaxnc.network import Channel
+from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
+from jaxnc.network import Channel, sample_channel
+from jaxnc.schemes import diffdrive, mecanum
 
 
-@pytest.mark.parametrize("setting, fragment", [
+CLI_SETTINGS = [
     ("N=１", "N must be an integer"),                 # a full-width digit
     ("N=1_0", "N must be an integer"),
     ("N=+", "N must be an integer"),
@@ -21,21 +27,55 @@ from jaxnc.network import Channel
     ("dp=½", "dp must be a number"),
     ("dp=1_0", "dp must be a number"),
     ("dp=nan", "dp must be a number"),
-])
+    ("dp=1.5", "dp must be a number in [0, 0.95]"),
+    ("N=0", "N must be an integer in [1, 20]"),
+    ("case=XYZ", "case must be one of"),
+    ("path=circle", "path must be one of"),
+    ("sigma=0.1,,0.2", "sigma must be a comma-separated list of numbers"),
+    ("max_silence=-1", "max_silence must be an integer in [0, 100000]"),
+    ("colour=red", "unknown setting 'colour'"),
+    ("N", "malformed setting 'N': expected KEY=VALUE"),
+]
+
+
+@pytest.mark.parametrize("setting, fragment", CLI_SETTINGS)
 def test_cli_numbers_are_plain_ascii_and_do_not_underflow(setting, fragment, tmp_path, capsys):
     code = run_cli(["run", "mecanum", "--seeds", "2", "--out", str(tmp_path / "o"), "--set", setting])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and fragment in err[0], err
 
 
-def test_cli_repeated_key_and_seed_bound(tmp_path, capsys):
-    assert run_cli(["run", "mecanum", "--seeds", "2", "--out", str(tmp_path), "--set", "N=2", "N=3"]) == 2
-    assert "setting 'N' given twice" in capsys.readouterr().err
-    assert run_cli(["run", "mecanum", "--seeds", "5000000000", "--set", "case=SR", "N=1"]) == 2
-    assert "--seeds must be an integer in [1, 4294967295]" in capsys.readouterr().err
+CLI_LINES = [
+    (["--set", "N=2", "N=3"], "setting 'N' given twice"),
+    (["--seeds", "5000000000", "--set", "case=SR", "N=1"], "--seeds must be an integer in [1, 4294967295]"),
+    (["--seeds", "0"], "--seeds must be an integer in [1, 4294967295]"),
+    (["--seeds", "1.5"], "--seeds must be an integer in [1, 4294967295]"),
+    (["--cpu-devices", "0"], "--cpu-devices must be an integer in [1, 256]"),
+]
 
 
-@pytest.mark.parametrize("call, fragment", [
+@pytest.mark.parametrize("args, fragment", CLI_LINES)
+def test_cli_command_line_errors(args, fragment, tmp_path, capsys):
+    argv = ["run", "mecanum", "--out", str(tmp_path / "o")] + (["--seeds", "2"] if "--seeds" not in args else []) + args
+    code = run_cli(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and fragment in err[0], err
+
+
+_KEY = jax.random.PRNGKey(0)
+_PLANT = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]])
+_G = Gaussian(jnp.zeros(2), jnp.eye(2))
+_F = lambda x, u, w: x + w            # noqa: E731
+_H = lambda x, v: x[:1] + v           # noqa: E731
+
+
+def _loop(**kw):
+    base = dict(plant=_PLANT, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
+                controller=nc.StateFeedback(K=[[1.0]]), downlink=nc.Link(), actuator=nc.PacketActuator())
+    return nc.Loop(**{**base, **kw})
+
+
+PYTHON_API = [
     (lambda: montecarlo.seed_keys(2**32, 3), "seed must be in [0, 4294967295]"),
     (lambda: montecarlo.seed_keys(-1, 1), "seed must be in"),
     (lambda: montecarlo.seed_keys(0, 1.5), "n must be an integer"),
@@ -75,25 +115,128 @@ def test_cli_repeated_key_and_seed_bound(tmp_path, capsys):
     (lambda: nc.StateFeedback(K=[[np.nan, 1.0]]), "StateFeedback.K must be finite"),
     (lambda: nc.StateFeedback(K=[[1.0]], u_min=1.0, u_max=0.0), "StateFeedback.u_min must be <= u_max"),
     (lambda: nc.Monitor(bounds=["a"]), "Monitor.bounds must be a number"),
-])
+    # network and Wi-Fi
+    (lambda: Channel(p_loss=None), "Channel.p_loss must be a number"),
+    (lambda: Channel(phi=float("nan")), "Channel.phi must be in [0, inf)"),
+    (lambda: sample_channel(_KEY, Channel(), 2.7), "sample_channel: n must be an integer in [0, inf)"),
+    (lambda: sample_channel(_KEY, Channel(), -1), "sample_channel: n must be an integer in [0, inf)"),
+    (lambda: wifi.sample_trace(_KEY, wifi.NOMINAL, -1), "sample_trace: n must be an integer in [0, inf)"),
+    (lambda: wifi.WifiChannel(p_gb="0.1"), "WifiChannel.p_gb must be a number"),
+    (lambda: wifi.WifiChannel(gap_min=2.5), "WifiChannel.gap_min must be an integer"),
+    # the papers' configurations
+    (lambda: mecanum.mecanum_loop(dp="0.5"), "dp must be a number"),
+    (lambda: mecanum.mecanum_loop(horizon_s=-5), "horizon_s must be in (0, inf)"),
+    (lambda: mecanum.mecanum_loop(horizon_s=float("nan")), "horizon_s must be in (0, inf)"),
+    (lambda: mecanum.mecanum_loop(tau_max=5.0), "tau_max must be in (0, 1]"),
+    (lambda: mecanum.mecanum_loop(eta=-1.0), "eta must be in [0, inf)"),
+    (lambda: mecanum.mecanum_loop(sigma="0.1"), "sigma must be a number"),
+    (lambda: mecanum.mecanum_loop(trigger_temperature=-1.0), "trigger_temperature must be in [0, inf)"),
+    (lambda: mecanum.mecanum_loop("XY"), "case must be one of SR, DR, DRH, DRHE"),
+    (lambda: mecanum.mecanum_loop(N=2.0), "N must be an integer in [1, 100]"),
+    (lambda: diffdrive.diffdrive_loop("z"), "scenario must be one of a, b, c, d, e"),
+    # EKF functions: shapes against the model, definiteness of a concrete R
+    (lambda: ekf_predict(_F, _G, jnp.zeros(1), jnp.eye(3), 2), "ekf_predict: Q must be 2x2 or a vector of 2 variances"),
+    (lambda: ekf_predict(_F, _G, jnp.zeros(1), jnp.ones(3), 2), "ekf_predict: Q must be 2x2"),
+    (lambda: ekf_predict(_F, _G, jnp.zeros(1), jnp.eye(2), 0), "ekf_predict: noise_dim must be an integer >= 1"),
+    (lambda: ekf_predict(_F, _G, jnp.zeros(1), np.array([1.0, -1.0]), 2), "ekf_predict: Q must be positive semi-definite"),
+    (lambda: ekf_update(_H, _G, jnp.zeros(1), jnp.eye(2), 1), "ekf_update: R must be 1x1"),
+    (lambda: ekf_update(_H, _G, jnp.zeros(1), -np.eye(1), 1), "ekf_update: R must be positive definite"),
+    (lambda: ekf_update(_H, _G, jnp.zeros(1), np.eye(1), 0), "ekf_update: noise_dim must be an integer >= 1"),
+    (lambda: ekf_update(_H, _G, jnp.zeros(3), np.eye(1), 1), "ekf_update: z must have the shape of h(x, v), (1,)"),
+    (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), -np.ones(1), 1), "ekf_update_diag: r must be positive definite"),
+    (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), np.ones(3), 1), "ekf_update_diag: r must be a vector of 1 variances"),
+    # the runner's components
+    (lambda: nc.Bernoulli(p=None), "Bernoulli.p must be a number"),
+    (lambda: nc.TraceLoss(lost="abc"), "TraceLoss.lost must be a 1-D array of booleans"),
+    (lambda: nc.TraceLoss(lost=np.zeros((2, 2), bool)), "TraceLoss.lost must be a 1-D array of booleans"),
+    (lambda: nc.TraceDelay(steps=[0.5, 1.0]), "TraceDelay.steps must be a 1-D array of integer delays"),
+    (lambda: nc.TraceDelay(steps=[np.nan]), "TraceDelay.steps must be finite"),
+    (lambda: nc.WifiModel(channel=0.3), "WifiModel.channel must be a jaxnc.wifi.WifiChannel"),
+    (lambda: nc.Link(loss=0.3), "Link.loss must be a loss model"),
+    (lambda: nc.Link(delay="exp"), "Link.delay must be a delay model"),
+    (lambda: nc.Link(reliable_first="yes"), "Link.reliable_first must be True or False"),
+    (lambda: nc.Petc(sigma=float("nan")), "Petc.sigma must be in [0, inf)"),
+    (lambda: nc.Petc(sigma=[0.1, -1.0]), "Petc.sigma must be in [0, inf)"),
+    (lambda: nc.Petc(relaxed="yes"), "Petc.relaxed must be True or False"),
+    (lambda: nc.EKF(3, Q=np.eye(2), R=np.eye(1), mean0=[0, 0], cov0=np.eye(2)), "EKF.model must be a plant"),
+    (lambda: nc.EKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[np.nan, 0], cov0=np.eye(2)), "EKF.mean0 must be finite"),
+    (lambda: nc.EKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0="0", cov0=np.eye(2)), "EKF.mean0 must be a number"),
+    (lambda: nc.EKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0, 0], cov0=np.eye(2), inputs="x"),
+     "EKF.inputs must be one of believed, applied"),
+    (lambda: nc.Passthrough(z0="a"), "Passthrough.z0 must be a number"),
+    (lambda: nc.StateFeedback(K="k"), "StateFeedback.K must be a number"),
+    (lambda: nc.StateFeedback(K=[[1.0, 0.0]], u_min=np.nan), "StateFeedback.u_min must be in [-inf, inf] (not NaN)"),
+    (lambda: nc.Function(params=1.0, fn=3), "Function.fn must be a function"),
+    (lambda: nc.Predictive(law=3, model=_PLANT, horizon=2), "Predictive.law must be a one-action controller"),
+    (lambda: nc.Predictive(law=nc.StateFeedback(K=[[1.0, 0.0]]), model="robot", horizon=2), "Predictive.model must be a plant"),
+    (lambda: nc.LTI(A=np.full((2, 2), np.nan), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be finite"),
+    (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0], [2.0]], C=[[1.0, 0.0]]), "LTI.B must have 2 rows"),
+    (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], D=[[1.0]]), "LTI.D must be 0"),
+    (lambda: nc.Discrete(x0=[0.0], w_std=0.0, v_std=0.0, f=3, h=_H), "Discrete.f must be a function"),
+    (lambda: nc.Continuous(x0=[0.0], w_std=0.0, v_std=0.0, f=_F, h=_H, T=0.0), "Continuous.T must be in (0, inf)"),
+    (lambda: nc.Monitor(bounds=[-1.0]), "Monitor.bounds must be in (0, inf]"),
+    (lambda: nc.Quadratic(Q=[1.0], R=-1.0), "Quadratic.R must be in [0, inf)"),
+    (lambda: nc.Quadratic(Q=[[1.0, 2.0], [2.0, 1.0]], R=1.0), "Quadratic.Q must be symmetric positive semi-definite"),
+    (lambda: _loop(plant=3), "Loop.plant must be a plant"),
+    (lambda: _loop(estimator=None), "Loop.estimator must be an estimator"),
+    (lambda: _loop(controller=lambda x: x), "Loop.controller must be a controller"),
+    (lambda: _loop(cost=3.0), "Loop.cost must be a function"),
+    (lambda: _loop(monitor=[1.0]), "Loop.monitor must be a jaxnc.loop.Monitor"),
+    (lambda: _loop(controller=nc.StateFeedback(K=[[1.0, 0.0, 0.0]])), "Loop.controller cannot act on the estimator's estimate"),
+    (lambda: _loop(N=2.0, steps=10), "Loop.N must be an integer"),
+    (lambda: _loop(N=2, steps=7), "Loop.steps must be a multiple of N=2"),
+]
+
+
+@pytest.mark.parametrize("call, fragment", PYTHON_API)
 def test_python_api_errors_name_the_parameter(call, fragment):
     with pytest.raises(ValueError) as e:
         call()
     assert fragment in str(e.value), str(e.value)
 
 
-def test_ekf_shapes_and_definiteness_are_checked():
-    plant = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]])
+EKF_ARGS = [
+    (dict(Q=np.eye(3)), "EKF.Q must be 2x2"), (dict(R=np.eye(2)), "EKF.R must be 1x1"),
+    (dict(mean0=[0.0]), "EKF.mean0 must have 2 entries"),
+    (dict(cov0=np.eye(3)), "EKF.cov0 must be 2x2"),
+    (dict(cov0=np.array([[1.0, 2.0], [0.0, 1.0]])), "EKF.cov0 must be symmetric"),
+    (dict(R=-np.eye(1)), "EKF.R must be positive"), (dict(Q=[1.0, -1.0]), "EKF.Q"),
+    (dict(buffer=-1), "EKF.buffer must be an integer"),
+]
+
+
+@pytest.mark.parametrize("bad, fragment", EKF_ARGS)
+def test_ekf_shapes_and_definiteness_are_checked(bad, fragment):
     good = dict(Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))
-    for bad, fragment in ((dict(Q=np.eye(3)), "EKF.Q must be 2x2"), (dict(R=np.eye(2)), "EKF.R must be 1x1"),
-                          (dict(mean0=[0.0]), "EKF.mean0 must have 2 entries"),
-                          (dict(cov0=np.eye(3)), "EKF.cov0 must be 2x2"),
-                          (dict(cov0=np.array([[1.0, 2.0], [0.0, 1.0]])), "EKF.cov0 must be symmetric"),
-                          (dict(R=-np.eye(1)), "EKF.R must be positive"), (dict(Q=[1.0, -1.0]), "EKF.Q"),
-                          (dict(buffer=-1), "EKF.buffer must be an integer")):
-        with pytest.raises(ValueError, match="") as e:
-            nc.EKF(plant, **{**good, **bad})
-        assert fragment in str(e.value), (fragment, str(e.value))
+    with pytest.raises(ValueError) as e:
+        nc.EKF(_PLANT, **{**good, **bad})
+    assert fragment in str(e.value), (fragment, str(e.value))
+
+
+TRACE_FILES = [
+    (b"step,delay\n0,1\n1,\xff\n", "bad.csv:3: not a UTF-8 text file"),
+    (b"step,delay\n0,99999999999\n", "bad.csv:2: delay must be in [0, 2147483647]"),
+    (b"step,delay\n0,-1\n", "bad.csv:2: delay must be empty (a lost packet) or a non-negative integer"),
+]
+
+
+@pytest.mark.parametrize("content, fragment", TRACE_FILES)
+def test_trace_file_errors_name_the_file_and_line(tmp_path, content, fragment):
+    f = tmp_path / "bad.csv"
+    f.write_bytes(content)
+    with pytest.raises(ValueError) as e:
+        wifi.read_trace(f)
+    assert fragment in str(e.value) and str(f) in str(e.value), str(e.value)
+
+
+RESULTS_FILES = 2                      # truncated JSON, not UTF-8 (below)
+
+
+def test_the_battery_has_at_least_60_cases():
+    n = len(CLI_SETTINGS) + len(CLI_LINES) + len(PYTHON_API) + len(EKF_ARGS) + len(TRACE_FILES) + RESULTS_FILES
+    assert n >= 60, n
+    fragments = [f for _, f in CLI_SETTINGS + PYTHON_API + TRACE_FILES] + [f for _, f in CLI_LINES + EKF_ARGS]
+    assert len(fragments) == n - RESULTS_FILES
 
 
 def test_results_file_errors_name_the_file(tmp_path):
