@@ -145,6 +145,10 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
     tqdm bar over seeds (on stderr) labelled ``desc``.
     """
+    if not callable(fn):
+        raise ValueError(f"run_batched: fn must be a function fn(key, *args), got {type(fn).__name__}")
+    if not isinstance(args, tuple):
+        raise ValueError(f"run_batched: args must be a tuple (of fn's extra arguments), got {type(args).__name__}")
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"run_batched: chunk_size must be an integer >= 1, got {chunk_size!r}")
     chunk_size = int(chunk_size)

@@ -86,6 +86,8 @@ PYTHON_API = [
     (lambda: montecarlo.run_batched(lambda k: k, montecarlo.seed_keys(0, 2), chunk_size=0), "chunk_size"),
     (lambda: montecarlo.run_batched(lambda k: k, np.zeros((4, 2), np.float32)), "keys must be raw uint32"),
     (lambda: montecarlo.run_batched(lambda k: k, jnp.arange(4)), "keys must be raw uint32"),
+    (lambda: montecarlo.run_batched(3, montecarlo.seed_keys(0, 2)), "run_batched: fn must be a function"),
+    (lambda: montecarlo.run_batched(lambda k, a: k, montecarlo.seed_keys(0, 2), args=3), "run_batched: args must be a tuple"),
     (lambda: Channel(p_loss=[0.1, 1.2]), "Channel.p_loss must be in [0, 1)"),
     (lambda: Channel(p_loss="0.3"), "Channel.p_loss must be a number"),
     (lambda: Channel(eta=[0.1, "a"]), "Channel.eta must be a number"),
