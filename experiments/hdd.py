@@ -3,7 +3,8 @@
 ``hdd`` runs Cases 1-6 on the same seeds (common random numbers), prints the table of
 Uc, Ua, Cc, ISE, ISEP, NE and GPI (eq. 23-29) next to the paper's values, writes
 ``results.json``, the per-seed metrics (``seeds.npz``, :func:`jaxnc.load`), one figure per case like Figs 6-9, 11, 13 (output, control, utilisation
-bars; a black dot where the actuator applies a packet's current action) and the plant's
+bars; a black dot where the actuator applies a packet's current action), Figs 10 and 12
+(Cases 4 and 5: the disturbance estimate and the multiplicity N over time) and the plant's
 frequency response (``plant_bode.png``).
 
 ``hdd-gpi`` is the Monte-Carlo grid of Fig. 5: GPI (W1 = W2 = 0.45, W3 = 0.1) over
@@ -36,7 +37,8 @@ METRICS = ("Uc", "Ua", "Cc", "ISE", "ISEP", "NE", "GPI")
 
 
 def _common(settings):
-    return dict(reading=settings["reading"], h=settings["h"], k_max=settings["k_max"], m=settings["m"],
+    # h = 0: the whole run (schemes.hdd.whole_run_horizon), the paper's rule h >= N_max
+    return dict(reading=settings["reading"], h=settings["h"] or None, k_max=settings["k_max"], m=settings["m"],
                 w_std=settings["w_std"])
 
 
@@ -56,7 +58,8 @@ def summarise(m) -> dict:
     unstable = np.asarray(m.unstable)
     return {k: montecarlo.summarize(np.asarray(getattr(m, k), float), unstable).to_dict()
             for k in METRICS} | {"n_sc_mean": float(np.mean(m.n_sc)), "n_ca_mean": float(np.mean(m.n_ca)),
-                                 "unstable_fraction": float(np.mean(unstable))}
+                                 "unstable_fraction": float(np.mean(unstable)),
+                                 "N_max": int(np.max(m.N_max)), "n_held_mean": float(np.mean(m.n_held))}
 
 
 def table(summary: dict) -> str:
@@ -66,9 +69,10 @@ def table(summary: dict) -> str:
         rows.append([f"{c} {CASE_NAMES[int(c)]}", fmt(s["Uc"]["mean"]), fmt(p["Uc"]), fmt(s["Ua"]["mean"]), fmt(p["Ua"]),
                      fmt(100 * s["Cc"]["mean"], 0), fmt(p["Cc"], 0), fmt(s["ISEP"]["mean"], 3),
                      fmt(s["NE"]["mean"], 3) + " \u00b1 " + fmt(s["NE"]["ci95"], 3), fmt(p["NE"]),
-                     fmt(s["GPI"]["mean"], 3), f"{100 * s['unstable_fraction']:.1f}"])
+                     fmt(s["GPI"]["mean"], 3), f"{100 * s['unstable_fraction']:.1f}", str(s["N_max"]),
+                     fmt(s["n_held_mean"], 1)])
     return markdown_table(["case", "Uc", "paper", "Ua", "paper", "Cc %", "paper", "ISEP", "NE", "paper", "GPI",
-                           "unstable %"], rows)
+                           "unstable %", "N_max", "held"], rows)
 
 
 def plot_case(loop, traj, out: Path, case: int) -> Path:
@@ -100,6 +104,47 @@ def plot_case(loop, traj, out: Path, case: int) -> Path:
     fig.suptitle(f"Case {case}: {CASE_NAMES[case]} (seed 0)")
     fig.tight_layout()
     f = out / f"case{case}.png"
+    fig.savefig(f, dpi=120)
+    plt.close(fig)
+    return f
+
+
+# The paper's figures of the disturbance estimate and the multiplicity N (Cases 4 and 5).
+DISTURBANCE_FIGS = {4: 10, 5: 12}
+
+
+def plot_disturbance_n(loop, traj, out: Path, case: int) -> Path:
+    """Figs. 10 and 12 (Cases 4, 5): top, the disturbance d and its estimates (the
+    filter's d-hat every period, eq. 15, and the value the controller used at each arrival);
+    middle, the multiplicity N (eq. 9) of each arrival over time; bottom, how often each N
+    occurs over the run's periods, N = 0 where no event is triggered at the sensor."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig_no = DISTURBANCE_FIGS[case]
+    t = np.arange(loop.steps) * hdd_plant.T * 1e3
+    beta, N = np.asarray(traj.beta), np.asarray(traj.N)
+    fig, ax = plt.subplots(3, 1, figsize=(8, 7))
+    ax[0].plot(t, np.asarray(traj.d), "k", lw=1.2, label="disturbance d")
+    ax[0].plot(t, np.asarray(traj.dpred), lw=0.9, label="estimate (filter, eq. 15)")
+    ax[0].plot(t[beta], np.asarray(traj.dhat)[beta], ".", ms=3, label="estimate used at an arrival")
+    ax[0].set_ylabel("d")
+    ax[0].set_xlabel("time (ms)")
+    ax[0].legend(fontsize=8)
+    arr = beta & (N > 0)
+    ax[1].vlines(t[arr], 0, N[arr], lw=0.8)
+    ax[1].plot(t[arr], N[arr], ".", ms=3)
+    ax[1].set_ylabel("N at an arrival")
+    ax[1].set_xlabel("time (ms)")
+    counts = np.bincount(N, minlength=2)
+    ax[2].bar(np.arange(counts.size), counts / loop.steps, width=0.8)
+    ax[2].set_xlabel("N (0: no event at the sensor)")
+    ax[2].set_ylabel("fraction of periods")
+    ax[2].set_yscale("log")
+    fig.suptitle(f"Fig. {fig_no}: Case {case} ({CASE_NAMES[case]}), disturbance estimate and multiplicity N\n"
+                 f"seed 0: N_max = {int(N.max())}, {int(beta.sum())} arrivals, h = {loop.h}", fontsize=10)
+    fig.tight_layout()
+    f = out / f"fig{fig_no}_case{case}_disturbance_N.png"
     fig.savefig(f, dpi=120)
     plt.close(fig)
     return f
@@ -146,9 +191,13 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     per_seed.save_per_seed(out, runs, dims=("case",))
     figs = [plot_bode(out, settings["reading"])]
     for c, loop in loops.items():
-        figs.append(plot_case(loop, jax.jit(hdd.simulate)(loop, keys[0]), out, c))
+        traj = jax.device_get(jax.jit(hdd.simulate)(loop, keys[0]))
+        figs.append(plot_case(loop, traj, out, c))
+        if c in DISTURBANCE_FIGS:
+            figs.append(plot_disturbance_n(loop, traj, out, c))
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds, "T": hdd_plant.T, "steps": hdd.STEPS,
+              "h": {c: l.h for c, l in loops.items()},
               "noise": {"w_std": settings["w_std"], "v_std": hdd_plant.V_STD},
               "filter": {"W": hdd.filter_disturbance_var(settings["w_std"]), "slope_std": hdd.FILTER_SLOPE_STD,
                          "V": hdd.FILTER_V,
@@ -283,7 +332,8 @@ def _write_gpi(settings, seeds, out, ts, tc, res, t0) -> dict:
 
 _OPTS = (
     Option("reading", "choice", "sum", "how eq. (30)'s resonances are read", choices=hdd_plant.READINGS),
-    Option("h", "int", hdd.H_DEFAULT, "NUMRE cascade horizon h (fast periods)", low=1, high=1000),
+    Option("h", "int", 0, "NUMRE cascade horizon h (fast periods); 0 = the whole run, steps - 1 "
+           "(the paper's h >= N_max for any gap)", low=0, high=1000),
     Option("k_max", "int", 0, "time-triggered safety condition eq. (7), 0 = off", low=0, high=1000),
     Option("m", "int", 2, "MRCI rate ratio m", low=1, high=8),
     Option("w_std", "float", hdd_plant.W_STD, "std of the noise driving the disturbance (eq. 32), Cases 4-6",

@@ -32,6 +32,15 @@ Every period T (k = 0..steps-1), in the runner's order (:mod:`jaxnc.loop.base`):
    current action of the newest packet, or the future one for the present instant
    (section 3.2.4), u_k = packet[min(k - k_pkt, h)], holding the last beyond h.
 
+The horizon h: section 3.2.1 requires h >= N_max, the longest gap between samples, so
+that x(k+N|k) exists at the next correction; and the actuator plays a packet's future
+actions until the next packet, which may come several samples later (eq. 22). Neither
+gap has a static bound (eq. 7 bounds only the sensor's, and is off in the paper), so by
+default h = steps - 1 (:func:`whole_run_horizon`): a packet covers the rest of the run,
+no gap is ever longer, and the actuator never runs out. A smaller h may be given; then
+gaps longer than h are clipped (K(N) of N = h, the controller's state at index h) and the
+actuator holds (``Trajectory.held``, ``Metrics.n_held``).
+
 Cases (section 5): 1 TTS; 2 PETC; 3 PETC + NUMRE; 4 = 3 + noise + disturbance;
 5 = 4 with narrower thresholds; 6 = 5 with a DOB instead of the disturbance model.
 Noises are drawn up front from the key (common random numbers across cases,
@@ -68,7 +77,15 @@ NARROW_THRESHOLDS = (1e-7, 1e-4)
 # Eq. (33).
 CD_GAIN, CD_ZEROS, CD_POLES = 1.0882, (0.9813, 0.9681, -1.0), (1.0, 0.8496, 0.6137)
 STEPS = 464              # N_TTS = 464 in Case 1: the study lasts 464 periods (9.28 ms)
-H_DEFAULT = 64           # cascade horizon h (ours; the paper gives none)
+
+
+def whole_run_horizon(steps: int = STEPS) -> int:
+    """The default cascade horizon h = steps - 1 (at least 1): a packet sent at k = 0 covers
+    the whole run, so h >= N_max (section 3.2.1) and no packet runs out, whatever the gaps."""
+    check_int("steps", steps, 1)
+    return max(steps - 1, 1)
+
+
 # Filter design covariances (ours). The filter's process noise is the true one plus a
 # floor on the disturbance slope state x1 (eq. 32 drives only x2): without it the
 # filter stops adapting to a ramp. Measurement noise V = (3e-4)^2 even when the
@@ -116,7 +133,7 @@ class HddLoop:
     r: jax.Array           # step reference amplitude
     noise: jax.Array       # 0./1.: measurement noise and disturbance on
     case: int = dataclasses.field(metadata=dict(static=True), default=1)
-    h: int = dataclasses.field(metadata=dict(static=True), default=H_DEFAULT)
+    h: int = dataclasses.field(metadata=dict(static=True), default=STEPS - 1)
     k_max: int = dataclasses.field(metadata=dict(static=True), default=0)
     steps: int = dataclasses.field(metadata=dict(static=True), default=STEPS)
 
@@ -146,11 +163,17 @@ def controller_design(m: int = 2):
     return mrci_mod.decompose(CD_GAIN * np.poly(CD_ZEROS), np.poly(CD_POLES), m)
 
 
-def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int = H_DEFAULT, k_max: int = 0,
+def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None = None, k_max: int = 0,
              m: int = 2, steps: int = STEPS, w_std: float = hdd_plant.W_STD, v_std: float = hdd_plant.V_STD,
              we_form: str = "white", dob_f_hz: float = 300.0, r: float = 1.0) -> HddLoop:
-    """Validated configuration of Case ``case`` (section 5); ``thresholds`` = (d_s = s_s, d_c = s_c)."""
+    """Validated configuration of Case ``case`` (section 5); ``thresholds`` = (d_s = s_s, d_c = s_c).
+
+    ``h`` is the cascade horizon (packets of h + 1 actions); ``None`` (default) is
+    :func:`whole_run_horizon` (steps - 1). Raises ValueError for a case outside 1..6,
+    h outside [1, 10000], k_max outside [0, h], or negative thresholds."""
     check_int("case", case, 1, 6)
+    check_int("steps", steps, 1)
+    h = whole_run_horizon(steps) if h is None else h
     check_int("h", h, 1, 10_000)
     check_int("k_max", k_max, 0, h)
     if thresholds is None:
@@ -239,14 +262,18 @@ class NumreFilter(AbstractEstimator):
       tables: :class:`~jaxnc.estimators.numre.NumreTables` (A^N, We(N), C, V).
       A: float[n, n]; B: float[n], the filter model.
       P0: float[n, n], the initial covariance (the initial mean is 0).
+      Cbar: float[n], the disturbance output of the filter model (eq. 15; zeros when the
+        model has none, Case 6).
 
-    ``record(state)`` is the output estimate C x (float scalar) after each correction.
+    ``record(state)`` is (C x, Cbar x), the output and disturbance estimates (float
+    scalars) after each correction: between arrivals the predictions of eq. (15).
     """
 
     tables: NumreTables
     A: Any
     B: Any
     P0: Any
+    Cbar: Any
 
     inputs = "applied"
 
@@ -272,7 +299,7 @@ class NumreFilter(AbstractEstimator):
         return state._replace(x=x)
 
     def record(self, state: NumreState):
-        return self.tables.C @ state.x
+        return self.tables.C @ state.x, self.Cbar @ state.x
 
 
 class CtrlState(NamedTuple):
@@ -320,7 +347,7 @@ class HddController(AbstractController):
     r: Any
     sigma_c: Any
     delta_c: Any
-    h: int = dataclasses.field(metadata=dict(static=True), default=H_DEFAULT)
+    h: int = dataclasses.field(metadata=dict(static=True), default=STEPS - 1)
     numre: bool = dataclasses.field(metadata=dict(static=True), default=True)
     use_dob: bool = dataclasses.field(metadata=dict(static=True), default=False)
     tts: bool = dataclasses.field(metadata=dict(static=True), default=False)
@@ -388,7 +415,7 @@ def runner_loop(loop: HddLoop) -> jl.Loop:
                          use_dob=loop.use_dob, tts=loop.tts)
     if loop.numre:
         nf = loop.Af.shape[0]
-        est = NumreFilter(loop.tables, loop.Af, loop.Bf, jnp.eye(nf) * P0_SCALE)
+        est = NumreFilter(loop.tables, loop.Af, loop.Bf, jnp.eye(nf) * P0_SCALE, loop.Cbarf)
     else:
         est = jl.Passthrough()
     trigger = jl.Periodic() if loop.tts else jl.Petc(loop.sigma_s, loop.delta_s, max_silence=loop.k_max)
@@ -424,23 +451,30 @@ class Trajectory(NamedTuple):
     gamma: jax.Array       # controller sent
     N: jax.Array           # multiplicity at arrival (0 when nothing arrives)
     current: jax.Array     # actuator applies the current action of a packet (k = k_pkt)
+    dpred: jax.Array       # the filter's disturbance estimate Cbar x at k (eq. 15; NaN without NUMRE)
+    held: jax.Array        # the actuator had no live action (no packet yet, or k - k_pkt > h) and held
 
 
 def simulate(loop: HddLoop, key) -> Trajectory:
     """One run of ``loop.steps`` periods on :func:`jaxnc.loop.simulate`; pure, jit- and
     vmap-able. ``current`` is True where a packet reached the actuator, and at k = 0
-    (k_pkt starts at 0)."""
+    (k_pkt starts at 0). ``held`` is True where the newest packet to reach the actuator
+    (k_pkt) is older than h periods, or none has reached it: there the actuator holds
+    its last action."""
     rl = runner_loop(loop)
     tr = jl.simulate(rl, key, draws=draws(loop, key, rl))
     # plant_rec holds (y, d) after each period's step: row k is instant k + 1
     y0, d0 = rl.plant.record(rl.plant.init(key))
     y = jnp.concatenate([y0[None], tr.plant_rec[0][:-1]])
     d = jnp.concatenate([d0[None], tr.plant_rec[1][:-1]])
-    yhat = tr.est_rec if loop.numre else jnp.full((loop.steps,), jnp.nan)
+    nan = jnp.full((loop.steps,), jnp.nan)
+    yhat, dpred = tr.est_rec if loop.numre else (nan, nan)
     dhat, N = tr.ctrl_rec
     k = jnp.arange(loop.steps)
+    k_pkt = jax.lax.cummax(jnp.where(tr.recv_ca > 0, k, -1))
+    held = (k_pkt < 0) | (k - k_pkt > loop.h)
     return Trajectory(y=y, y_meas=tr.z[:, 0], yhat=yhat, u=tr.u[:, 0], d=d, dhat=dhat, beta=tr.sent_sc > 0.5,
-                      gamma=tr.sent_ca > 0.5, N=N, current=(tr.recv_ca > 0) | (k == 0))
+                      gamma=tr.sent_ca > 0.5, N=N, current=(tr.recv_ca > 0) | (k == 0), dpred=dpred, held=held)
 
 
 # ----------------------------------------------------------------------------- metrics, eq. (23)-(29)
@@ -457,6 +491,8 @@ class Metrics(NamedTuple):
     n_sc: jax.Array
     n_ca: jax.Array
     unstable: jax.Array
+    N_max: jax.Array       # the longest gap between two arrivals (max N, eq. 9)
+    n_held: jax.Array      # periods the actuator held for want of a live action (Trajectory.held)
 
 
 def ise(y, r):
@@ -492,7 +528,7 @@ def metrics(loop: HddLoop, traj: Trajectory, y_tts, ise_tts, cs: float, W=(0.45,
     ne = jnp.where(unstable, inf, ne)
     return Metrics(ISE=ise(traj.y, loop.r), ISEP=jnp.where(unstable, inf, e), NE=ne, Uc=uc_, Ua=ua_,
                    Cc=cc(uc_, cs), GPI=jnp.where(unstable, inf, gpi(uc_, ua_, ne, W)),
-                   n_sc=n_sc, n_ca=n_ca, unstable=unstable)
+                   n_sc=n_sc, n_ca=n_ca, unstable=unstable, N_max=jnp.max(traj.N), n_held=jnp.sum(traj.held))
 
 
 def tts_reference(steps: int = STEPS, reading: str = "sum", m: int = 2):
