@@ -7,7 +7,7 @@ The three loops:
   safety condition), thresholds delta and sigma (one value for every output), objective
   L_w = J1'/J1_nom + w J4 (``experiments/autotune.py``: a run that leaves the tube costs
   the tube radius), run by :func:`jaxnc.schemes.mecanum.simulate`;
-* ``hdd`` -- seed 003's HDD servo (Case 3, PETC + NUMRE), thresholds delta_s = sigma_s and
+* ``hdd`` -- seed 003's HDD servo (Case 4, PETC + NUMRE with noise and disturbance), thresholds delta_s = sigma_s and
   delta_c = sigma_c (tied pairs), objective the GPI of eq. (29) (an unstable run costs
   ``GPI_UNSTABLE``);
 * ``cartpole`` -- the user's example (``examples/cartpole.py``), the sensor's delta, the
@@ -78,7 +78,7 @@ def _hdd(settings) -> Problem:
     from jaxnc.schemes import hdd
     y_tts, ise_tts = hdd.tts_reference()
     cs = hdd.controller_design().cs
-    loop = hdd.hdd_loop(3, thresholds=(1e-4, 1e-3))
+    loop = hdd.hdd_loop(4, thresholds=(1e-4, 1e-3))
 
     def objective(m):
         return jnp.where(m.unstable | ~jnp.isfinite(m.GPI), GPI_UNSTABLE, m.GPI)
@@ -86,8 +86,8 @@ def _hdd(settings) -> Problem:
         "hdd", loop, {("delta_s", "sigma_s"): Positive(), ("delta_c", "sigma_c"): Positive()}, objective,
         lambda lp, k: hdd.run(lp, k, y_tts, ise_tts, cs),
         {"delta_s=sigma_s": 1e-5, "delta_c=sigma_c": 1.32e-2},
-        {"delta_s=sigma_s": np.geomspace(1e-7, 1e-3, 5), "delta_c=sigma_c": np.geomspace(1e-5, 1e-1, 5)},
-        "seed 003 HDD, Case 3 (PETC + NUMRE); GPI of eq. (29), W = (0.45, 0.45, 0.1)")
+        {"delta_s=sigma_s": np.geomspace(1e-7, 1e-2, 6), "delta_c=sigma_c": np.geomspace(1e-5, 1.0, 6)},
+        "seed 003 HDD, Case 4 (PETC + NUMRE, noise and disturbance); GPI of eq. (29), W = (0.45, 0.45, 0.1)")
 
 
 def _cartpole_module():
@@ -129,11 +129,12 @@ def _check_row(chk) -> dict:
     return {"point": chk.theta.tolist(), "value": chk.value, "recommended": chk.recommended,
             "estimates": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.estimates.items()},
             "paired_z": {k: np.asarray(v).tolist() for k, v in chk.paired_z.items()},
+            "diff_se": {k: np.asarray(v).tolist() for k, v in chk.diff_se.items()},
             "consistent": chk.consistent, "reason": chk.reason, "table": chk.table()}
 
 
 def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_seeds: int, seed: int,
-          progress: bool = True) -> dict:
+          search_budget: int = 0, progress: bool = True) -> dict:
     """The check at two points, tune_loop, the equal-budget search and the evaluation of one loop."""
     t0 = time.perf_counter()
     names = _names(problem)
@@ -145,7 +146,10 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
         checks.append(dict(_check_row(chk), at=at or start))
         if progress:
             print(f"[{problem.name}] gradient check at {at or start}:\n{chk.table()}\n")
+    two_stage = search_budget > 0
     r = tune_loop(problem.loop, problem.params, problem.objective, run=problem.run, steps=steps, batch=batch,
+                  search={n: list(v) for n, v in problem.axes.items()} if two_stage else None,
+                  search_budget=search_budget if two_stage else None,
                   seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED, progress=progress)
     budget = r.tuning_simulations
     axes = {n: [float(v) for v in vals] for n, vals in problem.axes.items()}
@@ -164,6 +168,9 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     out = {
         "loop": problem.name, "describe": problem.describe, "checks": checks,
         "tune": {"start": start, "tuned": {n: float(np.asarray(v)) for n, v in r.params.items()},
+                 "two_stage": two_stage, "search_budget": search_budget,
+                 "gradient_start": ({n: float(r.search.best_point[names[n][0]]) for n in names} if two_stage else start),
+                 "check_at_gradient_start": _check_row(r.check) if r.check is not None else None,
                  "estimator": r.estimator, "estimator_reason": r.estimator_reason,
                  "objective_history": r.tune.history.objective.tolist() if r.tune else [],
                  "simulations": budget},
@@ -204,22 +211,27 @@ def tables(results: list[dict]) -> str:
                 m, s = c["estimates"][est]["mean"], c["estimates"][est]["se"]
                 fm, fs = c["estimates"]["finite_difference"]["mean"], c["estimates"]["finite_difference"]["se"]
                 z = max(abs(v) for v in c["paired_z"][est])
+                res_ = ", ".join(f"{1.96 * v:.2g}" for v in c["diff_se"][est])
                 rows.append([res["loop"], _fmt_pt(c["at"]), est,
                              ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(m, s)),
-                             ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(fm, fs)), f"{z:.2f}",
+                             ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(fm, fs)), f"{z:.2f}", res_,
                              "yes" if c["consistent"][est] else f"no: {c['reason'][est]}",
                              "**yes**" if c["recommended"] == est else ""])
     t1 = markdown_table(["loop", "point", "estimator", "gradient (95 %)", "finite differences (95 %)", "max |z|",
-                         "consistent", "recommended"], rows)
+                         "resolution", "consistent", "recommended"], rows)
     rows = []
     for res in results:
         e, tn, sr = res["eval"], res["tune"], res["search"]
-        rows.append([res["loop"], _fmt_pt(tn["start"]), _fmt_pt(tn["tuned"]), tn["estimator"], _fmt_pt(sr["best"]),
+        rows.append([res["loop"], _fmt_pt(tn["start"]), _fmt_pt(tn.get("gradient_start", tn["start"])),
+                     _fmt_pt(tn["tuned"]), tn["estimator"], _fmt_pt(sr["best"]),
                      str(tn["simulations"]), str(sr["simulations"]), _ci(e["start"]), _ci(e["tuned"]),
                      _ci(e["search"]), _ci(e["tuned_minus_search"]), res["verdict"]])
-    t2 = markdown_table(["loop", "start", "tuned", "estimator", "search's best", "tuner sims", "search sims",
+    t2 = markdown_table(["loop", "start", "gradient from", "tuned", "estimator", "search's best", "tuner sims",
+                         "search sims",
                          "start", "tuned", "search", "tuned − search (paired)", "verdict"], rows)
-    return ("Gradient check (coordinates: log of each parameter; 95 % intervals over the check's seeds):\n\n" + t1
+    return ("Gradient check (coordinates: log of each parameter; 95 % intervals over the check's seeds; "
+            "resolution: 1.96 x the standard error of the paired difference to the finite differences, the "
+            "smallest disagreement the check can see):\n\n" + t1
             + "\n\nTuned (one tune_loop call) vs successive halving of the same budget, hard triggers, the same "
               "fresh seeds:\n\n" + t2 + "\n")
 
@@ -287,7 +299,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
                 continue
         problem = BUILDERS[name](settings)
         res = study(problem, check_seeds=settings["check_seeds"], steps=settings["steps"], batch=settings["batch"],
-                    eval_seeds=seeds, seed=settings["seed"], progress=progress)
+                    eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
+                    progress=progress)
         montecarlo.save_results(f, experiment="tune-loops", config=cfg, results=res, wall_time_s=res["wall_time_s"])
         results.append(montecarlo.load_results(f)["results"])
     text = tables(results)
@@ -307,7 +320,10 @@ register(Experiment(
         Option("loops", "choice", "all", "which loop(s)", choices=(*LOOPS, "all")),
         Option("steps", "int", 30, "gradient steps of tune_loop", low=1, high=10_000),
         Option("batch", "int", 16, "seeds per gradient step", low=2, high=4096),
-        Option("check_seeds", "int", 128, "seeds of each gradient check", low=2, high=100_000),
+        Option("check_seeds", "int", 512, "seeds of each gradient check", low=2, high=100_000),
+        Option("search_budget", "int", 1024, "simulations of tune_loop's first stage (successive halving over "
+               "the grid, which picks the gradient's start); 0: the gradient alone from the start point",
+               low=0, high=10_000_000),
         Option("w_drhe", "float", 30.0, "DRHE: weight of J4 in L_w", low=0.0, high=1e4),
         Option("w_cartpole", "float", 2.0, "cart-pole: weight of the sensor rate", low=0.0, high=1e4),
         Option("seed", "int", 0, "base seed of checks, tuning and search (evaluation: 5000011)", low=0,

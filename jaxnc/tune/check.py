@@ -51,6 +51,8 @@ class GradientCheck(NamedTuple):
     reason: dict                    # name -> "" when consistent, else why not
     recommended: str | None
     names: tuple = ()               # the coordinates' labels (set by jaxnc.tune.check_loop)
+    diff_se: dict = {}              # name -> float[d]: standard error of the paired difference to FD;
+                                    # 1.96 x it is the smallest disagreement the check can see
 
     def table(self) -> str:
         """A plain-text table of the check."""
@@ -127,7 +129,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
     fd = np.asarray(res["finite_difference"], float)
     estimates = {"finite_difference": (fd.mean(0), se(fd))}
-    paired, consistent, reason = {}, {}, {}
+    paired, consistent, reason, diff_ses = {}, {}, {}, {}
     margin = rel_tol * float(np.max(np.abs(estimates["finite_difference"][0])))
     for name in estimators:
         g = np.asarray(res[name], float)
@@ -136,6 +138,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         s = se(diff)
         zz = np.where(s > 0, diff.mean(0) / np.where(s > 0, s, 1.0), np.where(diff.mean(0) == 0, 0.0, np.inf))
         paired[name] = zz
+        diff_ses[name] = s
         if not np.all(np.isfinite(g)):
             reason[name] = "non-finite values"
         elif not np.all((np.abs(zz) <= z) | (np.abs(diff.mean(0)) <= margin)):
@@ -148,4 +151,5 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         consistent[name] = reason[name] == ""
     ok = [nm for nm in estimators if consistent[nm]]
     rec = min(ok, key=lambda nm: (float(np.max(estimates[nm][1])), nm != "straight_through")) if ok else None
-    return GradientCheck(theta, float(np.mean(res["value"])), estimates, paired, consistent, reason, rec)
+    return GradientCheck(theta, float(np.mean(res["value"])), estimates, paired, consistent, reason, rec, (),
+                         diff_ses)

@@ -316,7 +316,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
       objective: ``objective(metrics) -> scalar`` per seed; default ``m.cost_raw``.
       run: ``run(loop, key) -> metrics`` for one seed; default :func:`jaxnc.loop.run`.
       search: ``{path: [values]}`` searched first by successive halving (static integer
-        fields allowed); ``search_budget`` simulations (default 16 per candidate).
+        fields allowed); ``search_budget`` simulations (default 16 per candidate). A key
+        that names a parameter of ``params`` (its path, or ``"a=b"`` for a tied group)
+        makes the search pick the gradient's *start* among the values (the two-stage
+        tuner for objectives dominated by rare failures, docs/tuning_loops.md).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
       estimator: ``"auto"`` (the gradient check decides), ``"straight_through"`` or ``"score"``.
       temperature: (start, end) of the annealed temperature of every trigger with a
@@ -338,13 +341,18 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     search = dict(search or {})
     if not spec.paths and not search:
         raise ValueError("tune_loop: name at least one parameter to tune (params or search)")
-    tuned_paths = {p for g in spec.paths.values() for p in g}
-    for path, vals in search.items():
-        get_path(loop, path)
-        if path in tuned_paths:
-            raise ValueError(f"tune_loop: {path!r} is both searched and tuned by gradient")
-        if not isinstance(vals, (list, tuple)) or not vals:
-            raise ValueError(f"tune_loop: search[{path!r}] must be a non-empty list of values")
+    tuned_paths = {p: n for n, g in spec.paths.items() for p in g}
+    search_paths = {}                   # search key -> the paths it sets
+    for key, vals in search.items():
+        if key in spec.paths:           # a tuned parameter (or tied group) by name: the search picks its start
+            search_paths[key] = spec.paths[key]
+        else:
+            get_path(loop, key)
+            if key in tuned_paths:
+                raise ValueError(f"tune_loop: {key!r} is tuned as part of {tuned_paths[key]!r}: search that name")
+            search_paths[key] = (key,)
+        if not isinstance(vals, (list, tuple, np.ndarray)) or len(vals) == 0:
+            raise ValueError(f"tune_loop: search[{key!r}] must be a non-empty list of values")
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
@@ -368,12 +376,13 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     result_search = None
     loop1 = loop
     if search:
-        static = tuple(p for p in search if is_static(loop, p))
+        static = tuple(p for ps in search_paths.values() for p in ps if is_static(loop, p))
         names = list(search)
-        points = [dict(zip(names, combo)) for combo in
-                  np.array(np.meshgrid(*[np.arange(len(search[n])) for n in names], indexing="ij")).reshape(
-                      len(names), -1).T.tolist()]
-        points = [{n: search[n][i] for n, i in p.items()} for p in points]
+        combos = np.array(np.meshgrid(*[np.arange(len(search[n])) for n in names], indexing="ij")).reshape(
+            len(names), -1).T.tolist()
+        # a point sets every path of each searched key (dynamic values as float32, so one program serves all)
+        val = lambda n, i: search[n][i] if all(is_static(loop, p) for p in search_paths[n]) else np.float32(search[n][i])
+        points = [{p: val(n, i) for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
         budget = search_budget or 16 * len(points)
         need = sum(s for _, s in halving_schedule(len(points), budget))
         keys = montecarlo.seed_keys(seed + 1, need)
@@ -382,7 +391,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         sims += result_search.n_simulations
         loop1 = set_paths(loop, result_search.best_point)
     start = {n: np.asarray(get_path(loop, g[0])) for n, g in spec.paths.items()}
-    start.update({p: np.asarray(get_path(loop, p)) for p in search})
+    start.update({k: np.asarray(get_path(loop, ps[0])) for k, ps in search_paths.items() if k not in spec.paths})
 
     chk, reason, used, tres = None, "given", estimator, None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
@@ -408,8 +417,9 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
                     temperature=temperature, seed=seed, score_scale=score_scale, progress=progress, desc="tune_loop")
         sims += tres.n_simulations
         tuned = tres.params
-    final_loop = _set(set_paths(loop, result_search.best_point) if result_search else loop, spec, tuned)
-    final = {**tuned, **(result_search.best_point if result_search else {})}
+    final_loop = _set(loop1, spec, tuned)
+    best = result_search.best_point if result_search else {}
+    final = {**{k: best[ps[0]] for k, ps in search_paths.items() if k not in spec.paths}, **tuned}
 
     ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
     run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
