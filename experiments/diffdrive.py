@@ -213,8 +213,8 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
     cells = [(v, lad) for lad in lads for v in v_refs]
     cell_f = lambda c: out / "cells" / "sensitivity" / f"v{c[0]:.10g}_lad{c[1]:.10g}.json"
     common = {k: settings[k] for k in settings if k not in ("v_refs", "lads")}
-    cfg = lambda c: {"settings": common, "v_ref": c[0], "lad": c[1], "seeds": seeds, "devices": len(jax.devices()),
-                     "version": __version__}
+    cfg = lambda c: {"settings": common, "v_ref": c[0], "lad": c[1], "seeds": seeds,
+                     "devices": len(jax.local_devices()), "version": __version__}
     mine = shard.share(cells) if shard is not None else cells
     todo = [c for c in mine if sweep.load_cell(cell_f(c), cfg(c)) is None]
     bar = tqdm(todo, desc="(v_ref, look-ahead)", disable=not progress, dynamic_ncols=True)

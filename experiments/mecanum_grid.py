@@ -106,7 +106,7 @@ def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path:
     return {"case": case, "N": N, "dp": dp, "path": path, "h": h, "seeds": seeds, "seed": settings["seed"],
             "chunk": settings["chunk"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
             "L_ref": settings["L_ref"],
-            "devices": len(jax.devices()), "version": _version()}
+            "devices": len(jax.local_devices()), "version": _version()}
 
 
 def _version() -> str:

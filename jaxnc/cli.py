@@ -2,6 +2,7 @@
 
     jaxnc list
     jaxnc run EXPERIMENT [--seeds N] [--out DIR] [--set KEY=VALUE ...] [--no-progress] [--shard I/N]
+              [--distributed [--coordinator HOST:PORT --num-processes N --process-id I]]
     jaxnc --version
 
 EXPERIMENT is a registered name (see ``jaxnc list``) or ``MODULE:ATTR`` for an experiment in
@@ -20,8 +21,11 @@ inside an experiment is a bug and propagates with its traceback (exit code 1).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
+import os
 import pathlib
+import re
 import sys
 import warnings
 
@@ -81,6 +85,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sweeps (mecanum-grid, hdd-gpi, diffdrive-sensitivity): compute only shard I of N "
                         "(0 <= I < N) of the cells into the shared --out folder; the run that finds every "
                         "cell present writes the tables (README: 'Sweeps across machines')")
+    r.add_argument("--distributed", action="store_true",
+                   help="one of several processes (jax.distributed.initialize): each runs its share of "
+                        "every batch of seeds on its local devices and gets the full result; without "
+                        "--coordinator/--num-processes/--process-id JAX detects them (SLURM, Open MPI, "
+                        "$JAX_COORDINATOR_ADDRESS, ...); start every process with the same command")
+    r.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="with --distributed: address of process 0's coordinator service")
+    r.add_argument("--num-processes", default=None, metavar="N",
+                   help="with --distributed: number of processes (an integer >= 1)")
+    r.add_argument("--process-id", default=None, metavar="I",
+                   help="with --distributed: this process, an integer in [0, N)")
     r.add_argument("--cpu-devices", default=None, metavar="N",
                    help="split the CPU into N JAX devices and shard the seeds over them "
                         "(an integer >= 1; default: JAX's, one)")
@@ -138,6 +153,10 @@ def _run(args) -> int:
             jax.config.update("jax_num_cpu_devices", n)
         except RuntimeError as e:              # the backend was already initialised
             raise ConfigError(f"--cpu-devices: {e}") from None
+    if args.distributed:
+        _initialize_distributed(args)
+    elif any(v is not None for v in (args.coordinator, args.num_processes, args.process_id)):
+        raise ConfigError("--coordinator, --num-processes and --process-id need --distributed")
     if args.cache:
         from jaxnc.cache import enable_cache
         try:
@@ -149,8 +168,38 @@ def _run(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"--out: cannot create directory '{out}': {e.strerror or e}") from None
+    if args.distributed and jax.process_index() != 0:
+        # every process runs the experiment and gets the full results (and writes the same
+        # files); the tables and progress bars are process 0's
+        with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
+            exp.run(settings, seeds=seeds, out=out, progress=False, **run_kw)
+        return 0
     exp.run(settings, seeds=seeds, out=out, progress=args.progress, **run_kw)
     return 0
+
+
+_COORDINATOR_RE = re.compile(r"\S+:[0-9]{1,5}\Z")
+
+
+def _initialize_distributed(args) -> None:
+    """``jax.distributed.initialize`` from --coordinator/--num-processes/--process-id (or
+    JAX's own detection when they are not given); CPU collectives over gloo."""
+    kw = {}
+    if args.coordinator is not None:
+        if not _COORDINATOR_RE.match(args.coordinator):
+            raise ConfigError(f"--coordinator must be HOST:PORT, got {args.coordinator!r}")
+        kw["coordinator_address"] = args.coordinator
+    if args.num_processes is not None:
+        kw["num_processes"] = _exp.Option("--num-processes", "int", 1, "", low=1, high=65536).parse(args.num_processes)
+    if args.process_id is not None:
+        high = kw.get("num_processes", 65536) - 1
+        kw["process_id"] = _exp.Option("--process-id", "int", 0, "", low=0, high=high).parse(args.process_id)
+    if jax.config.jax_cpu_collectives_implementation in (None, "none"):
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")   # CPU processes exchange results
+    try:
+        jax.distributed.initialize(**kw)
+    except (ValueError, RuntimeError) as e:
+        raise ConfigError(f"--distributed: jax.distributed.initialize failed: {' '.join(str(e).split())}") from None
 
 
 def run_cli(argv: list[str] | None = None) -> int:

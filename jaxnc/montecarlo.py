@@ -6,7 +6,8 @@ is that function mapped over many seeds.  The pieces here are deliberately small
 * :func:`seed_keys` gives seed ``i`` the key ``fold_in(PRNGKey(seed), i)``, so a seed's
   trajectory never depends on how many seeds are run or how they are batched;
 * :func:`run_batched` maps ``fn`` over the keys in fixed-size chunks (one compilation,
-  bounded memory) and returns numpy arrays;
+  bounded memory), sharded over the local devices and, after
+  ``jax.distributed.initialize()``, split over the processes, and returns numpy arrays;
 * :func:`summarize` reduces one metric to mean / 95 % interval over the *stable* runs,
   reporting the unstable ones as a fraction (an unstable run is data, not an error);
 * :func:`save_results` / :func:`load_results` write and read the JSON results file
@@ -139,11 +140,21 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     **Several devices.** With more than one local device (GPUs, or CPU devices from
     ``jax.config.update("jax_num_cpu_devices", n)`` / ``jaxnc run --cpu-devices n``) each
     chunk is sharded over them along the seed axis (``jax.sharding``, ``args``
-    replicated); ``chunk_size`` is rounded up to a multiple of the device count (times :data:`LANES`). After
-    ``jax.distributed.initialize()`` it does not work yet (several processes are not
-    supported: the replicated arguments are not placed consistently).  The compiled function is cached per ``fn`` object (weakly), so calling
-    again with the same ``fn`` and chunk size does not recompile.  ``progress`` shows a
-    tqdm bar over seeds (on stderr) labelled ``desc``.
+    replicated); ``chunk_size`` is rounded up to a multiple of the device count (times :data:`LANES`).
+
+    **Several processes.** After ``jax.distributed.initialize()`` (``jaxnc run
+    --distributed``) every process calls ``run_batched`` with the same ``fn``, keys and
+    ``args`` (as any multi-controller JAX program does); process ``p`` of ``P`` runs the
+    ``p``-th of ``P`` contiguous blocks of the keys on its own local devices, exactly as
+    above, and the blocks are gathered (``multihost_utils.process_allgather``) so that
+    *every* process returns the full result. A seed's row is the one a single process
+    with as many devices as each process has local ones computes (bit for bit: tested
+    with two CPU processes of one device against one process).
+
+    The compiled function is cached per ``fn`` object (weakly), so calling again with
+    the same ``fn`` and chunk size does not recompile.  ``progress`` shows a tqdm bar
+    over seeds (on stderr) labelled ``desc``; with several processes only process 0
+    shows it, over its own block.
     """
     if not callable(fn):
         raise ValueError(f"run_batched: fn must be a function fn(key, *args), got {type(fn).__name__}")
@@ -159,8 +170,39 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     elif keys.dtype != jnp.uint32 or keys.ndim != 2 or keys.shape[1] != 2:
         raise ValueError(f"run_batched: keys must be raw uint32 keys of shape (n, 2) (from seed_keys) or a 1-D "
                          f"array of typed keys, got {keys.dtype} of shape {keys.shape}")
-    n = int(keys.shape[0])
     batched = _compiled(fn)
+    if jax.process_count() > 1:
+        return _run_processes(batched, keys, args, chunk_size, progress, desc)
+    return _run_local(batched, keys, args, chunk_size, progress, desc)
+
+
+def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: str):
+    """run_batched after jax.distributed.initialize(): this process's block of the keys
+    on its local devices, then every process's block gathered on every process."""
+    from jax.experimental import multihost_utils
+    n, count, me = int(keys.shape[0]), jax.process_count(), jax.process_index()
+    block = -(-n // count)
+    rows = [max(0, min(block, n - q * block)) for q in range(count)]     # valid rows of each block
+    lo = min(me * block, n)
+    mine = _run_local(batched, keys[lo:lo + rows[me]], args, chunk_size, progress and me == 0,
+                      f"{desc} (process {me}/{count})")
+    if n == 0:
+        return mine
+
+    def pad(a):       # equal shapes on every process (the last blocks may be short); bool as uint8
+        a = a.view(np.uint8) if a.dtype == bool else a
+        return np.concatenate([a, np.zeros((block - a.shape[0], *a.shape[1:]), a.dtype)])
+
+    padded = jax.tree_util.tree_map(pad, mine)
+    gathered = multihost_utils.process_allgather(padded, tiled=False)   # (count, block, ...)
+    return jax.tree_util.tree_map(
+        lambda g, a: np.concatenate([g[q, :rows[q]] for q in range(count)]).astype(a.dtype, copy=False),
+        gathered, mine)
+
+
+def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str):
+    """run_batched on this process's local devices (all of them with one process)."""
+    n = int(keys.shape[0])
     if n == 0:
         spec = jax.ShapeDtypeStruct((1, *keys.shape[1:]), keys.dtype)
         shapes = jax.eval_shape(batched, spec, args)
@@ -170,14 +212,16 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     # loop depends on the batch size (fusion, vector tiling), so a seed is bit-identical
     # alone or in any batch only if both run through one compiled batch shape. Within
     # it, a lane's result does not depend on its position or its neighbours (tested).
-    devices = jax.devices()
+    devices = jax.local_devices()
     # each device's share is a whole number of vector groups (LANES): the CPU compiler
     # vectorises a batched loop LANES float32 lanes at a time and computes a remainder
     # with other code, so a lane there would differ in its last bits from the same seed
     # in a full group
     group = LANES * len(devices)
     size = -(-chunk_size // group) * group
-    if len(devices) > 1:
+    if len(devices) > 1 or jax.process_count() > 1:
+        # (with several processes even one local device is named: otherwise the outputs
+        # spanned the other processes' devices too, and this process could not read them)
         place_keys = seed_sharding(devices)
         args = jax.device_put(args, jax.sharding.NamedSharding(place_keys.mesh, jax.sharding.PartitionSpec()))
     else:

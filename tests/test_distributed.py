@@ -1,0 +1,124 @@
+"""run_batched after jax.distributed.initialize(): two local CPU processes (loopback
+coordinator, gloo collectives) through `jaxnc run ... --distributed`, each getting the
+full result, equal seed by seed to one process's run of the same command."""
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxnc
+from jaxnc.cli import main
+from jaxnc.montecarlo import load_results
+
+ROOT = Path(__file__).resolve().parent.parent
+TIME_LIMIT_S = 240      # both processes are killed if they have not finished by then (a hung coordinator)
+
+# A user's study (as in tests/test_cli_user.py): the issue's failing call, run_batched on a
+# DRH Mecanum loop passed as a runtime argument (a pytree with Python floats in it).
+STUDY = '''
+"""DRH Mecanum loop (seed 000, N = 2, turn180): per-seed metrics."""
+import time
+import jax
+from jaxnc import montecarlo, results
+from jaxnc.experiment import Experiment, Option
+from jaxnc.schemes import mecanum as mec
+
+def one_run(key, loop):
+    return mec.run(loop, key)
+
+def run(settings, *, seeds, out, progress=True):
+    t0 = time.perf_counter()
+    loop = mec.mecanum_loop("DRH", N=2, dp=settings["dp"], path="turn180")
+    keys = montecarlo.seed_keys(settings["seed"], seeds)
+    m = montecarlo.run_batched(one_run, keys, args=(loop,), chunk_size=8, progress=progress)
+    first = montecarlo.run_batched(one_run, keys[:1], args=(loop,), chunk_size=8, progress=False)   # < 1 per process
+    results.save_per_seed(out, {"DRH": m})
+    j1 = montecarlo.summarize(m.J1, m.unstable)
+    montecarlo.save_results(out / "results.json", experiment="drh", config={"settings": settings, "seeds": seeds},
+                            results={"J1": j1, "seed0": first._asdict(), "processes": jax.process_count()},
+                            wall_time_s=time.perf_counter() - t0)
+    print(f"DRH: J1 = {j1.mean:.4f} m over {j1.n_stable} of {seeds} seeds")
+    return {"J1": j1}
+
+experiment = Experiment("drh", "DRH Mecanum loop", (Option("dp", "float", 0.05, "DP", low=0.0, high=0.95),
+                                                    Option("seed", "int", 0, "base seed", low=0)), run)
+'''
+# the README's multi-host paragraph shows these commands
+ARGV = ["run", "mp_drh:experiment", "--seeds", "7", "--no-progress"]     # blocks of 4 and 3 seeds
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _run_two_processes(tmp_path, argv=ARGV, cwd=None):
+    port = _free_port()
+    cache = ["--no-cache"] if os.environ.get("JAXNC_NO_CACHE") else []
+    procs = []
+    for i in (0, 1):
+        cmd = [sys.executable, "-m", "jaxnc.cli", *argv, *cache, "--out", str(tmp_path / f"process{i}"),
+               "--distributed", "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)]
+        procs.append(subprocess.Popen(cmd, cwd=cwd or tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      start_new_session=True))
+    outputs = []
+    try:
+        for p in procs:
+            outputs.append(p.communicate(timeout=TIME_LIMIT_S)[0].decode(errors="replace"))
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the two processes did not finish in {TIME_LIMIT_S} s (coordinator hung?); both killed")
+    finally:
+        for p in procs:                         # never leave a process behind
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=30)
+    for i, (p, text) in enumerate(zip(procs, outputs)):
+        assert p.returncode == 0, f"process {i} exited with {p.returncode}:\n{text[-3000:]}"
+    return outputs
+
+
+def test_two_processes_give_the_single_process_result_to_every_process(tmp_path, monkeypatch):
+    (tmp_path / "mp_drh.py").write_text(STUDY)
+    outputs = _run_two_processes(tmp_path)
+    assert "DRH: J1" in outputs[0] and "DRH: J1" not in outputs[1]        # the table is process 0's
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as e:                                   # one process, the same command
+        main([*ARGV, "--out", str(tmp_path / "single")])
+    assert e.value.code == 0
+    single = jaxnc.load(tmp_path / "single")
+    assert single.sizes["seed"] == 7 and not bool(single["unstable"].all())
+    for i in (0, 1):
+        ds = jaxnc.load(tmp_path / f"process{i}")
+        assert ds.sizes == single.sizes
+        for name in single.data_vars:
+            # bit for bit: each process ran its 4 seeds through the same 16-lane program
+            np.testing.assert_array_equal(ds[name].values, single[name].values, err_msg=f"process {i}: {name}")
+        doc = load_results(tmp_path / f"process{i}" / "results.json")["results"]
+        assert doc["processes"] == 2
+        seed0 = doc["seed0"]
+        for name, v in seed0.items():                 # one seed: process 1's block was empty
+            assert np.asarray(v, single[name].dtype).tolist() == single[name].values[0, :1].tolist(), name
+
+
+@pytest.mark.slow
+def test_builtin_experiment_on_two_processes(tmp_path):
+    """`jaxnc run mecanum ... --distributed` (nominal SR and DRH, the figure): every
+    process writes the single-process run's per-seed metrics (about 2 min on 2 busy cores)."""
+    argv = ["run", "mecanum", "--seeds", "8", "--no-progress",
+            "--set", "case=DRH", "--set", "N=2", "--set", "dp=0.05", "--set", "path=turn180"]
+    _run_two_processes(tmp_path, argv, cwd=ROOT)
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--out", str(tmp_path / "single")])
+    assert e.value.code == 0
+    single = jaxnc.load(tmp_path / "single")
+    for i in (0, 1):
+        ds = jaxnc.load(tmp_path / f"process{i}")
+        assert list(ds["case"].values) == ["SR nominal", "DRH"]
+        for name in single.data_vars:
+            np.testing.assert_array_equal(ds[name].values, single[name].values, err_msg=f"process {i}: {name}")
