@@ -58,6 +58,8 @@ __all__ = [
     "read_trace",
     "stationary_loss",
     "delivery_probability",
+    "interfered",
+    "delay_cdf",
 ]
 
 LOST = -1
@@ -75,6 +77,8 @@ class WifiChannel:
         have passed since the last loss.
       loss_bad: loss probability per packet in the bad regime.
       delay_pmf: probabilities of a delay of 0, 1, ..., D-1 steps (sums to 1).
+      loss_extra: probability that a packet is lost independently of the regimes, on top
+        of them (an interferer, :func:`interfered`; 0 for the fitted channels).
       gap_min, gap_max: static ints, the shortest and longest run of delivered packets
         between two losses in the good regime (``0 <= gap_min < gap_max``).
     """
@@ -84,6 +88,7 @@ class WifiChannel:
     loss_good: float | jax.Array = 0.0
     loss_bad: float | jax.Array = 0.0
     delay_pmf: jax.Array = dataclasses.field(default_factory=lambda: np.asarray([0.0, 1.0], np.float32))
+    loss_extra: float | jax.Array = 0.0
     gap_min: int = dataclasses.field(default=0, metadata=dict(static=True))
     gap_max: int = dataclasses.field(default=1_000_000, metadata=dict(static=True))
 
@@ -92,6 +97,7 @@ class WifiChannel:
         check_range("WifiChannel.p_bg", self.p_bg, 0.0, 1.0, low_open=True)
         check_range("WifiChannel.loss_good", self.loss_good, 0.0, 1.0)
         check_range("WifiChannel.loss_bad", self.loss_bad, 0.0, 1.0)
+        check_range("WifiChannel.loss_extra", self.loss_extra, 0.0, 1.0, high_open=True)
         check_int("WifiChannel.gap_min", self.gap_min, 0)
         check_int("WifiChannel.gap_max", self.gap_max, self.gap_min + 1)
         pmf = self.delay_pmf
@@ -133,6 +139,30 @@ NOMINAL = WifiChannel(
 )
 
 
+def interfered(ch: WifiChannel, hit: float) -> WifiChannel:
+    """``ch`` under a pulsed interferer that spoils each transmission attempt with
+    probability ``hit`` (ours: section 4 injects noise at -21 and -19 dBm but gives no
+    statistics for it, only "a small degradation").
+
+    With the paper's one retry: a packet whose first attempt is spoilt and whose retry
+    is not arrives one step later; one whose two attempts are both spoilt is lost. The
+    delay law of the delivered packets becomes ``(pmf(d) + hit pmf(d - 1)) / (1 + hit)``
+    (one entry longer) and ``loss_extra`` becomes ``1 - (1 - loss_extra)(1 - hit^2)``
+    (independent of the regimes, so the loss is ``1 - (1 - stationary_loss(ch))(1 -
+    hit^2)``). ``hit = 0`` returns the same channel with a delay law one (zero) entry
+    longer.
+
+    Raises:
+      ValueError: ``hit`` outside [0, 1).
+    """
+    check_range("hit", hit, 0.0, 1.0, high_open=True)
+    h = float(hit)
+    pmf = np.asarray(ch.delay_pmf, np.float64)
+    shifted = np.concatenate([pmf, [0.0]]) + h * np.concatenate([[0.0], pmf])
+    return dataclasses.replace(ch, delay_pmf=(shifted / shifted.sum()).astype(np.float32),
+                               loss_extra=1.0 - (1.0 - float(ch.loss_extra)) * (1.0 - h * h))
+
+
 def stationary_loss(ch: WifiChannel) -> float:
     """Long-run packet loss probability of one direction (numpy, for design and tests).
 
@@ -143,6 +173,7 @@ def stationary_loss(ch: WifiChannel) -> float:
     (``M`` for ``q = 0``), so any ``gap_max`` costs the same; the regimes are weighted by
     the chain's stationary law.  (Regime switches restart nothing, so this is exact only
     in the limit of slow switching, which is the fitted case: ``p_gb, p_bg << 1/E[G]``.)
+    The independent ``loss_extra`` comes on top: ``1 - (1 - regimes) (1 - loss_extra)``.
     """
     q = float(ch.loss_good)
     gmin, gmax = int(ch.gap_min), int(ch.gap_max)
@@ -154,7 +185,8 @@ def stationary_loss(ch: WifiChannel) -> float:
     mean_gap = gmin + trunc
     loss_good = 1.0 / (mean_gap + 1.0)
     pb = float(ch.p_gb) / (float(ch.p_gb) + float(ch.p_bg))
-    return (1 - pb) * loss_good + pb * float(ch.loss_bad)
+    regimes = (1 - pb) * loss_good + pb * float(ch.loss_bad)
+    return 1.0 - (1.0 - regimes) * (1.0 - float(ch.loss_extra))
 
 
 def delivery_probability(ch: WifiChannel, within: int) -> float:
@@ -169,7 +201,9 @@ def sample_trace(key, ch: WifiChannel, n: int) -> jax.Array:
     The chain starts in its stationary regime (good with probability p_bg/(p_gb+p_bg))
     and with a gap counter uniform on [0, gap_max), so a trace has no start-up transient.
     Delays use their own subkey (drawn for lost packets too), so changing a loss
-    parameter leaves the delays of the surviving packets unchanged.  ``n`` is static: a
+    parameter leaves the delays of the surviving packets unchanged. The ``loss_extra``
+    losses use ``fold_in(key, 1)`` and leave the regimes' chain as it is (the trace
+    with ``loss_extra = 0`` is the same whatever the rest).  ``n`` is static: a
     non-negative integer (ValueError otherwise, before tracing).
     """
     check_int("sample_trace: n", n, 0)
@@ -195,6 +229,8 @@ def sample_trace(key, ch: WifiChannel, n: int) -> jax.Array:
         return (bad, c), lost
 
     _, lost = jax.lax.scan(step, (bad0, c0), (u_sw, u_loss))
+    u_extra = jax.random.uniform(jax.random.fold_in(key, 1), (n,), _DTYPE)
+    lost = lost | (u_extra < jnp.asarray(ch.loss_extra, _DTYPE))
     logits = jnp.log(jnp.asarray(ch.delay_pmf, _DTYPE))
     delay = jax.random.categorical(k_delay, logits, shape=(n,)).astype(jnp.int32)
     return jnp.where(lost, LOST, delay)
@@ -276,6 +312,17 @@ def loopback_stats(trace, window: int = 40) -> LoopbackStats:
         delay_median=float(np.median(d)), delay_std=float(np.std(d)), delay_max=float(d.max()),
         delay_min=float(d.min()), per_median=float(np.median(w)), per_std=float(np.std(w)),
         per_max=float(w.max()), per_min=float(w.min()), per_mean=100.0 * float(np.mean(t < 0)))
+
+
+def delay_cdf(trace, max_delay: int) -> np.ndarray:
+    """Empirical CDF of the delays of the delivered packets of ``trace`` (numpy), at
+    0, 1, ..., ``max_delay`` steps: float64[max_delay + 1] (Fig. 5 for a loop-back trace).
+    Lost packets are left out (the CDF reaches 1); nan if none was delivered."""
+    t = np.asarray(trace).ravel()
+    d = t[t >= 0]
+    if d.size == 0:
+        return np.full(max_delay + 1, np.nan)
+    return np.searchsorted(np.sort(d), np.arange(max_delay + 1), side="right") / d.size
 
 
 # ----------------------------------------------------------------------------- CSV traces

@@ -1,4 +1,6 @@
 """Seed 001 balancing robot: plant linearisation, hold-aware gain, and the closed loops."""
+import math
+
 import control
 import jax
 import jax.numpy as jnp
@@ -119,3 +121,114 @@ def test_bad_configuration_raises():
         bal.balancing_loop(gain="bar")
     with pytest.raises(ValueError, match="theta"):
         hold_lq_gain(np.eye(1), np.eye(1), np.eye(1), np.eye(1), 0.0)
+
+
+# ----------------------------------------------------------------------------- issue 23: the
+# emulation design's simple differentiation, the complementary-filter tilt sensor
+
+
+def test_simple_derivative_is_the_backward_difference_of_the_held_measurement():
+    """Hand computation on 10 steps: packets with delays, a loss and a reordering; the
+    observer holds the most recently arrived measurement (eq. 5) and differences it over
+    one period (section 5), 0 when nothing new arrives."""
+    loop = bal.balancing_loop("emulation", horizon_s=0.010)          # 10 steps, simple by default
+    assert float(loop.estimator.tau_d) == 0.0
+    LOST = wifi.LOST
+    sc = np.array([0, 1, LOST, 0, 3, 0, 0, 1, 0, 0], np.int32)
+    # arrivals: p0@0, p1@2, p3@3, p4@7, p5@5, p6@6, p7@8, p8@8, p9@9 (p2 lost); held packet
+    # (the latest arrival, the newest of those arriving together):
+    held = [0, 0, 1, 3, 3, 5, 6, 4, 8, 9]
+    ca = np.zeros(10, np.int32)
+    tr = jax.jit(bal.simulate)(loop, sc, ca, jax.random.PRNGKey(4))
+    z, xhat = np.asarray(tr.z), np.asarray(tr.xhat)
+    ybar = z[held]
+    np.testing.assert_array_equal(xhat[:, :2], ybar)
+    rate = np.zeros_like(ybar)
+    Ts = np.float32(loop.T)
+    for k in range(1, 10):
+        rate[k] = (ybar[k] - ybar[k - 1]) / Ts
+    np.testing.assert_allclose(xhat[:, 2:], rate, rtol=1e-5, atol=1e-4)
+    assert np.all(xhat[[0, 1, 4], 2:] == 0.0)                       # start, and nothing new at 1 and 4
+    assert np.all(np.abs(xhat[[2, 3, 5, 6, 7, 8, 9], 3]) > 0.0)     # a new tilt sample: a nonzero rate
+
+
+def test_derivative_option_is_validated():
+    with pytest.raises(ValueError, match="derivative must be one of simple, filtered"):
+        bal.balancing_loop("emulation", derivative="dirty")
+    with pytest.raises(ValueError, match="tau_d applies to derivative='filtered' only"):
+        bal.balancing_loop("emulation", tau_d=0.005)
+    with pytest.raises(ValueError, match=r"tau_d must be in \(0, inf\), got 0.0"):
+        bal.balancing_loop("emulation", derivative="filtered", tau_d=0.0)
+    loop = bal.balancing_loop("emulation", derivative="filtered")
+    assert float(loop.estimator.tau_d) == pytest.approx(0.005)
+    with pytest.raises(ValueError, match="Balancing.tilt_sensor must be one of complementary, white"):
+        Balancing(tilt_sensor="gyro")
+
+
+def _cf_reference_error(seed, K, p):
+    """The complementary filter itself, on an IMU with the plant's noises and a moving
+    tilt: th^_k = a (th^_{k-1} + Ts g_k) + (1 - a) t_k, the gyro integrated exactly."""
+    import scipy.signal
+    rng = np.random.default_rng(seed)
+    Ts, tau = float(p.Ts), float(p.tau_cf)
+    a = tau / (tau + Ts)
+    th = 0.05 * np.sin(2 * np.pi * 0.7 * Ts * np.arange(K + 1))
+    g = np.diff(th) / Ts + float(p.sigma_gyro) * rng.standard_normal(K)
+    acc = th[1:] + float(p.sigma_accel) * rng.standard_normal(K)
+    est = scipy.signal.lfilter([1.0], [1.0, -a], a * Ts * g + (1 - a) * acc,
+                               zi=[a * th[0]])[0]
+    return est - th[1:]
+
+
+def test_tilt_error_is_the_complementary_filters_error():
+    """Stationary std of the filter's error (from the filter itself, independently) and of
+    the plant's Gauss-Markov sequence, against tilt_error_std; increments of the sequence
+    are i.i.d. with the drive's std. Tolerances: 4 standard errors of each estimate."""
+    p = Balancing()
+    a, drive = (float(v) for v in p._cf())
+    sd = float(p.tilt_error_std())
+    R, K = 16, 50_000
+    # one run's sample variance of an AR(1) has a relative std of about sqrt(2 (1 + a^2) /
+    # ((1 - a^2) K)); over R runs divided by sqrt(R)
+    rel = 4 * math.sqrt(2 * (1 + a * a) / ((1 - a * a) * K * R))
+    ref = np.concatenate([_cf_reference_error(s, K, p)[5 * 500:] for s in range(R)])
+    assert abs(np.var(ref) / sd**2 - 1) < rel
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(7), i))(jnp.arange(R))
+    e = np.asarray(jax.jit(jax.vmap(lambda k: p.tilt_error(k, K)))(keys), np.float64)
+    assert abs(np.mean(e**2) / sd**2 - 1) < rel
+    d = e[:, 1:] - a * e[:, :-1]
+    assert abs(np.std(d) / drive - 1) < 4 / math.sqrt(2 * d.size)
+    # what makes the simple difference usable: a sample-to-sample change ~1e-3 deg,
+    # against 0.14 deg for the white 0.1 deg sensor
+    assert np.rad2deg(np.std(np.diff(e, axis=1))) < 0.002
+
+
+def test_emulation_tilt_rms_is_above_the_model_based_at_the_table1_network():
+    """Fixed seeds, common random numbers: the paired difference of the tilt RMS
+    (emulation - model) is positive by more than 4 of its standard errors."""
+    from jaxnc import montecarlo
+    keys = montecarlo.seed_keys(11, 16)
+    rms = {}
+    for d in bal.DESIGNS:
+        loop = bal.balancing_loop(d, horizon_s=10.0, t_step=5.0)
+        m = jax.jit(jax.vmap(lambda k, loop=loop: bal.run(loop, k)))(keys)
+        assert bool(np.all(m.upright))
+        rms[d] = np.asarray(m.tilt_rms_deg, np.float64)
+    diff = rms["emulation"] - rms["model"]
+    assert diff.mean() > 4 * diff.std(ddof=1) / math.sqrt(diff.size)
+
+
+def test_simple_difference_of_a_white_tilt_noise_falls_on_a_perfect_network():
+    """Why the tilt sensor is the complementary filter's (docs/balancing.md): differenced
+    over 1 ms, the white 0.1 deg noise is a 2.5 rad/s rate noise that saturates the input,
+    and the emulation design falls with every packet in time; with the complementary
+    filter's error it stays upright. Perfect network, 10 s, 8 fixed seeds."""
+    from jaxnc import montecarlo
+    keys = montecarlo.seed_keys(3, 8)
+    up = {}
+    for sensor in ("complementary", "white"):
+        loop = bal.balancing_loop("emulation", plant=Balancing(tilt_sensor=sensor), ca=PERFECT,
+                                  horizon_s=10.0, t_step=5.0)
+        up[sensor] = np.asarray(jax.jit(jax.vmap(lambda k, loop=loop: bal.run(loop, k).upright))(keys))
+    assert up["complementary"].all()
+    assert not up["white"].any()

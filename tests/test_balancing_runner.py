@@ -2,8 +2,13 @@
 
 The reference is the old scheme, kept verbatim in tests/legacy/balancing_legacy.py. Both
 are compiled with jit and replay the same traces and noise; the comparisons are exact
-(the same float32 operations in the same order). The one intended difference: the old
-emulation loop read the held measurement / command from a ring of the last ``ring``
+(the same float32 operations in the same order). The old scheme had a white tilt noise
+and a filtered derivative in the emulation design (tau_d = 5 ms; tau_d = 0, the simple
+difference, as an option). Since issue 23 the defaults are the complementary-filter
+sensor and the simple difference (docs/balancing.md), so both loops get the white-sensor
+plant ``WHITE`` (the former plant; the old loop takes its measurement from the plant)
+and the new one the old one's derivative by name (``new_kw``). The one intended
+difference: the old emulation loop read the held measurement / command from a ring of the last ``ring``
 steps by index, clipped to the ring, so after an outage longer than ``ring - 1`` steps it
 used ``y_{k - ring + 1}`` (``u_{k - ring + 1}``) instead of holding the last arrival. The
 new loop holds it (eq. 5); the old loop is compared up to the first such step, and
@@ -15,13 +20,25 @@ import numpy as np
 import pytest
 
 from jaxnc import wifi
+from jaxnc.plants.balancing import Balancing
 from jaxnc.schemes import balancing as bal
 from tests.legacy import balancing_legacy as legacy
 
 HORIZON, T_STEP = 2.0, 1.0        # s: short runs with the reference step inside
 SEEDS = (0, 1)
+WHITE = Balancing(tilt_sensor="white")     # the legacy loops' sensor
 CASES = [("model", {}), ("model", dict(hold=False)), ("model", dict(gain="lqr", lead=3, N_buf=5)),
          ("emulation", {}), ("emulation", dict(tau_d=0.0))]
+
+
+def new_kw(design, kw):
+    """The new loop's arguments for the legacy loop's ``kw``: the white sensor, and the
+    emulation design's derivative named (legacy ``tau_d = 0`` is the simple difference)."""
+    kw = dict(kw, plant=WHITE)
+    if design == "emulation":
+        tau = kw.pop("tau_d", 0.005)
+        kw.update(dict(derivative="simple") if tau == 0 else dict(derivative="filtered", tau_d=tau))
+    return kw
 
 _old_sim, _new_sim = jax.jit(legacy.simulate), jax.jit(bal.simulate)
 
@@ -39,8 +56,8 @@ def _first_stale(trace, ring):
                                                   for d, k in CASES])
 def test_runner_loop_equals_the_hand_written_loop(severity, design, kw):
     ch = bal.SEVERITIES[severity]
-    old_cfg = legacy.balancing_loop(design, ca=ch, horizon_s=HORIZON, t_step=T_STEP, **kw)
-    new_cfg = bal.balancing_loop(design, ca=ch, horizon_s=HORIZON, t_step=T_STEP, **kw)
+    old_cfg = legacy.balancing_loop(design, ca=ch, horizon_s=HORIZON, t_step=T_STEP, plant=WHITE, **kw)
+    new_cfg = bal.balancing_loop(design, ca=ch, horizon_s=HORIZON, t_step=T_STEP, **new_kw(design, kw))
     for s in SEEDS:
         key = jax.random.PRNGKey(s)
         sc, ca = bal.traces(key, ch, ch, new_cfg.steps)
@@ -62,7 +79,8 @@ def test_equal_on_a_full_run_with_the_step_and_a_run_that_falls():
     """25 s (the experiment's horizon, step at 15 s), and a blackout that makes both fall."""
     key = jax.random.PRNGKey(5)
     for design in bal.DESIGNS:
-        old_cfg, new_cfg = legacy.balancing_loop(design), bal.balancing_loop(design)
+        old_cfg = legacy.balancing_loop(design, plant=WHITE)
+        new_cfg = bal.balancing_loop(design, **new_kw(design, {}))
         sc, ca = bal.traces(key, wifi.NOMINAL, wifi.NOMINAL, new_cfg.steps)
         if design == "emulation":             # the nominal channel has no outage of a ring's length
             assert _first_stale(sc, old_cfg.ring) == _first_stale(ca, old_cfg.ring) == new_cfg.steps
@@ -72,8 +90,8 @@ def test_equal_on_a_full_run_with_the_step_and_a_run_that_falls():
         np.testing.assert_array_equal(np.asarray(b.u)[:, 0], np.asarray(a.u))
         for old_m, new_m in zip(legacy.metrics(old_cfg, a), bal.metrics(new_cfg, b)):
             np.testing.assert_array_equal(np.asarray(new_m), np.asarray(old_m))
-    old_cfg = legacy.balancing_loop("model", horizon_s=1.0)
-    new_cfg = bal.balancing_loop("model", horizon_s=1.0)
+    old_cfg = legacy.balancing_loop("model", horizon_s=1.0, plant=WHITE)
+    new_cfg = bal.balancing_loop("model", horizon_s=1.0, plant=WHITE)
     lost = np.full(new_cfg.steps, wifi.LOST, np.int32)
     a, b = _old_sim(old_cfg, lost, lost, key), _new_sim(new_cfg, lost, lost, key)
     assert bool(a.fallen) and bool(b.failed)
@@ -84,7 +102,7 @@ def test_equal_on_a_full_run_with_the_step_and_a_run_that_falls():
 def test_emulation_holds_through_a_long_outage():
     """eq. 5: with no packet for 60 steps the observer holds the last arrived measurement
     (its rates decay by a = exp(-Ts / tau_d) per step) and the actuator the last command."""
-    cfg = bal.balancing_loop("emulation", horizon_s=0.4)
+    cfg = bal.balancing_loop("emulation", horizon_s=0.4, derivative="filtered")
     K = cfg.steps
     sc = np.ones(K, np.int32)
     ca = np.ones(K, np.int32)

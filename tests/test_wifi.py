@@ -226,3 +226,45 @@ def test_read_trace_errors_name_the_file_and_line(tmp_path, content, fragment):
     with pytest.raises(ValueError) as e:
         wifi.read_trace(bad)
     assert fragment in str(e.value), str(e.value)
+
+
+def test_interfered_channel_retries_a_step_later_and_loses_both_spoilt():
+    """wifi.interfered (Fig. 5's noise levels): delay law (pmf(d) + h pmf(d - 1)) / (1 + h),
+    an extra independent loss h^2; the empirical loss and delays of generated traces
+    within K_SIGMA standard errors; loss_extra = 0 leaves a trace as it was."""
+    h = 0.2
+    ch = wifi.interfered(wifi.NOMINAL, h)
+    pmf0 = np.asarray(wifi.NOMINAL.delay_pmf, float)
+    np.testing.assert_allclose(np.asarray(ch.delay_pmf)[:3], np.array([0.0, 0.6, 0.36 + 0.2 * 0.6]) / 1.2,
+                               rtol=1e-6)
+    assert ch.max_delay == wifi.NOMINAL.max_delay + 1
+    assert float(ch.loss_extra) == pytest.approx(h * h)
+    base = wifi.stationary_loss(wifi.NOMINAL)
+    assert wifi.stationary_loss(ch) == pytest.approx(1 - (1 - base) * (1 - h * h), rel=1e-12)
+    keys = _keys(99, RUNS)
+    tr = np.asarray(jax.jit(jax.vmap(lambda k: wifi.sample_trace(k, ch, N)))(keys))
+    per_run = (tr < 0).mean(axis=1)
+    tol = K_SIGMA * per_run.std(ddof=1) / math.sqrt(RUNS)
+    assert abs(per_run.mean() - wifi.stationary_loss(ch)) < tol
+    d = tr[tr >= 0]
+    for k in (1, 2, 3):
+        p = float(np.asarray(ch.delay_pmf)[k])
+        assert abs(np.mean(d == k) - p) < K_SIGMA * math.sqrt(p * (1 - p) / d.size)
+    assert float(np.asarray(ch.delay_pmf)[1]) < pmf0[1]
+    # with loss_extra = 0 the extra draw changes nothing; with it, only losses are added
+    same = dataclasses.replace(ch, loss_extra=0.0)
+    t0 = np.asarray(wifi.sample_trace(keys[0], same, 5000))
+    t1 = np.asarray(wifi.sample_trace(keys[0], ch, 5000))
+    assert np.all((t1 == t0) | (t1 == wifi.LOST)) and np.any(t1 != t0)
+    with pytest.raises(ValueError, match=r"hit must be in \[0, 1\)"):
+        wifi.interfered(wifi.NOMINAL, 1.0)
+    with pytest.raises(ValueError, match="WifiChannel.loss_extra"):
+        wifi.WifiChannel(loss_extra=1.0)
+
+
+def test_delay_cdf_matches_bruteforce():
+    t = np.array([2, wifi.LOST, 3, 2, 5, wifi.LOST, 0, 3], np.int32)
+    d = t[t >= 0]
+    ref = np.array([np.mean(d <= k) for k in range(7)])
+    np.testing.assert_array_equal(wifi.delay_cdf(t, 6), ref)
+    assert np.isnan(wifi.delay_cdf(np.full(4, wifi.LOST), 3)).all()

@@ -24,7 +24,24 @@ has an unstable pole near +6.7 rad/s (time constant 0.15 s).  The speed servo sa
 the acceleration at ``u_max = 300 rad/s^2`` (10 m/s^2 at the rim).
 
 Measurements (section 3): wheel angle from a 2048-count/rev encoder (quantised, step
-3.1e-3 rad) and tilt from a complementary filter (Gaussian, 0.1 deg).
+3.1e-3 rad) and tilt "obtained by fusing the information (complementary filtering)
+provided by the onboard IMU sensor (accelerometer and gyroscope)". ``tilt_sensor``
+chooses its error model:
+
+* ``"complementary"`` (default): the filter ``th^_k = a (th^_{k-1} + Ts g_k) + (1 - a) t_k``,
+  ``a = tau_cf / (tau_cf + Ts)``, of a gyro ``g_k = th'_k + sigma_gyro n_k`` and an
+  accelerometer tilt ``t_k = th_k + sigma_accel m_k`` (n, m standard normal per sample),
+  with the gyro integrated exactly and the accelerometer's error from the robot's own
+  acceleration neglected (ours), has the error ``e_k = a e_{k-1} + a Ts sigma_gyro n_k +
+  (1 - a) sigma_accel m_k``: a first-order Gauss-Markov sequence independent of the
+  state (:meth:`Balancing.tilt_error`), of stationary std ~0.016 deg with the numbers
+  below, but changing only ~1e-3 deg from one sample to the next;
+* ``"white"``: ``th_k + sigma_theta v_k`` with white ``v`` (0.1 deg), the former model.
+
+The paper publishes no sensor numbers; ours are of the order of a consumer MEMS IMU at
+1 kHz: gyro 0.11 deg/s and accelerometer tilt 0.5 deg per sample (std), ``tau_cf = 0.5 s``.
+``sigma_theta`` is also the tilt noise the Kalman filter designs for (:meth:`kalman_QR`),
+with either sensor.
 """
 from __future__ import annotations
 
@@ -41,6 +58,7 @@ STATE_DIM = 4
 INPUT_DIM = 1
 OUTPUT_DIM = 2
 G = 9.81
+TILT_SENSORS = ("complementary", "white")   # error models of the tilt measurement (module docstring)
 
 
 @jax.tree_util.register_dataclass
@@ -58,14 +76,21 @@ class Balancing:
     u_max: float = 300.0    # wheel acceleration saturation of the speed servo, rad/s^2
     w_theta: float = 0.5    # std of the tilt acceleration disturbance (held 1 ms), rad/s^2
     w_servo: float = 1.0    # std of the servo's acceleration tracking error, rad/s^2
-    sigma_theta: float = np.deg2rad(0.1)      # tilt measurement noise, rad
+    sigma_theta: float = np.deg2rad(0.1)      # white tilt noise ("white" sensor; the filter's R), rad
     encoder_step: float = 2 * np.pi / 2048    # encoder quantum, rad
+    sigma_gyro: float = np.deg2rad(0.11)      # gyro noise per sample, rad/s ("complementary")
+    sigma_accel: float = np.deg2rad(0.5)      # accelerometer tilt noise per sample, rad
+    tau_cf: float = 0.5                       # complementary filter's time constant, s
+    tilt_sensor: str = dataclasses.field(default="complementary", metadata=dict(static=True))
     Ts: float = dataclasses.field(default=1e-3, metadata=dict(static=True))
 
     def __post_init__(self):
-        for name in ("M", "l", "J_b", "m_w", "r", "J_w", "u_max", "Ts", "encoder_step"):
+        if self.tilt_sensor not in TILT_SENSORS:
+            raise ValueError(f"Balancing.tilt_sensor must be one of {', '.join(TILT_SENSORS)}, "
+                             f"got {self.tilt_sensor!r}")
+        for name in ("M", "l", "J_b", "m_w", "r", "J_w", "u_max", "Ts", "encoder_step", "tau_cf"):
             check_positive(f"Balancing.{name}", getattr(self, name))
-        for name in ("b", "w_theta", "w_servo", "sigma_theta"):
+        for name in ("b", "w_theta", "w_servo", "sigma_theta", "sigma_gyro", "sigma_accel"):
             check_nonneg(f"Balancing.{name}", getattr(self, name))
 
     # -- eq. (20) coefficients ---------------------------------------------------------
@@ -131,9 +156,39 @@ class Balancing:
         return x
 
     def measure(self, x, v):
-        """(encoder-quantised delta, tilt + v): section 3."""
+        """(encoder-quantised delta, tilt + error): section 3. ``v`` is the tilt error in
+        rad for the ``"complementary"`` sensor (a sample of :meth:`tilt_error`) and a
+        standard normal for the ``"white"`` one (scaled by ``sigma_theta``)."""
         q = self.encoder_step
-        return jnp.stack([q * jnp.round(x[0] / q), x[1] + self.sigma_theta * v])
+        e = v if self.tilt_sensor == "complementary" else self.sigma_theta * v
+        return jnp.stack([q * jnp.round(x[0] / q), x[1] + e])
+
+    def _cf(self):
+        a = jnp.asarray(self.tau_cf, jnp.float32) / (self.tau_cf + self.Ts)
+        drive = jnp.hypot(a * self.Ts * self.sigma_gyro, (1.0 - a) * self.sigma_accel)
+        return a, drive
+
+    def tilt_error_std(self) -> jax.Array:
+        """Stationary std (rad) of the ``"complementary"`` sensor's error, float32 (traceable)."""
+        a, drive = self._cf()
+        return drive / jnp.sqrt(1.0 - a * a)
+
+    def tilt_error(self, key, K: int) -> jax.Array:
+        """float32[K]: the complementary filter's tilt error ``e_0 .. e_{K-1}`` (rad, module
+        docstring), started in its stationary law: ``e_{-1} ~ N(0, tilt_error_std^2)``,
+        then ``e_k = a e_{k-1} + drive_k`` with ``drive_k`` i.i.d. normal of std
+        ``hypot(a Ts sigma_gyro, (1 - a) sigma_accel)``. ``K`` is static; the parameters
+        may be traced."""
+        a, drive = self._cf()
+        k0, kd = jax.random.split(key)
+        e0 = self.tilt_error_std() * jax.random.normal(k0, (), jnp.float32)
+        d = drive * jax.random.normal(kd, (int(K),), jnp.float32)
+
+        def step(e, dk):
+            e = a * e + dk
+            return e, e
+
+        return jax.lax.scan(step, e0, d)[1]
 
     def noise_std(self) -> np.ndarray:
         """Std of ``w`` (rad/s^2), used to draw it and for the filter's Q."""

@@ -28,8 +28,14 @@ meets the identical network and noise.
 use ``order="arrival"``: the receiver takes whatever arrives now, even an older packet
 than the one it holds (a packet later than ``ring - 1`` steps is lost: its slot of the
 ring is reused). :class:`DirtyDerivative` holds the most recently arrived
-measurement and gets the rates by a first-order ("dirty") derivative with time constant
-``tau_d`` (the plain difference for ``tau_d = 0``); :class:`LeadFeedback` with
+measurement (eq. 5) and gets the rates by *simple differentiation* (``derivative="simple"``,
+the default: the paper's "simple differentiation of the corresponding angular
+measurements", section 5), the backward difference of the held measurement over one
+period, ``(zbar_k - zbar_{k-1}) / Ts``, or, as an option (``derivative="filtered"``), by a
+first-order ("dirty") derivative with time constant ``tau_d``. With nothing new arriving
+the held measurement does not change and the simple difference is 0; the next arrival's
+whole change since the last one is divided by one period (the observer has no time
+stamps and detects no loss, section 2). :class:`LeadFeedback` with
 ``lead = 0`` applies the LQR designed for the ideal loop; :class:`ArrivalHold` applies the
 most recently arrived command and holds it (0 before the first).
 
@@ -60,11 +66,12 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.plants.balancing import Balancing
 
-__all__ = ["DESIGNS", "W_LQ", "U_LQ", "SEVERITIES", "Robot", "StepReference", "BufferedKalman",
-           "DirtyDerivative", "LeadFeedback", "ArrivalHold", "balancing_loop", "draws", "traces", "simulate",
-           "reference", "metrics", "run", "run_seed", "Metrics"]
+__all__ = ["DESIGNS", "DERIVATIVES", "W_LQ", "U_LQ", "SEVERITIES", "NOISE_LEVELS", "Robot", "StepReference",
+           "BufferedKalman", "DirtyDerivative", "LeadFeedback", "ArrivalHold", "balancing_loop", "draws", "traces",
+           "simulate", "reference", "metrics", "run", "run_seed", "Metrics"]
 
 DESIGNS = ("model", "emulation")
+DERIVATIVES = ("simple", "filtered")   # the emulation observer's rates (DirtyDerivative)
 # LQ weights: 0.5 rad of wheel angle, 0.05 rad of tilt, 5 and 0.5 rad/s, 100 rad/s^2 of input
 W_LQ = np.diag([1 / 0.5**2, 1 / 0.05**2, 1 / 5.0**2, 1 / 0.5**2])
 U_LQ = np.array([[1 / 100.0**2]])
@@ -80,9 +87,12 @@ class Robot(nc.AbstractPlant):
 
     ``x = (delta, theta, delta', theta')``, ``u`` float[1] (wheel acceleration),
     ``w`` float[2] (servo error, tilt acceleration; rad/s^2), measurement
-    ``z = (encoder-quantised delta, theta + sigma_theta v[1])`` with ``v[1]`` standard
-    normal (``v[0]`` unused: the encoder's error is its quantisation). Starts at rest with
-    tilt ``theta0`` (rad).
+    ``z = (encoder-quantised delta, theta + e)`` (``v[0]`` unused: the encoder's error is
+    its quantisation): with the robot's ``tilt_sensor="complementary"`` ``e = v[1]``, the
+    complementary filter's error in rad (:func:`draws` draws the sequence with
+    :meth:`~jaxnc.plants.balancing.Balancing.tilt_error`), with ``"white"``
+    ``e = sigma_theta v[1]``, ``v[1]`` standard normal. Starts at rest with tilt
+    ``theta0`` (rad).
     """
 
     robot: Balancing
@@ -97,14 +107,16 @@ class Robot(nc.AbstractPlant):
         return self.robot.dynamics(x, u, w)
 
     def measure(self, x, v):
-        q = self.robot.encoder_step
-        return jnp.stack([q * jnp.round(x[0] / q), x[1] + self.robot.sigma_theta * v[1]])
+        return self.robot.measure(x, v[1])
 
     def process_std(self):
         return jnp.stack([self.robot.w_servo, self.robot.w_theta]).astype(_F32)
 
     def measurement_std(self):
-        return jnp.asarray([0.0, 1.0], _F32)            # v[1] in units of sigma_theta
+        # v[1] in units of sigma_theta (white), or in rad (complementary: the runner's own
+        # draws would give a white error of the filter's stationary std; draws() colours it)
+        s = 1.0 if self.robot.tilt_sensor == "white" else self.robot.tilt_error_std()
+        return jnp.asarray([0.0, s], _F32)
 
     def init(self, key):
         th = jnp.asarray(self.theta0, _F32)
@@ -197,13 +209,15 @@ class DirtyDerivativeState(NamedTuple):
 
 @_dataclass
 class DirtyDerivative(nc.AbstractEstimator):
-    """The differentiating observer of the emulation design (seed 001 eq. 5).
+    """The differentiating observer of the emulation design (seed 001 eq. 5 and section 5).
 
     Holds the newest delivered measurement ``zbar`` (with the uplink's ``order="arrival"``,
     the most recently arrived) and filters its difference,
-    ``r_k = a r_{k-1} + (1 - a) (zbar_k - zbar_{k-1}) / Ts``, ``a = exp(-Ts / tau_d)``
-    (``a = 0`` for ``tau_d = 0``: the plain difference). The estimate is ``(zbar, r)``
-    (for the robot: delta, theta and their rates). At k = 0 it holds ``y_0``.
+    ``r_k = a r_{k-1} + (1 - a) (zbar_k - zbar_{k-1}) / Ts``, ``a = exp(-Ts / tau_d)``.
+    ``tau_d = 0`` gives ``a = 0``, the simple differentiation of section 5,
+    ``r_k = (zbar_k - zbar_{k-1}) / Ts`` (0 on a step where nothing arrives; an arrival
+    after a gap divides the whole change by one period). The estimate is ``(zbar, r)``
+    (for the robot: delta, theta and their rates). At k = 0 it holds ``y_0`` (``r_0 = 0``).
 
     Attributes: tau_d (s, >= 0); Ts, static period (s).
     """
@@ -308,13 +322,15 @@ class ArrivalHold(nc.AbstractActuator):
 def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gain: str = "hold",
                    theta: float | None = None, ca: wifi.WifiChannel = wifi.NOMINAL,
                    sc: wifi.WifiChannel | None = None, hold: bool = True, N_buf: int = 10, lead: int = 2,
-                   tau_d: float = 0.005, horizon_s: float = 25.0, theta0_deg: float = 5.0, step_m: float = 0.1,
-                   t_step: float = 15.0, tilt_limit_deg: float = 30.0, ring: int = 32) -> nc.Loop:
+                   derivative: str = "simple", tau_d: float | None = None, horizon_s: float = 25.0,
+                   theta0_deg: float = 5.0, step_m: float = 0.1, t_step: float = 15.0,
+                   tilt_limit_deg: float = 30.0, ring: int = 32) -> nc.Loop:
     """The loop of one design as a :class:`jaxnc.loop.Loop` (validated, plain Python).
 
     Args:
       design: ``"model"`` or ``"emulation"`` (module docstring).
-      plant: the robot's parameters (default :class:`~jaxnc.plants.balancing.Balancing`).
+      plant: the robot's parameters and tilt sensor (default
+        :class:`~jaxnc.plants.balancing.Balancing`, the complementary-filter sensor).
       gain: model design, ``"hold"`` (eq. 17-19 with ``theta`` = P(command applied in
         time), by default computed from the ``ca`` channel for the given ``lead``) or
         ``"lqr"``.
@@ -323,8 +339,10 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
       hold: model design's actuator on a missing command: hold (True) or zero.
       N_buf: the filter's buffer (steps a measurement may be late); lead: steps of
         prediction (the stamp's lead), >= 1.
-      tau_d: the emulation observer's time constant (s); ring: the emulation links'
-        ring (a packet later than ``ring - 1`` steps is lost).
+      derivative: the emulation observer's rates, ``"simple"`` (backward difference over
+        one period, the paper's) or ``"filtered"`` (first-order filter of time constant
+        ``tau_d``, > 0, default 0.005 s); ``tau_d`` is refused with ``"simple"``.
+      ring: the emulation links' ring (a packet later than ``ring - 1`` steps is lost).
       horizon_s, theta0_deg, step_m, t_step, tilt_limit_deg: the scenario.
 
     Raises:
@@ -341,7 +359,16 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
     check_int("lead", lead, 1, 50)
     check_int("N_buf", N_buf, 1, 10_000)
     check_int("ring", ring, 2, 10_000)
-    check_nonneg("tau_d", tau_d)
+    if derivative not in DERIVATIVES:
+        raise ValueError(f"derivative must be one of {', '.join(DERIVATIVES)}, got {derivative!r}")
+    if derivative == "simple":
+        if tau_d is not None:
+            raise ValueError(f"tau_d applies to derivative='filtered' only, got tau_d={tau_d!r} "
+                             "with derivative='simple'")
+        tau_d = 0.0
+    else:
+        tau_d = 0.005 if tau_d is None else tau_d
+        check_positive("tau_d", tau_d)
     check_range("tilt_limit_deg", tilt_limit_deg, 0.0, 90.0, low_open=True)
     Ts = float(plant.Ts)
     steps = int(round(horizon_s / Ts))
@@ -394,13 +421,20 @@ def draws(loop: nc.Loop, sc, ca, key) -> nc.Draws:
     """The runner's :class:`~jaxnc.loop.Draws` replaying the traces ``sc``, ``ca``
     (int[>= steps], ``wifi.LOST`` = lost) as the links' delays, with the noise from ``key``
     (split in two): ``w`` float[K, 1, 2], the servo and tilt disturbances (standard normals
-    times the robot's stds), and ``v`` float[K, 2], the tilt sensor's standard normal in
-    ``v[:, 1]`` (:class:`Robot` scales it)."""
+    times the robot's stds), and ``v`` float[K, 2] with the tilt sensor's error in
+    ``v[:, 1]``: the complementary filter's error sequence in rad
+    (:meth:`~jaxnc.plants.balancing.Balancing.tilt_error`), or for the ``"white"`` sensor
+    a standard normal (:class:`Robot` scales it)."""
     K = loop.steps
     kw, kv = jax.random.split(key)
     w = jax.random.normal(kw, (K, 2), _F32) * loop.plant.process_std()[None, :]
-    v = jax.random.normal(kv, (K,), _F32)
-    v = jnp.stack([0.0 * v, v], axis=1) * loop.plant.measurement_std()[None, :]
+    robot = loop.plant.robot
+    if robot.tilt_sensor == "complementary":
+        v = robot.tilt_error(kv, K)
+        v = jnp.stack([0.0 * v, v], axis=1)
+    else:
+        v = jax.random.normal(kv, (K,), _F32)
+        v = jnp.stack([0.0 * v, v], axis=1) * loop.plant.measurement_std()[None, :]
     sc = jnp.asarray(sc, jnp.int32)[:K]
     ca = jnp.asarray(ca, jnp.int32)[:K]
     return nc.Draws(w.reshape(K, 1, 2), v, nc.LinkDraws(sc), nc.LinkDraws(ca), key)
@@ -474,4 +508,14 @@ SEVERITIES = {
     "loss": dataclasses.replace(wifi.NOMINAL, p_gb=1e-3, p_bg=1 / 200, loss_bad=0.9),
     "delay": dataclasses.replace(wifi.NOMINAL, delay_pmf=_pmf(
         {1: .05, 2: .1, 3: .1, 4: .1, 5: .1, **{k: .55 / 13 for k in range(6, 19)}})),
+}
+
+# The three noise levels of section 4 / Fig. 5 (both directions alike). "no noise" is the
+# Table 1 fit; the paper gives no statistics for -21 and -19 dBm ("a small degradation"),
+# so the interferer's probability of spoiling an attempt (wifi.interfered: one retry, a
+# step later; lost if both attempts are spoilt) is ours: 0.1 and 0.2.
+NOISE_LEVELS = {
+    "no noise": wifi.NOMINAL,
+    "-21 dBm": wifi.interfered(wifi.NOMINAL, 0.1),
+    "-19 dBm": wifi.interfered(wifi.NOMINAL, 0.2),
 }
