@@ -4,7 +4,11 @@ Runs the five scenarios on the same seeds (common random numbers), prints Table 
 (J1, J2, J3 absolute with 95 % intervals and normalised to scenario a, network packets),
 writes ``results.json`` (full configuration), the per-seed metrics (``seeds.npz``, :func:`jaxnc.load`), ``paths.png`` (Figs. 5-9, seed 0) and
 ``control.png`` (Fig. 10: control signal of scenario e, seed 0).  ``F`` sets the noise
-factor of scenario e (0.1 low, 0.45 high); ``e_high=true`` adds a run of e at F = 0.45.
+factor of scenario e (0.1 low, 0.45 high); ``e_high=true`` adds a run of e at F = 0.45,
+``e_clean=true`` one of e without noise (F = 0, the delays kept: where the prediction hides
+the delay, as the paper claims, it equals c).  ``prediction`` is e's slow-period model
+(``integrated``, the default, or ``eq1``, eq. 1 as printed); ``compare=true`` repeats
+every e row with the other model (rows marked ``[eq1]`` / ``[integrated]``).
 """
 from __future__ import annotations
 
@@ -26,19 +30,31 @@ PAPER_TABLE2 = {   # Table 2: J1 (mm, sum over NT instants), J2 (mm), J3 (s)
 
 
 def build_loops(settings: dict) -> dict[str, dd.DiffDriveLoop]:
+    """Scenarios a-e, then the optional e rows: ``e (F=0)`` (``e_clean``), ``e (F=0.45)``
+    (``e_high``), and with ``compare`` each e row again with the other prediction model."""
     kw = dict(N=settings["N"], lad=settings["lad"], eta=settings["eta"], phi=settings["phi"],
               v_ref=settings["v_ref"])
+    pred = settings.get("prediction", "integrated")
+    e_rows = [("e", settings["F"])]
+    if settings.get("e_clean", False):
+        e_rows.append(("e (F=0)", 0.0))
+    if settings["e_high"]:
+        e_rows.append(("e (F=0.45)", 0.45))
     try:
-        loops = {s: dd.diffdrive_loop(s, h=settings["h"], F=(settings["F"] if s == "e" else None), **kw)
-                 for s in dd.SCENARIOS}
-        if settings["e_high"]:
-            loops["e (F=0.45)"] = dd.diffdrive_loop("e", h=settings["h"], F=0.45, **kw)
+        loops = {s: dd.diffdrive_loop(s, h=settings["h"], **kw) for s in dd.SCENARIOS if s != "e"}
+        for name, F in e_rows:
+            loops[name] = dd.diffdrive_loop("e", h=settings["h"], F=F, prediction=pred, **kw)
+        if settings.get("compare", False):
+            other = next(p for p in dd.PREDICTIONS if p != loops["e"].prediction)
+            for name, F in e_rows:
+                loops[f"{name} [{other}]"] = dd.diffdrive_loop("e", h=settings["h"], F=F, prediction=other, **kw)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     return loops
 
 
 NORMALISED = ("J1", "J2", "J1_ref", "J2_ref", "J3")
+FIGURE_ROWS = ("a", "b", "c", "d", "e", "e (F=0.45)")     # Figs. 5-9 and 11
 
 
 def summarise(results: dict) -> dict:
@@ -133,7 +149,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
                                    progress=progress, desc=f"scenario {name}")
         results[name] = {k: np.asarray(v) for k, v in m._asdict().items()}
     summary = summarise(results)
-    print(f"\nseed 004 differential drive, N={settings['N']}, h={settings['h']}, F(e)={settings['F']}, seeds={seeds}")
+    print(f"\nseed 004 differential drive, N={settings['N']}, h={settings['h']}, F(e)={settings['F']}, "
+          f"prediction={loops['e'].prediction}, seeds={seeds}")
     print("J1 = sum over NT instants of the distance to the path (eq. 23), J2 max (eq. 24), J3 time (eq. 25);"
           " '/a' normalised to scenario a, 'paper' the same ratio from Table 2\n")
     print(table(summary))
@@ -144,10 +161,11 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
     per_seed.save_per_seed(out, results, dims=("case",))
-    f1, f2 = plot_paths(loops, keys[0], out)
+    f1, f2 = plot_paths({n: l for n, l in loops.items() if n in FIGURE_ROWS}, keys[0], out)
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,
               "loops": {n: {"scenario": l.scenario, "N": l.N, "h": l.h, "n_slow": l.n_slow, "F": float(l.noise.F),
+                            "prediction": l.prediction if l.scenario == "e" else None,
                             "v_ref": float(l.v_ref), "lad": float(l.lad), "eta": float(l.eta), "phi": float(l.phi),
                             "tau_max": float(l.tau_max), "r": float(l.plant.r), "b": float(l.plant.b),
                             "noise_F1": {k: float(getattr(l.noise, k)) for k in ("wheel", "enc", "cam", "imu")},
@@ -169,6 +187,10 @@ EXPERIMENT = register(Experiment(
         Option("h", "int", 1, "prediction horizon of scenario e, in sensing periods", low=1, high=50),
         Option("F", "float", 0.1, "noise factor of scenario e (paper: 0.1 low, 0.45 high)", low=0.0, high=2.0),
         Option("e_high", "bool", True, "also run scenario e at F = 0.45"),
+        Option("e_clean", "bool", True, "also run scenario e without noise (F = 0, delays kept)"),
+        Option("prediction", "choice", "integrated", "scenario e's slow-period model: integrated (the true "
+               "plant's integrator with the fine actions applied) or eq1 (eq. 1 as printed)", choices=dd.PREDICTIONS),
+        Option("compare", "bool", True, "repeat every e row with the other prediction model"),
         Option("lad", "float", dd.LAD, "pure-pursuit look-ahead distance, m", low=0.02, high=1.0),
         Option("v_ref", "float", dd.V_REF, "reference speed along the path, m/s", low=0.01, high=1.0),
         Option("eta", "float", dd.DELAY_ETA, "delay shift, s (< tau_max = 0.17)", low=0.0, high=0.17),
@@ -184,7 +206,7 @@ EXPERIMENT = register(Experiment(
 
 def sensitivity_cell(settings: dict, v: float, lad: float, keys) -> dict:
     """One (v_ref, look-ahead) cell of the sensitivity grid: scenarios a-e on ``keys``."""
-    loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False))
+    loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False, e_clean=False, compare=False))
     results = {}
     for name, loop in loops.items():
         m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=min(64, max(len(keys), 1)),
@@ -291,6 +313,8 @@ SENSITIVITY = register(Experiment(
         Option("N", "int", 2, "multiplicity", low=2, high=10),
         Option("h", "int", 1, "prediction horizon of scenario e", low=1, high=50),
         Option("F", "float", 0.1, "noise factor of scenario e", low=0.0, high=2.0),
+        Option("prediction", "choice", "integrated", "scenario e's slow-period model (integrated or eq1)",
+               choices=dd.PREDICTIONS),
         Option("eta", "float", dd.DELAY_ETA, "delay shift, s", low=0.0, high=0.17),
         Option("phi", "float", dd.DELAY_PHI, "delay scale, s", low=0.0, high=1.0),
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),

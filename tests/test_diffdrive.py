@@ -9,6 +9,7 @@ import pytest
 
 from jaxnc import montecarlo
 from jaxnc.metrics import distance_to_points
+from jaxnc.network import quantise_delay
 from jaxnc.plants.diffdrive import K_MOTOR, TAU_MOTOR, DiffDrive
 from jaxnc.schemes import diffdrive as dd
 
@@ -36,6 +37,40 @@ def test_motor_lifted_model_matches_zoh_of_eq26():
                 x = plant.substep(x, jnp.asarray(U[j]))
         return x
     np.testing.assert_allclose(np.asarray(fine(x0))[:2], np.asarray(f)[:2], rtol=1e-4, atol=1e-4)
+
+
+def test_integrated_model_against_the_continuous_ode():
+    """DiffDrive.integrated over one period NT with a command that changes in the middle of
+    a slot T (u_{k|k-1} for 7 fine steps, then the new actions), against a float64 solution
+    of the continuous model (motor eq. 26 and kinematics eq. 2-3 with psi' = omega, scipy
+    DOP853, rtol 1e-12) with the same piecewise-constant commands. The wheel speeds are an
+    exact ZOH (float32 rounding); the pose carries only the fine grid's trapezoidal-speed
+    error, about (dt/tau)^2/12 = 5e-4 of the speed change per step, at most ~1e-4 rad over
+    the period here. Eq. (1) as printed with the slot means is off by mm and 0.03 rad."""
+    from scipy.integrate import solve_ivp
+    p = DiffDrive()
+    sub, N = p.sub, 2
+    old = np.array([[40.0, 20.0], [45.0, 15.0]], np.float32)
+    new = np.array([[55.0, 10.0], [30.0, 50.0]], np.float32)
+    i = np.arange(N * sub)
+    uf = np.where((i < 7)[:, None], old[i // sub], new[i // sub]).astype(np.float32)
+    x0 = np.array([4.0, 6.5, 0.3, -0.2, 0.4], np.float32)
+
+    def rhs(t, s, u):
+        v, om = p.r * (s[0] + s[1]) / 2, p.r * (s[0] - s[1]) / (2 * p.b)
+        return [(p.K * u[0] - s[0]) / p.tau, (p.K * u[1] - s[1]) / p.tau, v * np.cos(s[4]), v * np.sin(s[4]), om]
+    ref = x0.astype(np.float64)
+    for u in uf.astype(np.float64):
+        ref = solve_ivp(rhs, (0.0, p.dt), ref, args=(u,), rtol=1e-12, atol=1e-13, method="DOP853").y[:, -1]
+    got = np.asarray(jax.jit(p.integrated)(jnp.asarray(x0), jnp.asarray(uf), jnp.zeros(5)), np.float64)
+    err = np.abs(got - ref)
+    assert np.all(err[:2] < 1e-5) and np.all(err[2:4] < 1e-5) and err[4] < 1e-4, err
+    eq1 = np.asarray(jax.jit(p.dynamics)(jnp.asarray(x0), jnp.asarray(uf.reshape(N, sub, 2).mean(1)), jnp.zeros(5)))
+    assert np.abs(eq1[4] - ref[4]) > 100 * err[4] and np.linalg.norm(eq1[2:4] - ref[2:4]) > 1e-4
+    # n1 is additive at the end of the period (eq. 8)
+    n1 = jnp.asarray([0.1, -0.2, 1e-3, 2e-3, -0.01])
+    np.testing.assert_allclose(np.asarray(jax.jit(p.integrated)(jnp.asarray(x0), jnp.asarray(uf), n1)),
+                               got + np.asarray(n1), rtol=1e-6, atol=1e-6)
 
 
 def test_straight_line_kinematics():
@@ -84,26 +119,54 @@ def test_config_validation():
         dd.diffdrive_loop("e", F=-0.1)
     with pytest.raises(ValueError, match="h must be"):
         dd.diffdrive_loop("e", h=0)
+    with pytest.raises(ValueError, match="prediction must be one of integrated, eq1"):
+        dd.diffdrive_loop("e", prediction="rk4")
+    loop = dd.diffdrive_loop("e")
+    assert loop.prediction == "integrated" and dd.diffdrive_loop("e", prediction="EQ1").prediction == "eq1"
+    import dataclasses
+    with pytest.raises(ValueError, match="DiffDriveLoop.prediction must be one of"):
+        dataclasses.replace(loop, prediction="euler")
+    with pytest.raises(ValueError, match="needs draws="):
+        dd.runner_loop(loop)          # the local side must read each packet's arrival instant
+    dd.runner_loop(dataclasses.replace(loop, prediction="eq1"))
 
 
-@pytest.fixture(scope="module")
-def e_traj():
-    loop = dd.diffdrive_loop("e", h=1, F=0.1, horizon_s=8.0)
+def _mix(loop, tr):
+    """The fine commands the actuator plays in each period k of scenario e: u_{k|k-1} until
+    the packet arrives (its delay quantised up to dt), then u_{k|k} by time stamp
+    ([n_sense, N sub, 2], from the run's own records)."""
+    sub = loop.plant.sub
+    i = np.arange(loop.N * sub)
+    df = np.asarray(quantise_delay(tr.delay, loop.plant.dt))
+    prior, plan = np.asarray(tr.u_prior)[:, i // sub], np.asarray(tr.u_plan)[:, i // sub]
+    return np.where((i[None, :] < df[:, None])[..., None], prior, plan)
+
+
+@pytest.fixture(scope="module", params=dd.PREDICTIONS)
+def e_traj(request):
+    loop = dd.diffdrive_loop("e", h=1, F=0.1, horizon_s=8.0, prediction=request.param)
     return loop, jax.device_get(jax.jit(dd.simulate)(loop, jax.random.PRNGKey(7)))
 
 
 def test_ekf_h1_prediction_pattern_table1(e_traj):
     """Table 1 (h = 1): the packet is (xi_{k|k}, xi_{k+1|k}); the first element is the corrected
-    state, the second its one-step prediction f(xi_{k|k}, U_k), and the next correction moves
-    it only slightly."""
+    state, the second its one-step prediction, and the next correction moves it only
+    slightly. The prediction is f(xi_{k|k}, U_k) with eq. (1) as printed ("eq1"), or the
+    fine-grid integration of the commands the actuator plays in period k, u_{k|k-1} until
+    the packet arrives and U_k after ("integrated")."""
     loop, tr = e_traj
     est = np.asarray(tr.est)
     assert est.shape[1:] == (2, 5)
     # k = 0: the robot at rest at the start, corrected with one noisy sample (3 std at F = 0.1)
     std = np.asarray(loop.noise.measurement_std())
     assert np.all(np.abs(est[0, 0] - np.asarray([0, 0, 0, 0, 0])) < 3 * std)
-    f = jax.jit(jax.vmap(lambda s, U: loop.plant.dynamics(s, U, jnp.zeros(5))))
-    np.testing.assert_allclose(np.asarray(f(est[:, 0], tr.u_plan)), est[:, 1], rtol=1e-5, atol=1e-5)
+    if loop.prediction == "eq1":
+        f = jax.jit(jax.vmap(lambda s, U: loop.plant.dynamics(s, U, jnp.zeros(5))))
+        pred = f(est[:, 0], tr.u_plan)
+    else:
+        f = jax.jit(jax.vmap(lambda s, uf: loop.plant.integrated(s, uf, jnp.zeros(5))))
+        pred = f(est[:, 0], _mix(loop, tr))
+    np.testing.assert_allclose(np.asarray(pred), est[:, 1], rtol=1e-5, atol=1e-5)
     # the corrected state follows the truth within a few camera noise std (2 mm at F = 0.1)
     xs = np.asarray(tr.x)[::loop.N]
     err = np.linalg.norm(est[:, 0, 2:4] - xs[:, 2:4], axis=1)
@@ -111,6 +174,30 @@ def test_ekf_h1_prediction_pattern_table1(e_traj):
     # slight correction: prediction vs next correction, small against the NT displacement (28 mm)
     corr = np.linalg.norm(est[1:, 0, 2:4] - est[:-1, 1, 2:4], axis=1)
     assert 0 < np.median(corr) < 0.25 * loop.v_ref * loop.N * loop.plant.T
+
+
+def test_e_hides_the_delay_without_noise():
+    """Section 2.2's claim, without noise (F = 0) and with the default delays, on fixed
+    seeds: with the integrated model the EKF's estimate and the packet's one-step prediction
+    are the true states (float32 rounding), so u_{k|k-1} = u_{k|k} and e's J1 is within 5 %
+    of c's (it differs only in the first period, idle until the first packet arrives).
+    With eq. (1) as printed the prediction is off and e stays > 20 % above c."""
+    keys = montecarlo.seed_keys(4, 2)
+    run = jax.jit(jax.vmap(lambda lp, k: (dd.simulate(lp, k), dd.run(lp, k)), in_axes=(None, 0)))
+    c = np.asarray(jax.jit(dd.run)(dd.diffdrive_loop("c"), keys[0]).J1)          # deterministic
+    loop = dd.diffdrive_loop("e", F=0.0)
+    tr, m = jax.device_get(run(loop, keys))
+    N = loop.N
+    for s in range(len(keys)):
+        K = int(tr.l[s]) // N - 1
+        x = np.asarray(tr.x[s])[::N]
+        est = np.asarray(tr.est[s])
+        assert np.abs(est[:K, 0] - x[:K]).max() < 1e-5
+        assert np.abs(est[:K, 1] - x[1:K + 1]).max() < 1e-5
+    assert not np.any(m.unstable)
+    np.testing.assert_array_less(np.abs(np.asarray(m.J1) / c - 1.0), 0.05)
+    _, m1 = jax.device_get(run(dd.diffdrive_loop("e", F=0.0, prediction="eq1"), keys))
+    assert np.all(np.asarray(m1.J1) > 1.2 * c)
 
 
 def test_e_packets_carry_h_plus_one_estimates():

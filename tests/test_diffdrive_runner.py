@@ -12,6 +12,9 @@ rad/s) between a jit of a closure and of a traced argument, or under vmap, over 
 run; the closed loop then carries those roundings along. The tolerances below are about
 ten times the differences seen over a full run (``TOL_*``); the discrete outcomes
 (completion slot l, done, tube failure) must be equal.
+
+The legacy loop predicts with eq. (1) as printed, so every loop here is built with
+``prediction="eq1"`` (scenario e's default, "integrated", is tested in tests/test_diffdrive.py).
 """
 import dataclasses
 
@@ -53,7 +56,7 @@ _CACHE = {}
 def _runs(case):
     if case not in _CACHE:
         s, F = CASES[case]
-        loop = dd.diffdrive_loop(s, F=F)
+        loop = dd.diffdrive_loop(s, F=F, prediction="eq1")
         _CACHE[case] = (loop, *_pair(loop))
     return _CACHE[case]
 
@@ -82,7 +85,7 @@ def test_runner_draws_are_the_legacy_streams():
 
 
 def test_prediction_stage_bit_identical():
-    loop = dd.diffdrive_loop("e", h=3)
+    loop = dd.diffdrive_loop("e", h=3, prediction="eq1")
     mean = jnp.asarray([3.0, 3.5, 0.3, 0.01, 0.1])
     dr = loop.dr.init((2,))
     a = jax.jit(old.predict_stage)(loop, mean, jnp.int32(50), dr)

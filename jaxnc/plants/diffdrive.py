@@ -26,7 +26,9 @@ plant: the motors discretised exactly (ZOH) at the fine period ``T / sub`` and t
 kinematics integrated at that period (midpoint heading, trapezoidal wheel speed);
 the fine grid lets a network delay change the command in the middle of a period
 T, as in the paper's TrueTime simulation.  :meth:`DiffDrive.dynamics` is the EKF's
-model at NT, eq. (1)-(3) with the lifted motor of eq. (7), exactly as printed.
+model at NT, eq. (1)-(3) with the lifted motor of eq. (7), exactly as printed;
+:meth:`DiffDrive.integrated` is the "accurate system model" the paper assumes (section
+2.2): the true plant's integrator over the period with the fine commands it receives.
 """
 from __future__ import annotations
 
@@ -112,6 +114,18 @@ class DiffDrive:
         h = x[4] + om * NT
         return jnp.concatenate([w, jnp.stack([x[2] + v * NT * jnp.cos(h), x[3] + v * NT * jnp.sin(h),
                                               x[4] + om * NT])]) + n1
+
+    def integrated(self, x, u_fine, n1):
+        """The slow-period model that integrates the true plant: xi_k = F(xi_{k-1}, u) + n1.
+
+        ``u_fine`` float[M, 2] holds the commands of the M fine periods dt = T/sub of the
+        period (M = N sub for one period NT), applied in order by :meth:`substep`, the same
+        integrator as the true robot (noise-free inside the period); ``n1`` float[5] is
+        additive at the end, as in eq. (8). Unlike :meth:`dynamics` (eq. 1 as printed) it
+        follows the heading and speed through the period and a command that changes in the
+        middle of a slot T (a packet arriving mid-period)."""
+        x1, _ = jax.lax.scan(lambda xc, u: (self.substep(xc, u), None), x, u_fine)
+        return x1 + n1
 
     def measure(self, x, n2):
         """z = h(xi, n2) = xi + n2: encoders, camera (x, y), IMU heading."""

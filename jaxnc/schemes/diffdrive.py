@@ -15,7 +15,10 @@ the wheel-speed loops are PI (eq. 27) in one of two forms:
   the previous computation predicted for period k (u_{k|k-1}); when the reference packet
   arrives the local side corrects the state with the EKF, computes u_{k|k}, ... and the
   actuator switches to them, indexed by time stamp.  The local side sends the remote the
-  h+1 estimates (xi_{k|k}, xi_{k+1|k}, ..., xi_{k+h|k}) (Table 1).
+  h+1 estimates (xi_{k|k}, xi_{k+1|k}, ..., xi_{k+h|k}) (Table 1).  The EKF's prediction
+  and the prediction stage use the slow-period model ``DiffDriveLoop.prediction``:
+  "integrated" (default; the true plant's integrator with the fine commands applied, or
+  to be applied, including u_{k|k-1} until the packet arrives) or "eq1" (eq. 1 as printed).
 
 Timing and network.  The network carries references remote -> local and estimates
 local -> remote, one packet each per sensing period (T for a, NT otherwise), so b-e use
@@ -69,6 +72,10 @@ from jaxnc.plants.diffdrive import (K_MOTOR, OUTPUT_DIM, PROCESS_NOISE_DIM, STAT
                                     DiffDriveNoise, lifted_wheel_var)
 
 SCENARIOS = ("a", "b", "c", "d", "e")
+#: scenario e's slow-period model (EKF prediction and prediction stage): "integrated", the
+#: true plant's integrator over the period with the fine commands it will receive (the
+#: paper's "accurate system model", section 2.2); "eq1", eq. (1)-(3), (7) as printed.
+PREDICTIONS = ("integrated", "eq1")
 KP, TI = 6.0, 0.12                 # section 5.1
 TAU_MAX = 0.17                     # s, section 5.1
 # Delay law (ours; the paper gives only tau_max): eta + phi Exp(1), truncated at tau_max.
@@ -106,7 +113,8 @@ def pure_pursuit(path: Path, pose, idx_prev, *, lad, v_ref, window: int):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class DiffDriveLoop:
-    """One scenario's configuration.  Static: scenario, N, h, n_slow (sensing periods at NT)."""
+    """One scenario's configuration.  Static: scenario, N, h, n_slow (sensing periods at NT),
+    prediction (scenario e's slow-period model, one of :data:`PREDICTIONS`)."""
 
     plant: DiffDrive
     noise: DiffDriveNoise          # true noise (F inside)
@@ -129,10 +137,14 @@ class DiffDriveLoop:
     h: int = dataclasses.field(default=1, metadata=dict(static=True))
     n_slow: int = dataclasses.field(default=100, metadata=dict(static=True))
     window: int = dataclasses.field(default=40, metadata=dict(static=True))
+    prediction: str = dataclasses.field(default="integrated", metadata=dict(static=True))
 
     def __post_init__(self):
         if self.scenario not in SCENARIOS:
             raise ValueError(f"DiffDriveLoop.scenario must be one of {', '.join(SCENARIOS)}, got {self.scenario!r}")
+        if self.prediction not in PREDICTIONS:
+            raise ValueError(f"DiffDriveLoop.prediction must be one of {', '.join(PREDICTIONS)}, "
+                             f"got {self.prediction!r}")
         check_int("DiffDriveLoop.N", self.N, 1, 50)
         check_int("DiffDriveLoop.h", self.h, 1, 100)
         check_int("DiffDriveLoop.n_slow", self.n_slow, 1)
@@ -163,14 +175,18 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
                    Kp: float = KP, Ti: float = TI, T: float = 0.1, tau_max: float = TAU_MAX,
                    eta: float = DELAY_ETA, phi: float = DELAY_PHI, v_ref: float = V_REF, lad: float = LAD,
                    path: Path | None = None, horizon_s: float | None = None,
-                   noise: DiffDriveNoise | None = None) -> DiffDriveLoop:
+                   noise: DiffDriveNoise | None = None, prediction: str = "integrated") -> DiffDriveLoop:
     """A validated configuration with the paper's defaults (section 5.1).
 
     ``F`` is the noise factor: None means the paper's choice (0 for a-d, which the paper
     runs noise-free, 0.1 for e).  The controllers are designed here, at configuration
     time: ``single_rate_pi`` at T (a) or NT (b) and ``dualrate_design`` (c-e).
+    ``prediction`` is scenario e's slow-period model (:data:`PREDICTIONS`): "integrated"
+    (default, :meth:`DiffDrive.integrated`) or "eq1" (eq. 1 as printed, the former default);
+    a-d do not use it.  Raises ValueError naming the parameter for a bad value.
     """
     scenario = check_choice("scenario", scenario, SCENARIOS)
+    prediction = check_choice("prediction", prediction, PREDICTIONS)
     check_int("N", N, 1, 50)
     check_int("h", h, 1, 100)
     F = (0.1 if scenario == "e" else 0.0) if F is None else F
@@ -196,7 +212,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
     return DiffDriveLoop(plant=plant, noise=noise, path=path, sr=sr, dr=dr, Q=Q, R=R,
                          P0_std=np.asarray([0.1, 0.1, 0.005, 0.005, 0.01], np.float32),
                          v_ref=v_ref, lad=lad, eta=eta, phi=phi, tau_max=tau_max,
-                         scenario=scenario, N=N, h=h, n_slow=n_slow)
+                         scenario=scenario, N=N, h=h, n_slow=n_slow, prediction=prediction)
 
 
 class Draws(NamedTuple):
@@ -254,23 +270,47 @@ def _control(loop: DiffDriveLoop, est, idx, sr, dr):
     return U, w_com, idx, sr, dr
 
 
-def predict_stage(loop: DiffDriveLoop, mean, idx, dr: DualRateState):
+def predict_stage(loop: DiffDriveLoop, mean, idx, dr: DualRateState, u_prev=None, arrival=None):
     """h-step-ahead prediction stage (section 3.2, items 1-4, eq. 14) from the corrected
     state: pure pursuit, dual-rate controller and the NT model iterated in open loop
     (:func:`jaxnc.controllers.prediction.predict_periods`).
+
+    ``loop.prediction`` picks the model: "eq1", eq. (1) as printed with the N actions
+    (``u_prev`` and ``arrival`` unused); "integrated", :meth:`DiffDrive.integrated` with
+    the fine commands the actuator will apply: in period k, ``u_prev`` (float[N, 2], the
+    actions u_{k|k-1} it plays from kNT) for the first ``arrival`` fine steps (int, the
+    instant the new packet arrives, fine steps after kNT; None: 0), then the period's own
+    actions by time stamp; in the later periods their own actions throughout.
 
     Returns (states [h+1, 5] = xi_{k|k} .. xi_{k+h|k}, actions [h+1, N, 2] for periods
     k .. k+h, and the controller state / path progress after the first period).
     """
     sr0 = jnp.zeros((2, loop.sr.order), jnp.float32)
+    if loop.prediction == "eq1":
+        def law(c, s):
+            i, d = c
+            U, _, i, _, d = _control(loop, s, i, sr0, d)
+            return U, (i, d)
 
-    def law(c, s):
-        i, d = c
+        states, Us, (idxs, drs) = predict_periods(law, loop.plant.dynamics, mean, (idx, dr), loop.h + 1,
+                                                  PROCESS_NOISE_DIM)
+        first = jax.tree.map(lambda a: a[0], (idxs, drs))
+        return states, Us, first[0], first[1]
+
+    sub = loop.plant.sub
+    nf = loop.ns * sub
+    prev = jnp.zeros((nf, 2), jnp.float32) if u_prev is None else jnp.repeat(u_prev, sub, axis=0)
+    early = jnp.arange(nf)[:, None] < (0 if arrival is None else arrival)      # before the packet arrives
+
+    def law_fine(c, s):
+        i, d, first = c
         U, _, i, _, d = _control(loop, s, i, sr0, d)
-        return U, (i, d)
+        Uf = jnp.repeat(U, sub, axis=0)
+        return (U, jnp.where(first & early, prev, Uf)), (i, d, jnp.zeros((), bool))
 
-    states, Us, (idxs, drs) = predict_periods(law, loop.plant.dynamics, mean, (idx, dr), loop.h + 1,
-                                              PROCESS_NOISE_DIM)
+    model = lambda x, UU, w: loop.plant.integrated(x, UU[1], w)
+    states, (Us, _), (idxs, drs, _) = predict_periods(law_fine, model, mean, (idx, dr, jnp.ones((), bool)),
+                                                      loop.h + 1, PROCESS_NOISE_DIM)
     first = jax.tree.map(lambda a: a[0], (idxs, drs))
     return states, Us, first[0], first[1]
 
@@ -382,9 +422,10 @@ class DiffDriveEKF(AbstractEstimator):
     """Scenario e's EKF (eq. 8-13) at the sensing period NT.
 
     ``correct``: :func:`ekf_update` with the delivered measurement (xi + n2, eq. 8);
-    ``predict``: :func:`ekf_predict` with the NT model eq. (1)-(3), (7) and, per slot T, the
-    mean of the fine commands the motors received (``u_applied`` float[N*sub, 2]; zero
-    once the robot has stopped)."""
+    ``predict``: :func:`ekf_predict` with the fine commands the motors received
+    (``u_applied`` float[N*sub, 2]; zero once the robot has stopped) and the loop's model:
+    "integrated", :meth:`DiffDrive.integrated` over those commands; "eq1", eq. (1)-(3), (7)
+    with, per slot T, their mean."""
 
     loop: DiffDriveLoop
     inputs = "applied"
@@ -404,8 +445,11 @@ class DiffDriveEKF(AbstractEstimator):
     def predict(self, state: EkfState, u_applied, u_believed, k) -> EkfState:
         lp = self.loop
         u = jnp.where(state.stop, 0.0, u_applied)
-        u_eff = jnp.mean(u.reshape(lp.ns, lp.plant.sub, 2), axis=1)
-        prior = ekf_predict(lp.plant.dynamics, state.post, u_eff, lp.Q, PROCESS_NOISE_DIM)
+        if lp.prediction == "integrated":
+            prior = ekf_predict(lp.plant.integrated, state.post, u, lp.Q, PROCESS_NOISE_DIM)
+        else:
+            u_eff = jnp.mean(u.reshape(lp.ns, lp.plant.sub, 2), axis=1)
+            prior = ekf_predict(lp.plant.dynamics, state.post, u_eff, lp.Q, PROCESS_NOISE_DIM)
         return state._replace(prior=prior)
 
 
@@ -428,9 +472,15 @@ class DiffDriveController(AbstractController):
     a, b: single-rate PI (eq. 30-31), its action held over the period; c, d: dual rate
     (eq. 21-22, 28-29), N actions at T; e: the h-step-ahead prediction stage
     (:func:`predict_stage`, eq. 14), the actions of periods k .. k+h. The packet carries
-    them at the fine period (each action repeated sub times), stamped kN sub."""
+    them at the fine period (each action repeated sub times), stamped kN sub.
+
+    ``arrival`` (e, prediction "integrated"): int32[S], fine steps after kNT at which the
+    reference packet of period k reaches the local side, where the computation runs
+    (section 2.2): its own clock tells it how long the actuator played u_{k|k-1}, so the
+    prediction stage integrates that mix. None: as if it arrived at kNT."""
 
     loop: DiffDriveLoop
+    arrival: jax.Array | None = None
 
     @property
     def horizon(self) -> int:
@@ -448,7 +498,8 @@ class DiffDriveController(AbstractController):
         lp = self.loop
         est = xhat[:STATE_DIM]
         if lp.scenario == "e":
-            states, Us, idx, dr = predict_stage(lp, est, state.idx, state.dr)
+            arrival = None if self.arrival is None else self.arrival[k]
+            states, Us, idx, dr = predict_stage(lp, est, state.idx, state.dr, state.u_pred, arrival)
             U = Us[0]
             w_com, _ = _wheel_ref(lp, est, state.idx)
             sr, u_pred = state.sr, Us[1]
@@ -506,8 +557,12 @@ class ArrivalActuator(AbstractActuator):
         return u, state._replace(start=start, pending=jnp.zeros((), bool), last=u)
 
 
-def runner_loop(loop: DiffDriveLoop) -> runner.Loop:
+def runner_loop(loop: DiffDriveLoop, draws: runner.Draws | None = None) -> runner.Loop:
     """The scenario as a :class:`jaxnc.loop.Loop` at the fine period dt = T/sub.
+
+    ``draws`` (:func:`runner_draws`): the run's draws, whose downlink delays are the
+    arrival instants the local side reads in scenario e with ``prediction="integrated"``
+    (:class:`DiffDriveController`), where they are required (ValueError without them).
 
     Uplink without delay (the measurement is used at its sampling instant), downlink with
     the truncated exponential delay (d, e) quantised up to dt; Passthrough estimate (a-d)
@@ -517,7 +572,13 @@ def runner_loop(loop: DiffDriveLoop) -> runner.Loop:
     :class:`Robot`)."""
     sub = loop.plant.sub
     nf = loop.ns * sub
-    ctrl = DiffDriveController(loop)
+    arrival = None
+    if loop.scenario == "e" and loop.prediction == "integrated":
+        if draws is None:
+            raise ValueError("runner_loop: scenario e with prediction='integrated' needs draws= (runner_draws(loop, "
+                             "key)): the local side integrates the actions played until each packet arrives")
+        arrival = jnp.asarray(draws.downlink.delay, jnp.int32)
+    ctrl = DiffDriveController(loop, arrival)
     if loop.delayed:
         down = Link(delay=TruncatedExponential(loop.eta, loop.phi, loop.tau_max))
     else:
@@ -567,7 +628,8 @@ def simulate(loop: DiffDriveLoop, key) -> Trajectory:
     Pure function of (loop, key); vmap it over keys."""
     sub = loop.plant.sub
     d = draw(key, loop.steps)
-    tr = runner.simulate(runner_loop(loop), key, draws=_runner_draws(loop, d, key))
+    rd = _runner_draws(loop, d, key)
+    tr = runner.simulate(runner_loop(loop, rd), key, draws=rd)
     x_in, u, l, done, bad = tr.plant_rec
     w_com, est, U, u_prior = tr.ctrl_rec
     l, done = l[-1], done[-1]
