@@ -7,6 +7,8 @@ The three loops:
   safety condition), thresholds delta and sigma (one value for every output), objective
   L_w = J1'/J1_nom + w J4 (``experiments/autotune.py``: a run that leaves the tube costs
   the tube radius), run by :func:`jaxnc.schemes.mecanum.simulate`;
+* ``drhe-safe`` -- the same loop with the time-triggered safety condition (max_silence = 2)
+  and a smooth cost (mean distance over the horizon / J1_nom + w x sensor rate);
 * ``hdd`` -- seed 003's HDD servo (Case 4, PETC + NUMRE with noise and disturbance), thresholds delta_s = sigma_s and
   delta_c = sigma_c (tied pairs), objective the GPI of eq. (29) (an unstable run costs
   ``GPI_UNSTABLE``);
@@ -39,9 +41,10 @@ from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
 from jaxnc.tune import Positive, check_loop, mean_ci, paired_ci, set_paths, successive_halving, tune_loop
 
-LOOPS = ("drhe", "hdd", "cartpole")
+LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
+VERSION = 2                  # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -53,25 +56,56 @@ class Problem(NamedTuple):
     second: dict                 # the second point of the gradient check, {name: value}
     axes: dict                   # search grid: {name: values}
     describe: str
+    fd_step: float = 0.05        # the check's finite-difference step and the score scale (log units)
+
+
+def _j1_nom() -> float:
+    """J1 of the nominal single-rate run (N = 1, DP = 0), the normaliser of seed 000."""
+    from jaxnc.schemes import mecanum as mec
+    nominal = mec.mecanum_loop("SR", 1, 0.0)
+    keys = montecarlo.seed_keys(90_001, 64)
+    return float(np.mean(montecarlo.run_batched(lambda k: mec.run(nominal, k).J1, keys, chunk_size=64,
+                                                progress=False)))
+
+
+def _drhe_loop(max_silence: int):
+    from jaxnc.schemes import mecanum as mec
+    from jaxnc.triggers import PetcTrigger
+    loop = mec.mecanum_loop("DRHE", 10, 0.3, max_silence=max_silence)
+    return dataclasses.replace(loop, trigger=PetcTrigger(sigma=np.float32(1e-3), delta=np.float32(0.1)))
+
+
+DRHE_AXES = {"trigger.delta": np.geomspace(0.003, 1.0, 6), "trigger.sigma": np.geomspace(1e-4, 0.1, 4)}
+DRHE_PARAMS = {"trigger.delta": Positive(), "trigger.sigma": Positive()}
 
 
 def _drhe(settings) -> Problem:
+    """The paper's DRHE loop and the paper's costs: failures charged the tube radius."""
     from jaxnc.experiments.autotune import mecanum_terms
-    from jaxnc.schemes import mecanum as mec
-    from jaxnc.triggers import PetcTrigger
-    nominal = mec.mecanum_loop("SR", 1, 0.0)
-    keys = montecarlo.seed_keys(90_001, 64)
-    j1_nom = float(np.mean(montecarlo.run_batched(lambda k: mec.run(nominal, k).J1, keys, chunk_size=64,
-                                                  progress=False)))
-    w = float(settings["w_drhe"])
-    loop = mec.mecanum_loop("DRHE", 10, 0.3)
-    loop = dataclasses.replace(loop, trigger=PetcTrigger(sigma=np.float32(1e-3), delta=np.float32(0.1)))
+    j1_nom, w = _j1_nom(), float(settings["w_drhe"])
     return Problem(
-        "drhe", loop, {"trigger.delta": Positive(), "trigger.sigma": Positive()},
-        lambda t: t[0] + w * t[1], lambda lp, k: mecanum_terms(lp, k, j1_nom),
-        {"trigger.delta": 0.02, "trigger.sigma": 3e-3},
-        {"trigger.delta": np.geomspace(0.003, 1.0, 6), "trigger.sigma": np.geomspace(1e-4, 0.1, 4)},
-        f"seed 000 DRHE, N = 10, DP = 0.3, Lissajous; L_w = J1'/J1_nom + {w:g} J4 (J1_nom = {100 * j1_nom:.3f} cm)")
+        "drhe", _drhe_loop(0), DRHE_PARAMS, lambda t: t[0] + w * t[1], lambda lp, k: mecanum_terms(lp, k, j1_nom),
+        {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,
+        f"seed 000 DRHE (the paper's loop), N = 10, DP = 0.3, Lissajous; L_w = J1'/J1_nom + {w:g} J4, a run that "
+        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)")
+
+
+def _drhe_safe(settings) -> Problem:
+    """DRHE with the time-triggered safety condition (the sensor also sends after 2 silent
+    slow periods, so it cannot stall) and a smooth cost: the mean distance to the path over
+    the whole horizon (a run that leaves the tube pays its growing distance, not a
+    constant) plus w times the sensor's rate."""
+    from jaxnc.schemes import mecanum as mec
+    j1_nom, w = _j1_nom(), float(settings["w_drhe"])
+
+    def run(lp, k):
+        tr = mec.simulate(lp, k, full=False)
+        return jnp.mean(tr.dist) / j1_nom, jnp.sum(tr.sent) / lp.steps
+    return Problem(
+        "drhe-safe", _drhe_loop(2), DRHE_PARAMS, lambda t: t[0] + w * t[1], run,
+        {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,
+        f"seed 000 DRHE with the safety condition (max_silence = 2), N = 10, DP = 0.3, Lissajous; mean distance "
+        f"over the horizon / J1_nom + {w:g} x sensor rate", fd_step=0.2)
 
 
 def _hdd(settings) -> Problem:
@@ -86,7 +120,7 @@ def _hdd(settings) -> Problem:
         "hdd", loop, {("delta_s", "sigma_s"): Positive(), ("delta_c", "sigma_c"): Positive()}, objective,
         lambda lp, k: hdd.run(lp, k, y_tts, ise_tts, cs),
         {"delta_s=sigma_s": 1e-5, "delta_c=sigma_c": 1.32e-2},
-        {"delta_s=sigma_s": np.geomspace(1e-7, 1e-2, 6), "delta_c=sigma_c": np.geomspace(1e-5, 1.0, 6)},
+        {"delta_s=sigma_s": np.geomspace(1e-8, 1e-3, 6), "delta_c=sigma_c": np.geomspace(1e-5, 1.0, 6)},
         "seed 003 HDD, Case 4 (PETC + NUMRE, noise and disturbance); GPI of eq. (29), W = (0.45, 0.45, 0.1)")
 
 
@@ -116,7 +150,7 @@ def _cartpole(settings) -> Problem:
         f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate")
 
 
-BUILDERS = {"drhe": _drhe, "hdd": _hdd, "cartpole": _cartpole}
+BUILDERS = {"drhe": _drhe, "drhe-safe": _drhe_safe, "hdd": _hdd, "cartpole": _cartpole}
 
 
 def _names(problem: Problem) -> dict:
@@ -142,7 +176,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     checks = []
     for i, at in enumerate((None, problem.second)):
         chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, seeds=check_seeds,
-                         seed=seed + 11 + i)
+                         seed=seed + 11 + i, fd_step=problem.fd_step, score_scale=problem.fd_step)
         checks.append(dict(_check_row(chk), at=at or start))
         if progress:
             print(f"[{problem.name}] gradient check at {at or start}:\n{chk.table()}\n")
@@ -150,6 +184,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     r = tune_loop(problem.loop, problem.params, problem.objective, run=problem.run, steps=steps, batch=batch,
                   search={n: list(v) for n, v in problem.axes.items()} if two_stage else None,
                   search_budget=search_budget if two_stage else None,
+                  fd_step=problem.fd_step, score_scale=problem.fd_step,
                   seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED, progress=progress)
     budget = r.tuning_simulations
     axes = {n: [float(v) for v in vals] for n, vals in problem.axes.items()}
@@ -276,7 +311,7 @@ def plot(results: list[dict], out: Path) -> Path:
 
 
 def _config(settings: dict, seeds: int) -> dict:
-    return {k: v for k, v in settings.items() if k != "loops"} | {"seeds": seeds}
+    return {k: v for k, v in settings.items() if k != "loops"} | {"seeds": seeds, "version": VERSION}
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:

@@ -157,3 +157,19 @@ def test_search_over_a_tuned_parameter_picks_the_gradients_start():
     assert r.tuning_simulations == r.search.n_simulations + 4 * (2 + 3) + 2 * 4
     with pytest.raises(ValueError, match="is tuned as part of 'trigger.delta=trigger.sigma': search that name"):
         tune_loop(lp, {("trigger.delta", "trigger.sigma"): Positive()}, search={"trigger.delta": [1e-3]})
+
+
+def test_check_is_inconclusive_when_finite_differences_cannot_resolve_the_gradient():
+    """Agreement within the finite differences' noise proves nothing: with an objective
+    whose per-seed finite differences are pure noise far larger than any gradient (a
+    random jump of +-1 at theta = 0 in each seed), every estimator is flagged
+    inconclusive and none is recommended."""
+    from jaxnc.tune import gradient_check
+
+    def objective(theta, key, temperature):
+        flip = jnp.where(jax.random.uniform(key) < 0.5, 1.0, -1.0)
+        return 1e-3 * theta[0] + flip * (theta[0] > 0).astype(jnp.float32)
+
+    c = gradient_check(objective, np.zeros(1, np.float32), montecarlo.seed_keys(0, 64), fd_step=0.05)
+    assert c.recommended is None, c.table()
+    assert c.reason["straight_through"].startswith("inconclusive"), c.table()

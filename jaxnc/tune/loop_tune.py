@@ -124,7 +124,7 @@ class LoopTuneResult(NamedTuple):
 
     params: dict              # name -> tuned value (numpy), natural units
     start: dict               # name -> starting value
-    estimator: str            # the gradient estimator used
+    estimator: str            # the gradient estimator used ("none": the check passed none after a search)
     estimator_reason: str     # why (the check's verdict, or "given")
     check: GradientCheck | None
     search: Any               # the SearchResult of the search stage, or None
@@ -302,7 +302,8 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
 def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None = None, *,
               run: Callable | None = None, search: dict | None = None, search_budget: int | None = None,
               steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
-              learning_rate: float = 0.05, score_scale: float = 0.1, seed: int = 0, check_seeds: int = 32,
+              learning_rate: float = 0.05, score_scale: float = 0.1, fd_step: float = 0.05, seed: int = 0,
+              check_seeds: int = 32,
               eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
@@ -325,6 +326,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
       temperature: (start, end) of the annealed temperature of every trigger with a
         ``temperature`` field (:func:`with_temperature`; pathwise estimator only).
       learning_rate: Adam's step size on the raw (unconstrained) parameters.
+      score_scale, fd_step: the score function's perturbation scale (check and steps) and
+        the check's finite-difference step, in the raw coordinates.
       check_seeds, eval_seeds: seeds of the gradient check and of the final evaluation;
         ``eval_seed``: base seed of the evaluation (fresh: different from ``seed``).
 
@@ -361,6 +364,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_int("eval_seed", eval_seed, 0, 2**32 - 1)
     check_positive("learning_rate", learning_rate)
     check_positive("score_scale", score_scale)
+    check_positive("fd_step", fd_step)
     if estimator not in ("auto", "straight_through", "score"):
         raise ValueError(f"tune_loop: estimator must be auto, straight_through or score, got {estimator!r}")
     if (not isinstance(temperature, (tuple, list)) or len(temperature) != 2):
@@ -400,17 +404,24 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         flat0, _, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
             chk = gradient_check(flat_objective, flat0, montecarlo.seed_keys(seed + 2, check_seeds),
-                                 temperature=float(temperature[0]), score_scale=score_scale)
+                                 temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step)
             sims += check_seeds * (2 * flat0.size + 3)
-            if chk.recommended is None:
+            if chk.recommended is None and result_search is not None:
+                used, reason = "none", ("no estimator passed the gradient check at the search's winner ("
+                                        + "; ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
+                                        + "): the gradient stage is skipped and the search's winner kept")
+            elif chk.recommended is None:
                 used, reason = "score", ("no estimator agreed with finite differences at the start point; "
                                          "the score function is unbiased for the smoothed objective")
             else:
                 used = chk.recommended
                 others = ", ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
                 reason = "recommended by the gradient check" + (f" ({others})" if others else "")
-            if progress:
+            if progress and used != "none":
                 print(f"tune_loop: estimator {used} ({reason})")
+        if progress and used == "none":
+            print(f"tune_loop: {reason}")
+    if spec.paths and used != "none":
         import optax
         tres = tune(lambda p, k, temp: objective(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
                     spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate), estimator=used,

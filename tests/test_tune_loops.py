@@ -1,0 +1,37 @@
+"""The tune-loops experiment (experiments/tune_loops.py) in a tiny size: the cart-pole loop's
+checks at two points, one tune_loop call, the equal-budget search, files written and
+reused by a re-run with the same settings."""
+import json
+
+import numpy as np
+
+from jaxnc import montecarlo
+from jaxnc.experiment import load_builtin
+
+load_builtin()
+from jaxnc.experiments import tune_loops as tl  # noqa: E402
+
+
+def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
+    settings = dict(loops="cartpole", steps=2, batch=4, check_seeds=4, w_drhe=30.0, w_cartpole=2.0, seed=0,
+                    search_budget=0)
+    res = tl.run(settings, seeds=8, out=tmp_path, progress=False)["cartpole"]
+    assert len(res["checks"]) == 2 and {c["recommended"] for c in res["checks"]} <= {"straight_through", "score", None}
+    assert res["checks"][1]["at"] == {"trigger.delta": 1e-2}
+    e = res["eval"]
+    # the paired difference is the difference of the means (same seeds)
+    assert abs(e["tuned_minus_search"][0] - (e["tuned"][0] - e["search"][0])) < 1e-9
+    assert res["search"]["simulations"] <= res["tune"]["simulations"]            # equal budget, not more
+    assert res["verdict"] in ("better than the search", "within the search's interval", "worse than the search")
+    for f in ("cartpole.json", "results.json", "tables.md", "tune_loops.png"):
+        assert (tmp_path / f).exists(), f
+    doc = montecarlo.load_results(tmp_path / "results.json")
+    assert doc["config"]["loops"] == ["cartpole"] and doc["config"]["seeds"] == 8
+    before = (tmp_path / "cartpole.json").read_bytes()
+    capsys.readouterr()
+    again = tl.run(settings, seeds=8, out=tmp_path, progress=True)["cartpole"]
+    assert "reusing" in capsys.readouterr().out
+    assert (tmp_path / "cartpole.json").read_bytes() == before
+    assert json.dumps(again, sort_keys=True) == json.dumps(montecarlo.load_results(tmp_path / "cartpole.json")["results"],
+                                                           sort_keys=True)
+    assert np.isfinite(again["eval"]["tuned"][0])
