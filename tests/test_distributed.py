@@ -122,3 +122,16 @@ def test_builtin_experiment_on_two_processes(tmp_path):
         assert list(ds["case"].values) == ["SR nominal", "DRH"]
         for name in single.data_vars:
             np.testing.assert_array_equal(ds[name].values, single[name].values, err_msg=f"process {i}: {name}")
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--coordinator", "127.0.0.1:1234"], "--coordinator, --num-processes and --process-id need --distributed"),
+    (["--distributed", "--coordinator", "localhost"], "--coordinator must be HOST:PORT, got 'localhost'"),
+    (["--distributed", "--num-processes", "0"], "--num-processes must be an integer in [1, 65536], got '0'"),
+    (["--distributed", "--num-processes", "2", "--process-id", "2"], "--process-id must be an integer in [0, 1], got '2'"),
+])
+def test_bad_distributed_flags_are_one_line_errors(tmp_path, capsys, flags, message):
+    with pytest.raises(SystemExit) as e:                 # refused before jax.distributed is touched
+        main(["run", "mecanum", "--out", str(tmp_path), *flags])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and message in err
