@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Callable
 
 import jax
@@ -38,6 +39,7 @@ __all__ = [
     "turn_180",
     "PATHS",
     "get_path",
+    "scaled",
     "closest_index",
     "point_at",
     "heading_at",
@@ -164,6 +166,17 @@ def get_path(name: str, ds: float = 0.01) -> Path:
     if name not in PATHS:
         raise ValueError(f"unknown path {name!r}; allowed names: {', '.join(sorted(PATHS))}")
     return _cached(name, float(ds))
+
+
+def scaled(path: Path, factor: float, ds: float = 0.01) -> Path:
+    """``path`` shrunk (or grown) by ``factor`` about the origin, resampled at spacing ``ds``;
+    named ``<name>_x<factor>``. Seed 000, section 5: the experiments track a reduced-size
+    reference because of the workspace (the paper gives no size). ValueError unless
+    0 < factor <= 10."""
+    factor = float(factor)
+    if not (math.isfinite(factor) and 0.0 < factor <= 10.0):
+        raise ValueError(f"factor must be in (0, 10], got {factor!r}")
+    return from_waypoints(np.asarray(path.points, np.float64) * factor, f"{path.name}_x{factor:g}", ds)
 
 
 def closest_index(path: Path, p, idx_prev, window: int):

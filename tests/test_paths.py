@@ -172,3 +172,14 @@ def test_heading_at():
     assert abs(float(h(path, path.M - 1))) == pytest.approx(np.pi, abs=1e-6)
     liss = P.get_path("lissajous")
     assert float(h(liss, 0)) == pytest.approx(np.pi / 4, abs=1e-2)
+
+
+def test_scaled_path_shrinks_length_and_points():
+    p = P.get_path("lissajous")
+    q = P.scaled(p, 0.5)
+    assert float(q.length) == pytest.approx(0.5 * float(p.length), rel=1e-4)
+    assert q.name == "lissajous_x0.5"
+    np.testing.assert_allclose(np.asarray(q.points).max(axis=0), [0.6, 0.3], atol=1e-3)
+    assert float(q.spacing) == pytest.approx(0.01, abs=1e-4)
+    with pytest.raises(ValueError, match="factor"):
+        P.scaled(p, 0.0)
