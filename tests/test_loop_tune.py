@@ -173,3 +173,18 @@ def test_check_is_inconclusive_when_finite_differences_cannot_resolve_the_gradie
     c = gradient_check(objective, np.zeros(1, np.float32), montecarlo.seed_keys(0, 64), fd_step=0.05)
     assert c.recommended is None, c.table()
     assert c.reason["straight_through"].startswith("inconclusive"), c.table()
+
+
+def test_without_a_gradient_stage_its_budget_refines_the_search_finalists():
+    lp = _loop(delta=1e-2)
+    r = tune_loop(lp, {"trigger.delta": Positive()}, lambda m: m.cost_raw + 0.5 * m.rate_sc,
+                  search={"trigger.delta": [1e-4, 1e-3, 1e-2, 1e-1, 1.0]}, search_budget=30, estimator="none",
+                  steps=2, batch=8, eval_seeds=8, progress=False)
+    assert r.estimator == "none" and r.tune is None and r.check is None
+    ran = np.sum(~np.isnan(r.search.values), axis=1)           # seeds each candidate ran
+    # steps * batch = 16 more simulations: 4 new seeds for each of the 4 best candidates
+    assert r.search.n_simulations == r.tuning_simulations
+    assert np.sum(ran >= 4) >= 4 and r.search.values.shape[1] == ran.max()
+    assert float(r.params["trigger.delta"]) == pytest.approx(float(r.search.best_point["trigger.delta"]))
+    with pytest.raises(ValueError, match="estimator='none'.*needs a search"):
+        tune_loop(lp, {"trigger.delta": Positive()}, estimator="none")

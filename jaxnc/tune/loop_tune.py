@@ -266,6 +266,28 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
+def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4):
+    """``res`` (a SearchResult) with ``budget`` more simulations spent on its best
+    ``finalists`` candidates (the same new seeds for all: common random numbers); the best
+    is then the lowest mean over all the seeds a candidate ran."""
+    from jaxnc.tune.search import SearchResult, search as run_search
+    order = [int(i) for i in np.argsort(np.where(np.isfinite(res.mean), res.mean, np.inf), kind="stable")]
+    top = order[:min(finalists, len(order))]
+    n_new = budget // len(top)
+    if n_new < 1:
+        return res
+    new = run_search(per_seed, [res.points[i] for i in top], montecarlo.seed_keys(seed, n_new), static=static,
+                     progress=False)
+    values = np.concatenate([res.values, np.full((len(res.points), n_new), np.nan)], axis=1)
+    values[top, -n_new:] = new.values
+    stats = np.asarray([mean_ci(row[~np.isnan(row)]) for row in values])
+    mean = np.where(np.isfinite(stats[:, 0]), stats[:, 0], np.inf)
+    best = min(top, key=lambda i: mean[i])
+    return SearchResult(res.points, values, mean, stats[:, 1], best, res.points[best], float(mean[best]),
+                        float(stats[best, 1]), res.n_simulations + len(top) * n_new,
+                        res.wall_time_s + new.wall_time_s)
+
+
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
                run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
                temperature: float = 1e-3, score_scale: float = 0.1) -> GradientCheck:
@@ -322,7 +344,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         makes the search pick the gradient's *start* among the values (the two-stage
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
-      estimator: ``"auto"`` (the gradient check decides), ``"straight_through"`` or ``"score"``.
+      estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``
+        or ``"none"`` (no gradient stage: needs ``search``). Without a gradient stage
+        (``"none"``, or no estimator passing the check after a search) its budget,
+        ``steps * batch`` simulations, goes to the search's four best candidates.
       temperature: (start, end) of the annealed temperature of every trigger with a
         ``temperature`` field (:func:`with_temperature`; pathwise estimator only).
       learning_rate: Adam's step size on the raw (unconstrained) parameters.
@@ -365,8 +390,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_positive("learning_rate", learning_rate)
     check_positive("score_scale", score_scale)
     check_positive("fd_step", fd_step)
-    if estimator not in ("auto", "straight_through", "score"):
-        raise ValueError(f"tune_loop: estimator must be auto, straight_through or score, got {estimator!r}")
+    if estimator not in ("auto", "straight_through", "score", "none"):
+        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score or none, got {estimator!r}")
+    if estimator == "none" and not search:
+        raise ValueError("tune_loop: estimator='none' (no gradient stage) needs a search")
     if (not isinstance(temperature, (tuple, list)) or len(temperature) != 2):
         raise ValueError(f"tune_loop: temperature must be a (start, end) pair, got {temperature!r}")
     for t in temperature:
@@ -393,11 +420,12 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         result_search = successive_halving(lambda p, k: per_seed(p, k), points, keys, budget=budget, static=static,
                                            progress=progress, desc="search")
         sims += result_search.n_simulations
+        sims_search = result_search.n_simulations
         loop1 = set_paths(loop, result_search.best_point)
     start = {n: np.asarray(get_path(loop, g[0])) for n, g in spec.paths.items()}
     start.update({k: np.asarray(get_path(loop, ps[0])) for k, ps in search_paths.items() if k not in spec.paths})
 
-    chk, reason, used, tres = None, "given", estimator, None
+    chk, reason, used, tres = None, "given" if estimator != "none" else "asked for no gradient stage", estimator, None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
@@ -409,7 +437,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             if chk.recommended is None and result_search is not None:
                 used, reason = "none", ("no estimator passed the gradient check at the search's winner ("
                                         + "; ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
-                                        + "): the gradient stage is skipped and the search's winner kept")
+                                        + "): the gradient stage is skipped")
             elif chk.recommended is None:
                 used, reason = "score", ("no estimator agreed with finite differences at the start point; "
                                          "the score function is unbiased for the smoothed objective")
@@ -421,7 +449,15 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
                 print(f"tune_loop: estimator {used} ({reason})")
         if progress and used == "none":
             print(f"tune_loop: {reason}")
-    if spec.paths and used != "none":
+    if used == "none" and result_search is not None:
+        # the gradient stage's budget goes to the search's finalists: new common seeds for
+        # the best few, ranked by their mean over every seed each has run
+        result_search = _refine(result_search, lambda p, k: per_seed(p, k), steps * batch, seed + 3, static)
+        sims += result_search.n_simulations - sims_search
+        loop1 = set_paths(loop, result_search.best_point)
+        tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
+        reason += "; its budget refined the search's finalists"
+    elif spec.paths and used != "none":
         import optax
         tres = tune(lambda p, k, temp: objective(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
                     spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate), estimator=used,
