@@ -44,7 +44,7 @@ from jaxnc.tune import Positive, check_loop, mean_ci, paired_ci, set_paths, succ
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 2                  # of this study's definition: a stored loop is reused only at the same version
+VERSION = 3                  # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -56,7 +56,7 @@ class Problem(NamedTuple):
     second: dict                 # the second point of the gradient check, {name: value}
     axes: dict                   # search grid: {name: values}
     describe: str
-    fd_step: float = 0.05        # the check's finite-difference step and the score scale (log units)
+    fd_step: float = 0.05        # the check's finite-difference step (log units); score scale fd_step / sqrt(3)
 
 
 def _j1_nom() -> float:
@@ -153,6 +153,14 @@ def _cartpole(settings) -> Problem:
 BUILDERS = {"drhe": _drhe, "drhe-safe": _drhe_safe, "hdd": _hdd, "cartpole": _cartpole}
 
 
+def _score_scale(problem: Problem) -> float:
+    """The score function's perturbation scale that smooths like the central difference:
+    (f(x + h) - f(x - h)) / 2h is the derivative of f averaged over a uniform kernel on
+    [-h, h] (variance h^2 / 3), so a Gaussian of the same variance, s = h / sqrt(3),
+    makes both estimate the gradient of the same smoothed objective to second order."""
+    return problem.fd_step / math.sqrt(3.0)
+
+
 def _names(problem: Problem) -> dict:
     """parameter name -> its paths."""
     return {(k if isinstance(k, str) else "=".join(k)): ((k,) if isinstance(k, str) else tuple(k))
@@ -176,7 +184,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     checks = []
     for i, at in enumerate((None, problem.second)):
         chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, seeds=check_seeds,
-                         seed=seed + 11 + i, fd_step=problem.fd_step, score_scale=problem.fd_step)
+                         seed=seed + 11 + i, fd_step=problem.fd_step, score_scale=_score_scale(problem))
         checks.append(dict(_check_row(chk), at=at or start))
         if progress:
             print(f"[{problem.name}] gradient check at {at or start}:\n{chk.table()}\n")
@@ -184,7 +192,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     r = tune_loop(problem.loop, problem.params, problem.objective, run=problem.run, steps=steps, batch=batch,
                   search={n: list(v) for n, v in problem.axes.items()} if two_stage else None,
                   search_budget=search_budget if two_stage else None,
-                  fd_step=problem.fd_step, score_scale=problem.fd_step,
+                  fd_step=problem.fd_step, score_scale=_score_scale(problem),
                   seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED, progress=progress)
     budget = r.tuning_simulations
     axes = {n: [float(v) for v in vals] for n, vals in problem.axes.items()}
