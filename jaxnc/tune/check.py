@@ -14,7 +14,8 @@ computes, *on the same seeds* (common random numbers):
 Each estimate is a mean over seeds with its standard error. An estimator is *consistent*
 with the finite differences when, for every coordinate, the mean of the per-seed
 differences (estimator minus finite difference, paired on the seed) is within
-``z`` (1.96) of its standard error or smaller than ``rel_tol`` (2 %) of the largest
+``z`` of its standard error (1.96, with Bonferroni's correction for the number of
+coordinates) or smaller than ``rel_tol`` (2 %) of the largest
 finite-difference component (the finite differences are themselves biased by O(h^2) and
 float32 rounding, so an exact gradient differs from them by a tiny but, over many
 seeds, *significant* amount: that is agreement, not a failure), *and* the check is
@@ -74,7 +75,7 @@ class GradientCheck(NamedTuple):
 
 
 def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
-                   score_scale: float = 0.05, z: float = 1.96, max_noise: float = 10.0, rel_tol: float = 0.02,
+                   score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
                    estimators=ESTIMATORS) -> GradientCheck:
     """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
 
@@ -84,7 +85,10 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
       theta: float[d], the point.
       keys: the seeds' keys, shape (n, 2) (n >= 2).
       fd_step, temperature, score_scale: > 0.
-      z: the normal quantile of the consistency test.
+      z: the normal quantile of the consistency test; default the two-sided 95 % quantile
+        with Bonferroni's correction for the d coordinates, Phi^-1(1 - 0.025 / d) (1.96 for
+        d = 1, 2.24 for d = 2): every coordinate is tested, so without it an unbiased
+        estimator would be flagged in about d x 5 % of checks.
       max_noise: the largest ratio of an estimator's standard error to the finite
         differences' for it to count as consistent.
       rel_tol: differences below this fraction of max_j |finite-difference mean_j| agree
@@ -112,6 +116,10 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     if unknown:
         raise ValueError(f"gradient_check: estimators must be among {', '.join(ESTIMATORS)}, got {unknown}")
     d = theta.shape[0]
+    if z is None:
+        from scipy.stats import norm
+        z = float(norm.ppf(1.0 - 0.025 / d))
+    check_positive("z", z)
     th = jnp.asarray(theta)
     eye = jnp.eye(d, dtype=jnp.float32)
     hard = lambda t, k: objective(t, k, jnp.float32(0.0))
