@@ -248,6 +248,8 @@ def conclusions(results: dict) -> list[tuple[str, str, str, bool | None]]:
 
 def conclusions_md(results: dict) -> str:
     rows = [[c, p, o, "–" if h is None else ("holds" if h else "does not hold")] for c, p, o, h in conclusions(results)]
+    if not rows:
+        return "(none: this run has no cell of Tables 5-6 with both DRH and DRHE)"
     return markdown_table(["section-5 conclusion", "paper", "ours", "verdict"], rows)
 
 

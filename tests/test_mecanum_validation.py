@@ -70,3 +70,9 @@ def test_cli_run_writes_tables_results_and_resumes(tmp_path, capsys):
     assert _run(argv) == 0
     assert {f: f.stat().st_mtime_ns for f in (tmp_path / "cells").glob("*.json")} == stamp
     assert (tmp_path / "tables.md").read_text() == tables
+
+
+def test_conclusions_of_a_run_without_table_cells_are_a_sentence():
+    one = {k: v for k, v in _synthetic(mv.PAPER).items() if k[0] == "DRH"}
+    assert mv.conclusions(one) == []
+    assert mv.conclusions_md(one).startswith("(none")
