@@ -147,7 +147,7 @@ def _cartpole(settings) -> Problem:
     return Problem(
         "cartpole", cartpole(delta=1e-3), {"trigger.delta": Positive()}, lambda m: m.cost_raw + w * m.rate_sc,
         nc.run, {"trigger.delta": 1e-2}, {"trigger.delta": np.geomspace(1e-5, 1e-1, 9)},
-        f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate")
+        f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate", fd_step=0.2)
 
 
 BUILDERS = {"drhe": _drhe, "drhe-safe": _drhe_safe, "hdd": _hdd, "cartpole": _cartpole}
