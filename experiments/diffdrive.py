@@ -259,7 +259,7 @@ def _write_sensitivity(settings: dict, seeds: int, out: Path, grid: list, t0: fl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    v_refs, lads = settings["v_refs"], settings["lads"]
+    lads = settings["lads"]
     paper = {n: PAPER_TABLE2[n][0] / PAPER_TABLE2["a"][0] for n in dd.SCENARIOS}
     rows = []
     for g in grid:

@@ -41,6 +41,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxnc.cache import cache_beside
 from jaxnc import montecarlo, results as per_seed, sweep
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -451,9 +452,7 @@ def heatmaps(out: Path, results: dict, p: str) -> Path:
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True, shard: sweep.Shard | None = None) -> dict:
-    # compiled programs persist beside the results: a resumed run does not compile again
-    if jax.config.jax_compilation_cache_dir is None:
-        jax.config.update("jax_compilation_cache_dir", str((Path(out) / ".xla_cache").resolve()))
+    cache_beside(out)          # a resumed run does not compile again
     return run_grid(settings, seeds=seeds, out=out, progress=progress, shard=shard)
 
 

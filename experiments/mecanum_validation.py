@@ -34,10 +34,10 @@ import math
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxnc.cache import cache_beside
 from jaxnc import montecarlo, results as per_seed, sweep
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -286,9 +286,7 @@ def fig15_16(out: Path, results: dict, settings: dict) -> Path:
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
-    # compiled programs persist beside the results: a resumed run does not compile again
-    if jax.config.jax_compilation_cache_dir is None:
-        jax.config.update("jax_compilation_cache_dir", str((out / ".xla_cache").resolve()))
+    cache_beside(out)          # a resumed run does not compile again
     truth = true_plant(settings["plant"])
     cells = cells_of(settings)
     loops = build(settings, cells, truth)

@@ -32,14 +32,14 @@ import time
 from pathlib import Path
 from typing import Callable, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
-from jaxnc.tune import Positive, check_loop, mean_ci, paired_ci, set_paths, successive_halving, tune_loop
+from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, set_paths, successive_halving,
+                         tune_loop)
 
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
@@ -180,7 +180,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     """The check at two points, tune_loop, the equal-budget search and the evaluation of one loop."""
     t0 = time.perf_counter()
     names = _names(problem)
-    start = {n: float(np.asarray(_get(problem.loop, p[0]))) for n, p in names.items()}
+    start = {n: float(np.asarray(get_path(problem.loop, p[0]))) for n, p in names.items()}
     checks = []
     for i, at in enumerate((None, problem.second)):
         chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, seeds=check_seeds,
@@ -230,11 +230,6 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     out["verdict"] = ("better than the search" if d + ci < 0 else
                       "within the search's interval" if d - ci <= 0 else "worse than the search")
     return out
-
-
-def _get(loop, path):
-    from jaxnc.tune import get_path
-    return get_path(loop, path)
 
 
 def _fmt_pt(pt: dict) -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import pathlib
 
-__all__ = ["default_cache_dir", "enable_cache"]
+__all__ = ["default_cache_dir", "enable_cache", "cache_beside"]
 
 
 def default_cache_dir() -> pathlib.Path:
@@ -33,3 +33,13 @@ def enable_cache(path=None, *, min_compile_time_s: float = 1.0) -> pathlib.Path:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     return path
+
+
+def cache_beside(out) -> None:
+    """Keep compiled programs in ``out/.xla_cache`` when no cache folder is configured
+    yet (the CLI's cache, ``--cache-dir`` or the test suite's take precedence), so a
+    resumed study does not compile again. Only the folder is set (JAX's own minimum
+    compile time applies)."""
+    import jax
+    if jax.config.jax_compilation_cache_dir is None:
+        jax.config.update("jax_compilation_cache_dir", str((pathlib.Path(out) / ".xla_cache").resolve()))
