@@ -44,7 +44,7 @@ from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, set_
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 4                  # of this study's definition: a stored loop is reused only at the same version
+VERSION = 5                  # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -57,6 +57,7 @@ class Problem(NamedTuple):
     axes: dict                   # search grid: {name: values}
     describe: str
     fd_step: float = 0.05        # the check's finite-difference step (log units); score scale fd_step / sqrt(3)
+    check_seeds: int = 512       # seeds of the study's two gradient checks (study_check_seeds=0)
 
 
 def _j1_nom() -> float:
@@ -83,11 +84,15 @@ def _drhe(settings) -> Problem:
     """The paper's DRHE loop and the paper's costs: failures charged the tube radius."""
     from jaxnc.experiments.autotune import mecanum_terms
     j1_nom, w = _j1_nom(), float(settings["w_drhe"])
+    def objective(t):
+        # (smooth, jump): a stable run's J1'/J1_nom + w J4, and the tube radius a failed run is charged
+        failed = t[2] | ~jnp.isfinite(t[3])
+        return jnp.where(failed, 0.0, t[0]) + w * t[1], jnp.where(failed, t[0], 0.0)
     return Problem(
-        "drhe", _drhe_loop(0), DRHE_PARAMS, lambda t: t[0] + w * t[1], lambda lp, k: mecanum_terms(lp, k, j1_nom),
+        "drhe", _drhe_loop(0), DRHE_PARAMS, objective, lambda lp, k: mecanum_terms(lp, k, j1_nom),
         {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,
         f"seed 000 DRHE (the paper's loop), N = 10, DP = 0.3, Lissajous; L_w = J1'/J1_nom + {w:g} J4, a run that "
-        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)")
+        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)", fd_step=0.2, check_seeds=2048)
 
 
 def _drhe_safe(settings) -> Problem:
@@ -147,7 +152,8 @@ def _cartpole(settings) -> Problem:
     return Problem(
         "cartpole", cartpole(delta=1e-3), {"trigger.delta": Positive()}, lambda m: m.cost_raw + w * m.rate_sc,
         nc.run, {"trigger.delta": 1e-2}, {"trigger.delta": np.geomspace(1e-5, 1e-1, 9)},
-        f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate", fd_step=0.2)
+        f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate", fd_step=0.2,
+        check_seeds=1024)
 
 
 BUILDERS = {"drhe": _drhe, "drhe-safe": _drhe_safe, "hdd": _hdd, "cartpole": _cartpole}
@@ -167,6 +173,11 @@ def _names(problem: Problem) -> dict:
             for k in problem.params}
 
 
+def _total(value):
+    """The objective's value: the sum of a (smooth, jump) pair, or the scalar itself."""
+    return value[0] + value[1] if isinstance(value, (tuple, list)) else value
+
+
 def _check_row(chk) -> dict:
     return {"point": chk.theta.tolist(), "value": chk.value, "recommended": chk.recommended,
             "estimates": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.estimates.items()},
@@ -176,16 +187,19 @@ def _check_row(chk) -> dict:
 
 
 def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_seeds: int, seed: int,
-          search_budget: int = 0, progress: bool = True) -> dict:
-    """The check at two points, tune_loop, the equal-budget search and the evaluation of one loop."""
+          search_budget: int = 0, study_check_seeds: int = 0, progress: bool = True) -> dict:
+    """The check at two points (``study_check_seeds`` seeds, 0: the problem's own), tune_loop
+    (its own check on ``check_seeds``), the equal-budget search and the evaluation of one loop."""
     t0 = time.perf_counter()
+    n_check = study_check_seeds or problem.check_seeds
     names = _names(problem)
     start = {n: float(np.asarray(get_path(problem.loop, p[0]))) for n, p in names.items()}
     checks = []
     for i, at in enumerate((None, problem.second)):
-        chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, seeds=check_seeds,
-                         seed=seed + 11 + i, fd_step=problem.fd_step, score_scale=_score_scale(problem))
-        checks.append(dict(_check_row(chk), at=at or start))
+        chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, seeds=n_check,
+                         seed=seed + 11 + i, fd_step=problem.fd_step, score_scale=_score_scale(problem),
+                         progress=progress)
+        checks.append(dict(_check_row(chk), at=at or start, seeds=n_check))
         if progress:
             print(f"[{problem.name}] gradient check at {at or start}:\n{chk.table()}\n")
     two_stage = search_budget > 0
@@ -200,7 +214,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     mesh = np.meshgrid(*[np.arange(len(axes[n])) for n in grid_names], indexing="ij")
     points = [{p: axes[n][int(idx[j])] for j, n in enumerate(grid_names) for p in names[n]}
               for idx in zip(*[m.reshape(-1) for m in mesh])]
-    per_seed = lambda point, key: problem.objective(problem.run(set_paths(problem.loop, point), key))
+    per_seed = lambda point, key: _total(problem.objective(problem.run(set_paths(problem.loop, point), key)))
     sh = successive_halving(per_seed, points, montecarlo.seed_keys(seed + 50_000, budget), budget=budget,
                             progress=progress, desc=f"{problem.name} search")
     best = {n: sh.best_point[names[n][0]] for n in grid_names}
@@ -245,17 +259,17 @@ def tables(results: list[dict]) -> str:
     rows = []
     for res in results:
         for c in res["checks"]:
-            for est in ("straight_through", "score"):
+            for est in [e for e in c["estimates"] if e != "finite_difference"]:
                 m, s = c["estimates"][est]["mean"], c["estimates"][est]["se"]
                 fm, fs = c["estimates"]["finite_difference"]["mean"], c["estimates"]["finite_difference"]["se"]
                 z = max(abs(v) for v in c["paired_z"][est])
                 res_ = ", ".join(f"{1.96 * v:.2g}" for v in c["diff_se"][est])
-                rows.append([res["loop"], _fmt_pt(c["at"]), est,
+                rows.append([res["loop"], _fmt_pt(c["at"]), str(c.get("seeds", "")), est,
                              ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(m, s)),
                              ", ".join(f"{a:.3g} ± {1.96 * b:.2g}" for a, b in zip(fm, fs)), f"{z:.2f}", res_,
                              "yes" if c["consistent"][est] else f"no: {c['reason'][est]}",
                              "**yes**" if c["recommended"] == est else ""])
-    t1 = markdown_table(["loop", "point", "estimator", "gradient (95 %)", "finite differences (95 %)", "max |z|",
+    t1 = markdown_table(["loop", "point", "seeds", "estimator", "gradient (95 %)", "finite differences (95 %)", "max |z|",
                          "resolution", "consistent", "recommended"], rows)
     rows = []
     for res in results:
@@ -338,7 +352,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
         problem = BUILDERS[name](settings)
         res = study(problem, check_seeds=settings["check_seeds"], steps=settings["steps"], batch=settings["batch"],
                     eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
-                    progress=progress)
+                    study_check_seeds=settings["study_check_seeds"], progress=progress)
         montecarlo.save_results(f, experiment="tune-loops", config=cfg, results=res, wall_time_s=res["wall_time_s"])
         results.append(montecarlo.load_results(f)["results"])
     text = tables(results)
@@ -358,7 +372,9 @@ register(Experiment(
         Option("loops", "choice", "all", "which loop(s)", choices=(*LOOPS, "all")),
         Option("steps", "int", 30, "gradient steps of tune_loop", low=1, high=10_000),
         Option("batch", "int", 16, "seeds per gradient step", low=2, high=4096),
-        Option("check_seeds", "int", 512, "seeds of each gradient check", low=2, high=100_000),
+        Option("check_seeds", "int", 512, "seeds of tune_loop's own gradient check", low=2, high=100_000),
+        Option("study_check_seeds", "int", 0, "seeds of the study's two gradient checks per loop; 0: the loop's "
+               "own (drhe 2048, cartpole 1024, hdd and drhe-safe 512)", low=0, high=100_000),
         Option("search_budget", "int", 1024, "simulations of tune_loop's first stage (successive halving over "
                "the grid, which picks the gradient's start); 0: the gradient alone from the start point",
                low=0, high=10_000_000),

@@ -188,3 +188,62 @@ def test_without_a_gradient_stage_its_budget_refines_the_search_finalists():
     assert float(r.params["trigger.delta"]) == pytest.approx(float(r.search.best_point["trigger.delta"]))
     with pytest.raises(ValueError, match="estimator='none'.*needs a search"):
         tune_loop(lp, {"trigger.delta": Positive()}, estimator="none")
+
+
+def _jump_objective(c=3.0):
+    """Per seed: smooth theta^2 plus a jump c * 1[u < theta], u ~ U(0, 1): at theta = 0.5
+    the gradient of the mean is 2 theta + c = 1 + c; the jump has no pathwise gradient."""
+    def objective(theta, key, temperature):
+        u = jax.random.uniform(key)
+        return theta[0] ** 2, c * (u < theta[0]).astype(jnp.float32)
+    return objective
+
+
+def test_check_hybrid_sees_the_jump_that_straight_through_misses():
+    from jaxnc.tune import gradient_check
+    c = gradient_check(_jump_objective(), np.full(1, 0.5, np.float32), montecarlo.seed_keys(3, 4096),
+                       fd_step=0.05, score_scale=0.05 / np.sqrt(3), chunk_size=1024)
+    assert set(c.estimates) == {"finite_difference", "straight_through", "score", "hybrid"}
+    m, s = c.estimates["hybrid"]
+    assert abs(m[0] - 4.0) < 4 * s[0], c.table()                     # the closed form 1 + c
+    assert c.estimates["straight_through"][0][0] == pytest.approx(1.0, abs=1e-5)   # only the smooth part
+    assert c.reason["straight_through"].startswith("differs"), c.table()
+    assert c.consistent["hybrid"] and c.recommended in ("hybrid", "score"), c.table()
+    # the chunks do not change a seed's values
+    c2 = gradient_check(_jump_objective(), np.full(1, 0.5, np.float32), montecarlo.seed_keys(3, 4096),
+                        fd_step=0.05, score_scale=0.05 / np.sqrt(3), chunk_size=256)
+    for k in c.estimates:
+        np.testing.assert_allclose(c2.estimates[k][0], c.estimates[k][0], rtol=1e-5, atol=1e-6)
+
+
+def test_check_refuses_hybrid_without_a_pair_and_bad_outputs():
+    from jaxnc.tune import gradient_check
+    keys = montecarlo.seed_keys(0, 4)
+    scalar = lambda t, k, temp: t[0] ** 2
+    with pytest.raises(ValueError, match="hybrid estimator needs an objective that returns"):
+        gradient_check(scalar, np.zeros(1, np.float32), keys, estimators=("hybrid",))
+    with pytest.raises(ValueError, match="scalar or a pair"):
+        gradient_check(lambda t, k, temp: (t[0], t[0], t[0]), np.zeros(1, np.float32), keys)
+    with pytest.raises(ValueError, match="chunk_size must be an integer"):
+        gradient_check(scalar, np.zeros(1, np.float32), keys, chunk_size=0)
+    lp = _loop()
+    with pytest.raises(ValueError, match="estimator='hybrid' needs an objective"):
+        tune_loop(lp, {"trigger.delta": Positive()}, estimator="hybrid")
+    with pytest.raises(ValueError, match=r"a pair \(smooth, jump\) of scalars"):
+        tune_loop(lp, {"trigger.delta": Positive()}, lambda m: (m.cost_raw, m.rate_sc, m.rate_sc))
+
+
+def test_pair_objective_reaches_the_check_and_the_hybrid_tuner():
+    from jaxnc.tune import check_loop
+    lp = _loop(delta=1e-2)
+    obj = lambda m: (m.cost_raw, 0.5 * m.rate_sc)      # smooth, "jump"
+    chk = check_loop(lp, {"trigger.delta": Positive()}, obj, seeds=8, chunk_size=8)
+    assert "hybrid" in chk.estimates and chk.names == ("trigger.delta",)
+    r = tune_loop(lp, {"trigger.delta": Positive()}, obj, estimator="hybrid", steps=2, batch=4, eval_seeds=4,
+                  progress=False)
+    assert r.estimator == "hybrid" and np.isfinite(float(r.params["trigger.delta"]))
+    total = lambda m: m.cost_raw + 0.5 * m.rate_sc
+    r2 = tune_loop(lp, {"trigger.delta": Positive()}, total, estimator="straight_through", steps=2, batch=4,
+                   eval_seeds=4, progress=False)
+    # the pair's sum is the objective: the start's hard evaluation is the scalar objective's
+    np.testing.assert_allclose(r.eval_values[0], r2.eval_values[0], rtol=1e-6)

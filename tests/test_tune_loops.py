@@ -13,11 +13,12 @@ from jaxnc.experiments import tune_loops as tl  # noqa: E402
 
 
 def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
-    settings = dict(loops="cartpole", steps=4, batch=4, check_seeds=4, w_drhe=30.0, w_cartpole=2.0, seed=0,
+    settings = dict(loops="cartpole", steps=4, batch=4, check_seeds=4, study_check_seeds=4, w_drhe=30.0,
+                    w_cartpole=2.0, seed=0,
                     search_budget=0)
     res = tl.run(settings, seeds=8, out=tmp_path, progress=False)["cartpole"]
     assert len(res["checks"]) == 2 and {c["recommended"] for c in res["checks"]} <= {"straight_through", "score", None}
-    assert res["checks"][1]["at"] == {"trigger.delta": 1e-2}
+    assert res["checks"][1]["at"] == {"trigger.delta": 1e-2} and res["checks"][0]["seeds"] == 4
     e = res["eval"]
     # the paired difference is the difference of the means (same seeds)
     assert abs(e["tuned_minus_search"][0] - (e["tuned"][0] - e["search"][0])) < 1e-9

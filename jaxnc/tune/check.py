@@ -9,7 +9,12 @@ computes, *on the same seeds* (common random numbers):
 * ``"straight_through"``: the pathwise gradient ``jax.grad`` at ``temperature`` > 0 (hard
   forward pass, sigmoid backward, :mod:`jaxnc.tune.estimators`);
 * ``"score"``: the antithetic Gaussian score function at scale ``score_scale``,
-  (J(theta + s e) - J(theta - s e)) e / 2s with e ~ N(0, I) drawn per seed.
+  (J(theta + s e) - J(theta - s e)) e / 2s with e ~ N(0, I) drawn per seed;
+* ``"hybrid"`` (when the objective returns a pair ``(smooth, jump)``, J = smooth + jump,
+  e.g. a cost whose failures are charged a constant): the straight-through gradient of J
+  plus the score function of ``jump`` alone, on the same perturbations as ``"score"``
+  (the pathwise gradient cannot see how the failure probability moves; the score term
+  can). It costs no simulation beyond the other two.
 
 Each estimate is a mean over seeds with its standard error. An estimator is *consistent*
 with the finite differences when, for every coordinate, the mean of the per-seed
@@ -38,11 +43,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_positive
+from jaxnc import montecarlo
+from jaxnc._validate import check_int, check_positive
 
 __all__ = ["GradientCheck", "gradient_check"]
 
-ESTIMATORS = ("straight_through", "score")
+ESTIMATORS = ("straight_through", "score", "hybrid")
 
 
 class GradientCheck(NamedTuple):
@@ -76,12 +82,13 @@ class GradientCheck(NamedTuple):
 
 def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
                    score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
-                   estimators=ESTIMATORS) -> GradientCheck:
+                   estimators=None, chunk_size: int = 256, progress: bool = False) -> GradientCheck:
     """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
 
     Args:
-      objective: ``objective(theta float[d], key, temperature) -> scalar`` for one seed;
-        temperature 0 must give the hard (exact) simulation.
+      objective: ``objective(theta float[d], key, temperature) -> scalar`` for one seed,
+        or a pair ``(smooth, jump)`` of scalars whose sum is the objective (this adds the
+        ``"hybrid"`` estimator); temperature 0 must give the hard (exact) simulation.
       theta: float[d], the point.
       keys: the seeds' keys, shape (n, 2) (n >= 2).
       fd_step, temperature, score_scale: > 0.
@@ -93,14 +100,20 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         differences' for it to count as consistent.
       rel_tol: differences below this fraction of max_j |finite-difference mean_j| agree
         whatever their z (>= 0).
-      estimators: which of ``"straight_through"``, ``"score"`` to check.
+      estimators: which of ``"straight_through"``, ``"score"``, ``"hybrid"`` to check;
+        default all that apply (``"hybrid"`` only for a pair objective).
+      chunk_size: seeds per compiled batch (:func:`jaxnc.montecarlo.run_batched`), which
+        bounds memory; a seed's values do not depend on the other seeds.
+      progress: a progress bar over the seeds.
 
     Returns:
       :class:`GradientCheck`.
 
     Raises:
       ValueError: theta not a non-empty 1-D vector, fewer than 2 keys, a non-positive
-        step/scale/temperature, or an unknown estimator.
+        step/scale/temperature, a chunk_size below 1, an unknown estimator, ``"hybrid"``
+        for an objective that is not a pair, or an objective that returns neither a
+        scalar nor a pair of scalars.
     """
     theta = np.asarray(theta, np.float32)
     if theta.ndim != 1 or theta.size == 0:
@@ -110,33 +123,53 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         raise ValueError(f"gradient_check: keys must have shape (n, 2) with n >= 2, got {keys.shape}")
     for name, v in (("fd_step", fd_step), ("temperature", temperature), ("score_scale", score_scale)):
         check_positive(name, v)
+    check_int("chunk_size", chunk_size, 1)
     if not (isinstance(rel_tol, (int, float)) and 0.0 <= rel_tol < 1.0):
         raise ValueError(f"gradient_check: rel_tol must be a number in [0, 1), got {rel_tol!r}")
+    d = theta.shape[0]
+    th = jnp.asarray(theta)
+    out_shape = jax.eval_shape(lambda k: objective(th, k, jnp.float32(0.0)), keys[0])
+    pair = isinstance(out_shape, (tuple, list))
+    if (pair and (len(out_shape) != 2 or any(getattr(o, "shape", None) != () for o in out_shape))) or (
+            not pair and getattr(out_shape, "shape", None) != ()):
+        raise ValueError(f"gradient_check: the objective must return a scalar or a pair (smooth, jump) of scalars "
+                         f"per seed, got {out_shape}")
+    if estimators is None:
+        estimators = ESTIMATORS if pair else ("straight_through", "score")
+    estimators = tuple(estimators)
     unknown = [e for e in estimators if e not in ESTIMATORS]
     if unknown:
         raise ValueError(f"gradient_check: estimators must be among {', '.join(ESTIMATORS)}, got {unknown}")
-    d = theta.shape[0]
+    if "hybrid" in estimators and not pair:
+        raise ValueError("gradient_check: the hybrid estimator needs an objective that returns (smooth, jump)")
     if z is None:
         from scipy.stats import norm
         z = float(norm.ppf(1.0 - 0.025 / d))
     check_positive("z", z)
-    th = jnp.asarray(theta)
     eye = jnp.eye(d, dtype=jnp.float32)
-    hard = lambda t, k: objective(t, k, jnp.float32(0.0))
+    # (total, jump) of one seed at temperature temp
+    parts = ((lambda t, k, temp: (lambda sj: (sj[0] + sj[1], sj[1]))(objective(t, k, temp))) if pair else
+             (lambda t, k, temp: (objective(t, k, temp), jnp.float32(0.0))))
+    hard = lambda t, k: parts(t, k, jnp.float32(0.0))[0]
 
     def per_seed(key):
         out = {"value": hard(th, key)}
         fd = jax.vmap(lambda e: (hard(th + fd_step * e, key) - hard(th - fd_step * e, key)) / (2 * fd_step))(eye)
         out["finite_difference"] = fd
-        if "straight_through" in estimators:
-            out["straight_through"] = jax.grad(lambda t: objective(t, key, jnp.float32(temperature)))(th)
-        if "score" in estimators:
+        if "straight_through" in estimators or "hybrid" in estimators:
+            st = jax.grad(lambda t: parts(t, key, jnp.float32(temperature))[0])(th)
+            if "straight_through" in estimators:
+                out["straight_through"] = st
+        if "score" in estimators or "hybrid" in estimators:
             e = jax.random.normal(jax.random.fold_in(key, 7919), (d,), jnp.float32)
-            diff = hard(th + score_scale * e, key) - hard(th - score_scale * e, key)
-            out["score"] = diff / (2 * score_scale) * e
+            (tp, jp), (tm, jm) = parts(th + score_scale * e, key, jnp.float32(0.0)), parts(th - score_scale * e, key, jnp.float32(0.0))
+            if "score" in estimators:
+                out["score"] = (tp - tm) / (2 * score_scale) * e
+            if "hybrid" in estimators:
+                out["hybrid"] = st + (jp - jm) / (2 * score_scale) * e
         return out
 
-    res = jax.device_get(jax.jit(jax.vmap(per_seed))(keys))
+    res = montecarlo.run_batched(per_seed, keys, chunk_size=chunk_size, progress=progress, desc="gradient check")
     n = keys.shape[0]
     se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
     fd = np.asarray(res["finite_difference"], float)

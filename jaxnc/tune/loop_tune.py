@@ -192,7 +192,8 @@ class _Spec(NamedTuple):
     paths: dict          # name -> tuple of paths set to the same value
     constraints: dict    # name -> constraint
     run: Callable
-    objective: Callable
+    objective: Callable  # metrics -> scalar (smooth + jump for a pair objective)
+    parts: Callable | None = None   # metrics -> (smooth, jump) when the user's objective returns a pair
 
 
 def _name(key) -> str:
@@ -237,6 +238,12 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
         shape = jax.eval_shape(lambda k: objective(run(loop, k)), jax.random.PRNGKey(0))
     except AttributeError as e:
         raise ValueError(f"{fn_name}: the objective does not fit what run(loop, key) returns: {e}") from None
+    if isinstance(shape, (tuple, list)):
+        if len(shape) != 2 or any(getattr(o, "shape", None) != () for o in shape):
+            raise ValueError(f"{fn_name}: the objective must return a scalar, or a pair (smooth, jump) of "
+                             f"scalars, per seed, got {shape}")
+        parts = objective
+        return _Spec(paths, constraints, run, lambda m: (lambda sj: sj[0] + sj[1])(parts(m)), parts)
     if not hasattr(shape, "shape") or shape.shape != ():
         raise ValueError(f"{fn_name}: the objective must return a scalar per seed, got "
                          f"{getattr(shape, 'shape', type(shape).__name__)}")
@@ -248,9 +255,10 @@ def _set(loop, spec: _Spec, values: dict):
     return set_paths(loop, {p: values[n] for n in values for p in spec.paths[n]})
 
 
-def _flat(loop, spec: _Spec, at: dict | None = None):
+def _flat(loop, spec: _Spec, at: dict | None = None, pair: bool = False):
     """(flat raw start, unravel, flat_objective(theta, key, temperature)) in the
-    unconstrained coordinates (log for Positive, logit for Interval)."""
+    unconstrained coordinates (log for Positive, logit for Interval); with ``pair`` (and a
+    pair objective) the flat objective returns (smooth, jump)."""
     init = {n: np.asarray(get_path(loop, spec.paths[n][0]), np.float32) for n in spec.paths}
     if at:
         unknown = [k for k in at if k not in spec.paths]
@@ -260,9 +268,11 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     raw0 = unconstrain(init, spec.constraints)
     flat0, unravel = ravel_pytree(raw0)
 
+    objective = spec.parts if (pair and spec.parts is not None) else spec.objective
+
     def flat_objective(theta, key, temp):
         lp = with_temperature(_set(loop, spec, constrain(unravel(theta), spec.constraints)), temp)
-        return spec.objective(spec.run(lp, key))
+        return objective(spec.run(lp, key))
     return np.asarray(flat0), unravel, flat_objective
 
 
@@ -290,7 +300,8 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
 
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
                run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
-               temperature: float = 1e-3, score_scale: float = 0.1) -> GradientCheck:
+               temperature: float = 1e-3, score_scale: float = 0.1, chunk_size: int = 256,
+               progress: bool = False) -> GradientCheck:
     """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
     loop's values of ``params`` (or at ``at``, ``{name: value}`` in natural units), the
     straight-through and score-function estimates of d E[objective] / d theta beside
@@ -298,7 +309,9 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
 
     theta is the *unconstrained* coordinate the tuner moves (log of a ``Positive``
     parameter, logit of an ``Interval``), so ``fd_step`` and ``score_scale`` are relative
-    steps. ``params``, ``objective`` and ``run`` as in :func:`tune_loop`.
+    steps. ``params``, ``objective`` and ``run`` as in :func:`tune_loop`. The seeds run in
+    compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
+    with a progress bar if ``progress``.
 
     Returns:
       :class:`jaxnc.tune.check.GradientCheck` (``names``: the coordinates' labels).
@@ -311,13 +324,13 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
         raise ValueError("check_loop: name at least one parameter")
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
-    flat0, unravel, fobj = _flat(loop, spec, at)
+    flat0, unravel, fobj = _flat(loop, spec, at, pair=True)
     labels = []
     for n in spec.paths:
         size = int(np.asarray(get_path(loop, spec.paths[n][0])).size)
         labels += [n] if size == 1 else [f"{n}[{i}]" for i in range(size)]
     chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), fd_step=fd_step, temperature=temperature,
-                         score_scale=score_scale)
+                         score_scale=score_scale, chunk_size=chunk_size, progress=progress)
     return chk._replace(names=tuple(labels))
 
 
@@ -336,7 +349,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         ``Unconstrained()``) or a list of paths (unconstrained). A key may be a tuple of
         paths, *tied*: one parameter written at all of them (they must start equal), e.g.
         ``{("delta_s", "sigma_s"): Positive()}``; it is reported as ``"delta_s=sigma_s"``.
-      objective: ``objective(metrics) -> scalar`` per seed; default ``m.cost_raw``.
+      objective: ``objective(metrics) -> scalar`` per seed; default ``m.cost_raw``. It may
+        return a pair ``(smooth, jump)`` whose sum is the objective (``jump``: what
+        failures are charged, a constant with no pathwise gradient): this adds the
+        ``"hybrid"`` estimator (straight-through for the sum plus the score function of
+        ``jump``) to the check and the tuner.
       run: ``run(loop, key) -> metrics`` for one seed; default :func:`jaxnc.loop.run`.
       search: ``{path: [values]}`` searched first by successive halving (static integer
         fields allowed); ``search_budget`` simulations (default 16 per candidate). A key
@@ -344,7 +361,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         makes the search pick the gradient's *start* among the values (the two-stage
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
-      estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``
+      estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``,
+        ``"hybrid"`` (a pair objective)
         or ``"none"`` (no gradient stage: needs ``search``). Without a gradient stage
         (``"none"``, or no estimator passing the check after a search) its budget,
         ``steps * batch`` simulations, goes to the search's four best candidates.
@@ -390,8 +408,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_positive("learning_rate", learning_rate)
     check_positive("score_scale", score_scale)
     check_positive("fd_step", fd_step)
-    if estimator not in ("auto", "straight_through", "score", "none"):
-        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score or none, got {estimator!r}")
+    if estimator not in ("auto", "straight_through", "score", "hybrid", "none"):
+        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score, hybrid or none, "
+                         f"got {estimator!r}")
+    if estimator == "hybrid" and spec.parts is None:
+        raise ValueError("tune_loop: estimator='hybrid' needs an objective that returns (smooth, jump)")
     if estimator == "none" and not search:
         raise ValueError("tune_loop: estimator='none' (no gradient stage) needs a search")
     if (not isinstance(temperature, (tuple, list)) or len(temperature) != 2):
@@ -429,10 +450,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
-        flat0, _, flat_objective = _flat(loop1, spec)
+        flat0, _, flat_objective = _flat(loop1, spec, pair=True)
         if estimator == "auto":
             chk = gradient_check(flat_objective, flat0, montecarlo.seed_keys(seed + 2, check_seeds),
-                                 temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step)
+                                 temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
+                                 progress=progress)
             sims += check_seeds * (2 * flat0.size + 3)
             if chk.recommended is None and result_search is not None:
                 used, reason = "none", ("no estimator passed the gradient check at the search's winner ("
@@ -459,7 +481,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         reason += "; its budget refined the search's finalists"
     elif spec.paths and used != "none":
         import optax
-        tres = tune(lambda p, k, temp: objective(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
+        loss_of = spec.parts if used == "hybrid" else objective
+        tres = tune(lambda p, k, temp: loss_of(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
                     spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate), estimator=used,
                     temperature=temperature, seed=seed, score_scale=score_scale, progress=progress, desc="tune_loop")
         sims += tres.n_simulations
