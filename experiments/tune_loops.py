@@ -38,8 +38,8 @@ import numpy as np
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
-from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, set_paths, successive_halving,
-                         tune_loop)
+from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, param_paths, set_paths,
+                         successive_halving, tune_loop)
 
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
@@ -167,12 +167,6 @@ def _score_scale(problem: Problem) -> float:
     return problem.fd_step / math.sqrt(3.0)
 
 
-def _names(problem: Problem) -> dict:
-    """parameter name -> its paths."""
-    return {(k if isinstance(k, str) else "=".join(k)): ((k,) if isinstance(k, str) else tuple(k))
-            for k in problem.params}
-
-
 def _total(value):
     """The objective's value: the sum of a (smooth, jump) pair, or the scalar itself."""
     return value[0] + value[1] if isinstance(value, (tuple, list)) else value
@@ -192,7 +186,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     (its own check on ``check_seeds``), the equal-budget search and the evaluation of one loop."""
     t0 = time.perf_counter()
     n_check = study_check_seeds or problem.check_seeds
-    names = _names(problem)
+    names = param_paths(problem.params)
     start = {n: float(np.asarray(get_path(problem.loop, p[0]))) for n, p in names.items()}
     checks = []
     for i, at in enumerate((None, problem.second)):

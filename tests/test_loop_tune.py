@@ -247,3 +247,10 @@ def test_pair_objective_reaches_the_check_and_the_hybrid_tuner():
                    eval_seeds=4, progress=False)
     # the pair's sum is the objective: the start's hard evaluation is the scalar objective's
     np.testing.assert_allclose(r.eval_values[0], r2.eval_values[0], rtol=1e-6)
+
+
+def test_param_paths_names_tied_groups_like_the_result():
+    from jaxnc.tune import param_paths
+    assert param_paths({"trigger.delta": Positive(), ("delta_s", "sigma_s"): Positive()}) == {
+        "trigger.delta": ("trigger.delta",), "delta_s=sigma_s": ("delta_s", "sigma_s")}
+    assert param_paths(["controller.K"]) == {"controller.K": ("controller.K",)}

@@ -22,8 +22,8 @@ from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temp
 from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
     simulations_per_step, tune, unconstrain
 from jaxnc.tune.check import GradientCheck, gradient_check
-from jaxnc.tune.loop_tune import (LoopTuneResult, check_loop, get_path, has_temperature, mc_mean, set_paths, tune_loop,
-                                  with_temperature)
+from jaxnc.tune.loop_tune import (LoopTuneResult, check_loop, get_path, has_temperature, mc_mean, param_paths,
+                                  set_paths, tune_loop, with_temperature)
 from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, mean_ci, paired_ci, random_points,
                               search, successive_halving)
 
@@ -35,5 +35,5 @@ __all__ = [
     "SearchResult", "evaluate", "grid", "halving_schedule", "mean_ci", "paired_ci", "random_points", "search",
     "successive_halving",
     "GradientCheck", "gradient_check", "LoopTuneResult", "get_path", "mc_mean", "set_paths", "tune_loop",
-    "check_loop", "with_temperature", "has_temperature",
+    "check_loop", "with_temperature", "has_temperature", "param_paths",
 ]

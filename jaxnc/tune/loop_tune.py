@@ -200,6 +200,13 @@ def _name(key) -> str:
     return key if isinstance(key, str) else "=".join(key)
 
 
+def param_paths(params) -> dict:
+    """``{name: paths}`` of a ``params`` argument of :func:`tune_loop` (a dict or list whose
+    keys are a path or a tuple of tied paths): the name is the path, or ``"a=b"`` for tied
+    paths, as in :class:`LoopTuneResult` and the check's labels."""
+    return {_name(k): ((k,) if isinstance(k, str) else tuple(k)) for k in params}
+
+
 def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     """Check ``params`` / ``objective`` / ``run`` against ``loop`` before anything is traced."""
     from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
