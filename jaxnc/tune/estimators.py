@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnc._validate import check_nonneg, check_positive
+from jaxnc.triggers import fires_straight_through
 
 __all__ = ["ESTIMATORS", "RelaxedPetcTrigger", "relax_trigger", "sigmoid_relaxation", "straight_through",
            "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
@@ -70,11 +71,9 @@ def sigmoid_relaxation(gap, temperature):
     return jax.nn.sigmoid(gap / temperature)
 
 
-def straight_through(gap, temperature):
-    """Hard trigger 1[g > 0] forward, the gradient of s(g / tau) backward."""
-    hard = (gap > 0).astype(jnp.result_type(gap))
-    soft = jax.nn.sigmoid(gap / temperature)
-    return hard + (soft - jax.lax.stop_gradient(soft))
+straight_through = fires_straight_through
+"""Hard trigger 1[g > 0] forward, the gradient of s(g / tau) backward: the triggers' own
+:func:`jaxnc.triggers.fires_straight_through` (one definition for the runner and the tuner)."""
 
 
 def annealed_temperature(step, n_steps: int, t0: float, t1: float):
