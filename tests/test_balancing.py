@@ -232,3 +232,57 @@ def test_simple_difference_of_a_white_tilt_noise_falls_on_a_perfect_network():
         up[sensor] = np.asarray(jax.jit(jax.vmap(lambda k, loop=loop: bal.run(loop, k).upright))(keys))
     assert up["complementary"].all()
     assert not up["white"].any()
+
+
+def test_delay_law_family_passes_through_both_severities_and_grows():
+    """The sweep's delay axis (docs/balancing.md): index 0 is the Table-1 fit and 1 the
+    *delay* severity, bit for bit; the median and mean grow along the index and the
+    longest delay at the largest index fits the emulation links' ring."""
+    np.testing.assert_array_equal(bal.delay_law(0.0), bal.SEVERITIES["nominal"].delay_pmf)
+    np.testing.assert_array_equal(bal.delay_law(1.0), bal.SEVERITIES["delay"].delay_pmf)
+    lams = (0.0, 0.3, 0.75, 1.0, 1.25, 1.5, bal.MAX_DELAY_INDEX)
+    med, mean = [], []
+    for lam in lams:
+        p = bal.delay_law(lam).astype(np.float64)
+        assert p.min() >= 0 and abs(p.sum() - 1) < 1e-6 and p[0] == 0
+        med.append(int(np.searchsorted(np.cumsum(p), 0.5)))
+        mean.append(p @ np.arange(p.size))
+    assert np.all(np.diff(med) >= 0) and med[0] == 1 and med[-1] >= 10
+    assert np.all(np.diff(mean) > 0)
+    # a stretched law keeps the mean's affine map: E[1 + lam (d - 1)] = 1 + lam (E d - 1)
+    np.testing.assert_allclose(mean[4], 1 + 1.25 * (mean[3] - 1), rtol=1e-5)
+    assert bal.delay_law(bal.MAX_DELAY_INDEX).size - 1 <= 31
+    bal.balancing_loop("emulation", ca=bal.sweep_channel("delay", bal.MAX_DELAY_INDEX))   # ring holds it
+    with pytest.raises(ValueError, match=r"lambda.*\[0, 1.75\]"):
+        bal.delay_law(1.8)
+
+
+def test_sweep_channels_change_one_parameter():
+    loss = bal.SEVERITIES["loss"]
+    ch = bal.sweep_channel("burst_length", 400.0)
+    assert ch.p_bg == 1 / 400 and (ch.p_gb, ch.loss_bad) == (loss.p_gb, loss.loss_bad)
+    ch = bal.sweep_channel("burst_loss", 1.0)
+    assert ch.loss_bad == 1.0 and (ch.p_gb, ch.p_bg) == (loss.p_gb, loss.p_bg)
+    at_loss = bal.sweep_channel("burst_length", 1 / loss.p_bg)         # the axis passes through it
+    assert (at_loss.p_gb, at_loss.p_bg, at_loss.loss_bad) == (loss.p_gb, loss.p_bg, loss.loss_bad)
+    assert bal.SWEEP_AXES["burst_length"][2] == 1 / loss.p_bg and bal.SWEEP_AXES["burst_loss"][2] == loss.loss_bad
+    assert wifi.stationary_loss(bal.sweep_channel("burst_length", 4 / loss.p_bg)) > wifi.stationary_loss(loss)
+    with pytest.raises(ValueError, match="sweep axis must be one of burst_length, burst_loss, delay"):
+        bal.sweep_channel("jitter", 1.0)
+    with pytest.raises(ValueError, match=r"burst_loss.*\[0, 1\]"):
+        bal.sweep_channel("burst_loss", 1.5)
+
+
+def test_kf_tilt_option_sets_the_filters_tilt_variance():
+    R = lambda loop: np.asarray(loop.estimator.kf.R)
+    design, sensor = (bal.balancing_loop("model", kf_tilt=k) for k in bal.KF_TILT_NOISES)
+    p = Balancing()
+    np.testing.assert_allclose(R(design)[1, 1], p.sigma_theta ** 2, rtol=1e-6)
+    np.testing.assert_allclose(R(sensor)[1, 1], float(p.tilt_error_std()) ** 2, rtol=1e-6)
+    assert R(sensor)[1, 1] < 0.05 * R(design)[1, 1]                       # 0.016 deg against 0.1 deg
+    np.testing.assert_array_equal(R(sensor)[0], R(design)[0])            # the encoder's entry as it was
+    white = Balancing(tilt_sensor="white")
+    np.testing.assert_array_equal(R(bal.balancing_loop("model", plant=white, kf_tilt="sensor")),
+                                  R(bal.balancing_loop("model", plant=white)))
+    with pytest.raises(ValueError, match="kf_tilt must be one of design, sensor"):
+        bal.balancing_loop("model", kf_tilt="coloured")

@@ -3,7 +3,10 @@ severity, the shortest horizon): table, results.json and the Fig. 5 / Fig. 7 fig
 import json
 
 import numpy as np
+import pytest
 
+import jaxnc
+from jaxnc.schemes import balancing as bal
 from tests.test_cli import assert_one_line_error, run
 
 
@@ -37,3 +40,46 @@ def test_quick_run_writes_fig5_and_fig7(tmp_path, capsys):
     assert lb["no noise"]["stats"]["delay_median"] == 3.0                     # Table 1
     csv = (tmp_path / "fig5_loopback_cdf.csv").read_text().splitlines()
     assert csv[0] == "delay_steps,no noise,-21 dBm,-19 dBm" and len(csv) == 1 + 21
+
+
+SWEEP = ["run", "balancing-sweep", "--seeds", "4", "--no-progress", "--set", "axis=delay", "horizon=16"]
+
+
+def test_sweep_stores_points_resumes_and_harsher_delay_is_not_better(tmp_path, capsys, monkeypatch):
+    """balancing-sweep on the delay axis, 2 points x 4 seeds x 16 s: the saved structure, the
+    emulation design on the *delay* severity's law (index 1) falls where it stood at the
+    Table-1 fit (index 0; fixed seeds), and a second run computes only what is missing."""
+    from jaxnc import montecarlo
+    out = str(tmp_path)
+    assert run([*SWEEP, "--out", out, "--set", "delay=0,1"]) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["experiment"] == "balancing-sweep" and list(res["results"]["axes"]) == ["delay"]
+    pts = res["results"]["axes"]["delay"]["points"]
+    assert [p["value"] for p in pts] == [0.0, 1.0]
+    assert all(p[d]["n"] == 4 for p in pts for d in ("model", "emulation"))
+    nominal, harsh = pts
+    assert harsh["emulation"]["upright_fraction"] < nominal["emulation"]["upright_fraction"]
+    assert harsh["model"]["upright_fraction"] == 1.0 and harsh["verdict"] == "separates"
+    assert harsh["channel"]["delay_median"] > nominal["channel"]["delay_median"]
+    assert len(res["results"]["per_seed"]["cells"]) == 4
+    assert res["config"]["channels"]["delay=1"]["delay_pmf"] == pytest.approx(
+        np.asarray(bal.SEVERITIES["delay"].delay_pmf).tolist())
+    assert (tmp_path / "fig_sweep.png").stat().st_size > 10_000 and "## delay" in (tmp_path / "sweep.md").read_text()
+    ds = jaxnc.load(tmp_path)                                   # the per-seed points as one Dataset
+    assert ds.upright.dims == ("axis", "value", "design", "seed") and ds.upright.shape == (1, 2, 2, 4)
+    assert int(ds.upright.sel(value=1.0, design="emulation").sum()) == round(4 * harsh["emulation"]["upright_fraction"])
+    # resume: the stored points are reused, only the new value is computed (one run per design)
+    calls = []
+    real = montecarlo.run_batched
+    monkeypatch.setattr(montecarlo, "run_batched", lambda *a, **k: calls.append(1) or real(*a, **k))
+    assert run([*SWEEP, "--out", out, "--set", "delay=0,0.5,1"]) == 0
+    assert len(calls) == 2
+    again = json.loads((tmp_path / "results.json").read_text())["results"]["axes"]["delay"]["points"]
+    assert [p["value"] for p in again] == [0.0, 0.5, 1.0]
+    assert again[0]["emulation"] == nominal["emulation"] and again[2]["model"] == harsh["model"]
+    capsys.readouterr()
+
+
+def test_sweep_bad_point_is_a_one_line_error(tmp_path, capsys):
+    assert run([*SWEEP, "--out", str(tmp_path), "--set", "delay=0,2"]) == 2
+    assert_one_line_error(capsys, "delay", "[0, 1.75]")

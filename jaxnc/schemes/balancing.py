@@ -68,10 +68,12 @@ from jaxnc.plants.balancing import Balancing
 
 __all__ = ["DESIGNS", "DERIVATIVES", "W_LQ", "U_LQ", "SEVERITIES", "NOISE_LEVELS", "Robot", "StepReference",
            "BufferedKalman", "DirtyDerivative", "LeadFeedback", "ArrivalHold", "balancing_loop", "draws", "traces",
-           "simulate", "reference", "metrics", "run", "run_seed", "Metrics"]
+           "simulate", "reference", "metrics", "run", "run_seed", "Metrics", "KF_TILT_NOISES", "SWEEP_AXES", "delay_law", "sweep_channel",
+           "MAX_DELAY_INDEX"]
 
 DESIGNS = ("model", "emulation")
 DERIVATIVES = ("simple", "filtered")   # the emulation observer's rates (DirtyDerivative)
+KF_TILT_NOISES = ("design", "sensor")   # the model-based filter's tilt variance R[1, 1] (balancing_loop)
 # LQ weights: 0.5 rad of wheel angle, 0.05 rad of tilt, 5 and 0.5 rad/s, 100 rad/s^2 of input
 W_LQ = np.diag([1 / 0.5**2, 1 / 0.05**2, 1 / 5.0**2, 1 / 0.5**2])
 U_LQ = np.array([[1 / 100.0**2]])
@@ -322,7 +324,8 @@ class ArrivalHold(nc.AbstractActuator):
 def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gain: str = "hold",
                    theta: float | None = None, ca: wifi.WifiChannel = wifi.NOMINAL,
                    sc: wifi.WifiChannel | None = None, hold: bool = True, N_buf: int = 10, lead: int = 2,
-                   derivative: str = "simple", tau_d: float | None = None, horizon_s: float = 25.0,
+                   derivative: str = "simple", tau_d: float | None = None, kf_tilt: str = "design",
+                   horizon_s: float = 25.0,
                    theta0_deg: float = 5.0, step_m: float = 0.1, t_step: float = 15.0,
                    tilt_limit_deg: float = 30.0, ring: int = 32) -> nc.Loop:
     """The loop of one design as a :class:`jaxnc.loop.Loop` (validated, plain Python).
@@ -342,6 +345,12 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
       derivative: the emulation observer's rates, ``"simple"`` (backward difference over
         one period, the paper's) or ``"filtered"`` (first-order filter of time constant
         ``tau_d``, > 0, default 0.005 s); ``tau_d`` is refused with ``"simple"``.
+      kf_tilt: the model-based filter's tilt measurement variance (its R, eq. 12-13, for a
+        white noise as eq. 1 assumes): ``"design"`` the robot's ``sigma_theta``^2 (0.1 deg),
+        whatever the sensor; ``"sensor"`` the stationary variance of the plant's tilt
+        sensor error (:meth:`~jaxnc.plants.balancing.Balancing.tilt_error_std`; the same
+        as ``"design"`` for the white sensor). Neither models the complementary filter's
+        correlation in time.
       ring: the emulation links' ring (a packet later than ``ring - 1`` steps is lost).
       horizon_s, theta0_deg, step_m, t_step, tilt_limit_deg: the scenario.
 
@@ -359,6 +368,8 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
     check_int("lead", lead, 1, 50)
     check_int("N_buf", N_buf, 1, 10_000)
     check_int("ring", ring, 2, 10_000)
+    if kf_tilt not in KF_TILT_NOISES:
+        raise ValueError(f"kf_tilt must be one of {', '.join(KF_TILT_NOISES)}, got {kf_tilt!r}")
     if derivative not in DERIVATIVES:
         raise ValueError(f"derivative must be one of {', '.join(DERIVATIVES)}, got {derivative!r}")
     if derivative == "simple":
@@ -387,6 +398,8 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
             th = wifi.delivery_probability(ca, lead) if theta is None else float(theta)
             L = hold_lq_gain(A, B, W_LQ, U_LQ, th)[0]
         Q, R = plant.kalman_QR()
+        if kf_tilt == "sensor" and plant.tilt_sensor == "complementary":
+            R[1, 1] = float(plant.tilt_error_std()) ** 2
         kf = BufferedKF(f32(A), f32(B), f32(C), f32(Q), f32(R), N=N_buf)
         P0 = f32(np.diag([1e-6, np.deg2rad(10.0) ** 2, 0.1, 0.1]))
         # tau_max half a period above the last useful delay: the float32 comparison of
@@ -501,11 +514,12 @@ def _pmf(d: dict, size: int = 19) -> np.ndarray:
 
 
 # Network severities of the experiment (both directions alike).  "nominal" is the Table 1
-# fit; "loss" adds long deep bursts (200 ms at 90 % loss, about one a second: one-way loss
-# 19.5 %); "delay" moves the one-way delay law to a median of 6 steps (loop-back ~12).
+# fit; "loss" adds long deep bursts (400 ms at 90 % loss, about one a second of good
+# regime: one-way loss 29.6 %; 200 ms until the severity sweep, docs/balancing.md);
+# "delay" moves the one-way delay law to a median of 7 steps (loop-back ~12).
 SEVERITIES = {
     "nominal": wifi.NOMINAL,
-    "loss": dataclasses.replace(wifi.NOMINAL, p_gb=1e-3, p_bg=1 / 200, loss_bad=0.9),
+    "loss": dataclasses.replace(wifi.NOMINAL, p_gb=1e-3, p_bg=1 / 400, loss_bad=0.9),
     "delay": dataclasses.replace(wifi.NOMINAL, delay_pmf=_pmf(
         {1: .05, 2: .1, 3: .1, 4: .1, 5: .1, **{k: .55 / 13 for k in range(6, 19)}})),
 }
@@ -519,3 +533,72 @@ NOISE_LEVELS = {
     "-21 dBm": wifi.interfered(wifi.NOMINAL, 0.1),
     "-19 dBm": wifi.interfered(wifi.NOMINAL, 0.2),
 }
+
+
+# ----------------------------------------------------------------------------- severity sweep
+
+# The severity sweep (experiment ``balancing-sweep``, docs/balancing.md): one network
+# parameter at a time made harsher, both directions alike. The two loss axes pass through
+# the *loss* severity (the other burst parameters at its values), the delay axis through
+# *nominal* (lambda = 0) and *delay* (lambda = 1). Per axis: (what it varies, default
+# points, the main table's severity on it, the former *loss* severity's value on it or
+# None: 200 ms bursts until the sweep showed it at the emulation design's transition).
+_LOSS = SEVERITIES["loss"]
+SWEEP_AXES = {
+    "burst_length": (f"mean burst length 1/p_bg (packets = ms; p_gb = {_LOSS.p_gb:g}, loss_bad = {_LOSS.loss_bad:g})",
+                     (25.0, 50.0, 100.0, 200.0, 400.0, 800.0, 1600.0), 1.0 / _LOSS.p_bg, 200.0),
+    "burst_loss": (f"loss in a burst, loss_bad (1/p_bg = {1 / _LOSS.p_bg:g} ms, p_gb = {_LOSS.p_gb:g})",
+                   (0.23, 0.5, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0), _LOSS.loss_bad, None),
+    "delay": ("delay-law index lambda (0: Table-1 fit, 1: the delay severity, > 1: stretched)",
+              (0.0, 0.15, 0.3, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75), 1.0, None),
+}
+#: the largest delay-law index: its longest delay, 1 + 17 lambda steps, stays within the
+#: emulation links' ring (31 steps)
+MAX_DELAY_INDEX = 1.75
+
+
+def delay_law(lam: float) -> np.ndarray:
+    """float32[D]: the one-way delay pmf of index ``lam`` (steps), both directions.
+
+    ``0 <= lam <= 1``: the mixture ``(1 - lam) p_nominal + lam p_delay`` of the Table-1
+    fit and the *delay* severity's law (exactly each at 0 and 1). ``lam > 1``: the delay
+    severity's law stretched about one step, a delay d becoming ``1 + lam (d - 1)`` with
+    its mass split linearly between the two neighbouring whole steps (the median grows
+    from 7 steps at 1 to 11 at 1.75, the longest delay from 18 to 31 steps).
+
+    Raises:
+      ValueError: ``lam`` outside [0, MAX_DELAY_INDEX].
+    """
+    check_range("lambda (delay-law index)", lam, 0.0, MAX_DELAY_INDEX)
+    lam = float(lam)
+    p0 = np.asarray(SEVERITIES["nominal"].delay_pmf, np.float64)
+    p1 = np.asarray(SEVERITIES["delay"].delay_pmf, np.float64)
+    if lam <= 1.0:
+        return ((1.0 - lam) * p0 + lam * p1).astype(np.float32)
+    d = 1.0 + lam * (np.arange(p1.size) - 1.0)
+    out = np.zeros(int(np.ceil(d[-1])) + 1)
+    for q, x in zip(p1[1:], d[1:]):        # p1[0] = 0 (no zero delay)
+        lo = int(np.floor(x))
+        out[lo] += q * (1.0 - (x - lo))
+        if x > lo:
+            out[lo + 1] += q * (x - lo)
+    return (out / out.sum()).astype(np.float32)
+
+
+def sweep_channel(axis: str, value: float) -> wifi.WifiChannel:
+    """The channel of point ``value`` on sweep axis ``axis`` (:data:`SWEEP_AXES`):
+    ``burst_length`` (1/p_bg in packets, >= 1) and ``burst_loss`` (loss_bad in [0, 1]) from
+    the *loss* severity, ``delay`` (:func:`delay_law`) from the Table-1 fit.
+
+    Raises:
+      ValueError: an unknown axis or a value outside its range, naming it.
+    """
+    if axis not in SWEEP_AXES:
+        raise ValueError(f"sweep axis must be one of {', '.join(SWEEP_AXES)}, got {axis!r}")
+    if axis == "burst_length":
+        check_range("burst_length (1/p_bg, packets)", value, 1.0, 1e6)
+        return dataclasses.replace(SEVERITIES["loss"], p_bg=1.0 / float(value))
+    if axis == "burst_loss":
+        check_range("burst_loss (loss_bad)", value, 0.0, 1.0)
+        return dataclasses.replace(SEVERITIES["loss"], loss_bad=float(value))
+    return dataclasses.replace(SEVERITIES["nominal"], delay_pmf=delay_law(value))
