@@ -92,7 +92,7 @@ def _drhe(settings) -> Problem:
         "drhe", _drhe_loop(0), DRHE_PARAMS, objective, lambda lp, k: mecanum_terms(lp, k, j1_nom),
         {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,
         f"seed 000 DRHE (the paper's loop), N = 10, DP = 0.3, Lissajous; L_w = J1'/J1_nom + {w:g} J4, a run that "
-        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)", fd_step=0.2, check_seeds=2048)
+        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)", fd_step=0.2, check_seeds=4096)
 
 
 def _drhe_safe(settings) -> Problem:
@@ -368,7 +368,7 @@ register(Experiment(
         Option("batch", "int", 16, "seeds per gradient step", low=2, high=4096),
         Option("check_seeds", "int", 512, "seeds of tune_loop's own gradient check", low=2, high=100_000),
         Option("study_check_seeds", "int", 0, "seeds of the study's two gradient checks per loop; 0: the loop's "
-               "own (drhe 2048, cartpole 1024, hdd and drhe-safe 512)", low=0, high=100_000),
+               "own (drhe 4096, cartpole 1024, hdd and drhe-safe 512)", low=0, high=100_000),
         Option("search_budget", "int", 1024, "simulations of tune_loop's first stage (successive halving over "
                "the grid, which picks the gradient's start); 0: the gradient alone from the start point",
                low=0, high=10_000_000),
