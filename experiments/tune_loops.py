@@ -153,7 +153,7 @@ def _cartpole(settings) -> Problem:
         "cartpole", cartpole(delta=1e-3), {"trigger.delta": Positive()}, lambda m: m.cost_raw + w * m.rate_sc,
         nc.run, {"trigger.delta": 1e-2}, {"trigger.delta": np.geomspace(1e-5, 1e-1, 9)},
         f"user example: cart-pole over a lossy delayed link with PETC; cost + {w:g} x sensor rate", fd_step=0.2,
-        check_seeds=4096)
+        check_seeds=8192)
 
 
 BUILDERS = {"drhe": _drhe, "drhe-safe": _drhe_safe, "hdd": _hdd, "cartpole": _cartpole}
@@ -368,7 +368,7 @@ register(Experiment(
         Option("batch", "int", 16, "seeds per gradient step", low=2, high=4096),
         Option("check_seeds", "int", 512, "seeds of tune_loop's own gradient check", low=2, high=100_000),
         Option("study_check_seeds", "int", 0, "seeds of the study's two gradient checks per loop; 0: the loop's "
-               "own (drhe and cartpole 4096, hdd and drhe-safe 512)", low=0, high=100_000),
+               "own (drhe 4096, cartpole 8192, hdd and drhe-safe 512)", low=0, high=100_000),
         Option("search_budget", "int", 1024, "simulations of tune_loop's first stage (successive halving over "
                "the grid, which picks the gradient's start); 0: the gradient alone from the start point",
                low=0, high=10_000_000),
