@@ -162,15 +162,18 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
                 out["straight_through"] = st
         if "score" in estimators or "hybrid" in estimators:
             e = jax.random.normal(jax.random.fold_in(key, 7919), (d,), jnp.float32)
-            (tp, jp), (tm, jm) = parts(th + score_scale * e, key, jnp.float32(0.0)), parts(th - score_scale * e, key, jnp.float32(0.0))
+            (tp, jp) = parts(th + score_scale * e, key, jnp.float32(0.0))
+            (tm, jm) = parts(th - score_scale * e, key, jnp.float32(0.0))
             if "score" in estimators:
                 out["score"] = (tp - tm) / (2 * score_scale) * e
             if "hybrid" in estimators:
                 out["hybrid"] = st + (jp - jm) / (2 * score_scale) * e
         return out
 
-    res = montecarlo.run_batched(per_seed, keys, chunk_size=chunk_size, progress=progress, desc="gradient check")
     n = keys.shape[0]
+    # no chunk larger than the seeds: run_batched pads the last chunk to its full size
+    res = montecarlo.run_batched(per_seed, keys, chunk_size=min(chunk_size, n), progress=progress,
+                                 desc="gradient check")
     se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
     fd = np.asarray(res["finite_difference"], float)
     estimates = {"finite_difference": (fd.mean(0), se(fd))}
