@@ -38,8 +38,8 @@ import numpy as np
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
-from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, param_paths, set_paths,
-                         successive_halving, tune_loop)
+from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total, paired_ci, param_paths,
+                         set_paths, successive_halving, tune_loop)
 
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
@@ -167,11 +167,6 @@ def _score_scale(problem: Problem) -> float:
     return problem.fd_step / math.sqrt(3.0)
 
 
-def _total(value):
-    """The objective's value: the sum of a (smooth, jump) pair, or the scalar itself."""
-    return value[0] + value[1] if isinstance(value, (tuple, list)) else value
-
-
 def _check_row(chk) -> dict:
     return {"point": chk.theta.tolist(), "value": chk.value, "recommended": chk.recommended,
             "estimates": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.estimates.items()},
@@ -208,7 +203,8 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     mesh = np.meshgrid(*[np.arange(len(axes[n])) for n in grid_names], indexing="ij")
     points = [{p: axes[n][int(idx[j])] for j, n in enumerate(grid_names) for p in names[n]}
               for idx in zip(*[m.reshape(-1) for m in mesh])]
-    per_seed = lambda point, key: _total(problem.objective(problem.run(set_paths(problem.loop, point), key)))
+    def per_seed(point, key):
+        return objective_total(problem.objective(problem.run(set_paths(problem.loop, point), key)))
     sh = successive_halving(per_seed, points, montecarlo.seed_keys(seed + 50_000, budget), budget=budget,
                             progress=progress, desc=f"{problem.name} search")
     best = {n: sh.best_point[names[n][0]] for n in grid_names}

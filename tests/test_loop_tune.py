@@ -254,3 +254,8 @@ def test_param_paths_names_tied_groups_like_the_result():
     assert param_paths({"trigger.delta": Positive(), ("delta_s", "sigma_s"): Positive()}) == {
         "trigger.delta": ("trigger.delta",), "delta_s=sigma_s": ("delta_s", "sigma_s")}
     assert param_paths(["controller.K"]) == {"controller.K": ("controller.K",)}
+
+
+def test_objective_total_sums_a_pair_and_keeps_a_scalar():
+    from jaxnc.tune import objective_total
+    assert objective_total((1.5, 2.0)) == 3.5 and objective_total(4.0) == 4.0

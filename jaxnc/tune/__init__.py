@@ -21,7 +21,7 @@ from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temp
                                    straight_through)
 from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
     simulations_per_step, tune, unconstrain
-from jaxnc.tune.check import GradientCheck, gradient_check
+from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.loop_tune import (LoopTuneResult, check_loop, get_path, has_temperature, mc_mean, param_paths,
                                   set_paths, tune_loop, with_temperature)
 from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, mean_ci, paired_ci, random_points,
@@ -34,6 +34,7 @@ __all__ = [
     "unconstrain",
     "SearchResult", "evaluate", "grid", "halving_schedule", "mean_ci", "paired_ci", "random_points", "search",
     "successive_halving",
-    "GradientCheck", "gradient_check", "LoopTuneResult", "get_path", "mc_mean", "set_paths", "tune_loop",
+    "GradientCheck", "gradient_check", "objective_total",
+    "LoopTuneResult", "get_path", "mc_mean", "set_paths", "tune_loop",
     "check_loop", "with_temperature", "has_temperature", "param_paths",
 ]

@@ -46,9 +46,14 @@ import numpy as np
 from jaxnc import montecarlo
 from jaxnc._validate import check_int, check_positive
 
-__all__ = ["GradientCheck", "gradient_check"]
+__all__ = ["GradientCheck", "gradient_check", "objective_total"]
 
 ESTIMATORS = ("straight_through", "score", "hybrid")
+
+
+def objective_total(value):
+    """The objective's value: the sum of a ``(smooth, jump)`` pair, or the scalar itself."""
+    return value[0] + value[1] if isinstance(value, (tuple, list)) else value
 
 
 class GradientCheck(NamedTuple):
@@ -147,9 +152,11 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         z = float(norm.ppf(1.0 - 0.025 / d))
     check_positive("z", z)
     eye = jnp.eye(d, dtype=jnp.float32)
-    # (total, jump) of one seed at temperature temp
-    parts = ((lambda t, k, temp: (lambda sj: (sj[0] + sj[1], sj[1]))(objective(t, k, temp))) if pair else
-             (lambda t, k, temp: (objective(t, k, temp), jnp.float32(0.0))))
+    def parts(t, k, temp):
+        """(total, jump) of one seed at temperature ``temp``."""
+        v = objective(t, k, temp)
+        return objective_total(v), (v[1] if pair else jnp.float32(0.0))
+
     hard = lambda t, k: parts(t, k, jnp.float32(0.0))[0]
 
     def per_seed(key):

@@ -38,7 +38,7 @@ from jax.flatten_util import ravel_pytree
 
 from jaxnc import montecarlo
 from jaxnc._validate import check_int, check_positive
-from jaxnc.tune.check import GradientCheck, gradient_check
+from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.gradient import Interval, Positive, TuneResult, Unconstrained, constrain, tune, unconstrain
 from jaxnc.tune.search import halving_schedule, mean_ci, paired_ci, successive_halving
 
@@ -249,8 +249,7 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
         if len(shape) != 2 or any(getattr(o, "shape", None) != () for o in shape):
             raise ValueError(f"{fn_name}: the objective must return a scalar, or a pair (smooth, jump) of "
                              f"scalars, per seed, got {shape}")
-        parts = objective
-        return _Spec(paths, constraints, run, lambda m: (lambda sj: sj[0] + sj[1])(parts(m)), parts)
+        return _Spec(paths, constraints, run, lambda m: objective_total(objective(m)), objective)
     if not hasattr(shape, "shape") or shape.shape != ():
         raise ValueError(f"{fn_name}: the objective must return a scalar per seed, got "
                          f"{getattr(shape, 'shape', type(shape).__name__)}")
@@ -262,10 +261,10 @@ def _set(loop, spec: _Spec, values: dict):
     return set_paths(loop, {p: values[n] for n in values for p in spec.paths[n]})
 
 
-def _flat(loop, spec: _Spec, at: dict | None = None, pair: bool = False):
+def _flat(loop, spec: _Spec, at: dict | None = None):
     """(flat raw start, unravel, flat_objective(theta, key, temperature)) in the
-    unconstrained coordinates (log for Positive, logit for Interval); with ``pair`` (and a
-    pair objective) the flat objective returns (smooth, jump)."""
+    unconstrained coordinates (log for Positive, logit for Interval); the flat objective
+    returns what the user's does (a scalar, or a (smooth, jump) pair)."""
     init = {n: np.asarray(get_path(loop, spec.paths[n][0]), np.float32) for n in spec.paths}
     if at:
         unknown = [k for k in at if k not in spec.paths]
@@ -275,7 +274,7 @@ def _flat(loop, spec: _Spec, at: dict | None = None, pair: bool = False):
     raw0 = unconstrain(init, spec.constraints)
     flat0, unravel = ravel_pytree(raw0)
 
-    objective = spec.parts if (pair and spec.parts is not None) else spec.objective
+    objective = spec.parts or spec.objective
 
     def flat_objective(theta, key, temp):
         lp = with_temperature(_set(loop, spec, constrain(unravel(theta), spec.constraints)), temp)
@@ -331,7 +330,7 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
         raise ValueError("check_loop: name at least one parameter")
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
-    flat0, unravel, fobj = _flat(loop, spec, at, pair=True)
+    flat0, unravel, fobj = _flat(loop, spec, at)
     labels = []
     for n in spec.paths:
         size = int(np.asarray(get_path(loop, spec.paths[n][0])).size)
@@ -457,7 +456,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
-        flat0, _, flat_objective = _flat(loop1, spec, pair=True)
+        flat0, _, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
             chk = gradient_check(flat_objective, flat0, montecarlo.seed_keys(seed + 2, check_seeds),
                                  temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
