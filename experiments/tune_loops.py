@@ -35,6 +35,7 @@ from typing import Callable, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+import jaxnc.loop as jl
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
@@ -71,9 +72,8 @@ def _j1_nom() -> float:
 
 def _drhe_loop(max_silence: int):
     from jaxnc.schemes import mecanum as mec
-    from jaxnc.triggers import PetcTrigger
     loop = mec.mecanum_loop("DRHE", 10, 0.3, max_silence=max_silence)
-    return dataclasses.replace(loop, trigger=PetcTrigger(sigma=np.float32(1e-3), delta=np.float32(0.1)))
+    return dataclasses.replace(loop, trigger=jl.Petc(sigma=np.float32(1e-3), delta=np.float32(0.1)))
 
 
 DRHE_AXES = {"trigger.delta": np.geomspace(0.003, 1.0, 6), "trigger.sigma": np.geomspace(1e-4, 0.1, 4)}

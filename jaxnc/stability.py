@@ -113,7 +113,7 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
     states with ``xs[k+1] = f(xs[k], us[k], w_k)``; ``us`` [K, p] the applied inputs
     (known to the filter, as in eq. 11). Every N fast steps the sensor samples
     z_k = h(xs[k]) + v_k with ``v_k ~ N(0, diag(v_std^2))``; the packet is lost with
-    probability ``dp`` (eq. 5) and, with a ``PetcTrigger``, only sent when eq. (4) holds
+    probability ``dp`` (eq. 5) and, with a PETC trigger, only sent when eq. (4) holds
     (the first sample is always sent). The filter corrects (eq. 13) when the sample is
     sent and arrives, and predicts (eq. 11) every fast step with ``Q`` and ``R`` (the
     covariances it assumes). The initial estimate is xs[0] + e0 with e0 ~ N(0, P0).

@@ -6,6 +6,7 @@ import pytest
 import scipy.signal
 
 from jaxnc import montecarlo
+from jaxnc.loop.triggers import petc_gap
 from jaxnc.disturbance import dob_design, dob_init, dob_output, dob_update, rigid_nominal
 from jaxnc.plants import hdd as plant
 from jaxnc.schemes import hdd
@@ -74,10 +75,12 @@ def test_dob_recovers_constant_disturbance_on_nominal_model():
 
 
 def test_triggers_eq6_eq22():
-    assert bool(hdd.petc_fires(1.0, 1.1, 0.0, 0.0099))
-    assert not bool(hdd.petc_fires(1.0, 1.1, 0.0, 0.0101))
-    assert not bool(hdd.petc_fires(1.0, 1.1, 1.0, 0.0))     # 0.01 < 1.21
-    assert bool(hdd.controller_fires(0.0, 0.5, 0.0, 0.2))
+    """Eq. (6) and (22), ||ybar - y||^2 > sigma ||y||^2 + delta, on one output: the PETC gap."""
+    fires = lambda last, s, sigma, delta: bool(petc_gap(jnp.array([last]), jnp.array([s]), sigma, delta) > 0)
+    assert fires(1.0, 1.1, 0.0, 0.0099)
+    assert not fires(1.0, 1.1, 0.0, 0.0101)
+    assert not fires(1.0, 1.1, 1.0, 0.0)     # 0.01 < 1.21
+    assert fires(0.0, 0.5, 0.0, 0.2)
 
 
 def test_metric_formulas():

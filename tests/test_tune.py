@@ -12,8 +12,9 @@ import pytest
 
 from jaxnc import montecarlo
 from jaxnc.controllers.pi import pi_step
-from jaxnc.triggers import PetcTrigger, hold_last_sent
-from jaxnc.tune import (Interval, Positive, RelaxedPetcTrigger, bernoulli_fires, constrain, grid, halving_schedule,
+import jaxnc.loop as jl
+from jaxnc.loop.triggers import petc_gap, soft_decision
+from jaxnc.tune import (Interval, Positive, bernoulli_fires, constrain, grid, halving_schedule,
                         mean_ci, paired_ci, random_points, relax_trigger, score_grad, score_surrogate, search,
                         successive_halving, tune, unconstrain)
 
@@ -25,16 +26,15 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
 
 def toy_cost(params, key, *, steps=60, w=0.5, temperature=0.05):
     """Scalar plant x+ = 1.02 x + 0.1 u + n, PI control (pi_step) on a PETC-sampled
-    output (RelaxedPetcTrigger, seed 000 eq. 3-4): mean x^2 + w * mean(beta)."""
-    trig = RelaxedPetcTrigger(sigma=params["sigma"], delta=params["delta"], temperature=temperature)
+    output (the relaxed PETC, seed 000 eq. 3-4): mean x^2 + w * mean(beta)."""
     dt = params["Kp"].dtype
     noise = 0.05 * jax.random.normal(key, (steps,), dt)
 
     def step(c, n):
         x, zbar, integ = c
         z = jnp.reshape(x + 0.2, (1,))          # offset: the relative term sigma z^2 matters
-        beta = trig.fires(zbar, z)
-        zbar = hold_last_sent(beta, z, zbar)
+        beta = soft_decision(petc_gap(zbar, z, params["sigma"], params["delta"]), temperature)
+        zbar = jl.blend(beta, z, zbar)
         u, integ = pi_step(params["Kp"], params["Ki"], integ, -(zbar[0] - 0.2), 0.1)
         x = 1.02 * x + 0.1 * u + n
         return (x, zbar, integ), (x * x, beta)
@@ -64,18 +64,20 @@ def test_relaxed_gradient_matches_central_differences_float64():
 
 def test_relaxed_trigger_approaches_hard_trigger_and_straight_through_is_exact_forward():
     z_last, z = jnp.asarray([0.0, 1.0]), jnp.asarray([0.5, 1.1])
-    hard = PetcTrigger(sigma=jnp.asarray([0.1, 0.1]), delta=jnp.asarray([0.01, 0.01]))
+    hard = jl.Petc(sigma=jnp.asarray([0.1, 0.1]), delta=jnp.asarray([0.01, 0.01]))
+    fires = lambda trig: trig.step(jl.PetcState(z_last, jnp.int32(0)), z, 1)[0]
     gap = float(hard.gap(z_last, z))
-    assert gap > 0 and float(hard.fires(z_last, z)) == 1.0
-    soft = [float(relax_trigger(hard, "sigmoid", t).fires(z_last, z)) for t in (1.0, 0.1, 0.01)]
+    assert gap > 0 and float(fires(hard)) == 1.0
+    soft = [float(fires(relax_trigger(hard, "sigmoid", t))) for t in (1.0, 0.1, 0.01)]
     assert soft[0] < soft[1] < soft[2] and soft[2] > 0.99 and abs(soft[0] - 1 / (1 + math.exp(-gap))) < 1e-6
     st = relax_trigger(hard, "straight_through", 0.1)
-    assert float(st.fires(z_last, z)) == 1.0
-    dst = jax.grad(lambda d: dataclasses.replace(st, delta=d).fires(z_last, z))(hard.delta)
+    assert float(fires(st)) == 1.0
+    dst = jax.grad(lambda d: fires(dataclasses.replace(st, delta=d)))(hard.delta)
     s = 1 / (1 + math.exp(-gap / 0.1))
     np.testing.assert_allclose(dst, -s * (1 - s) / 0.1 * np.ones(2), rtol=1e-5)
+    assert float(relax_trigger(st, "score", 0.1).temperature) == 0.0
     with pytest.raises(ValueError, match="temperature"):
-        RelaxedPetcTrigger(sigma=0.1, delta=0.1, temperature=0.0)
+        relax_trigger(hard, "sigmoid", 0.0)
     with pytest.raises(ValueError, match="estimator"):
         relax_trigger(hard, "magic", 0.1)
 

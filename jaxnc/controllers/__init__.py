@@ -1,8 +1,7 @@
 """Controllers and the smart actuator."""
-from jaxnc.controllers.actuator import PacketBuffer, current_action, empty_buffer, install
 from jaxnc.controllers.path_following import FollowerState, PathFollower
 from jaxnc.controllers.pi import pi_step, wrap_angle
 from jaxnc.controllers.pure_pursuit import pure_pursuit
 
-__all__ = ["PacketBuffer", "current_action", "empty_buffer", "install", "FollowerState", "PathFollower",
+__all__ = ["FollowerState", "PathFollower",
            "pi_step", "wrap_angle", "pure_pursuit"]

@@ -8,12 +8,15 @@ for the sensor, eq. 21-22 for the controller side, on the first action of a pack
 ``reading="sum"``: one condition on the sums over outputs (sigma, delta per output,
 seed 000 eq. 4); ``reading="each"``: it fires when the condition holds for any output
 alone. ``max_silence`` > 0 adds the time-triggered safety condition of seed 003 eq. (7):
-it also fires when the signal has not been sent for ``max_silence`` slow instants. The
-first instant always sends (zbar_0 = z_0).
+it also fires when the signal has not been sent for ``max_silence`` slow instants
+(``max_silence = 1``: it sends at every instant, a periodic sensor). The first instant
+always sends (zbar_0 = z_0).
 
-With ``temperature`` > 0 the decision is straight-through: the exact hard value forward,
-the gradient of sigmoid(gap / temperature) backward (:mod:`jaxnc.tune.estimators`);
-``relaxed=True`` makes the forward pass soft as well (the sigmoid relaxation).
+The step function has zero gradient almost everywhere. With ``temperature`` > 0 the
+decision is straight-through (:func:`fires_straight_through`): the exact hard value
+forward, the gradient of sigmoid(gap / temperature) backward (squared norms in the gap,
+so the gradient is finite when z = zbar); ``relaxed=True`` makes the forward pass soft as
+well (:func:`soft_decision`, the sigmoid relaxation).
 """
 from __future__ import annotations
 
@@ -22,13 +25,37 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import array_fields, check_bool, check_given, check_int, check_nonneg
+import numpy as np
+
+from jaxnc._validate import array_fields, check_bool, check_given, check_int, check_nonneg, check_range, concrete
 from jaxnc.loop.base import AbstractTrigger, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.triggers import fires_straight_through, soft_decision
 
-__all__ = ["Periodic", "Petc", "PetcState"]
+__all__ = ["Periodic", "Petc", "PetcState", "petc_gap", "soft_decision", "fires_straight_through"]
+
+
+def soft_decision(gap, temperature):
+    """sigmoid(gap / temperature) in the dtype of ``gap``; 0 where ``temperature`` is 0."""
+    tau = jnp.maximum(jnp.asarray(temperature, gap.dtype), 1e-12)
+    return jnp.where(jnp.asarray(temperature) > 0, jax.nn.sigmoid(gap / tau), 0.0)
+
+
+def fires_straight_through(gap, temperature):
+    """1[gap > 0] as a float; with ``temperature`` > 0 its gradient is that of
+    :func:`soft_decision` (hard + (soft - sg(soft)): the forward value is exactly 0 or 1)."""
+    soft = soft_decision(gap, temperature)
+    return (gap > 0).astype(gap.dtype) + (soft - jax.lax.stop_gradient(soft))
+
+
+def petc_gap(last, s, sigma, delta, reading: str = "sum"):
+    """Left minus right side of the PETC condition (fires when > 0), seed 000 eq. (4):
+    ``sum (last - s)^2 - sum (sigma s^2 + delta)`` (``reading="sum"``), or the largest of
+    the per-output gaps (``"each"``). last, s: float[p]; sigma, delta: float or float[p]."""
+    per = (last - s) ** 2 - (sigma * s * s + delta)
+    if reading == "each":
+        return jnp.max(per)
+    return jnp.sum((last - s) ** 2) - jnp.sum(sigma * s * s + delta * jnp.ones_like(s))
 
 
 class PetcState(NamedTuple):
@@ -59,7 +86,8 @@ class Petc(AbstractTrigger):
     Attributes:
       sigma, delta: float or float[p], >= 0 (relative and absolute thresholds).
       temperature: >= 0; > 0 gives a straight-through (or, ``relaxed``, soft) decision.
-      max_silence: static int >= 0, the safety condition's k_max (0: off).
+      max_silence: int >= 0, the safety condition's k_max (0: off; 1: send every
+        instant). A leaf, so loops differing only in it share one compiled program.
       reading: static, ``"sum"`` or ``"each"``.
       relaxed: static; the forward pass is the sigmoid too (needs temperature > 0).
     """
@@ -67,7 +95,7 @@ class Petc(AbstractTrigger):
     sigma: Any = 0.0
     delta: Any = 0.0
     temperature: Any = 0.0
-    max_silence: int = _static(0)
+    max_silence: Any = 0
     reading: str = _static("sum")
     relaxed: bool = _static(False)
 
@@ -79,7 +107,12 @@ class Petc(AbstractTrigger):
         check_nonneg("Petc.sigma", self.sigma)
         check_nonneg("Petc.delta", self.delta)
         check_nonneg("Petc.temperature", self.temperature)
-        check_int("Petc.max_silence", self.max_silence, 0, 1_000_000)
+        check_range("Petc.max_silence", self.max_silence, 0, 1_000_000)
+        if concrete(self.max_silence):
+            ms = np.asarray(self.max_silence)
+            if ms.shape != () or ms != np.round(ms):
+                raise ValueError(f"Petc.max_silence must be a whole number of slow instants, got {ms.tolist()}")
+            object.__setattr__(self, "max_silence", np.int32(ms))
         if self.reading not in ("sum", "each"):
             raise ValueError(f"Petc.reading must be one of sum, each, got {self.reading!r}")
         if self.relaxed:
@@ -93,10 +126,7 @@ class Petc(AbstractTrigger):
     def gap(self, last, s):
         """Left minus right side of the condition (fires when > 0); for ``"each"`` the
         largest of the per-output gaps."""
-        per = (last - s) ** 2 - (self.sigma * s * s + self.delta)
-        if self.reading == "each":
-            return jnp.max(per)
-        return jnp.sum((last - s) ** 2) - jnp.sum(self.sigma * s * s + self.delta * jnp.ones_like(s))
+        return petc_gap(last, s, self.sigma, self.delta, self.reading)
 
     def init(self, s0):
         s0 = jnp.asarray(s0, jnp.float32)
@@ -105,9 +135,8 @@ class Petc(AbstractTrigger):
     def step(self, state, s, k):
         g = self.gap(state.last, s)
         beta = soft_decision(g, self.temperature) if self.relaxed else fires_straight_through(g, self.temperature)
-        forced = k == 0
-        if self.max_silence > 0:
-            forced = forced | (state.silent + 1 >= self.max_silence)
+        ms = jnp.asarray(self.max_silence)
+        forced = (k == 0) | ((ms > 0) & (state.silent + 1 >= ms))
         beta = jnp.where(forced, jnp.ones((), s.dtype), beta)
         last = blend(beta, s, state.last)
         silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)

@@ -61,11 +61,12 @@ from jaxnc.design import mrci as mrci_mod
 from jaxnc.design.mrci import Mrci, MrciState, mrci_init, mrci_step
 from jaxnc.disturbance import Dob, DobState, dob_design, dob_init, dob_output, dob_update
 from jaxnc.estimators.numre import NumreTables, cascade, numre_correct, numre_tables
+from jaxnc.loop.triggers import petc_gap
 from jaxnc.loop.base import AbstractController, AbstractEstimator, AbstractPlant, Inbox, Packet
 from jaxnc.plants import hdd as hdd_plant
 
 __all__ = ["CASES", "PAPER_THRESHOLDS", "NARROW_THRESHOLDS", "HddLoop", "hdd_loop", "simulate", "run",
-           "Trajectory", "Metrics", "ise", "isep", "gpi", "cc", "petc_fires", "controller_fires",
+           "Trajectory", "Metrics", "ise", "isep", "gpi", "cc",
            "HddPlant", "NumreFilter", "NumreState", "HddController", "HddControllerState", "CtrlState",
            "runner_loop", "draws"]
 
@@ -103,16 +104,6 @@ def filter_disturbance_var(w_std: float) -> float:
 
 # Case 6: the plant-only filter models the unknown disturbance as input noise of this std.
 FILTER_INPUT_STD = 1e-2
-
-
-def petc_fires(ybar, y, sigma, delta):
-    """Eq. (6): ||ybar_{k-1} - y_k||^2 > sigma ||y_k||^2 + delta."""
-    return (ybar - y) ** 2 > sigma * y * y + delta
-
-
-def controller_fires(ubar, u, sigma, delta):
-    """Eq. (22): ||ubar_{k-1} - u_k||^2 > sigma ||u_k||^2 + delta."""
-    return (ubar - u) ** 2 > sigma * u * u + delta
 
 
 @jax.tree_util.register_dataclass
@@ -398,7 +389,7 @@ class HddController(AbstractController):
             ctrl = jax.tree_util.tree_map(lambda a, b: jnp.where(beta, a, b), cs1, state.ctrl)
             packet = jnp.full(h + 1, u_new)        # no future actions: the actuator holds
             cas = state.cas
-        gamma = beta if self.tts else beta & controller_fires(state.ubar, u_new, self.sigma_c, self.delta_c)
+        gamma = beta if self.tts else beta & (petc_gap(state.ubar[None], u_new[None], self.sigma_c, self.delta_c) > 0)   # eq. (22)
         new = HddControllerState(cas, ctrl, jnp.where(gamma, u_new, state.ubar), jnp.where(beta, k, state.k_last),
                                  jnp.where(beta, dhat, jnp.nan), jnp.where(beta, k - state.k_last, 0))
         return Packet(packet[:, None], (k * ctx.N).astype(jnp.int32)), gamma.astype(jnp.float32), new

@@ -2,7 +2,7 @@
 one runner :mod:`jaxnc.loop` (:func:`build_loop`).
 
 Roles: the true robot with the path monitor (:class:`Robot`), the sensor's trigger
-(:class:`SensorTrigger`), an uplink with losses only, the remote NUDREKF
+(:func:`sensor_trigger`), an uplink with losses only, the remote NUDREKF
 (:class:`~jaxnc.estimators.nudrekf.NudrekfEstimator`) and controller
 (:class:`~jaxnc.estimators.nudrekf.ChainController`), a downlink with losses and the lumped
 round-trip delay (:class:`RoundTrip`), and the actuator
@@ -57,14 +57,13 @@ from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.nudrekf import ChainActuator, ChainController, NudrekfEstimator, PacketChain
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2, local_distance
-from jaxnc.loop import AbstractPlant, AbstractTrigger, Bernoulli, Link, LinkDraws, Loop, Monitor
+from jaxnc.loop import AbstractPlant, Bernoulli, Link, LinkDraws, Loop, Monitor, Petc
 from jaxnc.loop import Draws as LoopDraws
 from jaxnc.loop import simulate as run_loop
 from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
 from jaxnc.rows import exponential_rows, normal_rows, uniform_rows
-from jaxnc.triggers import PetcTrigger, hold_last_sent
 
 CASES = ("SR", "DR", "DRH", "DRHE")
 
@@ -130,7 +129,7 @@ class MecanumLoop:
     noise: MecanumNoise            # true process / measurement noise
     filter_noise: MecanumNoise     # the covariances the NUDREKF assumes
     follower: PathFollower
-    trigger: PetcTrigger
+    trigger: Petc                  # the sensor's PETC (eq. 3-4); build_loop sets its max_silence
     sc: Channel                    # sensor -> controller
     ca: Channel                    # controller -> actuator (carries the lumped round-trip delay)
     tau_max: jax.Array             # s; later packets are discarded
@@ -257,7 +256,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     steps = N * math.ceil(horizon_s / (N * T))
     return MecanumLoop(
         plant=plant, noise=noise, filter_noise=filter_noise, follower=follower,
-        trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
+        trigger=Petc(sigma=sigma, delta=delta, temperature=trigger_temperature),
         sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
         P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
         scheme=np.int32(CASES.index(case)), h=np.int32(h), max_silence=np.int32(max_silence), truth=truth,
@@ -409,38 +408,6 @@ class Robot(AbstractPlant):
         return x.track if self.record_all else x.track.dist
 
 
-class SensorState(NamedTuple):
-    last: jax.Array       # zbar, the last value sent
-    silent: jax.Array     # int32, slow periods since the sensor last sent
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class SensorTrigger(AbstractTrigger):
-    """The sensor of section 4.1: PETC (eq. 3-4, ``petc``) when ``event`` (DRHE), with the
-    optional time-triggered safety condition ``max_silence`` (0 = off); otherwise it sends
-    every slow instant. The first instant always sends (zbar_0 = z_0). ``event`` and
-    ``max_silence`` are leaves, so every case shares one compiled program."""
-
-    petc: PetcTrigger
-    event: Any
-    max_silence: Any
-
-    def init(self, s0) -> SensorState:
-        return SensorState(jnp.asarray(s0, jnp.float32), jnp.zeros((), jnp.int32))
-
-    def step(self, state: SensorState, z, k):
-        dtype = z.dtype
-        petc = (k > 0) & self.event
-        fires = self.petc.fires(state.last, z)
-        due = (self.max_silence > 0) & (state.silent + 1 >= self.max_silence)   # safety condition
-        fires = jnp.where(due, jnp.ones((), dtype), fires)
-        beta = jnp.where(petc, fires, jnp.ones((), dtype))
-        last = hold_last_sent(beta, z, state.last)
-        silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
-        return beta, SensorState(last, silent)
-
-
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RoundTrip:
@@ -460,10 +427,18 @@ class RoundTrip:
         return quantise_delay(tau, T), tau
 
 
+def sensor_trigger(loop: MecanumLoop) -> Petc:
+    """The sensor of section 4.1: PETC (eq. 3-4) with the optional safety condition
+    ``max_silence`` in DRHE; every other case sends at every slow instant (max_silence 1).
+    The first instant always sends. A leaf choice, so every case shares one program."""
+    ms = jnp.where(loop.event_triggered, jnp.asarray(loop.max_silence, jnp.int32), 1)
+    return dataclasses.replace(loop.trigger, max_silence=ms)
+
+
 def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
     """The configuration ``loop`` as a :class:`jaxnc.loop.Loop` (module docstring).
 
-    Sensor :class:`SensorTrigger`; uplink: Bernoulli(p_sc) loss, no delay (the round trip is
+    Sensor :func:`sensor_trigger`; uplink: Bernoulli(p_sc) loss, no delay (the round trip is
     lumped downstream), first exchange delivered; remote side
     :class:`~jaxnc.estimators.nudrekf.NudrekfEstimator` and
     :class:`~jaxnc.estimators.nudrekf.ChainController`; downlink: Bernoulli(p_ca) loss,
@@ -483,7 +458,7 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
         record_means=full)
     return Loop(
         plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K, record_all=full),
-        trigger=SensorTrigger(loop.trigger, loop.event_triggered, loop.max_silence),
+        trigger=sensor_trigger(loop),
         uplink=Link(loss=Bernoulli(loop.sc.p_loss), reliable_first=True, capacity=1),
         estimator=estimator,
         controller=ChainController(plant, fol, Ts),

@@ -16,7 +16,7 @@ For objectives dominated by rare failures (a PETC loop that can leave its tube),
 first and refine by gradient inside the winner's neighbourhood: ``autotune-mecanum``'s
 default, docs/tuning.md.
 """
-from jaxnc.tune.estimators import (ESTIMATORS, RelaxedPetcTrigger, annealed_temperature, bernoulli_fires,
+from jaxnc.tune.estimators import (ESTIMATORS, annealed_temperature, bernoulli_fires,
                                    relax_trigger, score_grad, score_surrogate, sigmoid_relaxation,
                                    straight_through)
 from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
@@ -28,7 +28,7 @@ from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, m
                               search, successive_halving)
 
 __all__ = [
-    "ESTIMATORS", "RelaxedPetcTrigger", "annealed_temperature", "bernoulli_fires", "relax_trigger", "score_grad",
+    "ESTIMATORS", "annealed_temperature", "bernoulli_fires", "relax_trigger", "score_grad",
     "score_surrogate", "sigmoid_relaxation", "straight_through",
     "Interval", "Positive", "TuneHistory", "TuneResult", "Unconstrained", "constrain", "simulations_per_step", "tune",
     "unconstrain",

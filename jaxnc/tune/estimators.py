@@ -9,14 +9,14 @@ built on it carries no information.  jaxnc offers:
 estimator              forward pass                gradient                         bias / variance
 =====================  =========================  ===============================  ==================
 ``"sigmoid"``          soft: beta = s(g / tau)     exact gradient of the relaxed    biased w.r.t. the
-(:class:`RelaxedPetc   (a fractional "partial       objective J_tau (it *is* the     hard objective by
-Trigger`)              send" blends z into zbar)    objective it optimises): can be  O(tau); no extra
+(``Petc(relaxed=      (a fractional "partial       objective J_tau (it *is* the     hard objective by
+True)``)               send" blends z into zbar)    objective it optimises): can be  O(tau); no extra
                                                    checked against finite           variance; bias -> 0
                                                    differences                      as tau -> 0, but the
                                                                                     gradient grows stiff
 ``"straight_through"`` hard: beta = 1[g > 0]        that of s(g / tau) (backward     biased (the forward
-(``PetcTrigger(tempe   (the exact simulation)       only)                            and backward passes
-rature=tau)``)                                                                      disagree), no extra
+(``Petc(temperatu     (the exact simulation)       only)                            and backward passes
+re=tau)``)                                                                          disagree), no extra
                                                                                     variance; cheap
 ``"score"``            hard, thresholds drawn       (J(mu + s e) - J(mu - s e))      unbiased for the
 (:func:`score_grad`,   theta = mu + s e,            e / (2 s), antithetic, i.e. the  Gaussian-smoothed
@@ -57,10 +57,10 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_nonneg, check_positive
-from jaxnc.triggers import fires_straight_through
+from jaxnc._validate import check_positive
+from jaxnc.loop.triggers import Petc, fires_straight_through
 
-__all__ = ["ESTIMATORS", "RelaxedPetcTrigger", "relax_trigger", "sigmoid_relaxation", "straight_through",
+__all__ = ["ESTIMATORS", "relax_trigger", "sigmoid_relaxation", "straight_through",
            "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
 
 ESTIMATORS = ("straight_through", "sigmoid", "score", "hybrid")
@@ -73,7 +73,7 @@ def sigmoid_relaxation(gap, temperature):
 
 straight_through = fires_straight_through
 """Hard trigger 1[g > 0] forward, the gradient of s(g / tau) backward: the triggers' own
-:func:`jaxnc.triggers.fires_straight_through` (one definition for the runner and the tuner)."""
+:func:`jaxnc.loop.triggers.fires_straight_through` (one definition for the runner and the tuner)."""
 
 
 def annealed_temperature(step, n_steps: int, t0: float, t1: float):
@@ -86,46 +86,25 @@ def annealed_temperature(step, n_steps: int, t0: float, t1: float):
     return t0 * (t1 / t0) ** frac
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class RelaxedPetcTrigger:
-    """The PETC condition of seed 000 eq. (4) with a *soft* forward pass.
-
-    ``fires`` returns s(gap / temperature) in (0, 1): the closed loop then blends z into
-    zbar (eq. 3) and the measurement into the remote belief by that fraction, which
-    makes the whole run a smooth function of sigma, delta and the gains: its gradient is
-    the exact derivative of the relaxed objective.  A drop-in for
-    :class:`jaxnc.triggers.PetcTrigger` in any loop that calls ``trigger.fires``.
-    """
-
-    sigma: jax.Array
-    delta: jax.Array
-    temperature: jax.Array = 1.0
-
-    def __post_init__(self):
-        check_nonneg("RelaxedPetcTrigger.sigma", self.sigma)
-        check_nonneg("RelaxedPetcTrigger.delta", self.delta)
-        check_positive("RelaxedPetcTrigger.temperature", self.temperature)
-
-    def gap(self, z_last, z):
-        """Left minus right side of eq. (4) (squared norms: finite gradient at z = zbar)."""
-        return jnp.sum((z_last - z) ** 2) - jnp.sum(self.sigma * z * z + self.delta)
-
-    def fires(self, z_last, z):
-        return sigmoid_relaxation(self.gap(z_last, z), jnp.asarray(self.temperature, z.dtype))
-
-
 def relax_trigger(trigger, estimator: str, temperature):
-    """The trigger a loop should use for ``estimator``: ``"sigmoid"`` gives a
-    :class:`RelaxedPetcTrigger`, ``"straight_through"`` (and ``"hybrid"``, whose pathwise
-    part is straight-through) the same ``PetcTrigger`` with ``temperature`` > 0,
-    ``"score"`` (and ``"hard"``) the hard trigger."""
-    if estimator == "sigmoid":
-        return RelaxedPetcTrigger(sigma=trigger.sigma, delta=trigger.delta, temperature=temperature)
-    if estimator in ("straight_through", "hybrid"):
-        return dataclasses.replace(trigger, temperature=temperature)
+    """The :class:`jaxnc.loop.Petc` a loop should use for ``estimator``: ``"sigmoid"``
+    the relaxed trigger (soft forward and backward, ``relaxed=True``), ``"straight_through"``
+    (and ``"hybrid"``, whose pathwise part is straight-through) the hard trigger with a
+    straight-through gradient at ``temperature`` > 0, ``"score"`` (and ``"hard"``) the
+    hard trigger (temperature 0). A trigger with no temperature (e.g. ``Periodic``) is
+    returned unchanged for ``"score"``/``"hard"``.
+
+    Raises:
+      ValueError: an unknown ``estimator``, or ``temperature`` <= 0 for a relaxed one.
+    """
+    if estimator in ("sigmoid", "straight_through", "hybrid"):
+        check_positive("temperature", temperature)
+        if not isinstance(trigger, Petc):
+            raise ValueError(f"relax_trigger: estimator {estimator!r} needs a jaxnc.loop.Petc trigger, "
+                             f"got {type(trigger).__name__}")
+        return dataclasses.replace(trigger, temperature=temperature, relaxed=estimator == "sigmoid")
     if estimator in ("score", "hard"):
-        return dataclasses.replace(trigger, temperature=0.0) if hasattr(trigger, "temperature") else trigger
+        return dataclasses.replace(trigger, temperature=0.0, relaxed=False) if isinstance(trigger, Petc) else trigger
     raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)} or hard, got {estimator!r}")
 
 

@@ -170,7 +170,7 @@ def has_temperature(cfg) -> bool:
 def with_temperature(cfg, temp):
     """``cfg`` with every (non-static) ``temperature`` field at any depth set to ``temp``:
     0 gives the hard simulation, > 0 the straight-through gradient of every trigger that
-    has one (:func:`jaxnc.triggers.fires_straight_through`)."""
+    has one (:func:`jaxnc.loop.triggers.fires_straight_through`)."""
     if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
         return cfg
     changes = {}

@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import jaxnc.loop as jl
 from jaxnc._validate import check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
@@ -56,7 +57,19 @@ from jaxnc.network import Channel, late, quantise_delay
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
 from jaxnc.rows import exponential_rows, normal_rows, uniform_rows
-from jaxnc.triggers import PetcTrigger, hold_last_sent
+
+
+def hold_last_sent(beta, z, z_last):
+    return beta * z + (1.0 - beta) * z_last
+
+
+def _fires(trig, z_last, z):
+    """The former PetcTrigger.fires: eq. (4), straight-through at trig.temperature."""
+    gap = jnp.sum((z_last - z) ** 2) - jnp.sum(trig.sigma * z * z + trig.delta)
+    tau = jnp.maximum(jnp.asarray(trig.temperature, gap.dtype), 1e-12)
+    soft = jnp.where(jnp.asarray(trig.temperature) > 0, jax.nn.sigmoid(gap / tau), 0.0)
+    return (gap > 0).astype(gap.dtype) + (soft - jax.lax.stop_gradient(soft))
+
 
 CASES = ("SR", "DR", "DRH", "DRHE")
 
@@ -122,7 +135,7 @@ class MecanumLoop:
     noise: MecanumNoise            # true process / measurement noise
     filter_noise: MecanumNoise     # the covariances the NUDREKF assumes
     follower: PathFollower
-    trigger: PetcTrigger
+    trigger: Any
     sc: Channel                    # sensor -> controller
     ca: Channel                    # controller -> actuator (carries the lumped round-trip delay)
     tau_max: jax.Array             # s; later packets are discarded
@@ -237,7 +250,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     steps = N * math.ceil(horizon_s / (N * T))
     return MecanumLoop(
         plant=plant, noise=noise, filter_noise=filter_noise, follower=follower,
-        trigger=PetcTrigger(sigma=sigma, delta=delta, temperature=trigger_temperature),
+        trigger=jl.Petc(sigma=sigma, delta=delta, temperature=trigger_temperature),
         sc=Channel(p_loss=dp), ca=Channel(p_loss=dp, eta=eta, phi=phi), tau_max=tau_max,
         P0_std=np.asarray([0.01, 0.01, 0.01, 0.02, 0.02, 0.01], np.float32),
         scheme=np.int32(CASES.index(case)), h=np.int32(h), max_silence=np.int32(max_silence), truth=truth,
@@ -380,7 +393,7 @@ def simulate(loop: MecanumLoop, key) -> Trajectory:
         # 1. sensor, PETC (eq. 3-4)
         z = truth.measure(c.x, v_k)
         petc = (k > 0) & loop.event_triggered
-        fires = loop.trigger.fires(c.z_last, z)
+        fires = _fires(loop.trigger, c.z_last, z)
         due = (loop.max_silence > 0) & (c.silent + 1 >= loop.max_silence)   # safety condition
         fires = jnp.where(due, jnp.ones((), dtype), fires)
         beta = jnp.where(petc, fires, jnp.ones((), dtype))
