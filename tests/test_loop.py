@@ -265,3 +265,58 @@ def test_selective_recording_keeps_the_values_and_drops_the_rest():
     assert np.isnan(float(nc.evaluate(_lti_loop(record=("xhat",)), part).cost_raw))   # no x, u: no cost
     with pytest.raises(ValueError, match="Loop.record must be True, False or a tuple of names"):
         _lti_loop(record=("states",))
+
+
+def test_a_link_whose_minimum_delay_outlives_its_ring_is_refused():
+    """ShiftedExponential(eta=0.5 s) at T = 0.1 s: every packet is 5 fast periods late; a
+    ring of 2 reuses each slot before its packet arrives (nothing would ever be delivered)."""
+    late = nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.0), capacity=2)
+    with pytest.raises(ValueError, match="Loop.uplink.capacity must be >= 6: every packet is delayed at least 5"):
+        _lti_loop(uplink=late)
+    _lti_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.0), capacity=6))   # fits
+
+
+def test_a_user_delay_model_declares_its_bounds_and_the_ring_is_checked():
+    @nc.pytree_dataclass
+    class Fixed(nc.AbstractDelay):
+        d: int = nc.static_field(3)
+        in_steps = True
+
+        def bounds(self, T):
+            return self.d, self.d
+
+        def sample(self, key, n, T):
+            return jnp.full((n,), self.d, jnp.int32), jnp.full((n,), self.d * T, jnp.float32)
+
+    with pytest.raises(ValueError, match="Loop.uplink.capacity must be >= 4"):
+        _lti_loop(uplink=nc.Link(delay=Fixed(3), capacity=2))
+    loop = _lti_loop(uplink=nc.Link(delay=Fixed(3), capacity=4))
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
+    assert float(jnp.sum(tr.recv_sc)) == loop.steps - 3          # every packet arrives 3 instants late
+
+    class NotAModel:
+        def sample(self, key, n, T):
+            return None
+    with pytest.raises(ValueError, match="Link.delay must be a delay model"):
+        nc.Link(delay=NotAModel())
+
+
+def test_declared_records_go_to_parts_by_role():
+    """A role's ``record`` is kept in ``Trajectory.parts[role]`` only when ``Loop.record``
+    names the role; the plant's after every fast step, the estimator's once a period."""
+    @nc.pytree_dataclass
+    class Recording(nc.LTI):
+        def record(self, x):
+            return x[0] * 2.0
+
+    base = _lti_loop(N=2, steps=20)
+    plant = Recording(A=base.plant.A, B=base.plant.B, C=base.plant.C, x0=[1.0, 0.0], w_std=[0.01, 0.02],
+                      v_std=[0.05], T=0.1)
+    key = jax.random.PRNGKey(1)
+    tr = jax.jit(nc.simulate)(dataclasses.replace(base, plant=plant, record=("x", "plant", "estimator")), key)
+    assert set(tr.parts) == {"plant", "estimator"}
+    assert tr.parts["plant"].shape == (20,)
+    np.testing.assert_allclose(np.asarray(tr.parts["plant"][:-1]), 2.0 * np.asarray(tr.x[1:, 0]), rtol=1e-6)
+    assert tr.parts["estimator"] == ()                          # the EKF records nothing
+    none = jax.jit(nc.simulate)(dataclasses.replace(base, plant=plant, record=("x",)), key)
+    assert none.parts == {}

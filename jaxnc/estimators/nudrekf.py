@@ -25,7 +25,8 @@ import jax.numpy as jnp
 
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.estimators.sparsity import EKFStructure
-from jaxnc.loop.base import AbstractActuator, AbstractController, AbstractEstimator, Inbox, Packet
+from jaxnc.loop.base import (AbstractFastEstimator, AbstractSenderCopyActuator, AbstractSenderCopyController, Inbox,
+                             Packet, blend)
 from jaxnc.loop.base import static_field as _static
 
 
@@ -142,17 +143,6 @@ def advance_chain(model, controller_next: Callable, chain: PacketChain, horizon:
 # "believed" actuator state), and the actuator installs that copy when the packet arrives.
 
 
-def keep_or_replace(flag, new, old):
-    """``new`` where the 0/1 float ``flag`` is 1, else ``old``, leaf by leaf: the float blend
-    ``flag * new + (1 - flag) * old`` (an exact select that lets a straight-through trigger
-    gradient pass) for floating leaves, a select for integer ones."""
-    def leaf(a, b):
-        if jnp.issubdtype(a.dtype, jnp.floating):
-            return flag * a + (1.0 - flag) * b
-        return jnp.where(flag > 0.5, a, b)
-    return jax.tree.map(leaf, new, old)
-
-
 class ChainEstimate(NamedTuple):
     """What :class:`NudrekfEstimator` hands the controller at a slow instant.
 
@@ -173,7 +163,7 @@ class NudrekfState(NamedTuple):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class NudrekfEstimator(AbstractEstimator):
+class NudrekfEstimator(AbstractFastEstimator):
     """The remote NUDREKF as a loop estimator (seed 000 eq. 11-16).
 
     At a slow instant it corrects with the delivered measurement (eq. 13, additive noise
@@ -188,7 +178,7 @@ class NudrekfEstimator(AbstractEstimator):
       mean0: float[n], cov0: float[n, n], the prior at t = 0.
       noise_dim: static, the model's process-noise dimension q.
       jacobian_grad, structure: static, as in :func:`jaxnc.estimators.ekf.ekf_predict`.
-      record_means: static; ``record_predict`` gives the N means (True) or only whether
+      record_means: static; ``record`` gives the N means (True) or only whether
         they are all finite (False).
     """
 
@@ -219,7 +209,7 @@ class NudrekfEstimator(AbstractEstimator):
         z, w = jax.tree.map(lambda a: a[slot], inbox.data), inbox.weight[slot]
         corrected = nudrekf_correct(self.model, state.belief, z, self.R, jacobian_grad=self.jacobian_grad,
                                     structure=self.structure)
-        belief = keep_or_replace(w, corrected, state.belief)
+        belief = blend(w, corrected, state.belief)
         return state._replace(belief=belief, est=ChainEstimate(corrected.mean, w))
 
     def estimate(self, state: NudrekfState) -> ChainEstimate:
@@ -236,13 +226,13 @@ class NudrekfEstimator(AbstractEstimator):
         return state._replace(belief=belief, means=means)
 
     def predict_fast(self, state: NudrekfState, u_applied, u_believed, t, j) -> NudrekfState:
-        """One fast period of eq. (11) along the believed action: the runner calls it every
-        fast period instead of :meth:`predict` (same values)."""
+        """One fast period of eq. (11) along the believed action (the runner calls it every
+        fast period; :meth:`predict` is the same over a whole period)."""
         g = ekf_predict(self.model.dynamics, state.belief, u_believed, self.Q, self.noise_dim,
                         jacobian_grad=self.jacobian_grad, structure=self.structure)
         return state._replace(belief=g, means=state.means.at[j].set(g.mean))
 
-    def record_predict(self, state: NudrekfState):
+    def record(self, state: NudrekfState):
         """float[N, n]: the belief means after each fast period of the last prediction (or,
         without ``record_means``, bool: all of them finite)."""
         return state.means if self.record_means else jnp.all(jnp.isfinite(state.means))
@@ -267,7 +257,7 @@ class ChainActuatorState(NamedTuple):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class ChainActuator(AbstractActuator):
+class ChainActuator(AbstractSenderCopyActuator):
     """The actuator of packet-based control with packets held as prediction chains (seed 000
     section 2.4 and 3.3.1).
 
@@ -312,7 +302,7 @@ class ChainActuator(AbstractActuator):
         remember the old one."""
         pkt, stamp, wn = inbox.newest()
         w = wn * pkt.weight
-        return ChainActuatorState(keep_or_replace(w, pkt.chain, state.chain),
+        return ChainActuatorState(blend(w, pkt.chain, state.chain),
                                   jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32),
                                   state.chain, state.stamp)
 
@@ -323,7 +313,7 @@ class ChainActuator(AbstractActuator):
         pkt, stamp, wn = inbox.newest()
         w = wn * pkt.weight
         copy = jax.tree.map(lambda a, b: jnp.where(stamp >= sent.stamp, a, b), sent.chain, sent.prev)
-        return state._replace(chain=keep_or_replace(w, copy, state.chain),
+        return state._replace(chain=blend(w, copy, state.chain),
                               stamp=jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32))
 
     def output(self, state: ChainActuatorState, t):
@@ -335,7 +325,7 @@ class ChainActuator(AbstractActuator):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class ChainController(AbstractController):
+class ChainController(AbstractSenderCopyController):
     """The remote controller of section 3.3.1: from the corrected estimate it starts a new
     prediction chain (step 1, :func:`start_chain`) that continues the controller state its
     last packet predicted for this instant; the packet's weight is ``ChainEstimate.weight``
@@ -343,9 +333,9 @@ class ChainController(AbstractController):
     to the link (send = 1, :class:`ChainPacket`): the runner's controller transmission
     counts are therefore per slow instant, the scheme's are the weights.
 
-    ``step_from_sent(state, xhat, fresh, k, ctx, sent)`` (the runner's hook for controllers
-    whose packets continue the sender's copy of the last one, ``sent`` a
-    :class:`ChainActuatorState`) is the scheme; ``step`` alone starts from ``law.init()``.
+    ``step_from_sent(state, xhat, fresh, k, ctx, sent)`` (declared by
+    :class:`~jaxnc.loop.AbstractSenderCopyController`; ``sent`` a :class:`ChainActuatorState`)
+    is the scheme; ``step`` alone starts from ``law.init()``.
     The packet is the chain, stamped kN.
 
     Attributes: model, law, Ts as in :class:`ChainActuator`.

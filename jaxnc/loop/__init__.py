@@ -6,27 +6,30 @@ returns its :class:`Metrics`, and ``jaxnc.montecarlo.run_batched(run_seed, keys,
 args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 """
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
-from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractPlant,
-                             AbstractTrigger, Inbox, Packet, blend)
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator,
+                             AbstractFastEstimator, AbstractLoss, AbstractPlant, AbstractSenderCopyActuator,
+                             AbstractSenderCopyController, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
+                             static_field)
 from jaxnc.loop.controllers import Function, Predictive, StateFeedback
 from jaxnc.loop.estimators import EKF, EKFState, Passthrough
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
-from jaxnc.loop.runner import (STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Trajectory, draw,
-                               evaluate, run, run_seed, simulate)
-from jaxnc.loop.triggers import Periodic, Petc, PetcState
+from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Trajectory,
+                               draw, evaluate, run, run_seed, simulate)
+from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
 
 __all__ = [
     "Loop", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
-    "Quadratic", "Context", "STREAMS",
+    "Quadratic", "Context", "STREAMS", "SIGNALS", "PARTS",
     "AbstractPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
-    "Packet", "Inbox", "blend",
+    "AbstractFastEstimator", "AbstractSenderCopyController", "AbstractSenderCopyActuator", "AbstractLoss",
+    "AbstractDelay", "Packet", "Inbox", "blend", "pytree_dataclass", "static_field",
     "Discrete", "Continuous", "LTI", "rk4",
     "Link", "LinkDraws", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay", "ShiftedExponential",
     "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel", "truncated_exponential",
-    "Periodic", "Petc", "PetcState",
+    "Periodic", "Petc", "PetcState", "petc_gap",
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",

@@ -33,15 +33,16 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from jaxnc._validate import checked_pytree
 
-__all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger", "AbstractEstimator",
-           "AbstractController", "AbstractActuator"]
+__all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger",
+           "AbstractEstimator", "AbstractFastEstimator", "AbstractController", "AbstractSenderCopyController",
+           "AbstractActuator", "AbstractSenderCopyActuator", "AbstractLoss", "AbstractDelay"]
 
 
 def static_field(default=dataclasses.MISSING):
@@ -159,6 +160,11 @@ class AbstractPlant(abc.ABC):
         """The state as float[n] for recording and failure checks (default: x itself)."""
         return x
 
+    def record(self, x):
+        """What ``Loop(record=(..., "plant"))`` keeps of the state after each fast period's
+        step, in ``Trajectory.parts["plant"]`` (default: nothing, ``()``)."""
+        return ()
+
 
 class AbstractTrigger(abc.ABC):
     """Decides at each slow instant whether a signal is sent (sensor side: z; controller
@@ -174,7 +180,14 @@ class AbstractTrigger(abc.ABC):
 
 
 class AbstractEstimator(abc.ABC):
-    """The controller side's belief of the plant state."""
+    """The controller side's belief of the plant state.
+
+    ``inputs`` (a declared class attribute) says which actions :meth:`predict` uses:
+    ``"believed"`` (the controller's own packets as if delivered at once: what a remote
+    filter knows; the runner then keeps that copy of the actuator) or ``"applied"`` (the
+    actions the actuator applied: a filter collocated with it)."""
+
+    inputs: ClassVar[str] = "believed"
 
     @abc.abstractmethod
     def init(self, ctx):
@@ -193,12 +206,31 @@ class AbstractEstimator(abc.ABC):
     def predict(self, state, u_applied, u_believed, k):
         """Propagate over the period k (actions float[N, m]); returns the state."""
 
+    def record(self, state):
+        """What ``Loop(record=(..., "estimator"))`` keeps of the state at the end of each slow
+        period (after :meth:`predict`), in ``Trajectory.parts["estimator"]`` (default: ``()``)."""
+        return ()
+
+
+class AbstractFastEstimator(AbstractEstimator):
+    """An estimator whose prediction runs inside the fast loop: the runner calls
+    :meth:`predict_fast` after every fast period's plant step, where the compiler fuses it
+    with the actuator's and the plant's work, and never calls :meth:`predict`."""
+
+    @abc.abstractmethod
+    def predict_fast(self, state, u_applied, u_believed, t, j):
+        """Propagate over fast instant t (j = t - kN; actions float[m]); returns the state."""
+
+    def predict(self, state, u_applied, u_believed, k):
+        raise NotImplementedError(f"{type(self).__name__} predicts in the fast loop (predict_fast)")
+
 
 class AbstractController(abc.ABC):
     """Computes a packet of actions from the estimate at a slow instant."""
 
-    #: int: number of fast actions per packet (static)
-    horizon: int
+    #: int: number of fast actions per packet (static; a dataclass field or property may
+    #: override it)
+    horizon = 1
 
     @abc.abstractmethod
     def init(self, ctx):
@@ -209,6 +241,22 @@ class AbstractController(abc.ABC):
         """(Packet(actions float[horizon, m], stamp), send 0/1 float, state).
 
         ``fresh`` is 1.0 when the estimator received something at this instant."""
+
+    def record(self, state):
+        """What ``Loop(record=(..., "controller"))`` keeps of the state after each step, in
+        ``Trajectory.parts["controller"]`` (default: ``()``)."""
+        return ()
+
+
+class AbstractSenderCopyController(AbstractController):
+    """A controller whose packets continue the sender's own copy of its last packet (seed
+    000's prediction chains): with an estimator that takes the believed actions, the runner
+    calls :meth:`step_from_sent` instead of ``step``, with ``sent``, the actuator-role state
+    the runner keeps of the controller's own packets (what ``u_believed`` is read from)."""
+
+    @abc.abstractmethod
+    def step_from_sent(self, state, xhat, fresh, k, ctx, sent):
+        """As :meth:`step`, continuing from ``sent``."""
 
 
 class AbstractActuator(abc.ABC):
@@ -225,3 +273,46 @@ class AbstractActuator(abc.ABC):
     @abc.abstractmethod
     def output(self, state, t):
         """(u_t float[m], state) for fast instant t."""
+
+    def record(self, state, t):
+        """What ``Loop(record=(..., "actuator"))`` keeps after each output, in
+        ``Trajectory.parts["actuator"]`` (default: ``()``)."""
+        return ()
+
+
+class AbstractSenderCopyActuator(AbstractActuator):
+    """An actuator that, when a packet arrives, installs the sender's *current* copy of it
+    (both ends advance one copy each per fast period, whatever the delay): with an
+    estimator that takes the believed actions the runner calls :meth:`receive_from_sender`
+    instead of ``receive`` at each fast instant, with the sender's copy as it is then."""
+
+    @abc.abstractmethod
+    def receive_from_sender(self, state, inbox: Inbox, sent):
+        """As :meth:`receive`, with ``sent`` the sender's copy (the runner's believed state)."""
+
+
+class AbstractLoss(abc.ABC):
+    """A packet-loss model of a :class:`~jaxnc.loop.links.Link` (drawn before the run)."""
+
+    @abc.abstractmethod
+    def sample(self, key, n: int):
+        """bool[n]: whether the packet of each of ``n`` slow instants is lost (n static)."""
+
+
+class AbstractDelay(abc.ABC):
+    """A delay model of a :class:`~jaxnc.loop.links.Link` (drawn before the run).
+
+    ``in_steps`` (declared): the model draws whole fast periods (the link then compares
+    them with ``tau_max`` in periods, not in float seconds)."""
+
+    in_steps: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def sample(self, key, n: int, T):
+        """(steps int32[n], seconds float32[n]): each packet's delay in whole fast periods
+        (quantised up, negative = lost) and in seconds."""
+
+    def bounds(self, T: float):
+        """(lo, hi): the delay's smallest and largest value in fast periods when concrete
+        and known (hi None: unbounded or unknown). Default (0, None)."""
+        return 0, None

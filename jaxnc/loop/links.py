@@ -41,7 +41,7 @@ import numpy as np
 from jaxnc import wifi
 from jaxnc._validate import (array_fields, check_bool, check_given, check_instance, check_int, check_nonneg,
                              check_range, concrete)
-from jaxnc.loop.base import Inbox
+from jaxnc.loop.base import AbstractDelay, AbstractLoss, Inbox
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.network import late, quantise_delay
@@ -58,7 +58,7 @@ _F32 = jnp.float32
 
 
 @_dataclass
-class NoLoss:
+class NoLoss(AbstractLoss):
     """Every packet arrives."""
 
     def sample(self, key, n: int):
@@ -66,7 +66,7 @@ class NoLoss:
 
 
 @_dataclass
-class Bernoulli:
+class Bernoulli(AbstractLoss):
     """Independent loss with probability ``p`` (seed 000 eq. 5): ``lost = U < p``, so with
     the same key the losses at a lower p are a subset of those at a higher one."""
 
@@ -81,7 +81,7 @@ class Bernoulli:
 
 
 @_dataclass
-class GilbertElliott:
+class GilbertElliott(AbstractLoss):
     """Two-state Markov (bursty) loss: good -> bad with ``p_gb``, bad -> good with ``p_bg``
     per packet; a packet is lost with ``loss_good`` / ``loss_bad`` in each state. The chain
     starts in its stationary distribution."""
@@ -117,7 +117,7 @@ class GilbertElliott:
 
 
 @_dataclass
-class TraceLoss:
+class TraceLoss(AbstractLoss):
     """A recorded loss sequence (bool, True = lost), replayed from its start; it must be
     at least as long as the run's slow instants."""
 
@@ -159,17 +159,20 @@ def _trace(name, obj, field, what, ok, dtype):
 
 
 @_dataclass
-class NoDelay:
+class NoDelay(AbstractDelay):
     """Zero delay: a packet is usable at the instant it is sent."""
 
-    in_steps = True   # delays are whole fast periods
+    in_steps = True
+
+    def bounds(self, T):
+        return 0, 0
 
     def sample(self, key, n: int, T):
         return jnp.zeros((n,), jnp.int32), jnp.zeros((n,), _F32)
 
 
 @_dataclass
-class ShiftedExponential:
+class ShiftedExponential(AbstractDelay):
     """tau = eta + phi Exp(1) seconds (seed 000 eq. 7), quantised up to the fast period."""
 
     eta: Any = 0.0
@@ -185,6 +188,9 @@ class ShiftedExponential:
         """The delay for standard exponential draws ``e``."""
         return jnp.asarray(self.eta, _F32) + jnp.asarray(self.phi, _F32) * e
 
+    def bounds(self, T):
+        return _periods(self.eta, T, 0), None
+
     def sample(self, key, n: int, T):
         tau = self.seconds(jax.random.exponential(key, (n,), _F32))
         return quantise_delay(tau, T), tau
@@ -198,7 +204,7 @@ def truncated_exponential(u, eta, phi, tau_max):
 
 
 @_dataclass
-class TruncatedExponential:
+class TruncatedExponential(AbstractDelay):
     """eta + phi Exp(1) truncated to [eta, tau_max] seconds (:func:`truncated_exponential`)."""
 
     eta: Any = 0.0
@@ -218,16 +224,19 @@ class TruncatedExponential:
         except TypeError:
             pass
 
+    def bounds(self, T):
+        return _periods(self.eta, T, 0), _periods(self.tau_max, T)
+
     def sample(self, key, n: int, T):
         tau = truncated_exponential(jax.random.uniform(key, (n,), _F32), self.eta, self.phi, self.tau_max)
         return quantise_delay(tau, T), tau
 
 
 @_dataclass
-class PmfDelay:
+class PmfDelay(AbstractDelay):
     """A discrete delay law: ``pmf[d]`` = P(delay = d fast periods)."""
 
-    in_steps = True   # delays are whole fast periods
+    in_steps = True
 
     pmf: Any
 
@@ -242,9 +251,11 @@ class PmfDelay:
             if abs(p.sum() - 1.0) > 1e-5:
                 raise ValueError(f"PmfDelay.pmf must sum to 1, got {p.sum():.6f}")
 
-    @property
-    def max_steps(self) -> int:
-        return int(np.shape(self.pmf)[0]) - 1
+    def bounds(self, T):
+        hi = int(np.shape(self.pmf)[0]) - 1
+        if not concrete(self.pmf):
+            return 0, hi
+        return int(np.flatnonzero(np.asarray(self.pmf) > 0)[0]), hi
 
     def sample(self, key, n: int, T):
         d = jax.random.categorical(key, jnp.log(jnp.asarray(self.pmf, _F32)), shape=(n,)).astype(jnp.int32)
@@ -252,16 +263,22 @@ class PmfDelay:
 
 
 @_dataclass
-class TraceDelay:
+class TraceDelay(AbstractDelay):
     """Recorded delays in fast periods (int, negative = lost), replayed from the start."""
 
-    in_steps = True   # delays are whole fast periods
+    in_steps = True
 
     steps: Any
 
     def __post_init__(self):
         _trace("TraceDelay.steps", self, "steps", "a 1-D array of integer delays in fast periods (negative = lost)",
                lambda a: bool(np.all(a == np.round(a)) and np.all(np.abs(a) < 2**31)), np.int32)
+
+    def bounds(self, T):
+        if not concrete(self.steps):
+            return 0, None
+        ok = np.asarray(self.steps)[np.asarray(self.steps) >= 0]
+        return (int(ok.min()), int(ok.max())) if ok.size else (0, 0)
 
     def sample(self, key, n: int, T):
         d = jnp.asarray(self.steps, jnp.int32)
@@ -272,21 +289,20 @@ class TraceDelay:
 
 
 @_dataclass
-class WifiModel:
+class WifiModel(AbstractDelay):
     """The seed-001 Wi-Fi channel (:class:`jaxnc.wifi.WifiChannel`): bursty loss and the
     delay pmf drawn jointly by :func:`jaxnc.wifi.sample_trace`; use it as the link's delay
     model (a lost packet has delay -1)."""
 
-    in_steps = True   # delays are whole fast periods
+    in_steps = True
 
     channel: wifi.WifiChannel = wifi.NOMINAL
 
     def __post_init__(self):
         check_instance("WifiModel.channel", self.channel, wifi.WifiChannel, "a jaxnc.wifi.WifiChannel")
 
-    @property
-    def max_steps(self) -> int:
-        return self.channel.max_delay
+    def bounds(self, T):
+        return 0, int(self.channel.max_delay)
 
     def sample(self, key, n: int, T):
         d = wifi.sample_trace(key, self.channel, n)
@@ -296,13 +312,13 @@ class WifiModel:
 # ----------------------------------------------------------------------------- the link
 
 
-def _periods(seconds, T):
+def _periods(seconds, T, traced=None):
     """A concrete delay bound in whole fast periods, quantised as the draws are
-    (:func:`jaxnc.network.quantise_delay`); None for a traced bound."""
+    (:func:`jaxnc.network.quantise_delay`); ``traced`` (None) for a traced bound."""
     try:
         seconds = float(seconds)
     except TypeError:          # a tracer (jax's concretisation errors are TypeErrors)
-        return None
+        return traced
     with jax.ensure_compile_time_eval():   # eager, also while a jit is tracing
         return int(quantise_delay(seconds, T))
 
@@ -347,12 +363,10 @@ class Link:
     capacity: int = _static(2)
 
     def __post_init__(self):
-        if not callable(getattr(self.loss, "sample", None)):
-            raise ValueError(f"Link.loss must be a loss model (NoLoss, Bernoulli, GilbertElliott, TraceLoss: "
-                             f"sample(key, n) -> bool[n]), got {type(self.loss).__name__}")
-        if not callable(getattr(self.delay, "sample", None)):
-            raise ValueError(f"Link.delay must be a delay model (NoDelay, ShiftedExponential, TruncatedExponential, "
-                             f"PmfDelay, TraceDelay, WifiModel: sample(key, n, T)), got {type(self.delay).__name__}")
+        check_instance("Link.loss", self.loss, AbstractLoss, "a loss model (a jaxnc.loop.AbstractLoss: NoLoss, "
+                       "Bernoulli, GilbertElliott, TraceLoss)")
+        check_instance("Link.delay", self.delay, AbstractDelay, "a delay model (a jaxnc.loop.AbstractDelay: NoDelay, "
+                       "ShiftedExponential, TruncatedExponential, PmfDelay, TraceDelay, WifiModel)")
         if self.order not in ("newest", "all", "arrival"):
             raise ValueError(f"Link.order must be one of newest, all, arrival, got {self.order!r}")
         check_int("Link.capacity", self.capacity, 1, 100_000)
@@ -361,17 +375,16 @@ class Link:
             check_range("Link.tau_max", self.tau_max, 0.0, None)
 
     # -- before the run
-    def max_delay_steps(self, T: float):
-        """An upper bound on the delay in fast periods, when one is known (else None)."""
+    def delay_bounds(self, T: float):
+        """(lo, hi): the delay of a delivered packet in fast periods, from the delay model's
+        declared :meth:`~jaxnc.loop.AbstractDelay.bounds` and ``tau_max`` (hi None: no
+        known bound)."""
+        lo, hi = self.delay.bounds(T)
         if self.tau_max is not None:
-            return _periods(self.tau_max, T)
-        if isinstance(self.delay, NoDelay):
-            return 0
-        if isinstance(self.delay, (PmfDelay, WifiModel)):
-            return self.delay.max_steps
-        if isinstance(self.delay, TruncatedExponential):
-            return _periods(self.delay.tau_max, T)
-        return None
+            cap = _periods(self.tau_max, T)
+            if cap is not None:
+                hi = cap if hi is None else min(hi, cap)
+        return lo, hi
 
     def draw(self, key, n: int, T) -> LinkDraws:
         """Delays (fast periods) of the packets of ``n`` slow instants; -1 when lost or late."""
@@ -380,7 +393,7 @@ class Link:
         steps, seconds = self.delay.sample(kd, n, T)
         bad = lost | (steps < 0)
         if self.tau_max is not None:
-            if getattr(self.delay, "in_steps", False):
+            if self.delay.in_steps:
                 # delays drawn in whole fast periods: compare periods, not float32 seconds
                 # (d * T can round above tau_max = d * T)
                 limit = jnp.floor(jnp.asarray(self.tau_max, _F32) / jnp.asarray(T, _F32) * (1 + 2.0**-21))

@@ -24,7 +24,8 @@ import numpy as np
 from jaxnc._validate import (array_fields, check_bool, check_callable, check_finite, check_given, check_instance,
                              check_int, check_range, concrete, fields_concrete)
 from jaxnc.loop.actuators import PacketActuator
-from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractPlant, AbstractTrigger,
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractFastEstimator,
+                             AbstractPlant, AbstractSenderCopyActuator, AbstractSenderCopyController, AbstractTrigger,
                              Inbox)
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -123,10 +124,12 @@ class Loop:
       N: static, fast periods per slow period (>= 1).
       steps: static, fast periods simulated (a multiple of N).
       T: static, the fast period in seconds (links quantise delays to it).
-      record: static: True records every signal; False only the summaries; or a tuple of
-        :class:`Trajectory` field names to record (the others are empty), e.g.
-        ``("plant_rec", "sent_sc")`` for a loop whose metrics need only those: a signal
-        that is not recorded is not computed or stored.
+      record: static, what a run keeps (the declared recording spec): True, every signal and
+        every role's ``record``; False, only the summaries; or a tuple of names among the
+        signals ``x u z xhat sent_sc recv_sc sent_ca recv_ca`` (:class:`Trajectory` fields)
+        and the roles ``plant estimator controller actuator`` (their ``record`` methods, into
+        ``Trajectory.parts[role]``), e.g. ``("plant", "sent_sc")`` for a loop whose metrics
+        need only those: what is not recorded is not computed or stored.
     """
 
     plant: Any
@@ -163,26 +166,32 @@ class Loop:
             raise ValueError(f"Loop.steps must be a multiple of N={self.N}, got {self.steps}")
         if not (isinstance(self.T, (int, float)) and np.isfinite(self.T) and self.T > 0):
             raise ValueError(f"Loop.T must be a number > 0 (seconds), got {self.T!r}")
-        H = getattr(self.controller, "horizon", None)
-        if isinstance(self.actuator, PacketActuator) and H is not None and self.actuator.horizon != H:
+        H = self.controller.horizon
+        if isinstance(self.actuator, PacketActuator) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
-            d = link.max_delay_steps(self.T)
-            if d is not None:
-                need = -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
-                if link.capacity < need:
-                    raise ValueError(f"Loop.{name}.capacity must be >= {need} for delays up to {d} fast periods "
-                                     f"with N={self.N}, got {link.capacity}")
+            lo, hi = link.delay_bounds(self.T)
+            ring = lambda d: -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
+            # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
+            # the downlink at every fast instant (it needs C N > d)
+            reach = ring if name == "uplink" else (lambda d: -(-(d + 1) // self.N))
+            if link.capacity < reach(lo):
+                raise ValueError(f"Loop.{name}.capacity must be >= {reach(lo)}: every packet is delayed at least "
+                                 f"{lo} fast periods (N={self.N}), so a ring of {link.capacity} reuses its slot "
+                                 f"before it arrives and nothing is ever delivered")
+            if hi is not None and link.capacity < ring(hi):
+                raise ValueError(f"Loop.{name}.capacity must be >= {ring(hi)} for delays up to {hi} fast periods "
+                                 f"with N={self.N}, got {link.capacity}")
         if fields_concrete(self):
             self._check_dims()
 
     def _check_dims(self):
         """The roles fit together: the controller acts on the estimator's estimate and its
         actions have the plant's input dimension (shapes only, by jax.eval_shape)."""
-        if hasattr(self.controller, "step_from_sent"):
-            return                      # a controller the runner calls with its own hook
+        if isinstance(self.controller, AbstractSenderCopyController):
+            return                      # its packets continue the runner's copy: checked when traced
         leaves, treedef = jax.tree.flatten(self)
         key = (treedef, tuple((np.shape(a), str(getattr(a, "dtype", type(a)))) for a in leaves))
         if key in _FITTED:
@@ -267,16 +276,15 @@ class Trajectory(NamedTuple):
     fail_step: jax.Array  # int32: first failed fast instant (K if never)
     tx_sc: jax.Array      # float: sensor transmissions in the run
     tx_ca: jax.Array      # float: controller transmissions in the run
-    est_rec: Any = ()     # [S, ...] estimator.record(state) after each correction, if defined
-    ctrl_rec: Any = ()    # [S, ...] controller.record(state) after each step, if defined
-    act_rec: Any = ()     # [K, ...] actuator.record(state, t) after each output, if defined
-    plant_rec: Any = ()   # [K, ...] plant.record(x) of the state after each fast period's step, if defined
-    est_pred_rec: Any = ()  # [S, ...] estimator.record_predict(state) after each prediction, if defined
+    parts: Any = ()       # dict role -> its record, for the roles named in Loop.record: "plant" [K, ...]
+    #                       after each fast step, "actuator" [K, ...] after each output, "controller"
+    #                       [S, ...] after each step, "estimator" [S, ...] at the end of each period
     final_plant: Any = ()   # the plant's state at the end of the run
 
 
-_RECORDABLE = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca", "est_rec", "ctrl_rec", "act_rec",
-               "plant_rec", "est_pred_rec")
+SIGNALS = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca")
+PARTS = ("plant", "estimator", "controller", "actuator")
+_RECORDABLE = SIGNALS + PARTS
 
 
 def _wanted(record, name: str) -> bool:
@@ -297,32 +305,17 @@ class _Carry(NamedTuple):
     fail_step: jax.Array
 
 
-def _recorder(role):
-    return getattr(role, "record", None)
-
-
 def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     """One closed-loop run; a pure function of (loop, key), to vmap over keys.
 
-    ``draws`` replaces :func:`draw`'s (e.g. a recorded realisation shared by loops).
-    A role that defines ``record(state)`` (actuator: ``record(state, t)``) has it recorded
-    into ``Trajectory.est_rec`` / ``ctrl_rec`` / ``act_rec`` (when ``loop.record``); a plant
-    that defines ``record(x)`` has it recorded, after each fast period's step, into
-    ``Trajectory.plant_rec`` (e.g. a monitor kept in the plant's state); an estimator that
-    defines ``record_predict(state)`` has it recorded after each prediction into
-    ``Trajectory.est_pred_rec``.
-
-    Optional hooks for packets that both ends advance in step (seed 000's prediction
-    chains), used when the estimator takes the believed actions: a controller that defines
-    ``step_from_sent(state, xhat, fresh, k, ctx, sent)`` is called instead of ``step`` with
-    ``sent``, the actuator-role state of its own packets (what ``u_believed`` is read from);
-    an actuator that defines ``receive_from_sender(state, inbox, sent)`` is called instead
-    of ``receive`` at each fast instant with that state as it is at the instant (it may
-    install the sender's current copy of a delivered packet rather than its payload). An
-    estimator that defines ``predict_fast(state, u_applied, u_believed, t, j)`` (fast
-    instant t, j = t - kN) is called after each fast period's plant step instead of
-    ``predict`` once per period: the same propagation inside the fast loop, where the
-    compiler fuses it with the actuator's and the plant's work."""
+    ``draws`` replaces :func:`draw`'s (e.g. a recorded realisation shared by loops). What
+    is kept follows ``loop.record``; each role named there has its declared ``record``
+    kept in ``Trajectory.parts``. Declared capabilities change how a role is called:
+    an :class:`~jaxnc.loop.base.AbstractFastEstimator` predicts inside the fast loop;
+    with an estimator that takes the believed actions, an
+    :class:`~jaxnc.loop.base.AbstractSenderCopyController` continues the runner's copy of
+    its own packets and an :class:`~jaxnc.loop.base.AbstractSenderCopyActuator` installs
+    the sender's current copy of a delivered packet (seed 000's prediction chains)."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
     d = draw(loop, key) if draws is None else draws
@@ -342,13 +335,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         ctrig=None if loop.controller_trigger is None else loop.controller_trigger.init(pkt_zero.data[0]),
         down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0,
         failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32))
-    believed_needed = getattr(loop.estimator, "inputs", "believed") == "believed"
-    est_rec, ctrl_rec, act_rec = (_recorder(loop.estimator), _recorder(loop.controller), _recorder(loop.actuator))
-    plant_rec = _recorder(loop.plant)
-    est_pred_rec = getattr(loop.estimator, "record_predict", None)
-    step_from_sent = getattr(loop.controller, "step_from_sent", None) if believed_needed else None
-    receive_from_sender = getattr(act_role, "receive_from_sender", None) if believed_needed else None
-    predict_fast = getattr(loop.estimator, "predict_fast", None)
+    believed_needed = loop.estimator.inputs == "believed"
+    from_sent = believed_needed and isinstance(loop.controller, AbstractSenderCopyController)
+    from_sender = believed_needed and isinstance(act_role, AbstractSenderCopyActuator)
+    fast_predict = isinstance(loop.estimator, AbstractFastEstimator)
 
     want = lambda name: _wanted(loop.record, name)
 
@@ -363,11 +353,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         inbox, up = loop.uplink.inbox(up, t0)
         # 4. estimator
         est = loop.estimator.correct(c.est, inbox, k)
-        est_c = est
         xhat = loop.estimator.estimate(est)
         # 5. controller (and its trigger)
-        if step_from_sent is not None:
-            pkt, send_ca, ctrl = step_from_sent(c.ctrl, xhat, inbox.fresh, k, ctx, c.bel)
+        if from_sent:
+            pkt, send_ca, ctrl = loop.controller.step_from_sent(c.ctrl, xhat, inbox.fresh, k, ctx, c.bel)
         else:
             pkt, send_ca, ctrl = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
         ctrig = c.ctrig
@@ -389,7 +378,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             j, w_t = inp_j
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
-            act = act_role.receive(act, box) if receive_from_sender is None else receive_from_sender(act, box, bel)
+            act = act_role.receive_from_sender(act, box, bel) if from_sender else act_role.receive(act, box)
             u, act = act_role.output(act, t)
             ub, bel = act_role.output(bel, t) if believed_needed else (u, bel)
             u_ok = jnp.all(jnp.isfinite(u))
@@ -400,27 +389,26 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             failed = failed | bad
             if loop.monitor.freeze:
                 x_new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), x, x_new)
-            if predict_fast is not None:
-                est = predict_fast(est, u, ub, t, j)
+            if fast_predict:
+                est = loop.estimator.predict_fast(est, u, ub, t, j)
             out = (plant.state_vector(x) if want("x") else (), u, ub if believed_needed else (),
                    jnp.sum(box.new) if want("recv_ca") else (),
-                   act_rec(act, t) if act_rec is not None and want("act_rec") else (),
-                   plant_rec(x_new) if plant_rec is not None and want("plant_rec") else ())
+                   act_role.record(act, t) if want("actuator") else (),
+                   plant.record(x_new) if want("plant") else ())
             return (x_new, down, act, bel, failed, fail_step, est), out
 
         fc0 = (c.x, down, c.act, bel, c.failed, c.fail_step, est)
         fc, (xs, us, ubs, rca, arec, prec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
         x, down, act, bel, failed, fail_step, est = fc
-        # 7. estimator prediction over the period (or, with predict_fast, fast period by fast period above)
-        if predict_fast is None:
+        # 7. estimator prediction over the period (or, a fast estimator, fast period by fast period above)
+        if not fast_predict:
             est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
         c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, failed, fail_step)
         outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
                     sent_sc=send_sc, recv_sc=inbox.fresh if want("recv_sc") else (), sent_ca=send_ca,
-                    recv_ca=rca, act_rec=arec, plant_rec=prec,
-                    est_rec=est_rec(est_c) if est_rec is not None and want("est_rec") else (),
-                    ctrl_rec=ctrl_rec(ctrl) if ctrl_rec is not None and want("ctrl_rec") else (),
-                    est_pred_rec=est_pred_rec(est) if est_pred_rec is not None and want("est_pred_rec") else ())
+                    recv_ca=rca, actuator=arec, plant=prec,
+                    estimator=loop.estimator.record(est) if want("estimator") else (),
+                    controller=loop.controller.record(ctrl) if want("controller") else ())
         return c, outs
 
     xs_in = (jnp.arange(S, dtype=jnp.int32), d.w, d.v, d.uplink.delay, d.downlink.delay)
@@ -439,8 +427,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         x=pick("x", True), u=pick("u", True), z=pick("z"), xhat=pick("xhat"), sent_sc=o["sent_sc"],
         recv_sc=pick("recv_sc"), sent_ca=o["sent_ca"], recv_ca=pick("recv_ca", True),
         failed=final.failed, fail_step=final.fail_step, tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
-        est_rec=o["est_rec"], ctrl_rec=o["ctrl_rec"], act_rec=fast_rows(o["act_rec"]),
-        plant_rec=fast_rows(o["plant_rec"]), est_pred_rec=o["est_pred_rec"], final_plant=final.x)
+        parts={r: fast_rows(o[r]) if r in ("plant", "actuator") else o[r] for r in PARTS if _wanted(loop.record, r)},
+        final_plant=final.x)
 
 
 class Metrics(NamedTuple):

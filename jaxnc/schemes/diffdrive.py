@@ -630,8 +630,8 @@ def simulate(loop: DiffDriveLoop, key) -> Trajectory:
     d = draw(key, loop.steps)
     rd = _runner_draws(loop, d, key)
     tr = runner.simulate(runner_loop(loop, rd), key, draws=rd)
-    x_in, u, l, done, bad = tr.plant_rec
-    w_com, est, U, u_prior = tr.ctrl_rec
+    x_in, u, l, done, bad = tr.parts["plant"]
+    w_com, est, U, u_prior = tr.parts["controller"]
     l, done = l[-1], done[-1]
     # a non-finite action (zeroed by the runner) before completion is a failure too
     bad = bad[-1] | (tr.failed & ((tr.fail_step - 1) // sub < l))

@@ -234,6 +234,7 @@ class HddPlant(AbstractPlant):
 
 class NumreState(NamedTuple):
     x: jax.Array       # float[n]: x(k|k) after a correction, else the prior x(k|k_lm)
+    xk: jax.Array      # float[n]: the estimate used at the last slow instant (x after correct)
     P: jax.Array       # float[n, n]: posterior covariance at k_lm
     k_lm: jax.Array    # int32: the last instant a measurement arrived
 
@@ -256,8 +257,8 @@ class NumreFilter(AbstractEstimator):
       Cbar: float[n], the disturbance output of the filter model (eq. 15; zeros when the
         model has none, Case 6).
 
-    ``record(state)`` is (C x, Cbar x), the output and disturbance estimates (float
-    scalars) after each correction: between arrivals the predictions of eq. (15).
+    ``record(state)`` is (C x, Cbar x) of the estimate used at the instant (after its
+    correction; between arrivals the predictions of eq. 15), float scalars.
     """
 
     tables: NumreTables
@@ -270,15 +271,16 @@ class NumreFilter(AbstractEstimator):
 
     def init(self, ctx) -> NumreState:
         n = self.A.shape[0]
-        return NumreState(jnp.zeros((n,), self.A.dtype), jnp.asarray(self.P0), jnp.zeros((), jnp.int32))
+        x0 = jnp.zeros((n,), self.A.dtype)
+        return NumreState(x0, x0, jnp.asarray(self.P0), jnp.zeros((), jnp.int32))
 
     def correct(self, state: NumreState, inbox: Inbox, k) -> NumreState:
         z, _, w = inbox.newest()
         fresh = w > 0.5
         N = jnp.clip(k - state.k_lm, 1, self.tables.n_max)
         xpost, Ppost, _ = numre_correct(self.tables, state.x, state.P, z[0], N)
-        return NumreState(jnp.where(fresh, xpost, state.x), jnp.where(fresh, Ppost, state.P),
-                          jnp.where(fresh, k, state.k_lm))
+        x = jnp.where(fresh, xpost, state.x)
+        return NumreState(x, x, jnp.where(fresh, Ppost, state.P), jnp.where(fresh, k, state.k_lm))
 
     def estimate(self, state: NumreState):
         return state.x
@@ -290,7 +292,7 @@ class NumreFilter(AbstractEstimator):
         return state._replace(x=x)
 
     def record(self, state: NumreState):
-        return self.tables.C @ state.x, self.Cbar @ state.x
+        return self.tables.C @ state.xk, self.Cbar @ state.xk
 
 
 class CtrlState(NamedTuple):
@@ -454,13 +456,13 @@ def simulate(loop: HddLoop, key) -> Trajectory:
     its last action."""
     rl = runner_loop(loop)
     tr = jl.simulate(rl, key, draws=draws(loop, key, rl))
-    # plant_rec holds (y, d) after each period's step: row k is instant k + 1
+    # the plant's record holds (y, d) after each period's step: row k is instant k + 1
     y0, d0 = rl.plant.record(rl.plant.init(key))
-    y = jnp.concatenate([y0[None], tr.plant_rec[0][:-1]])
-    d = jnp.concatenate([d0[None], tr.plant_rec[1][:-1]])
+    y = jnp.concatenate([y0[None], tr.parts["plant"][0][:-1]])
+    d = jnp.concatenate([d0[None], tr.parts["plant"][1][:-1]])
     nan = jnp.full((loop.steps,), jnp.nan)
-    yhat, dpred = tr.est_rec if loop.numre else (nan, nan)
-    dhat, N = tr.ctrl_rec
+    yhat, dpred = tr.parts["estimator"] if loop.numre else (nan, nan)
+    dhat, N = tr.parts["controller"]
     k = jnp.arange(loop.steps)
     k_pkt = jax.lax.cummax(jnp.where(tr.recv_ca > 0, k, -1))
     held = (k_pkt < 0) | (k - k_pkt > loop.h)

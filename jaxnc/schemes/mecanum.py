@@ -57,7 +57,7 @@ from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.nudrekf import ChainActuator, ChainController, NudrekfEstimator, PacketChain
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2, local_distance
-from jaxnc.loop import AbstractPlant, Bernoulli, Link, LinkDraws, Loop, Monitor, Petc
+from jaxnc.loop import AbstractDelay, AbstractPlant, Bernoulli, Link, LinkDraws, Loop, Monitor, Petc
 from jaxnc.loop import Draws as LoopDraws
 from jaxnc.loop import simulate as run_loop
 from jaxnc.network import Channel, late, quantise_delay
@@ -410,7 +410,7 @@ class Robot(AbstractPlant):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class RoundTrip:
+class RoundTrip(AbstractDelay):
     """The round-trip delay lumped on the controller -> actuator direction (eq. 6-7): the
     sum of the two directions' shifted exponentials, (eta_ca + phi_ca e1) + (eta_sc + phi_sc
     e2) seconds, quantised up to the fast period (a delay model of :class:`jaxnc.loop.Link`)."""
@@ -420,6 +420,12 @@ class RoundTrip:
 
     def seconds(self, e_ca, e_sc):
         return (self.ca.eta + self.ca.phi * e_ca) + (self.sc.eta + self.sc.phi * e_sc)
+
+    def bounds(self, T):
+        try:
+            return int(quantise_delay(float(self.ca.eta) + float(self.sc.eta), T)), None
+        except TypeError:                                   # traced
+            return 0, None
 
     def sample(self, key, n: int, T):
         k1, k2 = jax.random.split(key)
@@ -466,7 +472,7 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
                       reliable_first=True, capacity=2),
         actuator=ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM),
         monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T),
-        record=True if full else ("plant_rec", "est_pred_rec", "sent_sc", "xhat"))
+        record=True if full else ("plant", "estimator", "sent_sc", "xhat"))
 
 
 def runner_draws(loop: MecanumLoop, key) -> LoopDraws:
@@ -515,14 +521,14 @@ def _simulate(loop: MecanumLoop, key, full: bool) -> Trajectory:
     delivered = received * (draws.downlink.delay >= 0).astype(received.dtype)
     end = tr.final_plant.track
     if full:
-        track = tr.plant_rec
-        mean = tr.est_pred_rec.reshape(K, STATE_DIM)
+        track = tr.parts["plant"]
+        mean = tr.parts["estimator"].reshape(K, STATE_DIM)
         finite = jnp.all(jnp.isfinite(mean))
         x, dist, u = track.xv, track.dist, tr.u
     else:
         mean = x = u = jnp.zeros((0, STATE_DIM), jnp.float32)
-        finite = jnp.all(tr.est_pred_rec)
-        dist = tr.plant_rec
+        finite = jnp.all(tr.parts["estimator"])
+        dist = tr.parts["plant"]
     bad = end.bad | ~finite | tr.failed
     return Trajectory(x=x, mean=mean, u=u, dist=dist, sent=tr.sent_sc, received=received,
                       delivered=delivered, l=end.l, done=end.done, bad=bad)
