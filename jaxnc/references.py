@@ -57,6 +57,16 @@ def _broadcast(obj, *names):
                            else np.broadcast_to(v, shape).copy())
 
 
+def _timed_init(obj, name):
+    """Validation of a reference with a channel field ``name``, ``initial`` and ``time``."""
+    cls = type(obj).__name__
+    object.__setattr__(obj, name, _leaf(cls, name, getattr(obj, name)))
+    object.__setattr__(obj, "initial", _leaf(cls, "initial", obj.initial))
+    check_given(f"{cls}.time", obj.time)
+    check_nonneg(f"{cls}.time", obj.time)
+    _broadcast(obj, name, "initial")
+
+
 def _time(t, T, dtype):
     return jnp.asarray(t, dtype) * jnp.asarray(T, dtype)
 
@@ -97,11 +107,7 @@ class Step(AbstractReference):
     initial: Any = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "amplitude", _leaf("Step", "amplitude", self.amplitude))
-        object.__setattr__(self, "initial", _leaf("Step", "initial", self.initial))
-        check_given("Step.time", self.time)
-        check_nonneg("Step.time", self.time)
-        _broadcast(self, "amplitude", "initial")
+        _timed_init(self, "amplitude")
 
     @property
     def dim(self) -> int:
@@ -129,11 +135,7 @@ class Ramp(AbstractReference):
     initial: Any = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "slope", _leaf("Ramp", "slope", self.slope))
-        object.__setattr__(self, "initial", _leaf("Ramp", "initial", self.initial))
-        check_given("Ramp.time", self.time)
-        check_nonneg("Ramp.time", self.time)
-        _broadcast(self, "slope", "initial")
+        _timed_init(self, "slope")
 
     @property
     def dim(self) -> int:
