@@ -88,3 +88,13 @@ def test_dlqe_bad_inputs():
         dlqe(A, np.eye(2), C, np.eye(3), np.eye(1))
     with pytest.raises(ValueError, match="C must be a matrix"):
         dlqe(A, np.eye(2), np.ones((1, 3)), np.eye(2), np.eye(1))
+
+
+def test_dlqe_float32():
+    """The default dtype: the doubling keeps float32 precision on the double integrator."""
+    _, A, G, C, Q, R = next(_systems())
+    L_ref, P_ref, _ = control.dlqe(A, G, C, Q, R)
+    L, P, _ = jax.jit(dlqe)(*(np.float32(M) for M in (A, G, C, Q, R)))
+    assert L.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(L), L_ref, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(P), P_ref, rtol=1e-5)
