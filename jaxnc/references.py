@@ -199,7 +199,7 @@ class PiecewiseLinear(AbstractReference):
     def __post_init__(self):
         times = _leaf("PiecewiseLinear", "times", self.times)
         values = _leaf("PiecewiseLinear", "values", self.values, ndim_max=2)
-        if isinstance(values, np.ndarray) and values.ndim == 1:
+        if np.ndim(values) == 1:
             values = values[:, None]
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "values", values)
@@ -237,13 +237,12 @@ class Recorded(AbstractReference):
 
     def __post_init__(self):
         values = _leaf("Recorded", "values", self.values, ndim_max=2, scalar_ok=False)
-        if isinstance(values, np.ndarray):
-            if values.ndim == 0:
-                raise ValueError("Recorded.values must be float[L] or float[L, p], got a scalar")
-            if values.ndim == 1:
-                values = values[:, None]
-            if values.shape[0] < 1:
-                raise ValueError("Recorded.values must have at least one row")
+        if np.ndim(values) == 0:
+            raise ValueError("Recorded.values must be float[L] or float[L, p], got a scalar")
+        if np.ndim(values) == 1:
+            values = values[:, None]
+        if np.shape(values)[0] < 1:
+            raise ValueError("Recorded.values must have at least one row")
         object.__setattr__(self, "values", values)
 
     @property

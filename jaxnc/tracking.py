@@ -134,7 +134,7 @@ def _step_info_1(y, T, y_final, y_initial, reference, thr, lo, hi) -> StepInfo:
     T = jnp.asarray(T, y.dtype)
     d = y - y_initial                      # python-control measures from 0: y_initial = 0 is its case
     inf = y_final - y_initial
-    ok = jnp.isfinite(inf)
+    ok = jnp.isfinite(inf) & (inf != 0)
     inf_safe = jnp.where(ok, inf, 1.0)
     sgn = jnp.sign(inf_safe)
     i_lo, any_lo = _first(sgn * (d - lo * inf_safe) >= 0)
@@ -160,7 +160,7 @@ def _step_info_1(y, T, y_final, y_initial, reference, thr, lo, hi) -> StepInfo:
         settling_max=bad(settling_max + y_initial, jnp.nan),
         overshoot=bad(overshoot, jnp.nan), undershoot=bad(undershoot, jnp.nan),
         peak=bad(peak, jnp.inf), peak_time=bad(peak_time, jnp.inf),
-        steady_state_value=bad(y_final, jnp.nan),
+        steady_state_value=jnp.where(jnp.isfinite(inf), y_final, nan),
         steady_state_error=reference - y_final)
 
 
@@ -197,7 +197,8 @@ def step_info(y, T, *, y_final=None, y_initial=0.0, reference=None, settling_thr
 
     Returns:
       :class:`StepInfo`, each field float[] (or float[p]). A non-finite final change
-      gives nan characteristics (peak and peak_time inf), as python-control does.
+      gives nan characteristics (peak and peak_time inf), as python-control does; so
+      does a zero final change (python-control divides by it).
 
     Raises:
       ValueError: ``y`` not float[K] / float[K, p], ``settling_threshold`` outside

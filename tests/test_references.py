@@ -55,6 +55,10 @@ def test_recorded_holds_last():
     np.testing.assert_array_equal(r[:30], values)
     np.testing.assert_array_equal(r[30:], np.broadcast_to(values[-1], (20, 3)))
     np.testing.assert_array_equal(_run(rf.Recorded(values[:, 0]), 5), values[:5, :1])
+    np.testing.assert_array_equal(_run(rf.Recorded(jnp.asarray(values[:, 0])), 5), values[:5, :1])
+    pl = rf.PiecewiseLinear(jnp.array([0.0, 1.0]), jnp.array([0.0, 2.0]))   # one channel, JAX arrays
+    assert pl.dim == 1
+    np.testing.assert_allclose(_run(pl, 30)[:, 0], np.minimum(2.0 * TIMES[:30], 2.0), rtol=1e-6)
 
 
 def test_leaves_are_differentiable_and_vmappable():

@@ -122,6 +122,9 @@ def test_step_info_not_reached_and_gradient():
         y = jnp.linspace(0.0, 0.5, 50)                       # never reaches 0.9 of y_final = 1
         info = tr.step_info(y, 0.1, y_final=1.0)
         assert np.isnan(float(info.rise_time)) and np.isnan(float(info.settling_time))
+        flat = tr.step_info(jnp.full(20, 3.0), 0.1, y_initial=3.0)      # no change: nothing to measure
+        assert np.isnan(float(flat.rise_time)) and np.isnan(float(flat.overshoot))
+        assert float(flat.steady_state_value) == 3.0
         # overshoot is differentiable in y: d/dy_peak of 100 (y_peak - y_f) / y_f
         _, y = control.step_response(SYSTEMS["underdamped"], 0.1 * np.arange(300))
         y = jnp.asarray(y)

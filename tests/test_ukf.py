@@ -4,6 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+from jax.test_util import check_grads
 
 from jaxnc.estimators import Gaussian, ekf_predict, ekf_update, merwe_sigma_points, ukf_predict, ukf_update
 
@@ -125,6 +126,19 @@ def test_ukf_float32_covariance_symmetric_psd_and_vmap():
     assert covs.dtype == np.float32 and covs.shape == (2, 60, 2, 2)
     np.testing.assert_array_equal(covs, np.swapaxes(covs, -1, -2))
     assert np.all(np.linalg.eigvalsh(covs) > 0)
+
+
+def test_ukf_gradient():
+    """The posterior is differentiable in the prior mean, the measurement and R (reverse mode
+    against central finite differences)."""
+    us, zs = _data(3)
+    with jax.enable_x64(True):
+        def loss(m0, z, r):
+            b = ukf_predict(f, Gaussian(m0, jnp.diag(jnp.array([0.3, 0.5]))), jnp.asarray(us[0]), Q, 2, alpha=0.5)
+            b = ukf_update(h, b, z, r, 2, alpha=0.5)
+            return jnp.sum(b.mean ** 2) + jnp.trace(b.cov)
+        check_grads(loss, (jnp.array([1.0, 0.2]), jnp.asarray(zs[0]), jnp.asarray(np.diag(R))), order=1,
+                    modes=("rev",), eps=1e-6, atol=1e-6, rtol=1e-6)
 
 
 def test_ukf_bad_inputs():
