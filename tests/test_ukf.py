@@ -52,6 +52,9 @@ def test_ukf_matches_filterpy(alpha, beta, kappa):
         means, covs = [], []
         for u, z in zip(us, zs):
             ref.predict(u=u)
+            # the update's sigma points drawn from the predicted belief (filterpy 2's predict
+            # does this itself; older versions reuse the propagated points)
+            ref.sigmas_f = ref.points_fn.sigma_points(ref.x, ref.P)
             ref.update(z)
             means.append(ref.x.copy())
             covs.append(ref.P.copy())

@@ -16,8 +16,7 @@ constant matrix, f = g(x, u) + G w (filterpy's UKF is the case G = I). For noise
 enters nonlinearly, augment the state with it.
 
 Each update draws its sigma points from the belief it is given (the predicted one after
-a prediction, as filterpy's ``UnscentedKalmanFilter.predict`` redraws them). On a linear
-model either kernel equals the Kalman filter for any alpha, beta, kappa.
+a prediction), not from the points the prediction propagated. On a linear model either kernel equals the Kalman filter for any alpha, beta, kappa.
 """
 from __future__ import annotations
 
