@@ -62,9 +62,9 @@ def _timed_init(obj, name):
     cls = type(obj).__name__
     object.__setattr__(obj, name, _leaf(cls, name, getattr(obj, name)))
     object.__setattr__(obj, "initial", _leaf(cls, "initial", obj.initial))
-    check_given(f"{cls}.time", obj.time)
+    object.__setattr__(obj, "time", _leaf(cls, "time", obj.time))
     check_nonneg(f"{cls}.time", obj.time)
-    _broadcast(obj, name, "initial")
+    _broadcast(obj, name, "time", "initial")
 
 
 def _time(t, T, dtype):
@@ -96,9 +96,9 @@ class Step(AbstractReference):
 
     Attributes:
       amplitude: float[p] (or scalar), the step's height.
-      time: scalar, the step time in seconds (>= 0). The step is applied from the first
-        instant with t T >= time (to within 1e-4 T of rounding); r has no gradient with
-        respect to ``time``.
+      time: float[p] (or scalar), the step time in seconds (>= 0). The step is applied
+        from the first instant with t T >= time (to within 1e-4 T of rounding); r has no
+        gradient with respect to ``time``.
       initial: float[p] (or scalar), the value before the step.
     """
 
@@ -126,7 +126,7 @@ class Ramp(AbstractReference):
 
     Attributes:
       slope: float[p] (or scalar), units per second.
-      time: scalar, the ramp's start in seconds (>= 0).
+      time: float[p] (or scalar), the ramp's start in seconds (>= 0).
       initial: float[p] (or scalar), the value before the ramp.
     """
 

@@ -100,7 +100,8 @@ class StepInfo(NamedTuple):
         ``settling_threshold`` (relative) of the final value [SettlingTime]; nan if the
         last sample is outside.
       settling_min, settling_max: min / max of the response from the rise's upper
-        instant on, each including the final value [SettlingMin, SettlingMax].
+        instant on, each including the final value [SettlingMin, SettlingMax]; nan if
+        that instant is not reached.
       overshoot: percent by which the peak in the final value's direction exceeds it
         [Overshoot], 0 if it does not.
       undershoot: percent of the final value by which the response goes the opposite way

@@ -22,6 +22,12 @@ def test_step():
     want = np.where(TIMES[:, None] >= 0.5 - 1e-9, [2.0, 2.0], [0.0, 3.0])
     np.testing.assert_allclose(r, want, rtol=1e-6)
     assert r[10, 0] == 2.0 and r[9, 0] == 0.0          # t T = 0.5 exactly on instant 10
+    # a step time per channel
+    r = _run(rf.Step(amplitude=1.0, time=[0.2, 1.0]))
+    np.testing.assert_allclose(r, np.stack([TIMES >= 0.2 - 1e-9, TIMES >= 1.0 - 1e-9], axis=1).astype(float))
+    # gradient of a ramp with respect to its start: -slope once started
+    g = jax.jit(jax.grad(lambda t0: rf.Ramp(jnp.array([2.0]), t0).at(40, T)[0]))(jnp.array([0.5]))
+    np.testing.assert_allclose(np.asarray(g), [-2.0])
     # scalar: one channel
     assert _run(rf.Step(1.0)).shape == (K, 1)
 
