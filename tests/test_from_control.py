@@ -49,6 +49,13 @@ def test_transfer_function_warns_and_keeps_the_former_realisation():
     np.testing.assert_allclose(lti.A, ref.A, rtol=1e-6)
     np.testing.assert_allclose(lti.C, ref.C, rtol=1e-6)
     assert lti.state_names is None
+    # None is the reachable canonical form, said so in the warning
+    tf3 = control.tf([2.0, 1.0], [3.0, 1.0, 0.5, 2.0])
+    with pytest.warns(UserWarning):
+        default = LTI.from_control(tf3, T)
+    reach = LTI.from_control(tf3, T, realization="reachable")
+    for name in "ABC":
+        np.testing.assert_allclose(getattr(default, name), getattr(reach, name), rtol=1e-6, atol=1e-7)
 
 
 @pytest.mark.parametrize("realization", ["observable", "reachable", "Observable"])
