@@ -1,7 +1,7 @@
 """jaxnc: JAX-differentiable, vectorised simulation of networked control systems."""
 __version__ = "0.1.0"
 
-from jaxnc import montecarlo, metrics, paths, results  # noqa: E402
+from jaxnc import montecarlo, metrics, paths, references, results, tracking  # noqa: E402
 from jaxnc.results import load  # noqa: E402  (per-seed results as an xarray.Dataset)
 from jaxnc.controllers import PathFollower, pure_pursuit  # noqa: E402
 from jaxnc.estimators import Gaussian, ekf_predict, ekf_update, nudrekf_correct, predict_horizon  # noqa: E402
@@ -11,7 +11,7 @@ from jaxnc import loop  # noqa: E402
 from jaxnc.loop import *  # noqa: E402,F401,F403  (the runner's building blocks, listed in jaxnc.loop.__all__)
 
 __all__ = [
-    "__version__", "montecarlo", "metrics", "paths", "results", "load",
+    "__version__", "montecarlo", "metrics", "paths", "references", "results", "tracking", "load",
     "Channel", "sample_channel",
     "Gaussian", "ekf_predict", "ekf_update", "nudrekf_correct", "predict_horizon",
     "Mecanum", "MecanumNoise", "PathFollower", "pure_pursuit",

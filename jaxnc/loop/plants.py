@@ -157,8 +157,10 @@ class LTI(AbstractPlant):
     Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m] (must be 0 or
     None: z is sampled before u is applied), G float[n, q] (default identity: w is
     additive state noise), x0 float[n], w_std float[q], v_std float[p], T seconds
-    (informative). Raises ValueError (naming the field) for shapes that do not match, a
-    non-finite entry, a nonzero D, negative stds or T <= 0.
+    (informative), state_names (static, optional): a tuple of n distinct names of the
+    states, e.g. carried from a python-control model (:meth:`from_control`). Raises
+    ValueError (naming the field) for shapes that do not match, a non-finite entry, a
+    nonzero D, negative stds, T <= 0 or state_names that are not n distinct strings.
     """
 
     A: Any
@@ -170,10 +172,16 @@ class LTI(AbstractPlant):
     w_std: Any = 0.0
     v_std: Any = 0.0
     T: Any = 1.0
+    state_names: Any = _static(None)
 
     def __post_init__(self):
         for n in ("A", "B", "C"):
             check_given(f"LTI.{n}", getattr(self, n), "a matrix of numbers")
+        if self.state_names is not None:
+            names = self.state_names
+            if isinstance(names, str) or not all(isinstance(v, str) for v in names) or len(set(names)) != len(names):
+                raise ValueError(f"LTI.state_names must be None or a sequence of distinct strings, got {names!r}")
+            object.__setattr__(self, "state_names", tuple(names))
         for n in ("A", "B", "C", "D", "G", "x0"):
             check_finite(f"LTI.{n}", getattr(self, n))
         for n in ("w_std", "v_std", "T"):
@@ -205,6 +213,8 @@ class LTI(AbstractPlant):
         if x0.shape != (n,):
             raise ValueError(f"LTI.x0 must have {n} entries, got shape {x0.shape}")
         check_positive("LTI.T", self.T)
+        if self.state_names is not None and len(self.state_names) != n:
+            raise ValueError(f"LTI.state_names must name the {n} states, got {len(self.state_names)} names")
         for name, v in (("A", A), ("B", B), ("C", C), ("D", D), ("G", G)):
             object.__setattr__(self, name, v)
         object.__setattr__(self, "x0", x0)
@@ -254,12 +264,56 @@ class LTI(AbstractPlant):
         return cls(A=E[:n, :n], B=E[:n, n:], C=C, T=T, **kw)
 
     @classmethod
-    def from_control(cls, sys, T: float | None = None, **kw) -> "LTI":
-        """From a python-control ``StateSpace`` or ``TransferFunction``: a continuous-time
-        system is discretised at ``T`` with ``control.c2d(sys, T, "zoh")``; a discrete one
-        must have ``dt == T`` (or T None)."""
+    def from_control(cls, sys, T: float | None = None, *, realization: str | None = None, **kw) -> "LTI":
+        """From a python-control ``StateSpace`` or ``TransferFunction``.
+
+        A continuous-time system is discretised at ``T`` with ``control.c2d(sys, T,
+        "zoh")``, which keeps its state coordinates; a discrete one must have ``dt == T``
+        (or T None).
+
+        State coordinates:
+
+        * a ``StateSpace`` keeps its own coordinates (``realization=None``), and its
+          state labels become ``state_names``;
+        * a ``TransferFunction`` has no state coordinates of its own: ``realization``
+          chooses python-control's canonical form (``control.canonical_form``) of the
+          continuous (or discrete) model, before discretisation:
+          ``"observable"`` (x[0] is the output, z = x[0] + v) or ``"reachable"`` (the
+          controllable canonical form, python-control's own ``control.ss(tf)``
+          realisation, where x[0] is not the output in general). ``None`` gives
+          ``"reachable"`` with a ``UserWarning`` saying so. ``state_names`` is then None.
+          A ``StateSpace`` given a ``realization`` is transformed the same way.
+          (python-control's ``"modal"`` form needs slycot and is not offered.)
+
+        Keywords ``x0`` and, when ``G`` is not given (one noise per state), ``w_std``
+        may be a mapping {state name: value} for a model whose states are named (or
+        given ``state_names``); the states not named get 0. The other keywords are
+        :class:`LTI`'s.
+
+        Raises:
+          ValueError: ``T`` missing for a continuous-time system or differing from a
+            discrete system's dt, a direct feedthrough D != 0, an unknown
+            ``realization``, a realization of a MIMO transfer function, or a mapping
+            naming a state the model does not have.
+        """
+        import warnings
+
         import control
+        from jaxnc._validate import check_choice
+        if realization is not None:
+            realization = check_choice("from_control: realization", realization, ("observable", "reachable"))
+        if isinstance(sys, control.TransferFunction) and realization is None:
+            warnings.warn("LTI.from_control: a transfer function has no state coordinates; using python-control's "
+                          "reachable (controllable) canonical form, whose x[0] is not the output in general. "
+                          "Pass realization='observable' (x[0] = output) or realization='reachable' to choose.",
+                          UserWarning, stacklevel=2)
         ss = control.ss(sys)
+        names = tuple(ss.state_labels) if isinstance(sys, control.StateSpace) and realization is None else None
+        if realization is not None:
+            if not ss.issiso():
+                raise ValueError(f"from_control: realization={realization!r} needs a single-input single-output "
+                                 f"model, got {ss.ninputs} inputs and {ss.noutputs} outputs")
+            ss = control.canonical_form(ss, realization)[0]
         if ss.dt in (0, None):
             if T is None:
                 raise ValueError("T is required to discretise a continuous-time system")
@@ -271,4 +325,17 @@ class LTI(AbstractPlant):
         if np.any(np.asarray(ss.D) != 0):
             raise ValueError("from_control: the system has a direct feedthrough D != 0; a sampled "
                              "networked loop needs D = 0")
-        return cls(A=ss.A, B=ss.B, C=ss.C, T=dt, **kw)
+        names = kw.pop("state_names", names)
+        for key in ("x0", "w_std"):
+            if isinstance(kw.get(key), dict):
+                if names is None:
+                    raise ValueError(f"from_control: {key} given by state name, but the model's states are not "
+                                     f"named (a StateSpace in its own coordinates names them)")
+                if key == "w_std" and kw.get("G") is not None:
+                    raise ValueError("from_control: w_std given by state name needs one noise per state (G not given)")
+                unknown = sorted(set(kw[key]) - set(names))
+                if unknown:
+                    raise ValueError(f"from_control: {key} names unknown state(s) {unknown}; the states are "
+                                     f"{list(names)}")
+                kw[key] = [float(kw[key].get(s, 0.0)) for s in names]
+        return cls(A=ss.A, B=ss.B, C=ss.C, T=dt, state_names=names, **kw)

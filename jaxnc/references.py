@@ -1,0 +1,277 @@
+"""Reference signals r(t) for tracking: step, ramp, sine, piecewise-linear, recorded.
+
+Each reference is a frozen dataclass registered as a pytree whose amplitudes, times and
+values are leaves (differentiable, vmappable); :meth:`AbstractReference.at` gives
+r at the fast instant ``t`` (an integer, time t T) as ``float[p]``, and :func:`evaluate`
+gives the whole run ``float[K, p]``. A scalar amplitude is a one-channel reference
+(p = 1); vector fields of one reference broadcast to a common p at construction.
+Python numbers and lists become float32 arrays; arrays keep their dtype.
+"""
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, checked_pytree
+
+__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate"]
+
+# a step or ramp time on a sample instant is reached at that instant despite the rounding
+# of t * T: the comparison is made within this fraction of a period
+_TIME_TOL = 1e-4
+
+
+def _leaf(cls, name, v, *, ndim_max=1, scalar_ok=True):
+    """``v`` as an array leaf: Python numbers and lists to float32, arrays as they are;
+    at least 1-d when ``scalar_ok`` (a scalar is one channel); finite when concrete."""
+    check_given(f"{cls}.{name}", v)
+    check_finite(f"{cls}.{name}", v)
+    if isinstance(v, (bool, int, float, np.number, list, tuple)):
+        v = np.asarray(v, np.float32)
+    if isinstance(v, np.ndarray):
+        if v.ndim == 0 and scalar_ok:
+            v = v.reshape(1)
+        if v.ndim > ndim_max:
+            raise ValueError(f"{cls}.{name} must have at most {ndim_max} dimension(s), got shape {v.shape}")
+        if v.dtype.kind != "f":
+            v = v.astype(np.float32)
+    return v
+
+
+def _broadcast(obj, *names):
+    """Broadcast the named float[p] (or scalar) fields of ``obj`` to one p, or ValueError."""
+    shapes = [np.shape(getattr(obj, n)) for n in names]
+    try:
+        shape = np.broadcast_shapes(*shapes)
+    except ValueError:
+        raise ValueError(f"{type(obj).__name__}: {', '.join(names)} must have the same number of channels "
+                         f"(or be scalars), got shapes {shapes}") from None
+    for n in names:
+        v = getattr(obj, n)
+        object.__setattr__(obj, n, jnp.broadcast_to(v, shape) if isinstance(v, jax.Array)
+                           else np.broadcast_to(v, shape).copy())
+
+
+def _timed_init(obj, name):
+    """Validation of a reference with a channel field ``name``, ``initial`` and ``time``."""
+    cls = type(obj).__name__
+    object.__setattr__(obj, name, _leaf(cls, name, getattr(obj, name)))
+    object.__setattr__(obj, "initial", _leaf(cls, "initial", obj.initial))
+    object.__setattr__(obj, "time", _leaf(cls, "time", obj.time))
+    check_nonneg(f"{cls}.time", obj.time)
+    _broadcast(obj, name, "time", "initial")
+
+
+def _time(t, T, dtype):
+    return jnp.asarray(t, dtype) * jnp.asarray(T, dtype)
+
+
+class AbstractReference(abc.ABC):
+    """A reference signal r: fast instant -> float[p]."""
+
+    @abc.abstractmethod
+    def at(self, t, T) -> jax.Array:
+        """r at the fast instant ``t`` (int scalar, time t T), float[p].
+
+        Args:
+          t: int scalar (may be traced), the fast instant.
+          T: the fast period in seconds.
+        """
+
+    @property
+    @abc.abstractmethod
+    def dim(self) -> int:
+        """The number of channels p."""
+
+
+@checked_pytree
+@dataclasses.dataclass(frozen=True)
+class Step(AbstractReference):
+    """r(t) = initial + amplitude * [t T >= time].
+
+    Attributes:
+      amplitude: float[p] (or scalar), the step's height.
+      time: float[p] (or scalar), the step time in seconds (>= 0). The step is applied
+        from the first instant with t T >= time (to within 1e-4 T of rounding); r has no
+        gradient with respect to ``time``.
+      initial: float[p] (or scalar), the value before the step.
+    """
+
+    amplitude: Any
+    time: Any = 0.0
+    initial: Any = 0.0
+
+    def __post_init__(self):
+        _timed_init(self, "amplitude")
+
+    @property
+    def dim(self) -> int:
+        return int(np.shape(self.amplitude)[0])
+
+    def at(self, t, T):
+        a = jnp.asarray(self.amplitude)
+        on = _time(t, T, a.dtype) >= jnp.asarray(self.time, a.dtype) - _TIME_TOL * jnp.asarray(T, a.dtype)
+        return jnp.asarray(self.initial, a.dtype) + jnp.where(on, a, jnp.zeros_like(a))
+
+
+@checked_pytree
+@dataclasses.dataclass(frozen=True)
+class Ramp(AbstractReference):
+    """r(t) = initial + slope * max(t T - time, 0).
+
+    Attributes:
+      slope: float[p] (or scalar), units per second.
+      time: float[p] (or scalar), the ramp's start in seconds (>= 0).
+      initial: float[p] (or scalar), the value before the ramp.
+    """
+
+    slope: Any
+    time: Any = 0.0
+    initial: Any = 0.0
+
+    def __post_init__(self):
+        _timed_init(self, "slope")
+
+    @property
+    def dim(self) -> int:
+        return int(np.shape(self.slope)[0])
+
+    def at(self, t, T):
+        s = jnp.asarray(self.slope)
+        elapsed = jnp.maximum(_time(t, T, s.dtype) - jnp.asarray(self.time, s.dtype), 0.0)
+        return jnp.asarray(self.initial, s.dtype) + s * elapsed
+
+
+@checked_pytree
+@dataclasses.dataclass(frozen=True)
+class Sine(AbstractReference):
+    """r(t) = offset + amplitude * sin(2 pi frequency t T + phase).
+
+    Attributes:
+      amplitude: float[p] (or scalar).
+      frequency: float[p] (or scalar), in Hz (>= 0).
+      phase: float[p] (or scalar), in radians.
+      offset: float[p] (or scalar).
+    """
+
+    amplitude: Any
+    frequency: Any
+    phase: Any = 0.0
+    offset: Any = 0.0
+
+    def __post_init__(self):
+        for n in ("amplitude", "frequency", "phase", "offset"):
+            object.__setattr__(self, n, _leaf("Sine", n, getattr(self, n)))
+        check_nonneg("Sine.frequency", self.frequency)
+        _broadcast(self, "amplitude", "frequency", "phase", "offset")
+
+    @property
+    def dim(self) -> int:
+        return int(np.shape(self.amplitude)[0])
+
+    def at(self, t, T):
+        a = jnp.asarray(self.amplitude)
+        arg = 2.0 * jnp.pi * jnp.asarray(self.frequency, a.dtype) * _time(t, T, a.dtype) + self.phase
+        return jnp.asarray(self.offset, a.dtype) + a * jnp.sin(arg)
+
+
+@checked_pytree
+@dataclasses.dataclass(frozen=True)
+class PiecewiseLinear(AbstractReference):
+    """r(t) linear between the breakpoints (times[i], values[i]), constant outside them.
+
+    Attributes:
+      times: float[M], strictly increasing breakpoint times in seconds (M >= 1).
+      values: float[M] (one channel) or float[M, p], r at the breakpoints.
+
+    The gradient with respect to ``values`` and to ``times`` is that of the linear
+    interpolation (``jnp.interp``).
+    """
+
+    times: Any
+    values: Any
+
+    def __post_init__(self):
+        times = _leaf("PiecewiseLinear", "times", self.times)
+        values = _leaf("PiecewiseLinear", "values", self.values, ndim_max=2)
+        if np.ndim(values) == 1:
+            values = values[:, None]
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "values", values)
+        if isinstance(times, np.ndarray) and isinstance(values, np.ndarray):
+            if times.ndim != 1:
+                raise ValueError(f"PiecewiseLinear.times must be float[M], got shape {times.shape}")
+            if values.shape[0] != times.shape[0]:
+                raise ValueError(f"PiecewiseLinear.values must have one row per time (M={times.shape[0]}), "
+                                 f"got shape {values.shape}")
+            if np.any(np.diff(times) <= 0):
+                raise ValueError(f"PiecewiseLinear.times must be strictly increasing, got {times.tolist()}")
+
+    @property
+    def dim(self) -> int:
+        return int(np.shape(self.values)[1])
+
+    def at(self, t, T):
+        v = jnp.asarray(self.values)
+        s = _time(t, T, v.dtype)
+        times = jnp.asarray(self.times, v.dtype)
+        return jax.vmap(lambda col: jnp.interp(s, times, col), in_axes=1)(v)
+
+
+@checked_pytree
+@dataclasses.dataclass(frozen=True)
+class Recorded(AbstractReference):
+    """r at fast instant t is ``values[t]`` (a recorded reference at the fast period);
+    before 0 the first row, after the record its last row (held).
+
+    Attributes:
+      values: float[L] (one channel) or float[L, p], one row per fast instant (L >= 1).
+    """
+
+    values: Any
+
+    def __post_init__(self):
+        values = _leaf("Recorded", "values", self.values, ndim_max=2, scalar_ok=False)
+        if np.ndim(values) == 0:
+            raise ValueError("Recorded.values must be float[L] or float[L, p], got a scalar")
+        if np.ndim(values) == 1:
+            values = values[:, None]
+        if np.shape(values)[0] < 1:
+            raise ValueError("Recorded.values must have at least one row")
+        object.__setattr__(self, "values", values)
+
+    @property
+    def dim(self) -> int:
+        return int(np.shape(self.values)[1])
+
+    def at(self, t, T):
+        v = jnp.asarray(self.values)
+        return v[jnp.clip(jnp.asarray(t, jnp.int32), 0, v.shape[0] - 1)]
+
+
+def evaluate(reference: AbstractReference, steps: int, T, *, start: int = 0) -> jax.Array:
+    """The reference over a run: ``reference.at(t, T)`` for t = start .. start + steps - 1.
+
+    Args:
+      reference: any :class:`AbstractReference`.
+      steps: static int >= 1, the number of fast instants K.
+      T: the fast period in seconds.
+      start: static int >= 0, the first instant.
+
+    Returns:
+      float[K, p].
+
+    Raises:
+      ValueError: ``steps`` < 1 or ``start`` < 0, or ``reference`` not a reference.
+    """
+    if not isinstance(reference, AbstractReference):
+        raise ValueError(f"evaluate: reference must be a jaxnc.references reference, got {type(reference).__name__}")
+    check_int("evaluate: steps", steps, 1)
+    check_int("evaluate: start", start, 0)
+    t = jnp.arange(start, start + steps, dtype=jnp.int32)
+    return jax.vmap(reference.at, in_axes=(0, None))(t, T)
