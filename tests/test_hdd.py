@@ -152,7 +152,7 @@ def test_packet_actuator_applies_packet_index():
     s = act.init(ctx)
     packet, k_pkt = np.zeros(h + 1, np.float32), 0
     for k in range(steps):
-        u, s = apply(s, jnp.asarray(packets[k]), jnp.asarray(gamma[k]), jnp.int32(k))
+        s, u = apply(s, jnp.asarray(packets[k]), jnp.asarray(gamma[k]), jnp.int32(k))
         if gamma[k]:
             packet, k_pkt = packets[k], k
         assert float(u[0]) == packet[min(max(k - k_pkt, 0), h)]
@@ -185,9 +185,9 @@ def test_controller_side_condition_only_on_arrival():
     c, ctx = rl.controller, rl.ctx
     s0 = c.init(ctx)
     step = jax.jit(lambda s, y, f, k: c.step(s, jnp.array([y], jnp.float32), jnp.float32(f), jnp.int32(k), ctx))
-    pkt, send, s1 = step(s0, 0.0, 1.0, 0)            # arrival, but eq. (22) does not hold
+    s1, pkt, send = step(s0, 0.0, 1.0, 0)            # arrival, but eq. (22) does not hold
     assert float(send) == 0.0 and float(s1.ubar) == 0.0 and int(s1.k_last) == 0
-    pkt, send, s2 = step(s1, 0.3, 0.0, 1)            # no arrival
+    s2, pkt, send = step(s1, 0.3, 0.0, 1)            # no arrival
     assert float(send) == 0.0 and int(s2.N) == 0 and np.isnan(float(s2.dhat))
     for a, b in zip(jax.tree_util.tree_leaves((s1.ctrl, s1.ubar, s1.k_last)),
                     jax.tree_util.tree_leaves((s2.ctrl, s2.ubar, s2.k_last))):

@@ -158,17 +158,17 @@ def test_packet_actuator_indexes_by_stamp_holds_and_waits_for_future_packets():
         st = act.install(st, jnp.array([[9.0], [9.0], [9.0]]), jnp.int32(8), 1.0)   # for later
         us = []
         for t in range(10):
-            u, st = act.output(st, t)
+            st, u = act.output(st, t)
             us.append(float(u[0]))
         assert us == [0, 0, 1, 2, 3, after, after, after, 9, 9], mode
 
 
 def test_petc_first_sample_threshold_and_max_silence():
     trig = nc.Petc(delta=0.5, max_silence=3)
-    st = trig.init(jnp.zeros(1))
+    st = trig.init(nc.Context(N=1, steps=6, T=1.0, state_dim=1, input_dim=1, output_dim=1, signal_dim=1))
     sends = []
     for k, z in enumerate([0.0, 0.1, 0.2, 0.3, 2.0, 2.1]):
-        b, st = trig.step(st, jnp.array([z]), k)
+        st, b = trig.step(st, jnp.array([z]), k)
         sends.append(int(b))
     assert sends == [1, 0, 0, 1, 1, 0]          # first; silence 3 forces k = 3; |2 - 0.3|^2 > 0.5
 
@@ -263,7 +263,7 @@ def test_selective_recording_keeps_the_values_and_drops_the_rest():
     assert part.x.size == 0 and part.u.size == 0 and part.z.size == 0
     np.testing.assert_array_equal(np.asarray(part.final_plant), np.asarray(full.final_plant))
     assert np.isnan(float(nc.evaluate(_lti_loop(record=("xhat",)), part).cost_raw))   # no x, u: no cost
-    with pytest.raises(ValueError, match="Loop.record must be True, False or a tuple of names"):
+    with pytest.raises(ValueError, match="Loop.record must be True, False, a tuple of names"):
         _lti_loop(record=("states",))
 
 
@@ -301,22 +301,35 @@ def test_a_user_delay_model_declares_its_bounds_and_the_ring_is_checked():
         nc.Link(delay=NotAModel())
 
 
-def test_declared_records_go_to_parts_by_role():
-    """A role's ``record`` is kept in ``Trajectory.parts[role]`` only when ``Loop.record``
-    names the role; the plant's after every fast step, the estimator's once a period."""
-    @nc.pytree_dataclass
-    class Recording(nc.LTI):
-        def record(self, x):
-            return x[0] * 2.0
+def _twice_position(plant, x):
+    return x[0] * 2.0
 
+
+def _post_mean(ekf, state):
+    return state.post.mean
+
+
+def _stamp_of_actuator(act, state, t):
+    return state.stamp[0]
+
+
+def test_a_record_spec_keeps_functions_of_the_roles_states_in_parts():
+    """``Record`` (diffrax's SaveAt): a function of a role's state is kept in
+    ``Trajectory.parts[role]``: the plant's after every fast step, the estimator's once a
+    slow period (after its prediction), the actuator's after every output."""
     base = _lti_loop(N=2, steps=20)
-    plant = Recording(A=base.plant.A, B=base.plant.B, C=base.plant.C, x0=[1.0, 0.0], w_std=[0.01, 0.02],
-                      v_std=[0.05], T=0.1)
     key = jax.random.PRNGKey(1)
-    tr = jax.jit(nc.simulate)(dataclasses.replace(base, plant=plant, record=("x", "plant", "estimator")), key)
-    assert set(tr.parts) == {"plant", "estimator"}
-    assert tr.parts["plant"].shape == (20,)
+    spec = nc.Record(signals=("x", "xhat"), plant=_twice_position, estimator=_post_mean, actuator=_stamp_of_actuator)
+    tr = jax.jit(nc.simulate)(dataclasses.replace(base, record=spec), key)
+    assert set(tr.parts) == {"plant", "estimator", "actuator"}
+    assert tr.parts["plant"].shape == (20,) and tr.parts["estimator"].shape == (10, 2)
     np.testing.assert_allclose(np.asarray(tr.parts["plant"][:-1]), 2.0 * np.asarray(tr.x[1:, 0]), rtol=1e-6)
-    assert tr.parts["estimator"] == ()                          # the EKF records nothing
-    none = jax.jit(nc.simulate)(dataclasses.replace(base, plant=plant, record=("x",)), key)
+    # the packet of slow instant k is stamped kN and applied from then (no delay)
+    np.testing.assert_array_equal(np.asarray(tr.parts["actuator"]), np.repeat(np.arange(10) * 2, 2))
+    assert tr.u.size == 0 and tr.z.size == 0                    # not among the signals
+    none = jax.jit(nc.simulate)(dataclasses.replace(base, record=("x",)), key)
     assert none.parts == {}
+    with pytest.raises(ValueError, match="Record.signals must be a tuple of names"):
+        nc.Record(signals=("x", "plant"))
+    with pytest.raises(ValueError, match="Record.plant"):
+        nc.Record(plant="x")

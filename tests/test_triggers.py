@@ -7,10 +7,12 @@ import pytest
 import jaxnc.loop as jl
 from jaxnc.loop.triggers import fires_straight_through, petc_gap, soft_decision
 
+CTX1 = jl.Context(N=1, steps=8, T=1.0, state_dim=1, input_dim=1, output_dim=1, signal_dim=1)
+
 
 def _first_step(trig, zl, z, k=1):
     """One decision of ``trig`` whose zbar is ``zl`` (k > 0: nothing forced)."""
-    return trig.step(jl.PetcState(zl, jnp.zeros((), jnp.int32)), z, k)
+    return trig.step(jl.PetcState(zl, jnp.zeros((), jnp.int32)), z, k)[::-1]
 
 
 def test_fires_exactly_when_eq4_holds():
@@ -63,10 +65,10 @@ def test_hard_trigger_has_zero_gradient():
 
 def test_eq3_zbar_holds_the_last_sent_value_and_first_instant_sends():
     trig = jl.Petc(0.0, 1.0)                        # fires when (zbar - z)^2 > 1
-    st = trig.init(jnp.zeros(1))
+    st = trig.init(CTX1)
     sends = []
     for k, z in enumerate([0.3, 0.8, 1.2, 1.5, 2.4]):
-        b, st = trig.step(st, jnp.array([z], jnp.float32), k)
+        st, b = trig.step(st, jnp.array([z], jnp.float32), k)
         sends.append(float(b))
     # k = 0 forced (zbar = 0.3); 0.25, 0.81 < 1; (1.5 - 0.3)^2 = 1.44 > 1 (zbar = 1.5); 0.81 < 1
     assert sends == [1.0, 0.0, 0.0, 1.0, 0.0]
@@ -82,9 +84,8 @@ def test_max_silence_is_a_leaf_and_1_is_periodic():
     def sends(ms):
         trig = jl.Petc(0.0, 1.0, max_silence=ms)
         def body(st, kz):
-            b, st = trig.step(st, kz[1], kz[0])
-            return st, b
-        return jax.lax.scan(body, trig.init(z[0]), (jnp.arange(8), z))[1]
+            return trig.step(st, kz[1], kz[0])
+        return jax.lax.scan(body, trig.init(CTX1), (jnp.arange(8), z))[1]
 
     np.testing.assert_array_equal(sends(jnp.int32(0)), [1, 0, 0, 0, 0, 0, 0, 0])
     np.testing.assert_array_equal(sends(jnp.int32(3)), [1, 0, 0, 1, 0, 0, 1, 0])

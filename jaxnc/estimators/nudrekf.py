@@ -157,7 +157,6 @@ class ChainEstimate(NamedTuple):
 
 class NudrekfState(NamedTuple):
     belief: Gaussian        # the remote belief (after the last correction / prediction)
-    est: ChainEstimate      # the estimate of the last correction
     means: jax.Array        # float[N, n]: belief means after each fast period of the last prediction
 
 
@@ -178,8 +177,6 @@ class NudrekfEstimator(AbstractFastEstimator):
       mean0: float[n], cov0: float[n, n], the prior at t = 0.
       noise_dim: static, the model's process-noise dimension q.
       jacobian_grad, structure: static, as in :func:`jaxnc.estimators.ekf.ekf_predict`.
-      record_means: static; ``record`` gives the N means (True) or only whether
-        they are all finite (False).
     """
 
     model: Any
@@ -190,16 +187,15 @@ class NudrekfEstimator(AbstractFastEstimator):
     noise_dim: int = _static(0)
     jacobian_grad: bool = _static(True)
     structure: EKFStructure | None = _static(None)
-    record_means: bool = _static(True)
     inputs = "believed"
 
     def init(self, ctx) -> NudrekfState:
         g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
-        return NudrekfState(g, ChainEstimate(g.mean, jnp.zeros((), jnp.float32)),
-                            jnp.zeros((ctx.N, g.mean.shape[0]), jnp.float32))
+        return NudrekfState(g, jnp.zeros((ctx.N, g.mean.shape[0]), jnp.float32))
 
-    def correct(self, state: NudrekfState, inbox: Inbox, k) -> NudrekfState:
-        """Correct with the measurement of instant k (weight 0: keep the belief).
+    def correct(self, state: NudrekfState, inbox: Inbox, k) -> tuple[NudrekfState, ChainEstimate]:
+        """Correct with the measurement of instant k (weight 0: keep the belief); the
+        estimate is the corrected mean with the weight of the measurement.
 
         The uplink has no delay (seed 000 lumps the round trip on the downlink): the
         measurement of instant k is in slot k mod C of the ring, with the weight
@@ -210,32 +206,26 @@ class NudrekfEstimator(AbstractFastEstimator):
         corrected = nudrekf_correct(self.model, state.belief, z, self.R, jacobian_grad=self.jacobian_grad,
                                     structure=self.structure)
         belief = blend(w, corrected, state.belief)
-        return state._replace(belief=belief, est=ChainEstimate(corrected.mean, w))
-
-    def estimate(self, state: NudrekfState) -> ChainEstimate:
-        return state.est
-
-    def predict(self, state: NudrekfState, u_applied, u_believed, k) -> NudrekfState:
-        """N steps of eq. (11) along ``u_believed`` float[N, m]; keeps the N means."""
-        def body(g, u):
-            g = ekf_predict(self.model.dynamics, g, u, self.Q, self.noise_dim,
-                            jacobian_grad=self.jacobian_grad, structure=self.structure)
-            return g, g.mean
-
-        belief, means = jax.lax.scan(body, state.belief, u_believed)
-        return state._replace(belief=belief, means=means)
+        return state._replace(belief=belief), ChainEstimate(corrected.mean, w)
 
     def predict_fast(self, state: NudrekfState, u_applied, u_believed, t, j) -> NudrekfState:
         """One fast period of eq. (11) along the believed action (the runner calls it every
-        fast period; :meth:`predict` is the same over a whole period)."""
+        fast period); keeps the belief's mean for fast instant j of the period."""
         g = ekf_predict(self.model.dynamics, state.belief, u_believed, self.Q, self.noise_dim,
                         jacobian_grad=self.jacobian_grad, structure=self.structure)
         return state._replace(belief=g, means=state.means.at[j].set(g.mean))
 
-    def record(self, state: NudrekfState):
-        """float[N, n]: the belief means after each fast period of the last prediction (or,
-        without ``record_means``, bool: all of them finite)."""
-        return state.means if self.record_means else jnp.all(jnp.isfinite(state.means))
+
+
+def belief_means(estimator: NudrekfEstimator, state: NudrekfState):
+    """float[N, n]: the belief means after each fast period of the period (a
+    :class:`jaxnc.loop.Record` function of the estimator)."""
+    return state.means
+
+
+def belief_finite(estimator: NudrekfEstimator, state: NudrekfState):
+    """bool: the belief means of the period are all finite (a cheaper Record function)."""
+    return jnp.all(jnp.isfinite(state.means))
 
 
 class ChainPacket(NamedTuple):
@@ -317,10 +307,10 @@ class ChainActuator(AbstractSenderCopyActuator):
                               stamp=jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32))
 
     def output(self, state: ChainActuatorState, t):
-        """(u_t, state advanced one fast period)."""
+        """(state advanced one fast period, u_t)."""
         nxt = lambda m, c: self.law(self.model, m, c, self.Ts, narrow=True)
         chain = advance_chain(self.model, nxt, state.chain, self.horizon, self.hold, self.noise_dim)
-        return state.chain.u, state._replace(chain=chain)
+        return state._replace(chain=chain), state.chain.u
 
 
 @jax.tree_util.register_dataclass
@@ -356,8 +346,8 @@ class ChainController(AbstractSenderCopyController):
 
     def step(self, state, xhat, fresh, k, ctx):
         pkt, w = self._packet(xhat, fresh, k, ctx, self.law.init())
-        return pkt, w, state
+        return state, pkt, w
 
     def step_from_sent(self, state, xhat, fresh, k, ctx, sent: ChainActuatorState):
         pkt, w = self._packet(xhat, fresh, k, ctx, sent.chain.c_before)
-        return pkt, w, state
+        return state, pkt, w

@@ -81,7 +81,7 @@ class PacketActuator(AbstractActuator):
         u_pkt = state.u[j, jnp.clip(idx, 0, self.horizon - 1)]
         fallback = state.last if self.on_exhausted == "hold" else jnp.zeros_like(state.last)
         u = jnp.where(live, u_pkt, fallback)
-        return u, state._replace(last=u)
+        return state._replace(last=u), u
 
 
 def HoldLast(capacity: int = 1) -> PacketActuator:

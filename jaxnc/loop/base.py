@@ -2,24 +2,33 @@
 
 A closed loop (:class:`jaxnc.loop.Loop`) is made of six roles, each a frozen-dataclass
 pytree of *parameters* with pure methods; its *state* is a NamedTuple returned by
-``init`` and threaded through the runner's scan (optax's ``init/update``, MJX's
-``step(m, d)``). The runner (:mod:`jaxnc.loop.runner`) calls them in a fixed order
-every slow period k (fast instants t = kN .. kN + N - 1, fast period T):
+``init(ctx)`` and threaded through the runner's scan (optax's ``init/update``, MJX's
+``step(m, d)``). Every role has the same shape: ``init(ctx) -> state`` and methods
+``(state, inputs...) -> (state, outputs...)`` (the plant, whose state is the physical
+state, has ``dynamics`` and ``measure``). The runner (:mod:`jaxnc.loop.runner`) calls
+them in a fixed order every slow period k (fast instants t = kN .. kN + N - 1, fast
+period T):
 
 1. ``plant.measure(x, v)`` -> z_k (the sensor samples at t = kN);
-2. ``trigger.step(state, z_k, k)`` -> (send 0/1, state): PETC, periodic, ...;
+2. ``trigger.step(state, z_k, k)`` -> (state, send 0/1): PETC, periodic, ...;
 3. the sensor-to-controller :class:`~jaxnc.loop.links.Link` stores the packet
    (z_k, stamp k) with its arrival time drawn up front; the controller side reads its
    :class:`Inbox` at t = kN (packets that arrive between slow instants wait for the next);
-4. ``estimator.correct(state, inbox, k)`` -> state, and ``estimator.estimate(state)``;
-5. ``controller.step(state, estimate, fresh, k)`` -> (:class:`Packet` of actions, send,
-   state), optionally gated by a controller-side trigger on the first action;
+4. ``estimator.correct(state, inbox, k)`` -> (state, xhat), the estimate the controller uses;
+5. ``controller.step(state, xhat, fresh, k, ctx)`` -> (state, :class:`Packet` of actions,
+   send), optionally gated by a controller-side trigger on the first action;
 6. the controller-to-actuator link stores the packet; then for each fast instant t the
-   actuator receives what arrives at t, ``actuator.output(state, t)`` -> u_t, and the
-   plant moves, ``plant.step(x, u_t, w_t)``;
-7. ``estimator.predict(state, u_applied[N, m], u_believed[N, m], k)``: the actions the
-   actuator applied, and those the controller believes applied (its own packets, as if
-   delivered at once), over the period.
+   actuator receives what arrives at t (``actuator.receive(state, inbox)`` -> state),
+   ``actuator.output(state, t)`` -> (state, u_t), and the plant moves,
+   ``plant.step(x, u_t, w_t)``;
+7. ``estimator.predict(state, u_applied[N, m], u_believed[N, m], k)`` -> state: the actions
+   the actuator applied, and those the controller believes applied (its own packets, as
+   if delivered at once), over the period.
+
+Optional behaviour is declared, never discovered: by marker base classes
+(:class:`AbstractFastEstimator`, :class:`AbstractSenderCopyController`,
+:class:`AbstractSenderCopyActuator`) or declared class attributes (``inputs``,
+``horizon``, ``in_steps``). What a run records is the loop's :class:`~jaxnc.loop.Record`.
 
 Everything a component needs that does not depend on the loop's signals (noise, packet
 losses and delays) is drawn up front from the run's key, so loops can be compared on the
@@ -160,23 +169,21 @@ class AbstractPlant(abc.ABC):
         """The state as float[n] for recording and failure checks (default: x itself)."""
         return x
 
-    def record(self, x):
-        """What ``Loop(record=(..., "plant"))`` keeps of the state after each fast period's
-        step, in ``Trajectory.parts["plant"]`` (default: nothing, ``()``)."""
-        return ()
-
 
 class AbstractTrigger(abc.ABC):
     """Decides at each slow instant whether a signal is sent (sensor side: z; controller
     side: the first action of a packet)."""
 
     @abc.abstractmethod
-    def init(self, s0):
-        """State before the first instant; ``s0`` is an example signal (float[p])."""
+    def init(self, ctx):
+        """State before the first instant, for a signal of ``ctx.signal_dim`` entries (the
+        runner sets it: the measurement's size for the sensor's trigger, an action's for
+        the controller's)."""
 
     @abc.abstractmethod
     def step(self, state, s, k):
-        """(send, state): send is a 0/1 float (straight-through gradient where relaxed)."""
+        """(state, send) for signal s float[signal_dim] at slow instant k: send is a 0/1
+        float (straight-through gradient where relaxed)."""
 
 
 class AbstractEstimator(abc.ABC):
@@ -196,20 +203,12 @@ class AbstractEstimator(abc.ABC):
 
     @abc.abstractmethod
     def correct(self, state, inbox: Inbox, k):
-        """Use what the uplink delivered (``inbox``) at slow instant k; returns the state."""
-
-    @abc.abstractmethod
-    def estimate(self, state):
-        """float[n]: the estimate the controller uses at this slow instant."""
+        """Use what the uplink delivered (``inbox``) at slow instant k: (state, xhat), xhat
+        the estimate the controller uses now (e.g. float[n])."""
 
     @abc.abstractmethod
     def predict(self, state, u_applied, u_believed, k):
         """Propagate over the period k (actions float[N, m]); returns the state."""
-
-    def record(self, state):
-        """What ``Loop(record=(..., "estimator"))`` keeps of the state at the end of each slow
-        period (after :meth:`predict`), in ``Trajectory.parts["estimator"]`` (default: ``()``)."""
-        return ()
 
 
 class AbstractFastEstimator(AbstractEstimator):
@@ -238,14 +237,9 @@ class AbstractController(abc.ABC):
 
     @abc.abstractmethod
     def step(self, state, xhat, fresh, k, ctx):
-        """(Packet(actions float[horizon, m], stamp), send 0/1 float, state).
+        """(state, Packet(actions float[horizon, m], stamp), send 0/1 float).
 
         ``fresh`` is 1.0 when the estimator received something at this instant."""
-
-    def record(self, state):
-        """What ``Loop(record=(..., "controller"))`` keeps of the state after each step, in
-        ``Trajectory.parts["controller"]`` (default: ``()``)."""
-        return ()
 
 
 class AbstractSenderCopyController(AbstractController):
@@ -272,12 +266,7 @@ class AbstractActuator(abc.ABC):
 
     @abc.abstractmethod
     def output(self, state, t):
-        """(u_t float[m], state) for fast instant t."""
-
-    def record(self, state, t):
-        """What ``Loop(record=(..., "actuator"))`` keeps after each output, in
-        ``Trajectory.parts["actuator"]`` (default: ``()``)."""
-        return ()
+        """(state, u_t float[m]) for fast instant t."""
 
 
 class AbstractSenderCopyActuator(AbstractActuator):

@@ -38,7 +38,7 @@ class _OneAction(AbstractController):
 
     def step(self, state, xhat, fresh, k, ctx):
         u = self.action(xhat)
-        return Packet(u[None, :], (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32), state
+        return state, Packet(u[None, :], (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32)
 
 
 @_dataclass
@@ -122,4 +122,4 @@ class Predictive(AbstractController):
             return self.model.dynamics(x, u, w0), u
 
         _, us = jax.lax.scan(body, xhat, None, length=self.horizon)
-        return Packet(us, (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32), state
+        return state, Packet(us, (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32)

@@ -133,7 +133,7 @@ class EKF(AbstractEstimator):
         update = ekf_update_sqrt if self.form == "sqrt" else ekf_update
         return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
 
-    def correct(self, state: EKFState, inbox: Inbox, k) -> EKFState:
+    def correct(self, state: EKFState, inbox: Inbox, k) -> tuple[EKFState, jax.Array]:
         C = inbox.stamp.shape[0]
         N = state.u.shape[1]                             # fast periods per slow period
         g = state.base
@@ -145,10 +145,7 @@ class EKF(AbstractEstimator):
             if i == 0:
                 next_base = g
         post = self._correct_at(g, inbox, k * N, C)
-        return state._replace(post=post, next_base=next_base)
-
-    def estimate(self, state: EKFState):
-        return state.post.mean
+        return state._replace(post=post, next_base=next_base), post.mean
 
     def predict(self, state: EKFState, u_applied, u_believed, k) -> EKFState:
         us = u_believed if self.inputs == "believed" else u_applied
@@ -174,10 +171,8 @@ class Passthrough(AbstractEstimator):
 
     def correct(self, state, inbox: Inbox, k):
         z, _, w = inbox.newest()
-        return PassthroughState(blend(w, z, state.z))
-
-    def estimate(self, state):
-        return state.z
+        z = blend(w, z, state.z)
+        return PassthroughState(z), z
 
     def predict(self, state, u_applied, u_believed, k):
         return state

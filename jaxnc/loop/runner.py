@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,15 +33,18 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.links import Link, LinkDraws
 
-__all__ = ["Loop", "Monitor", "Quadratic", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
-           "run", "run_seed", "evaluate", "STREAMS"]
+__all__ = ["Loop", "Record", "Monitor", "Quadratic", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
+           "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
 
 #: the draw streams of a run: stream i uses ``fold_in(key, i)``
 STREAMS = ("process", "measurement", "uplink", "downlink", "plant_init")
 
 
 class Context(NamedTuple):
-    """Static facts about the loop that components need to build their state."""
+    """Static facts about the loop that components need to build their state.
+
+    ``signal_dim`` is the size of the signal a trigger watches (the runner sets it: the
+    measurement's for the sensor's trigger, an action's for the controller's; 0 elsewhere)."""
 
     N: int
     steps: int
@@ -47,6 +52,62 @@ class Context(NamedTuple):
     state_dim: int
     input_dim: int
     output_dim: int
+    signal_dim: int = 0
+
+
+SIGNALS = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca")
+PARTS = ("plant", "estimator", "controller", "actuator")
+
+
+@dataclasses.dataclass(frozen=True)
+class Record:
+    """What a run keeps (the declared recording spec, as diffrax's ``SaveAt``).
+
+    Attributes:
+      signals: names of :class:`Trajectory` signals to keep, among :data:`SIGNALS`
+        (the others come back empty, and are neither computed nor stored).
+      plant: ``fn(plant, x)`` of the plant's state after each fast period's step, kept in
+        ``Trajectory.parts["plant"]`` [K, ...]; None: nothing.
+      estimator: ``fn(estimator, state)`` at the end of each slow period (after the
+        prediction), ``parts["estimator"]`` [S, ...].
+      controller: ``fn(controller, state)`` after each step, ``parts["controller"]`` [S, ...].
+      actuator: ``fn(actuator, state, t)`` after each output, ``parts["actuator"]`` [K, ...].
+
+    The functions are static (part of the compiled program): define them at module level
+    so that equal specs compare equal.
+    """
+
+    signals: tuple = SIGNALS
+    plant: Any = None
+    estimator: Any = None
+    controller: Any = None
+    actuator: Any = None
+
+    def __post_init__(self):
+        if isinstance(self.signals, str) or not isinstance(self.signals, (tuple, list)) \
+                or any(n not in SIGNALS for n in self.signals):
+            raise ValueError(f"Record.signals must be a tuple of names among {', '.join(SIGNALS)}, "
+                             f"got {self.signals!r}")
+        object.__setattr__(self, "signals", tuple(self.signals))
+        for role in PARTS:
+            fn = getattr(self, role)
+            if fn is not None:
+                check_callable(f"Record.{role}", fn, f"a function of the {role} and its state, or None")
+
+    @classmethod
+    def of(cls, record) -> "Record":
+        """A :class:`Record` from ``Loop.record``'s short forms: True (every signal), False
+        (only the summaries), a tuple of signal names, or a Record itself."""
+        if isinstance(record, Record):
+            return record
+        if record is True:
+            return cls()
+        if record is False:
+            return cls(signals=())
+        if isinstance(record, tuple) and all(n in SIGNALS for n in record):
+            return cls(signals=record)
+        raise ValueError(f"Loop.record must be True, False, a tuple of names among {', '.join(SIGNALS)} or a "
+                         f"jaxnc.loop.Record, got {record!r}")
 
 
 @_dataclass
@@ -124,12 +185,11 @@ class Loop:
       N: static, fast periods per slow period (>= 1).
       steps: static, fast periods simulated (a multiple of N).
       T: static, the fast period in seconds (links quantise delays to it).
-      record: static, what a run keeps (the declared recording spec): True, every signal and
-        every role's ``record``; False, only the summaries; or a tuple of names among the
-        signals ``x u z xhat sent_sc recv_sc sent_ca recv_ca`` (:class:`Trajectory` fields)
-        and the roles ``plant estimator controller actuator`` (their ``record`` methods, into
-        ``Trajectory.parts[role]``), e.g. ``("plant", "sent_sc")`` for a loop whose metrics
-        need only those: what is not recorded is not computed or stored.
+      record: static, what a run keeps: a :class:`Record` (signals, and functions of the
+        roles' states kept in ``Trajectory.parts``), or its short forms True (every signal),
+        False (only the summaries) or a tuple of signal names among
+        ``x u z xhat sent_sc recv_sc sent_ca recv_ca``, e.g. ``("xhat", "sent_sc")`` for a
+        loop whose metrics need only those: what is not recorded is not computed or stored.
     """
 
     plant: Any
@@ -156,10 +216,7 @@ class Loop:
         check_instance("Loop.monitor", self.monitor, Monitor, "a jaxnc.loop.Monitor")
         if self.cost is not None:
             check_callable("Loop.cost", self.cost, "a function cost(x, u) -> scalar (e.g. jaxnc.loop.Quadratic) or None")
-        if not isinstance(self.record, bool):
-            if not isinstance(self.record, tuple) or any(r not in _RECORDABLE for r in self.record):
-                raise ValueError(f"Loop.record must be True, False or a tuple of names among "
-                                 f"{', '.join(_RECORDABLE)}, got {self.record!r}")
+        object.__setattr__(self, "record", Record.of(self.record))
         check_int("Loop.N", self.N, 1, 100_000)
         check_int("Loop.steps", self.steps, self.N, None)
         if self.steps % self.N:
@@ -198,7 +255,7 @@ class Loop:
             return
         ctx = self.ctx
         try:
-            xhat = jax.eval_shape(lambda: self.estimator.estimate(self.estimator.init(ctx)))
+            xhat = jax.eval_shape(lambda: _first_estimate(self, ctx))
         except Exception as e:  # noqa: BLE001 - re-raised naming the role
             raise ValueError(f"Loop.estimator does not fit the plant (state_dim={ctx.state_dim}, "
                              f"output_dim={ctx.output_dim}): {_one_line(e)}") from e
@@ -206,7 +263,7 @@ class Loop:
         try:
             pkt = jax.eval_shape(lambda: self.controller.step(
                 self.controller.init(ctx), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), xhat),
-                jnp.float32(1), jnp.int32(0), ctx)[0])
+                jnp.float32(1), jnp.int32(0), ctx)[1])
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"Loop.controller cannot act on the estimator's estimate "
                              f"(shape {shapes[0] if len(shapes) == 1 else shapes}): {_one_line(e)}") from e
@@ -222,6 +279,13 @@ class Loop:
     def ctx(self) -> Context:
         p = self.plant
         return Context(self.N, self.steps, float(self.T), int(p.state_dim), int(p.input_dim), int(p.output_dim))
+
+
+def _first_estimate(loop: Loop, ctx: Context):
+    """The estimator's output at k = 0 on an empty inbox (for shapes)."""
+    z0 = jnp.zeros((ctx.output_dim,), jnp.float32)
+    inbox, _ = loop.uplink.inbox(loop.uplink.init(z0), jnp.int32(0))
+    return loop.estimator.correct(loop.estimator.init(ctx), inbox, jnp.int32(0))[1]
 
 
 _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, Continuous)"),
@@ -276,19 +340,13 @@ class Trajectory(NamedTuple):
     fail_step: jax.Array  # int32: first failed fast instant (K if never)
     tx_sc: jax.Array      # float: sensor transmissions in the run
     tx_ca: jax.Array      # float: controller transmissions in the run
-    parts: Any = ()       # dict role -> its record, for the roles named in Loop.record: "plant" [K, ...]
-    #                       after each fast step, "actuator" [K, ...] after each output, "controller"
-    #                       [S, ...] after each step, "estimator" [S, ...] at the end of each period
+    parts: Any = ()       # dict role -> what Record's function of that role kept ("plant" [K, ...],
+    #                       "estimator" [S, ...], "controller" [S, ...], "actuator" [K, ...])
     final_plant: Any = ()   # the plant's state at the end of the run
 
 
-SIGNALS = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca")
-PARTS = ("plant", "estimator", "controller", "actuator")
-_RECORDABLE = SIGNALS + PARTS
-
-
-def _wanted(record, name: str) -> bool:
-    return record is True or (isinstance(record, tuple) and name in record)
+def _wanted(record: Record, name: str) -> bool:
+    return name in record.signals
 
 
 class _Carry(NamedTuple):
@@ -309,8 +367,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     """One closed-loop run; a pure function of (loop, key), to vmap over keys.
 
     ``draws`` replaces :func:`draw`'s (e.g. a recorded realisation shared by loops). What
-    is kept follows ``loop.record``; each role named there has its declared ``record``
-    kept in ``Trajectory.parts``. Declared capabilities change how a role is called:
+    is kept follows ``loop.record`` (a :class:`Record`). Declared capabilities change how a role is called:
     an :class:`~jaxnc.loop.base.AbstractFastEstimator` predicts inside the fast loop;
     with an estimator that takes the believed actions, an
     :class:`~jaxnc.loop.base.AbstractSenderCopyController` continues the runner's copy of
@@ -325,14 +382,16 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     ctrl0 = loop.controller.init(ctx)
     est0 = loop.estimator.init(ctx)
     # the packet's shape, from the estimate the controller will be given (not the plant's state)
-    pkt0, _, _ = jax.eval_shape(lambda: loop.controller.step(ctrl0, loop.estimator.estimate(est0), jnp.float32(1),
+    _, pkt0, _ = jax.eval_shape(lambda: loop.controller.step(ctrl0, _first_estimate(loop, ctx), jnp.float32(1),
                                                               jnp.int32(0), ctx))
     pkt_zero = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), pkt0)
     act0 = act_role.init(ctx)
+    ctrig0 = None
+    if loop.controller_trigger is not None:
+        ctrig0 = loop.controller_trigger.init(ctx._replace(signal_dim=int(np.shape(pkt_zero.data[0])[-1])))
     carry0 = _Carry(
-        x=x0, trig=loop.trigger.init(z0),
-        up=loop.uplink.init(z0), est=est0, ctrl=ctrl0,
-        ctrig=None if loop.controller_trigger is None else loop.controller_trigger.init(pkt_zero.data[0]),
+        x=x0, trig=loop.trigger.init(ctx._replace(signal_dim=ctx.output_dim)),
+        up=loop.uplink.init(z0), est=est0, ctrl=ctrl0, ctrig=ctrig0,
         down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0,
         failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32))
     believed_needed = loop.estimator.inputs == "believed"
@@ -340,29 +399,29 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     from_sender = believed_needed and isinstance(act_role, AbstractSenderCopyActuator)
     fast_predict = isinstance(loop.estimator, AbstractFastEstimator)
 
-    want = lambda name: _wanted(loop.record, name)
+    rec = loop.record
+    want = lambda name: _wanted(rec, name)
 
     def slow(c: _Carry, inp):
         k, w_k, v_k, d_up, d_down = inp
         t0 = k * N
         # 1-2. sensor and trigger
         z = plant.measure(c.x, v_k)
-        send_sc, trig = loop.trigger.step(c.trig, z, k)
+        trig, send_sc = loop.trigger.step(c.trig, z, k)
         # 3. uplink, read by the controller side at t0
         up = loop.uplink.send(c.up, z, t0, k, send_sc, d_up, t0)
         inbox, up = loop.uplink.inbox(up, t0)
         # 4. estimator
-        est = loop.estimator.correct(c.est, inbox, k)
-        xhat = loop.estimator.estimate(est)
+        est, xhat = loop.estimator.correct(c.est, inbox, k)
         # 5. controller (and its trigger)
         if from_sent:
-            pkt, send_ca, ctrl = loop.controller.step_from_sent(c.ctrl, xhat, inbox.fresh, k, ctx, c.bel)
+            ctrl, pkt, send_ca = loop.controller.step_from_sent(c.ctrl, xhat, inbox.fresh, k, ctx, c.bel)
         else:
-            pkt, send_ca, ctrl = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
+            ctrl, pkt, send_ca = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
         ctrig = c.ctrig
         if loop.controller_trigger is not None:
             # evaluated only where the controller would send; otherwise its state stays
-            fire, ctrig_new = loop.controller_trigger.step(c.ctrig, pkt.data[0], k)
+            ctrig_new, fire = loop.controller_trigger.step(c.ctrig, pkt.data[0], k)
             ctrig = jax.tree.map(lambda a, b: jnp.where(send_ca > 0.5, a, b), ctrig_new, c.ctrig)
             send_ca = send_ca * fire
         # 6. downlink; the controller's own copy as if delivered at once
@@ -379,8 +438,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
             act = act_role.receive_from_sender(act, box, bel) if from_sender else act_role.receive(act, box)
-            u, act = act_role.output(act, t)
-            ub, bel = act_role.output(bel, t) if believed_needed else (u, bel)
+            act, u = act_role.output(act, t)
+            bel, ub = act_role.output(bel, t) if believed_needed else (bel, u)
             u_ok = jnp.all(jnp.isfinite(u))
             u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
             x_new = plant.step(x, u, w_t)
@@ -393,8 +452,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
                 est = loop.estimator.predict_fast(est, u, ub, t, j)
             out = (plant.state_vector(x) if want("x") else (), u, ub if believed_needed else (),
                    jnp.sum(box.new) if want("recv_ca") else (),
-                   act_role.record(act, t) if want("actuator") else (),
-                   plant.record(x_new) if want("plant") else ())
+                   rec.actuator(act_role, act, t) if rec.actuator is not None else (),
+                   rec.plant(plant, x_new) if rec.plant is not None else ())
             return (x_new, down, act, bel, failed, fail_step, est), out
 
         fc0 = (c.x, down, c.act, bel, c.failed, c.fail_step, est)
@@ -407,8 +466,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
                     sent_sc=send_sc, recv_sc=inbox.fresh if want("recv_sc") else (), sent_ca=send_ca,
                     recv_ca=rca, actuator=arec, plant=prec,
-                    estimator=loop.estimator.record(est) if want("estimator") else (),
-                    controller=loop.controller.record(ctrl) if want("controller") else ())
+                    estimator=rec.estimator(loop.estimator, est) if rec.estimator is not None else (),
+                    controller=rec.controller(loop.controller, ctrl) if rec.controller is not None else ())
         return c, outs
 
     xs_in = (jnp.arange(S, dtype=jnp.int32), d.w, d.v, d.uplink.delay, d.downlink.delay)
@@ -427,7 +486,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         x=pick("x", True), u=pick("u", True), z=pick("z"), xhat=pick("xhat"), sent_sc=o["sent_sc"],
         recv_sc=pick("recv_sc"), sent_ca=o["sent_ca"], recv_ca=pick("recv_ca", True),
         failed=final.failed, fail_step=final.fail_step, tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
-        parts={r: fast_rows(o[r]) if r in ("plant", "actuator") else o[r] for r in PARTS if _wanted(loop.record, r)},
+        parts={r: fast_rows(o[r]) if r in ("plant", "actuator") else o[r] for r in PARTS
+               if getattr(rec, r) is not None},
         final_plant=final.x)
 
 

@@ -72,11 +72,11 @@ class Periodic(AbstractTrigger):
     def __post_init__(self):
         check_int("Periodic.every", self.every, 1, 1_000_000)
 
-    def init(self, s0):
+    def init(self, ctx):
         return ()
 
     def step(self, state, s, k):
-        return (jnp.mod(k, self.every) == 0).astype(jnp.float32), state
+        return state, (jnp.mod(k, self.every) == 0).astype(jnp.float32)
 
 
 @_dataclass
@@ -128,9 +128,8 @@ class Petc(AbstractTrigger):
         largest of the per-output gaps."""
         return petc_gap(last, s, self.sigma, self.delta, self.reading)
 
-    def init(self, s0):
-        s0 = jnp.asarray(s0, jnp.float32)
-        return PetcState(jnp.zeros_like(s0), jnp.zeros((), jnp.int32))
+    def init(self, ctx):
+        return PetcState(jnp.zeros((ctx.signal_dim,), jnp.float32), jnp.zeros((), jnp.int32))
 
     def step(self, state, s, k):
         g = self.gap(state.last, s)
@@ -140,4 +139,4 @@ class Petc(AbstractTrigger):
         beta = jnp.where(forced, jnp.ones((), s.dtype), beta)
         last = blend(beta, s, state.last)
         silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
-        return beta, PetcState(last, silent)
+        return PetcState(last, silent), beta

@@ -181,7 +181,7 @@ class BufferedKalman(nc.AbstractEstimator):
         buf = bkf_init(jnp.zeros((n,), _F32), jnp.asarray(self.cov0, _F32), self.kf.N, p, m)
         return BufferedKalmanState(buf, buf.base, buf.base)
 
-    def correct(self, state: BufferedKalmanState, inbox: nc.Inbox, k) -> BufferedKalmanState:
+    def correct(self, state: BufferedKalmanState, inbox: nc.Inbox, k):
         buf = state.buf
         C = inbox.stamp.shape[0]
         if C < self.kf.N + 1:
@@ -193,10 +193,7 @@ class BufferedKalman(nc.AbstractEstimator):
         base = buf.base._replace(mean=jnp.where(k == 0, start, buf.base.mean))
         buf = buf._replace(base=base, y=y)
         pred, next_base = bkf_estimate(self.kf, buf, gamma)
-        return BufferedKalmanState(buf, pred, next_base)
-
-    def estimate(self, state: BufferedKalmanState):
-        return state.pred.mean
+        return BufferedKalmanState(buf, pred, next_base), pred.mean
 
     def predict(self, state: BufferedKalmanState, u_applied, u_believed, k) -> BufferedKalmanState:
         p = state.buf.y.shape[1]
@@ -237,17 +234,14 @@ class DirtyDerivative(nc.AbstractEstimator):
         z = jnp.zeros((ctx.output_dim,), _F32)
         return DirtyDerivativeState(z, z)
 
-    def correct(self, state: DirtyDerivativeState, inbox: nc.Inbox, k) -> DirtyDerivativeState:
+    def correct(self, state: DirtyDerivativeState, inbox: nc.Inbox, k):
         prev = jnp.where(k == 0, inbox.data[0], state.z)
         z, _, w = inbox.newest()
         z = jnp.where(w > 0.5, z, prev)
         tau = jnp.asarray(self.tau_d, _F32)
         a = jnp.where(tau > 0, jnp.exp(-self.Ts / jnp.maximum(tau, 1e-9)), 0.0)
         rate = a * state.rate + (1.0 - a) * (z - prev) / self.Ts
-        return DirtyDerivativeState(z, rate)
-
-    def estimate(self, state: DirtyDerivativeState):
-        return jnp.concatenate([state.z, state.rate])
+        return DirtyDerivativeState(z, rate), jnp.concatenate([z, rate])
 
     def predict(self, state, u_applied, u_believed, k):
         return state
@@ -295,7 +289,7 @@ class LeadFeedback(nc.AbstractController):
         if self.lead:
             plan = jnp.concatenate([plan[1:], u[None]])
         stamp = (k * ctx.N + self.lead).astype(jnp.int32)
-        return nc.Packet(u[None, None], stamp), jnp.ones((), _F32), plan
+        return plan, nc.Packet(u[None, None], stamp), jnp.ones((), _F32)
 
 
 # ----------------------------------------------------------------------------- actuator
@@ -315,7 +309,7 @@ class ArrivalHold(nc.AbstractActuator):
         return jnp.where(w > 0.5, data[0], u)
 
     def output(self, u, t):
-        return u, u
+        return u, u                 # (state, action): the held action is both
 
 
 # ----------------------------------------------------------------------------- configuration

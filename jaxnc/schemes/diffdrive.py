@@ -38,7 +38,7 @@ slow period is ns * sub fine steps (ns = 1 for a, N otherwise), the controller's
 holds each action over sub fine steps, the downlink's delay (d, e) is the reference
 packet's, quantised up to dt, and the wheel noise enters at the first fine step of each
 slot T (:func:`runner_draws`).  The roles: :class:`Robot` (the true plant and its
-completion / tube monitor, recorded through ``plant.record``), Passthrough or
+completion / tube monitor, recorded by :func:`robot_trace`), Passthrough or
 :class:`DiffDriveEKF`, :class:`DiffDriveController`, and a packet actuator by time stamp
 or :class:`ArrivalActuator` (d).
 """
@@ -405,9 +405,6 @@ class Robot(AbstractPlant):
     def state_vector(self, s: RobotState):
         return s.x
 
-    def record(self, s: RobotState):
-        """(x_in float[5], u float[2], l, done, bad) after each fine step."""
-        return s.x_in, s.u, s.l, s.done, s.bad
 
 
 class EkfState(NamedTuple):
@@ -434,13 +431,11 @@ class DiffDriveEKF(AbstractEstimator):
         g = Gaussian(_x0(self.loop), jnp.diag(jnp.asarray(self.loop.P0_std, jnp.float32) ** 2))
         return EkfState(g, g, jnp.zeros((), bool))
 
-    def correct(self, state: EkfState, inbox: Inbox, k) -> EkfState:
+    def correct(self, state: EkfState, inbox: Inbox, k):
         z, _, w = inbox.newest()
         post = ekf_update(self.loop.plant.measure, state.prior, z[:OUTPUT_DIM], self.loop.R, OUTPUT_DIM)
-        return EkfState(state.prior, blend(w, post, state.prior), blend(w, z[OUTPUT_DIM] > 0.5, state.stop))
-
-    def estimate(self, state: EkfState):
-        return state.post.mean
+        post = blend(w, post, state.prior)
+        return EkfState(state.prior, post, blend(w, z[OUTPUT_DIM] > 0.5, state.stop)), post.mean
 
     def predict(self, state: EkfState, u_applied, u_believed, k) -> EkfState:
         lp = self.loop
@@ -510,11 +505,18 @@ class DiffDriveController(AbstractController):
             u_pred, acts = state.u_pred, U
         new = CtrlState(sr, dr, idx, u_pred, w_com, states, U, state.u_pred)
         pkt = Packet(jnp.repeat(acts, lp.plant.sub, axis=0), (k * ctx.N).astype(jnp.int32))
-        return pkt, jnp.ones((), jnp.float32), new
+        return new, pkt, jnp.ones((), jnp.float32)
 
-    def record(self, state: CtrlState):
-        """(w_com [2], est [h+1, 5], U [ns, 2], u_prior [N, 2]) after each step."""
-        return state.w_com, state.est, state.U, state.u_prior
+
+def robot_trace(robot: Robot, s: RobotState):
+    """(x_in float[5], u float[2], l, done, bad) after each fine step (a
+    :class:`jaxnc.loop.Record` function)."""
+    return s.x_in, s.u, s.l, s.done, s.bad
+
+
+def controller_trace(c: DiffDriveController, state: CtrlState):
+    """(w_com [2], est [h+1, 5], U [ns, 2], u_prior [N, 2]) after each step."""
+    return state.w_com, state.est, state.U, state.u_prior
 
 
 class ArrivalState(NamedTuple):
@@ -554,7 +556,7 @@ class ArrivalActuator(AbstractActuator):
         start = jnp.where(state.pending, t, state.start)
         live = (start != _EMPTY) & (t < state.stamp + self.horizon)
         u = jnp.where(live, state.u[jnp.clip(t - start, 0, self.horizon - 1)], state.last)
-        return u, state._replace(start=start, pending=jnp.zeros((), bool), last=u)
+        return state._replace(start=start, pending=jnp.zeros((), bool), last=u), u
 
 
 def runner_loop(loop: DiffDriveLoop, draws: runner.Draws | None = None) -> runner.Loop:
@@ -590,7 +592,8 @@ def runner_loop(loop: DiffDriveLoop, draws: runner.Draws | None = None) -> runne
     est = DiffDriveEKF(loop) if loop.scenario == "e" else Passthrough(0.0)
     return runner.Loop(plant=Robot(loop), trigger=Periodic(), uplink=Link(), estimator=est, controller=ctrl,
                        downlink=down, actuator=act, monitor=runner.Monitor(freeze=False), N=nf,
-                       steps=loop.steps * sub, T=float(loop.plant.dt))
+                       steps=loop.steps * sub, T=float(loop.plant.dt),
+                       record=runner.Record(plant=robot_trace, controller=controller_trace))
 
 
 def runner_draws(loop: DiffDriveLoop, key) -> runner.Draws:

@@ -221,10 +221,6 @@ class HddPlant(AbstractPlant):
     def measure(self, x, v):
         return self.model.measure(x, v[0])[None]
 
-    def record(self, x):
-        """(y, d) = (C x, Cbar x) of a state: the noise-free output and the disturbance."""
-        return self.model.C @ x, self.model.Cbar @ x
-
     def process_std(self):
         return jnp.reshape(self.model.w_std, (1,))
 
@@ -257,8 +253,6 @@ class NumreFilter(AbstractEstimator):
       Cbar: float[n], the disturbance output of the filter model (eq. 15; zeros when the
         model has none, Case 6).
 
-    ``record(state)`` is (C x, Cbar x) of the estimate used at the instant (after its
-    correction; between arrivals the predictions of eq. 15), float scalars.
     """
 
     tables: NumreTables
@@ -280,10 +274,7 @@ class NumreFilter(AbstractEstimator):
         N = jnp.clip(k - state.k_lm, 1, self.tables.n_max)
         xpost, Ppost, _ = numre_correct(self.tables, state.x, state.P, z[0], N)
         x = jnp.where(fresh, xpost, state.x)
-        return NumreState(x, x, jnp.where(fresh, Ppost, state.P), jnp.where(fresh, k, state.k_lm))
-
-    def estimate(self, state: NumreState):
-        return state.x
+        return NumreState(x, x, jnp.where(fresh, Ppost, state.P), jnp.where(fresh, k, state.k_lm)), x
 
     def predict(self, state: NumreState, u_applied, u_believed, k) -> NumreState:
         x = state.x
@@ -291,8 +282,23 @@ class NumreFilter(AbstractEstimator):
             x = self.A @ x + self.B * u_applied[j, 0]
         return state._replace(x=x)
 
-    def record(self, state: NumreState):
-        return self.tables.C @ state.xk, self.Cbar @ state.xk
+
+
+def output_and_disturbance(plant: HddPlant, x):
+    """(y, d) = (C x, Cbar x) of a plant state: the noise-free output and the disturbance
+    (a :class:`jaxnc.loop.Record` function)."""
+    return plant.model.C @ x, plant.model.Cbar @ x
+
+
+def estimated_output_and_disturbance(f: NumreFilter, state: NumreState):
+    """(C x, Cbar x) of the estimate used at the instant (after its correction; between
+    arrivals the predictions of eq. 15), float scalars (a Record function)."""
+    return f.tables.C @ state.xk, f.Cbar @ state.xk
+
+
+def controller_disturbance_and_multiplicity(c: HddController, state: HddControllerState):
+    """(dhat, N): the disturbance estimate and the multiplicity at the last arrival."""
+    return state.dhat, state.N
 
 
 class CtrlState(NamedTuple):
@@ -328,7 +334,7 @@ class HddController(AbstractController):
       r: the reference (scalar, constant); sigma_c, delta_c: eq. (22) thresholds.
       h: static horizon (packets of h + 1 actions); numre, use_dob, tts: static switches.
 
-    ``record(state)`` is (dhat, N) of the instant.
+    Records: :func:`controller_disturbance_and_multiplicity` gives (dhat, N) of the instant.
     """
 
     ctrl: Mrci
@@ -394,10 +400,7 @@ class HddController(AbstractController):
         gamma = beta if self.tts else beta & (petc_gap(state.ubar[None], u_new[None], self.sigma_c, self.delta_c) > 0)   # eq. (22)
         new = HddControllerState(cas, ctrl, jnp.where(gamma, u_new, state.ubar), jnp.where(beta, k, state.k_last),
                                  jnp.where(beta, dhat, jnp.nan), jnp.where(beta, k - state.k_last, 0))
-        return Packet(packet[:, None], (k * ctx.N).astype(jnp.int32)), gamma.astype(jnp.float32), new
-
-    def record(self, state: HddControllerState):
-        return state.dhat, state.N
+        return new, Packet(packet[:, None], (k * ctx.N).astype(jnp.int32)), gamma.astype(jnp.float32)
 
 
 def runner_loop(loop: HddLoop) -> jl.Loop:
@@ -416,7 +419,9 @@ def runner_loop(loop: HddLoop) -> jl.Loop:
     # every instant (it would move ubar when nothing arrived) and always sends at k = 0
     return jl.Loop(plant=HddPlant(loop.model), trigger=trigger, uplink=jl.Link(), estimator=est, controller=ctrl,
                    downlink=jl.Link(), actuator=jl.PacketActuator(horizon=loop.h + 1),
-                   monitor=jl.Monitor(freeze=False), N=1, steps=loop.steps, T=hdd_plant.T)
+                   monitor=jl.Monitor(freeze=False), N=1, steps=loop.steps, T=hdd_plant.T,
+                   record=jl.Record(plant=output_and_disturbance, controller=controller_disturbance_and_multiplicity,
+                                    estimator=estimated_output_and_disturbance if loop.numre else None))
 
 
 def draws(loop: HddLoop, key, rl: jl.Loop | None = None) -> jl.Draws:
@@ -457,7 +462,7 @@ def simulate(loop: HddLoop, key) -> Trajectory:
     rl = runner_loop(loop)
     tr = jl.simulate(rl, key, draws=draws(loop, key, rl))
     # the plant's record holds (y, d) after each period's step: row k is instant k + 1
-    y0, d0 = rl.plant.record(rl.plant.init(key))
+    y0, d0 = output_and_disturbance(rl.plant, rl.plant.init(key))
     y = jnp.concatenate([y0[None], tr.parts["plant"][0][:-1]])
     d = jnp.concatenate([d0[None], tr.parts["plant"][1][:-1]])
     nan = jnp.full((loop.steps,), jnp.nan)

@@ -54,10 +54,11 @@ import numpy as np
 
 from jaxnc._validate import check_choice, check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
-from jaxnc.estimators.nudrekf import ChainActuator, ChainController, NudrekfEstimator, PacketChain
+from jaxnc.estimators.nudrekf import (ChainActuator, ChainController, NudrekfEstimator, PacketChain, belief_finite,
+                                     belief_means)
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2, local_distance
-from jaxnc.loop import AbstractDelay, AbstractPlant, Bernoulli, Link, LinkDraws, Loop, Monitor, Petc
+from jaxnc.loop import AbstractDelay, AbstractPlant, Bernoulli, Link, LinkDraws, Loop, Monitor, Petc, Record
 from jaxnc.loop import Draws as LoopDraws
 from jaxnc.loop import simulate as run_loop
 from jaxnc.network import Channel, late, quantise_delay
@@ -367,7 +368,6 @@ class Robot(AbstractPlant):
     end_tol: Any
     steps: int = dataclasses.field(default=1, metadata=dict(static=True))
     # False: ``record`` gives the distance to the path only (what the metrics need)
-    record_all: bool = dataclasses.field(default=True, metadata=dict(static=True))
     state_dim = STATE_DIM
     input_dim = INPUT_DIM
     noise_dim = PROCESS_NOISE_DIM
@@ -402,10 +402,16 @@ class Robot(AbstractPlant):
     def state_vector(self, x: RobotState):
         return self.truth.state(x.s)
 
-    def record(self, x: RobotState):
-        """The monitor after each fast period (:class:`Track`; its ``dist`` alone when not
-        ``record_all``)."""
-        return x.track if self.record_all else x.track.dist
+
+
+def robot_track(robot: Robot, x: RobotState) -> Track:
+    """The monitor after each fast period (a :class:`jaxnc.loop.Record` function)."""
+    return x.track
+
+
+def robot_dist(robot: Robot, x: RobotState):
+    """The monitor's distance to the path alone (what the metrics need)."""
+    return x.track.dist
 
 
 @jax.tree_util.register_dataclass
@@ -460,10 +466,9 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
     estimator = NudrekfEstimator(
         model=plant, Q=loop.filter_noise.process_std() ** 2, R=loop.filter_noise.measurement_std() ** 2,
         mean0=x0, cov0=jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2),
-        noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure,
-        record_means=full)
+        noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure)
     return Loop(
-        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K, record_all=full),
+        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K),
         trigger=sensor_trigger(loop),
         uplink=Link(loss=Bernoulli(loop.sc.p_loss), reliable_first=True, capacity=1),
         estimator=estimator,
@@ -472,7 +477,8 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
                       reliable_first=True, capacity=2),
         actuator=ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM),
         monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T),
-        record=True if full else ("plant", "estimator", "sent_sc", "xhat"))
+        record=Record(plant=robot_track, estimator=belief_means) if full else
+        Record(signals=("sent_sc", "xhat"), plant=robot_dist, estimator=belief_finite))
 
 
 def runner_draws(loop: MecanumLoop, key) -> LoopDraws:
