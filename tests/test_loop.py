@@ -218,7 +218,7 @@ def test_lti_discretisation_matches_python_control_and_rk4():
     lti = nc.LTI.from_continuous(Ac, Bc, Cc, T)
     np.testing.assert_allclose(lti.A, ref.A, rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(lti.B, ref.B, rtol=1e-6, atol=1e-7)
-    tf = nc.LTI.from_control(control.tf([1.0], [1.0, 0.5, 2.0]), T)
+    tf = nc.LTI.from_control(control.tf([1.0], [1.0, 0.5, 2.0]), T, realization="observable")
     assert (tf.state_dim, tf.input_dim, tf.output_dim) == (2, 1, 1)
     np.testing.assert_allclose(np.linalg.eigvals(tf.A), np.linalg.eigvals(ref.A), rtol=1e-5)
     ct = nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_lin_f, h=_lin_h, input_dim=1, noise_dim=1,
