@@ -18,13 +18,16 @@ C2 = np.array([[1.0, 0.0]])
 K2 = np.array([[3.0, 1.5]])
 
 
-def _lti_loop(*, N=1, steps=40, uplink=None, buffer=0, K=K2, A=A2, trigger=None, **kw):
+_COST = nc.Quadratic(Q=[1.0, 1.0], R=[0.1])
+
+
+def _lti_loop(*, N=1, steps=40, uplink=None, buffer=0, K=K2, A=A2, trigger=None, cost=_COST, **kw):
     plant = nc.LTI(A=A, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
     ekf = nc.EKF(plant, Q=np.diag([0.01, 0.02]) ** 2, R=np.eye(1) * 0.05**2, mean0=[0.0, 0.0], cov0=np.eye(2),
                  buffer=buffer)
     return nc.Loop(plant=plant, trigger=trigger or nc.Periodic(), uplink=uplink or nc.Link(), estimator=ekf,
                    controller=nc.StateFeedback(K), downlink=nc.Link(), actuator=nc.HoldLast(),
-                   cost=nc.Quadratic(Q=[1.0, 1.0], R=[0.1]), N=N, steps=steps, T=0.1, **kw)
+                   cost=cost, N=N, steps=steps, T=0.1, **kw)
 
 
 def _kf_lqr_reference(loop, d):
@@ -257,12 +260,14 @@ def test_tau_max_of_whole_periods_keeps_a_delay_of_exactly_that_many_periods():
 def test_selective_recording_keeps_the_values_and_drops_the_rest():
     key = jax.random.PRNGKey(4)
     full = jax.jit(nc.simulate)(_lti_loop(), key)
-    part = jax.jit(nc.simulate)(_lti_loop(record=("xhat", "sent_sc")), key)
+    part = jax.jit(nc.simulate)(_lti_loop(record=("xhat", "sent_sc"), cost=None), key)
     np.testing.assert_array_equal(np.asarray(part.xhat), np.asarray(full.xhat))
     np.testing.assert_array_equal(np.asarray(part.sent_sc), np.asarray(full.sent_sc))
     assert part.x.size == 0 and part.u.size == 0 and part.z.size == 0
     np.testing.assert_array_equal(np.asarray(part.final_plant), np.asarray(full.final_plant))
-    assert np.isnan(float(nc.evaluate(_lti_loop(record=("xhat",)), part).cost_raw))   # no x, u: no cost
+    assert np.isnan(float(nc.evaluate(_lti_loop(record=("xhat",), cost=None), part).cost_raw))   # no cost
+    with pytest.raises(ValueError, match="Loop.cost needs the signals x and u recorded"):
+        _lti_loop(record=("xhat",))
     with pytest.raises(ValueError, match="Loop.record must be True, False, a tuple of names"):
         _lti_loop(record=("states",))
 
@@ -320,14 +325,14 @@ def test_a_record_spec_keeps_functions_of_the_roles_states_in_parts():
     base = _lti_loop(N=2, steps=20)
     key = jax.random.PRNGKey(1)
     spec = nc.Record(signals=("x", "xhat"), plant=_twice_position, estimator=_post_mean, actuator=_stamp_of_actuator)
-    tr = jax.jit(nc.simulate)(dataclasses.replace(base, record=spec), key)
+    tr = jax.jit(nc.simulate)(dataclasses.replace(base, record=spec, cost=None), key)
     assert set(tr.parts) == {"plant", "estimator", "actuator"}
     assert tr.parts["plant"].shape == (20,) and tr.parts["estimator"].shape == (10, 2)
     np.testing.assert_allclose(np.asarray(tr.parts["plant"][:-1]), 2.0 * np.asarray(tr.x[1:, 0]), rtol=1e-6)
     # the packet of slow instant k is stamped kN and applied from then (no delay)
     np.testing.assert_array_equal(np.asarray(tr.parts["actuator"]), np.repeat(np.arange(10) * 2, 2))
     assert tr.u.size == 0 and tr.z.size == 0                    # not among the signals
-    none = jax.jit(nc.simulate)(dataclasses.replace(base, record=("x",)), key)
+    none = jax.jit(nc.simulate)(dataclasses.replace(base, record=("x",), cost=None), key)
     assert none.parts == {}
     with pytest.raises(ValueError, match="Record.signals must be a tuple of names"):
         nc.Record(signals=("x", "plant"))

@@ -16,13 +16,13 @@ from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDela
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
-from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Record,
-                               Trajectory, draw, evaluate, run, run_seed, simulate)
+from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
+                               Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
 
 __all__ = [
     "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
-    "Quadratic", "Context", "STREAMS", "SIGNALS", "PARTS",
+    "Quadratic", "FunctionCost", "Context", "STREAMS", "SIGNALS", "PARTS",
     "AbstractPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
     "AbstractFastEstimator", "AbstractSenderCopyController", "AbstractSenderCopyActuator", "AbstractLoss",
     "AbstractDelay", "Packet", "Inbox", "blend", "pytree_dataclass", "static_field",

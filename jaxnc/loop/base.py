@@ -135,6 +135,16 @@ class AbstractPlant(abc.ABC):
     model of an estimator (``jax.jacfwd(plant.dynamics)``).
     """
 
+    #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
+    #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
+    #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
+    #: "estimate"),)}``; ``()`` is a scalar)
+    field_shapes: ClassVar[dict] = {}
+
+    #: the plant's own fast period in seconds, when it has one (a Loop checks that its T
+    #: equals it); None: the plant takes the loop's
+    T = None
+
     #: int: state, input, process-noise and output/measurement-noise dimensions
     state_dim: int
     input_dim: int
@@ -174,6 +184,12 @@ class AbstractTrigger(abc.ABC):
     """Decides at each slow instant whether a signal is sent (sensor side: z; controller
     side: the first action of a packet)."""
 
+    #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
+    #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
+    #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
+    #: "estimate"),)}``; ``()`` is a scalar)
+    field_shapes: ClassVar[dict] = {}
+
     @abc.abstractmethod
     def init(self, ctx):
         """State before the first instant, for a signal of ``ctx.signal_dim`` entries (the
@@ -193,6 +209,12 @@ class AbstractEstimator(abc.ABC):
     ``"believed"`` (the controller's own packets as if delivered at once: what a remote
     filter knows; the runner then keeps that copy of the actuator) or ``"applied"`` (the
     actions the actuator applied: a filter collocated with it)."""
+
+    #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
+    #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
+    #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
+    #: "estimate"),)}``; ``()`` is a scalar)
+    field_shapes: ClassVar[dict] = {}
 
     inputs: ClassVar[str] = "believed"
 
@@ -227,6 +249,12 @@ class AbstractFastEstimator(AbstractEstimator):
 class AbstractController(abc.ABC):
     """Computes a packet of actions from the estimate at a slow instant."""
 
+    #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
+    #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
+    #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
+    #: "estimate"),)}``; ``()`` is a scalar)
+    field_shapes: ClassVar[dict] = {}
+
     #: int: number of fast actions per packet (static; a dataclass field or property may
     #: override it)
     horizon = 1
@@ -255,6 +283,12 @@ class AbstractSenderCopyController(AbstractController):
 
 class AbstractActuator(abc.ABC):
     """Applies, every fast period, an action from the packets it has received."""
+
+    #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
+    #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
+    #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
+    #: "estimate"),)}``; ``()`` is a scalar)
+    field_shapes: ClassVar[dict] = {}
 
     @abc.abstractmethod
     def init(self, ctx):

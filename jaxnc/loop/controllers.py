@@ -48,6 +48,9 @@ class StateFeedback(_OneAction):
     Attributes: K float[m, n]; x_ref float[n] (default 0); u_min, u_max float[m] or None.
     """
 
+    field_shapes = {"K": (("input", "estimate"),), "x_ref": ((), ("estimate",)), "u_min": ((), ("input",)),
+                    "u_max": ((), ("input",))}
+
     K: Any
     x_ref: Any = 0.0
     u_min: Any = None

@@ -112,6 +112,16 @@ class EKF(AbstractEstimator):
             raise ValueError("EKF.Q's variances must be >= 0")
 
     def init(self, ctx) -> EKFState:
+        """The prior at t = 0 and an empty window. Raises ValueError when the model does not
+        take the plant's actions or give its measurements, or when the uplink's ring is too
+        short for the window (a measurement already used would be dropped when re-run)."""
+        mdl = self.model
+        if (mdl.input_dim, mdl.output_dim) != (ctx.input_dim, ctx.output_dim):
+            raise ValueError(f"EKF.model takes {mdl.input_dim} inputs and gives {mdl.output_dim} outputs, the plant "
+                             f"takes {ctx.input_dim} and gives {ctx.output_dim}")
+        if ctx.uplink_capacity and ctx.uplink_capacity <= self.buffer:
+            raise ValueError(f"EKF.buffer={self.buffer} re-runs {self.buffer} slow periods of measurements, so the "
+                             f"uplink's capacity must be >= {self.buffer + 1}, got {ctx.uplink_capacity}")
         g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
         if self.form == "sqrt":
             g = SqrtGaussian.of(g)
@@ -159,6 +169,8 @@ class EKF(AbstractEstimator):
 @_dataclass
 class Passthrough(AbstractEstimator):
     """The newest delivered measurement, held (no model). ``z0``: float[p] before the first."""
+
+    field_shapes = {"z0": ((), ("output",))}
 
     z0: Any = 0.0
 

@@ -54,6 +54,14 @@ NEVER = 2**30          # arrival instant of a packet that never arrives
 _F32 = jnp.float32
 
 
+def _scalars(obj, *names):
+    """The named fields are single numbers (a model draws one value per packet from them)."""
+    for n in names:
+        v = getattr(obj, n)
+        if v is not None and concrete(v) and np.ndim(v) != 0:
+            raise ValueError(f"{type(obj).__name__}.{n} must be a single number, got shape {np.shape(v)}")
+
+
 # ----------------------------------------------------------------------------- loss models
 
 
@@ -75,6 +83,7 @@ class Bernoulli(AbstractLoss):
     def __post_init__(self):
         check_given("Bernoulli.p", self.p)
         check_range("Bernoulli.p", self.p, 0.0, 1.0, high_open=True)
+        _scalars(self, "p")
 
     def sample(self, key, n: int):
         return jax.random.uniform(key, (n,), _F32) < jnp.asarray(self.p, _F32)
@@ -96,6 +105,7 @@ class GilbertElliott(AbstractLoss):
             check_given(f"GilbertElliott.{n}", getattr(self, n))
             check_range(f"GilbertElliott.{n}", getattr(self, n), 0.0, 1.0)
         check_range("GilbertElliott.p_bg", self.p_bg, 0.0, 1.0, low_open=True)
+        _scalars(self, "p_gb", "p_bg", "loss_good", "loss_bad")
 
     def stationary_loss(self):
         """Long-run loss rate: pi_b loss_bad + (1 - pi_b) loss_good, pi_b = p_gb / (p_gb + p_bg)."""
@@ -183,6 +193,7 @@ class ShiftedExponential(AbstractDelay):
         check_given("ShiftedExponential.phi", self.phi)
         check_nonneg("ShiftedExponential.eta", self.eta)
         check_nonneg("ShiftedExponential.phi", self.phi)
+        _scalars(self, "eta", "phi")
 
     def seconds(self, e):
         """The delay for standard exponential draws ``e``."""
@@ -217,6 +228,7 @@ class TruncatedExponential(AbstractDelay):
         check_nonneg("TruncatedExponential.eta", self.eta)
         check_nonneg("TruncatedExponential.phi", self.phi)
         check_range("TruncatedExponential.tau_max", self.tau_max, 0.0, None)
+        _scalars(self, "eta", "phi", "tau_max")
         try:
             if float(self.tau_max) < float(self.eta):
                 raise ValueError(f"TruncatedExponential.tau_max must be >= eta={float(self.eta):g}, "
@@ -373,6 +385,7 @@ class Link:
         check_bool("Link.reliable_first", self.reliable_first)
         if self.tau_max is not None:
             check_range("Link.tau_max", self.tau_max, 0.0, None)
+            _scalars(self, "tau_max")
 
     # -- before the run
     def delay_bounds(self, T: float):

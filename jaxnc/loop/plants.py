@@ -51,8 +51,12 @@ def _dims(f, h, x0, input_dim, noise_dim):
     except Exception as e:  # noqa: BLE001 - re-raised with the user-facing name
         raise ValueError(f"f(x, u, w) failed on x0 (shape {x0.shape}), u of shape ({input_dim},), "
                          f"w of shape ({noise_dim},): {e}") from e
+    if not isinstance(x1, jax.ShapeDtypeStruct):
+        raise ValueError(f"f(x, u, w) must return one array (the next state), got {jax.tree.structure(x1)}")
     if x1.shape != x0.shape:
         raise ValueError(f"f(x, u, w) must return the state's shape {x0.shape}, got {x1.shape}")
+    if x1.dtype != jnp.float32:
+        raise ValueError(f"f(x, u, w) must return float32 values (the state's dtype), got {x1.dtype}")
     return x0
 
 
@@ -89,10 +93,19 @@ class Discrete(AbstractPlant):
         check_int("Discrete.output_dim", self.output_dim, 1, 10_000)
         if fields_concrete(self):
             object.__setattr__(self, "x0", np.asarray(self.x0, np.float32))
+            if self.x0.ndim != 1:
+                raise ValueError(f"{cls}.x0 must be a vector (the state), got shape {self.x0.shape}")
             x0 = _dims(self.f, self.h, self.x0, self.input_dim, self.noise_dim)
-            z = jax.eval_shape(self.h, x0, jnp.zeros((self.output_dim,), jnp.float32))
-            if z.shape != (self.output_dim,):
-                raise ValueError(f"h(x, v) must return output_dim={self.output_dim} values, got shape {z.shape}")
+            try:
+                z = jax.eval_shape(self.h, x0, jnp.zeros((self.output_dim,), jnp.float32))
+            except Exception as e:  # noqa: BLE001 - re-raised with the user-facing name
+                raise ValueError(f"h(x, v) failed on x0 (shape {x0.shape}), v of shape ({self.output_dim},): "
+                                 f"{e}") from e
+            if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (self.output_dim,):
+                raise ValueError(f"h(x, v) must return output_dim={self.output_dim} values, got "
+                                 f"{z.shape if isinstance(z, jax.ShapeDtypeStruct) else jax.tree.structure(z)}")
+            if z.dtype != jnp.float32:
+                raise ValueError(f"h(x, v) must return float32 values, got {z.dtype}")
             object.__setattr__(self, "w_std", _vec("w_std", self.w_std, self.noise_dim))
             object.__setattr__(self, "v_std", _vec("v_std", self.v_std, self.output_dim))
 
@@ -156,8 +169,8 @@ class LTI(AbstractPlant):
 
     Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m] (must be 0 or
     None: z is sampled before u is applied), G float[n, q] (default identity: w is
-    additive state noise), x0 float[n], w_std float[q], v_std float[p], T seconds
-    (informative), state_names (static, optional): a tuple of n distinct names of the
+    additive state noise), x0 float[n], w_std float[q], v_std float[p], T seconds (the
+    period it was sampled at, checked against the loop's; None: the loop's), state_names (static, optional): a tuple of n distinct names of the
     states, e.g. carried from a python-control model (:meth:`from_control`). Raises
     ValueError (naming the field) for shapes that do not match, a non-finite entry, a
     nonzero D, negative stds, T <= 0 or state_names that are not n distinct strings.
@@ -171,7 +184,7 @@ class LTI(AbstractPlant):
     x0: Any = None
     w_std: Any = 0.0
     v_std: Any = 0.0
-    T: Any = 1.0
+    T: Any = None
     state_names: Any = _static(None)
 
     def __post_init__(self):
@@ -184,7 +197,7 @@ class LTI(AbstractPlant):
             object.__setattr__(self, "state_names", tuple(names))
         for n in ("A", "B", "C", "D", "G", "x0"):
             check_finite(f"LTI.{n}", getattr(self, n))
-        for n in ("w_std", "v_std", "T"):
+        for n in ("w_std", "v_std"):
             check_given(f"LTI.{n}", getattr(self, n))
         array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std")
         if not fields_concrete(self):
@@ -212,7 +225,8 @@ class LTI(AbstractPlant):
         x0 = np.zeros(n, np.float32) if self.x0 is None else np.asarray(self.x0, np.float32)
         if x0.shape != (n,):
             raise ValueError(f"LTI.x0 must have {n} entries, got shape {x0.shape}")
-        check_positive("LTI.T", self.T)
+        if self.T is not None:
+            check_positive("LTI.T", self.T)
         if self.state_names is not None and len(self.state_names) != n:
             raise ValueError(f"LTI.state_names must name the {n} states, got {len(self.state_names)} names")
         for name, v in (("A", A), ("B", B), ("C", C), ("D", D), ("G", G)):

@@ -15,7 +15,7 @@ is data (inf in :class:`Metrics`), never an exception or a NaN in a batch.
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import dataclasses
 
@@ -33,7 +33,7 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.links import Link, LinkDraws
 
-__all__ = ["Loop", "Record", "Monitor", "Quadratic", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
+__all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
            "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
 
 #: the draw streams of a run: stream i uses ``fold_in(key, i)``
@@ -44,7 +44,8 @@ class Context(NamedTuple):
     """Static facts about the loop that components need to build their state.
 
     ``signal_dim`` is the size of the signal a trigger watches (the runner sets it: the
-    measurement's for the sensor's trigger, an action's for the controller's; 0 elsewhere)."""
+    measurement's for the sensor's trigger, an action's for the controller's; 0 elsewhere);
+    ``uplink_capacity`` the uplink's ring length C (the packets an estimator can look back on)."""
 
     N: int
     steps: int
@@ -53,6 +54,7 @@ class Context(NamedTuple):
     input_dim: int
     output_dim: int
     signal_dim: int = 0
+    uplink_capacity: int = 0
 
 
 SIGNALS = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca")
@@ -116,6 +118,8 @@ class Monitor:
     inf where unbounded; None: only non-finite). ``freeze`` (static): hold the plant at its
     last good state once failed."""
 
+    field_shapes: ClassVar[dict] = {"bounds": ((), ("state",))}
+
     bounds: Any = None
     freeze: bool = _static(True)
 
@@ -132,10 +136,25 @@ class Monitor:
 
 
 @_dataclass
+class FunctionCost:
+    """A plain Python function ``fn(x float[K, n], u float[K, m]) -> scalar`` as a loop's
+    cost: static (part of the compiled program, compared by identity), so a ``Loop`` holding
+    it can be passed to ``jit``/``run_batched``. ``Loop(cost=fn)`` wraps a function in it."""
+
+    fn: Any = _static()
+
+    def __call__(self, x, u):
+        return self.fn(x, u)
+
+
+@_dataclass
 class Quadratic:
     """Cost J = (1/K) sum_t (x_t - x_ref)' Q (x_t - x_ref) + u_t' R u_t over the fast instants.
 
     Q float[n, n] or float[n] (diagonal), R float[m, m] or float[m]."""
+
+    field_shapes: ClassVar[dict] = {"Q": (("state",), ("state", "state")), "R": (("input",), ("input", "input")),
+                                    "x_ref": ((), ("state",))}
 
     Q: Any
     R: Any
@@ -216,13 +235,25 @@ class Loop:
         check_instance("Loop.monitor", self.monitor, Monitor, "a jaxnc.loop.Monitor")
         if self.cost is not None:
             check_callable("Loop.cost", self.cost, "a function cost(x, u) -> scalar (e.g. jaxnc.loop.Quadratic) or None")
+            if jax.tree.leaves(self.cost) == [self.cost]:       # a plain function: part of the program
+                object.__setattr__(self, "cost", FunctionCost(self.cost))
         object.__setattr__(self, "record", Record.of(self.record))
         check_int("Loop.N", self.N, 1, 100_000)
         check_int("Loop.steps", self.steps, self.N, None)
         if self.steps % self.N:
             raise ValueError(f"Loop.steps must be a multiple of N={self.N}, got {self.steps}")
-        if not (isinstance(self.T, (int, float)) and np.isfinite(self.T) and self.T > 0):
+        if isinstance(self.T, (np.floating, np.integer)):
+            object.__setattr__(self, "T", float(self.T))        # a numpy scalar: a plain float (static)
+        if isinstance(self.T, bool) or not (isinstance(self.T, (int, float)) and np.isfinite(self.T) and self.T > 0):
             raise ValueError(f"Loop.T must be a number > 0 (seconds), got {self.T!r}")
+        plant_T = self.plant.T
+        if plant_T is not None and concrete(plant_T) and np.ndim(plant_T) == 0 \
+                and abs(float(plant_T) - float(self.T)) > 1e-6 * float(self.T):      # float32 rounding
+            raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the plant's fast period "
+                             f"Loop.plant.T ({float(plant_T):g} s)")
+        if self.cost is not None and not ({"x", "u"} <= set(self.record.signals)):
+            raise ValueError(f"Loop.cost needs the signals x and u recorded, but Loop.record keeps only "
+                             f"{self.record.signals}: add them, or set cost=None")
         H = self.controller.horizon
         if isinstance(self.actuator, PacketActuator) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
@@ -245,32 +276,12 @@ class Loop:
             self._check_dims()
 
     def _check_dims(self):
-        """The roles fit together: the controller acts on the estimator's estimate and its
-        actions have the plant's input dimension (shapes only, by jax.eval_shape)."""
-        if isinstance(self.controller, AbstractSenderCopyController):
-            return                      # its packets continue the runner's copy: checked when traced
+        """The roles fit together (:func:`_check_fit`), once per loop structure."""
         leaves, treedef = jax.tree.flatten(self)
         key = (treedef, tuple((np.shape(a), str(getattr(a, "dtype", type(a)))) for a in leaves))
         if key in _FITTED:
             return
-        ctx = self.ctx
-        try:
-            xhat = jax.eval_shape(lambda: _first_estimate(self, ctx))
-        except Exception as e:  # noqa: BLE001 - re-raised naming the role
-            raise ValueError(f"Loop.estimator does not fit the plant (state_dim={ctx.state_dim}, "
-                             f"output_dim={ctx.output_dim}): {_one_line(e)}") from e
-        shapes = [a.shape for a in jax.tree.leaves(xhat)]
-        try:
-            pkt = jax.eval_shape(lambda: self.controller.step(
-                self.controller.init(ctx), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), xhat),
-                jnp.float32(1), jnp.int32(0), ctx)[1])
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"Loop.controller cannot act on the estimator's estimate "
-                             f"(shape {shapes[0] if len(shapes) == 1 else shapes}): {_one_line(e)}") from e
-        u = pkt.data
-        if isinstance(u, jax.ShapeDtypeStruct) and u.shape[-1:] != (ctx.input_dim,):
-            raise ValueError(f"Loop.controller's actions have shape {u.shape[1:]}, the plant takes "
-                             f"input_dim={ctx.input_dim} inputs")
+        _check_fit(self)
         if len(_FITTED) > 256:
             _FITTED.clear()
         _FITTED.add(key)
@@ -278,7 +289,8 @@ class Loop:
     @property
     def ctx(self) -> Context:
         p = self.plant
-        return Context(self.N, self.steps, float(self.T), int(p.state_dim), int(p.input_dim), int(p.output_dim))
+        return Context(self.N, self.steps, float(self.T), int(p.state_dim), int(p.input_dim), int(p.output_dim),
+                       uplink_capacity=int(self.uplink.capacity))
 
 
 def _first_estimate(loop: Loop, ctx: Context):
@@ -286,6 +298,134 @@ def _first_estimate(loop: Loop, ctx: Context):
     z0 = jnp.zeros((ctx.output_dim,), jnp.float32)
     inbox, _ = loop.uplink.inbox(loop.uplink.init(z0), jnp.int32(0))
     return loop.estimator.correct(loop.estimator.init(ctx), inbox, jnp.int32(0))[1]
+
+
+def _shapes(tree) -> str:
+    leaves = jax.tree.leaves(tree)
+    got = [f"{a.dtype}{list(a.shape)}" for a in leaves]
+    return got[0] if len(got) == 1 else "(" + ", ".join(got) + ")"
+
+
+def _same_structure(name: str, before, after) -> None:
+    """A role's state keeps its structure, shapes and dtypes from one step to the next."""
+    sig = lambda t: (jax.tree.structure(t), [(a.shape, a.dtype) for a in jax.tree.leaves(t)])
+    if sig(before) != sig(after):
+        raise ValueError(f"{name} returns a state of {_shapes(after)}, but its init gave {_shapes(before)}: "
+                         f"a state must keep its shapes and dtypes from step to step")
+
+
+def _stage(name: str, what: str, fn):
+    """jax.eval_shape(fn), re-raising any failure as a ValueError naming the role."""
+    try:
+        return jax.eval_shape(fn)
+    except Exception as e:  # noqa: BLE001 - re-raised naming the role
+        raise ValueError(f"{name} {what}: {_one_line(e)}") from e
+
+
+def _check_field_shapes(name: str, part, dims: dict) -> None:
+    """A part's declared ``field_shapes`` ({field: allowed shapes as tuples of dimension
+    names}) against the loop's sizes."""
+    for field, allowed in type(part).field_shapes.items():
+        v = getattr(part, field)
+        if v is None or not concrete(v):
+            continue
+        shape = np.shape(v)
+        options = [tuple(dims[d] for d in a) for a in allowed]
+        if shape not in options:
+            said = " or ".join("a scalar" if not a else f"shape {tuple(dims[d] for d in a)} ("
+                              + ", ".join(f"{d} = {dims[d]}" for d in a) + ")" for a in allowed)
+            raise ValueError(f"{name}.{field} has shape {shape}; in this loop it must be {said}")
+
+
+def _check_fit(loop: Loop) -> None:
+    """Every role fits the others, checked on shapes and dtypes only (``jax.eval_shape``
+    over one step of every role), when the loop is built: the plant's step keeps its
+    state and returns floats, its measurement has ``output_dim`` floats; each part's
+    declared ``field_shapes`` match the loop's sizes; every role's state keeps its shapes
+    from step to step; the controller acts on the estimator's output and its actions have
+    the plant's ``input_dim``; the cost is a scalar. A mismatch raises a ValueError naming
+    the part, the field and both sizes."""
+    ctx = loop.ctx
+    n, m, p = ctx.state_dim, ctx.input_dim, ctx.output_dim
+    plant = loop.plant
+    f32 = lambda shape: jnp.zeros(shape, jnp.float32)
+    x0 = _stage("Loop.plant", "cannot build its initial state", lambda: plant.init(jax.random.PRNGKey(0)))
+    xv = _stage("Loop.plant", "cannot give its state vector", lambda: plant.state_vector(_zeros(x0)))
+    if not isinstance(xv, jax.ShapeDtypeStruct) or xv.shape != (n,):
+        raise ValueError(f"Loop.plant's state vector is {_shapes(xv)}, its state_dim is {n}: the initial state "
+                         f"(e.g. x0) must be a vector of {n} numbers")
+    x1 = _stage("Loop.plant", f"cannot step (u float32[{m}], w float32[{plant.noise_dim}])",
+                lambda: plant.step(_zeros(x0), f32((m,)), f32((plant.noise_dim,))))
+    _same_structure("Loop.plant's step", x0, x1)
+    z = _stage("Loop.plant", f"cannot measure (v float32[{p}])", lambda: plant.measure(_zeros(x0), f32((p,))))
+    if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (p,) or z.dtype != jnp.float32:
+        raise ValueError(f"Loop.plant's measurement is {_shapes(z)}; it must be float32[{p}] (output_dim={p})")
+    dims = dict(state=n, input=m, output=p)
+    for name in ("plant", "trigger", "estimator", "actuator", "controller_trigger", "monitor", "cost"):
+        part = getattr(loop, name)
+        if part is not None and (name != "cost" or isinstance(part, Quadratic)):
+            _check_field_shapes(f"Loop.{name}", part, dict(dims, signal=p if name == "trigger" else m))
+    # the sensor's trigger
+    tctx = ctx._replace(signal_dim=p)
+    t0 = _stage("Loop.trigger", "cannot build its state", lambda: loop.trigger.init(tctx))
+    t1, send = _stage("Loop.trigger", f"cannot decide on a measurement float32[{p}]",
+                      lambda: loop.trigger.step(_zeros(t0), f32((p,)), jnp.int32(1)))
+    _same_structure("Loop.trigger's step", t0, t1)
+    if send.shape != ():
+        raise ValueError(f"Loop.trigger's send decision is {_shapes(send)}; it must be a scalar 0/1 float")
+    if isinstance(loop.controller, AbstractSenderCopyController):
+        return                      # its packets continue the runner's copy: checked when traced
+    # estimator and controller
+    e0 = _stage("Loop.estimator", f"cannot build its state (state_dim={n}, output_dim={p})",
+                lambda: loop.estimator.init(ctx))
+    e1, xhat = _stage("Loop.estimator", f"does not fit the plant (state_dim={n}, output_dim={p}, input_dim={m})",
+                      lambda: loop.estimator.correct(_zeros(e0), _first_inbox(loop, ctx), jnp.int32(0)))
+    _same_structure("Loop.estimator's correct", e0, e1)
+    shapes = _shapes(xhat)
+    if isinstance(xhat, jax.ShapeDtypeStruct) and xhat.ndim == 1:
+        _check_field_shapes("Loop.controller", loop.controller, dict(dims, estimate=xhat.shape[0]))
+    c0 = _stage("Loop.controller", "cannot build its state", lambda: loop.controller.init(ctx))
+    c1, pkt, send_ca = _stage("Loop.controller", f"cannot act on the estimator's estimate {shapes}",
+                              lambda: loop.controller.step(_zeros(c0), _zeros(xhat), jnp.float32(1), jnp.int32(0), ctx))
+    _same_structure("Loop.controller's step", c0, c1)
+    u = pkt.data
+    if isinstance(u, jax.ShapeDtypeStruct) and u.shape[-1:] != (m,):
+        raise ValueError(f"Loop.controller's actions have shape {u.shape[1:]}, the plant takes input_dim={m} inputs")
+    if isinstance(u, jax.ShapeDtypeStruct) and u.shape[:1] != (loop.controller.horizon,):
+        raise ValueError(f"Loop.controller's packet has {u.shape[0]} actions, its horizon is {loop.controller.horizon}")
+    us = f32((loop.N, m))
+    e2 = _stage("Loop.estimator", f"cannot predict over a period (actions float32[{loop.N}, {m}])",
+                lambda: loop.estimator.predict(_zeros(e1), us, us, jnp.int32(0))
+                if not isinstance(loop.estimator, AbstractFastEstimator)
+                else loop.estimator.predict_fast(_zeros(e1), us[0], us[0], jnp.int32(0), jnp.int32(0)))
+    _same_structure("Loop.estimator's prediction", e0, e2)
+    if loop.controller_trigger is not None and isinstance(u, jax.ShapeDtypeStruct):
+        cctx = ctx._replace(signal_dim=m)
+        ct0 = _stage("Loop.controller_trigger", "cannot build its state", lambda: loop.controller_trigger.init(cctx))
+        ct1, _ = _stage("Loop.controller_trigger", f"cannot decide on an action float32[{m}]",
+                        lambda: loop.controller_trigger.step(_zeros(ct0), f32((m,)), jnp.int32(1)))
+        _same_structure("Loop.controller_trigger's step", ct0, ct1)
+    # actuator
+    a0 = _stage("Loop.actuator", "cannot build its state", lambda: loop.actuator.init(ctx))
+    a1, ua = _stage("Loop.actuator", "cannot output an action", lambda: loop.actuator.output(_zeros(a0), jnp.int32(0)))
+    _same_structure("Loop.actuator's output", a0, a1)
+    if ua.shape != (m,):
+        raise ValueError(f"Loop.actuator's action is {_shapes(ua)}; the plant takes float32[{m}]")
+    if loop.cost is not None:
+        K = loop.steps
+        J = _stage("Loop.cost", f"cannot evaluate cost(x float32[{K}, {n}], u float32[{K}, {m}])",
+                   lambda: loop.cost(f32((K, n)), f32((K, m))))
+        if not isinstance(J, jax.ShapeDtypeStruct) or J.shape != ():
+            raise ValueError(f"Loop.cost must return a scalar, got {_shapes(J)}")
+
+
+def _zeros(tree):
+    return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), tree)
+
+
+def _first_inbox(loop: Loop, ctx: Context):
+    inbox, _ = loop.uplink.inbox(loop.uplink.init(jnp.zeros((ctx.output_dim,), jnp.float32)), jnp.int32(0))
+    return inbox
 
 
 _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, Continuous)"),

@@ -92,6 +92,9 @@ class Petc(AbstractTrigger):
       relaxed: static; the forward pass is the sigmoid too (needs temperature > 0).
     """
 
+    field_shapes = {"sigma": ((), ("signal",)), "delta": ((), ("signal",)), "temperature": ((),),
+                    "max_silence": ((),)}
+
     sigma: Any = 0.0
     delta: Any = 0.0
     temperature: Any = 0.0
