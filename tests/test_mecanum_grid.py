@@ -41,7 +41,7 @@ def test_interrupted_grid_resumes_and_gives_identical_tables(tmp_path):
     # cell files get the same mode as results.json (they were 0600 from mkstemp)
     modes = {f.name: f.stat().st_mode & 0o777 for f in [a / "results.json", *(a / "cells").rglob("*.*")]}
     assert len(set(modes.values())) == 1, modes
-    f = mg.cell_file(a, "turn180", 2, "DRH", 0.3)
+    f = mg.cell_files(a, SETTINGS, 4)[("turn180", 2, "DRH", 0.3)]
     f.write_text('{"config": ')
     assert mg.run_grid(SETTINGS, seeds=4, out=a, progress=False)["computed"] == 1
     assert _outputs(a) == _outputs(b)

@@ -63,7 +63,8 @@ def test_cli_run_writes_tables_results_and_resumes(tmp_path, capsys):
     tables = (tmp_path / "tables.md").read_text()
     assert "1.23" in tables                                        # the paper's DRHE J1 at N=2, DP=0.4
     assert (tmp_path / "fig15_16.png").stat().st_size > 10_000
-    arrays = np.load(tmp_path / "cells" / "DRHE_N2_dp0.40.npz")
+    [f] = (tmp_path / "cells").glob("DRHE_N2_dp0.4-*.npz")            # named by its whole configuration
+    arrays = np.load(f)
     assert arrays["J1"].shape == (2,)
     # a rerun reuses every stored cell: the same tables
     stamp = {f: f.stat().st_mtime_ns for f in (tmp_path / "cells").glob("*.json")}

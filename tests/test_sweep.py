@@ -112,7 +112,7 @@ def test_two_shards_assemble_the_tables_of_an_unsharded_run_and_a_killed_shard_l
     script = _CHILD.format(root=str(ROOT), settings=GRID, seeds=SEEDS, out=str(shared))
     child = subprocess.Popen([sys.executable, "-c", textwrap.dedent(script)], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    files = [mg.cell_file(shared, *c) for c in first]
+    files = [mg.cell_files(shared, GRID, SEEDS)[c] for c in first]
     try:
         deadline = time.monotonic() + 240
         while not any(f.exists() for f in files):
