@@ -160,7 +160,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           " path; 'paper' Table 2's values\n")
     print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, results, dims=("case",))
+    per_seed.save_per_seed(out, results, dims=("case",), experiment="diffdrive")
     f1, f2 = plot_paths({n: l for n, l in loops.items() if n in FIGURE_ROWS}, keys[0], out)
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,
@@ -321,4 +321,5 @@ SENSITIVITY = register(Experiment(
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run_sensitivity,
+    keeps_cells=True,
 ))

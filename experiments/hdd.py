@@ -188,7 +188,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           f"CS = {100 * cs:.0f} % (paper 33 %)\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, runs, dims=("case",))
+    per_seed.save_per_seed(out, runs, dims=("case",), experiment="hdd")
     figs = [plot_bode(out, settings["reading"])]
     for c, loop in loops.items():
         traj = jax.device_get(jax.jit(hdd.simulate)(loop, keys[0]))
@@ -360,4 +360,5 @@ EXPERIMENT_GPI = register(Experiment(
              Option("tc_max", "float", 1.0, "largest delta_c = sigma_c", low=1e-12, high=10.0),
              *_OPTS),
     run=run_gpi,
+    keeps_cells=True,
 ))

@@ -483,4 +483,5 @@ EXPERIMENT = register(Experiment(
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,
+    keeps_cells=True,
 ))
