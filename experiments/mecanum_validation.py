@@ -34,6 +34,7 @@ import math
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -108,11 +109,14 @@ def cell_file(out: Path, cfg: dict) -> Path:
 
 
 def _cell_config(settings: dict, seeds: int, cell, loop) -> dict:
+    """What a cell's result depends on (its file is named by it; a stored cell is reused
+    only if it matches): the chunk and device count set the float32 rounding."""
     case, N, dp = cell
     return {"case": case, "N": N, "dp": dp, "h": int(loop.h), "steps": loop.steps, "seeds": seeds,
             "seed": settings["seed"], "plant": settings["plant"], "path": settings["path"],
             "scale": settings["scale"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
-            "L_ref": settings["L_ref"], "version": _version()}
+            "L_ref": settings["L_ref"], "chunk": settings["chunk"], "devices": len(jax.local_devices()),
+            "version": _version()}
 
 
 def _summary(m: mec.Metrics) -> dict:
