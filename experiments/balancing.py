@@ -354,7 +354,8 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
     design_cfg = {k: settings[k] for k in _DESIGN_KEYS}
     results, todo, compute_s = {}, [], {}
     cfgs = {(a, v, d): {"design_options": design_cfg, "seeds": seeds, "axis": a, "value": v, "design": d,
-                        "channel": _channel_config(channels[(a, v)]), "kf_tilt": settings["kf_tilt"]}
+                        "channel": _channel_config(channels[(a, v)]), "kf_tilt": settings["kf_tilt"],
+                        "chunk": settings["chunk"], "devices": len(jax.local_devices())}
             for (a, v, d) in loops}
     for (a, v, d), cfg in cfgs.items():
         data = cells.load_cell(point_file(out, cfg), cfg)
