@@ -80,9 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "module (the current directory is importable, as with python -m), "
                         "e.g. mystudy:experiment")
     r.add_argument("--seeds", default=str(DEFAULT_SEEDS), metavar="N",
-                   help=f"number of Monte-Carlo seeds, an integer in [1, {2**32 - 1}] (default {DEFAULT_SEEDS})")
+                   help=f"number of Monte-Carlo seeds, an integer in [1, {2**32 - 1}] whose keys and results "
+                        f"fit in memory (default {DEFAULT_SEEDS})")
     r.add_argument("--out", default=None, metavar="DIR",
-                   help="output directory (default results/NAME, the experiment's name)")
+                   help="output directory (default results/NAME, the experiment's name); it holds one "
+                        "experiment's results (OUT/run.json): another experiment's folder, or finished results "
+                        "of other settings that this run would overwrite, are refused")
     r.add_argument("--set", "-s", dest="settings", action="extend", nargs="+", default=[],
                    metavar="KEY=VALUE", help="override a setting; repeatable (see 'jaxnc list')")
     r.add_argument("--no-progress", dest="progress", action="store_false",
