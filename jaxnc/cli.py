@@ -172,9 +172,12 @@ def _run(args) -> int:
     out = _writable_out(args.out, exp.name)
     from jaxnc import results
     try:
-        results.claim(out, exp.name, settings, seeds, keeps_cells=exp.keeps_cells)
+        other = results.claim(out, exp.name, settings, seeds, keeps_cells=exp.keeps_cells)
     except results.FolderError as e:
         raise ConfigError(f"--out: {e}") from None
+    if other:
+        sys.stderr.write(f"{PROG}: note: {out} holds {exp.name} cells of other settings ({'; '.join(other)}); "
+                         f"they are kept beside this run's, and the summary files will describe this run\n")
     if cpu_devices is not None:
         try:
             jax.config.update("jax_num_cpu_devices", cpu_devices)

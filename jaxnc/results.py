@@ -208,7 +208,7 @@ def _differences(there: dict, here: dict) -> list[str]:
             for k in keys if there.get(k) != here.get(k)]
 
 
-def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells: bool = False) -> None:
+def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells: bool = False) -> list[str]:
     """Record in ``folder/run.json`` that ``folder`` receives the results of ``experiment``
     run with ``settings`` and ``seeds`` (atomically; the folder must exist).
 
@@ -218,7 +218,9 @@ def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells
     would overwrite; the message names every differing setting. ``keeps_cells``: the
     experiment stores its results as cell files named by their whole configuration
     (:func:`jaxnc.sweep.cell_path`), so a run with other settings keeps its cells beside
-    the others' and only the summary files describe the latest run: allowed.
+    the others' and only the summary files describe the latest run: allowed, and the
+    differences are returned (``"key: A there, B here"``, empty when there are none) for
+    the caller to show.
     """
     from jaxnc.montecarlo import atomic_write
     folder = pathlib.Path(folder)
@@ -227,17 +229,19 @@ def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells
     if owner is not None and owner["experiment"] != experiment:
         raise FolderError(f"{folder} holds the results of experiment {owner['experiment']!r}, not {experiment!r}; "
                           f"choose another folder (or remove this one)")
-    if owner is not None and not keeps_cells and (folder / "results.json").exists() and owner["settings"] is not None:
+    diff = []
+    if owner is not None and owner["settings"] is not None:
         there = _plain({"settings": owner["settings"], "seeds": owner["seeds"]})
         diff = _differences(there["settings"], here["settings"])
         if there["seeds"] != here["seeds"]:
             diff.append(f"seeds: {_show(there['seeds'])} there, {here['seeds']} here")
-        if diff:
+        if diff and not keeps_cells and (folder / "results.json").exists():
             raise FolderError(f"{folder} holds the results of {experiment} with other settings ({'; '.join(diff)}), "
                               f"which this run would overwrite; choose another folder (or remove this one)")
     doc = {"format": RUN_FORMAT, "experiment": experiment, **here}
     text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
     atomic_write(folder / RUN_FILE, lambda fh: fh.write(text.encode("utf-8")))
+    return diff if keeps_cells else []
 
 
 # ----------------------------------------------------------------------------- reading
@@ -282,8 +286,8 @@ def _load_cells(folder: pathlib.Path, index: dict, results_file: pathlib.Path):
     runs = {}
     for i, row in enumerate(rows):
         if not isinstance(row, list) or len(row) != len(dims) + 1 or not isinstance(row[-1], str) or not row[-1]:
-            raise ValueError(f"{results_file}: per-seed index row {i} ({row!r}) must be [{', '.join(dims)}, file name]: "
-                             f"one coordinate per dimension, then the cell's file name")
+            raise ValueError(f"{results_file}: per-seed index row {i} ({row!r}) must be [{', '.join(dims)}, "
+                             f"file name]: one coordinate per dimension, then the cell's file name")
         key, rel = tuple(row[:-1]), row[-1]
         if pathlib.PurePosixPath(rel).is_absolute() or ".." in pathlib.PurePosixPath(rel).parts:
             raise ValueError(f"{results_file}: per-seed index row {i}: file name {rel!r} must be inside the folder")

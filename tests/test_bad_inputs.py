@@ -256,7 +256,10 @@ def test_results_file_errors_name_the_file(tmp_path):
 
 # ----------------------------------------------------------------------------- files, folders, memory (issue 33)
 
+from jaxnc import sweep as _sweep  # noqa: E402
+
 _GIB = 2 ** 30
+_SEEDS_RANGE = "config.seeds must be the number of seeds, an integer >= 1, got "
 
 
 @pytest.fixture
@@ -361,10 +364,10 @@ RESULTS_FOLDERS = [
     (lambda f: _toy_folder(f, config="many"), "'config' must be a mapping (a JSON object)"),
     (lambda f: _toy_folder(f, config=7), "'config' must be a mapping (a JSON object)"),
     (lambda f: _toy_folder(f, config={"settings": [1, 2], "seeds": 5}), "config.settings must be a mapping"),
-    (lambda f: _toy_folder(f, config={"seeds": "many"}), "config.seeds must be the number of seeds, an integer >= 1, got 'many'"),
-    (lambda f: _toy_folder(f, config={"seeds": 0}), "config.seeds must be the number of seeds, an integer >= 1, got 0"),
-    (lambda f: _toy_folder(f, config={"seeds": True}), "config.seeds must be the number of seeds, an integer >= 1, got True"),
-    (lambda f: _toy_folder(f, config={"seeds": 2.5}), "config.seeds must be the number of seeds, an integer >= 1, got 2.5"),
+    (lambda f: _toy_folder(f, config={"seeds": "many"}), _SEEDS_RANGE + "'many'"),
+    (lambda f: _toy_folder(f, config={"seeds": 0}), _SEEDS_RANGE + "0"),
+    (lambda f: _toy_folder(f, config={"seeds": True}), _SEEDS_RANGE + "True"),
+    (lambda f: _toy_folder(f, config={"seeds": 2.5}), _SEEDS_RANGE + "2.5"),
     (lambda f: _toy_folder(f, config={"seeds": 7}), "config.seeds is 7 but the per-seed files hold 5 seeds"),
     (lambda f: _grid_folder(f, [["A"]]), "per-seed index row 0 (['A']) must be [case, file name]"),
     (lambda f: _grid_folder(f, [["A", 3]]), "per-seed index row 0 (['A', 3]) must be [case, file name]"),
@@ -375,7 +378,8 @@ RESULTS_FOLDERS = [
     (lambda f: _grid_folder(f, [["A", "/etc/a.npz"]]), "file name '/etc/a.npz' must be inside the folder"),
     (lambda f: _grid_folder(f, "cells"), "damaged per-seed index"),
     (lambda f: _grid_folder(f, [], dims=(1,)), "damaged per-seed index"),
-    (lambda f: _with_run_file(f, "mecanum-grid"), "mixes the files of two experiments: results.json is 'toy''s, run.json 'mecanum-grid''s"),
+    (lambda f: _with_run_file(f, "mecanum-grid"),
+     "mixes the files of two experiments: results.json is 'toy''s, run.json 'mecanum-grid''s"),
     (lambda f: (_toy_folder(f, experiment="hdd"), montecarlo.save_results(
         f / "results.json", experiment="toy", config={"seeds": 5}, results={}, wall_time_s=0.0)),
      "mixes the files of two experiments: results.json is 'toy''s, seeds.npz 'hdd''s"),
@@ -405,9 +409,9 @@ FILES_API = [
     (lambda: montecarlo.run_batched(_tiny, montecarlo.seed_keys(0, 2_000_000), progress=False),
      "run_batched: the results of 2000000 seeds need 14.9 GiB (8000 bytes per seed)"),
     (lambda: montecarlo.check_seed_memory(10**10), "the keys of 10000000000 seeds need"),
-    (lambda: __import__("jaxnc.sweep").sweep.cell_path("/tmp", "", {}), "cell_path: name must be a non-empty file name"),
-    (lambda: __import__("jaxnc.sweep").sweep.cell_path("/tmp", "a/b", {}), "cell_path: name must be a non-empty file name"),
-    (lambda: __import__("jaxnc.sweep").sweep.config_hash({"f": object()}), "config_hash: a configuration value of type object"),
+    (lambda: _sweep.cell_path("/tmp", "", {}), "cell_path: name must be a non-empty file name"),
+    (lambda: _sweep.cell_path("/tmp", "a/b", {}), "cell_path: name must be a non-empty file name"),
+    (lambda: _sweep.config_hash({"f": object()}), "config_hash: a configuration value of type object"),
 ]
 
 

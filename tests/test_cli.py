@@ -228,11 +228,15 @@ def test_a_folder_of_other_settings_or_another_experiment_is_refused_before_runn
     assert run(["run", "dummy", "--seeds", "4", "--out", str(fresh), "--set", "N=4"]) == 0
 
 
-def test_a_sweep_keeps_the_cells_of_other_settings_apart(tmp_path):
+def test_a_sweep_keeps_the_cells_of_other_settings_apart(tmp_path, capsys):
     ex.register(Experiment("writer", "", WRITER.options, _writer, keeps_cells=True))
     out = str(tmp_path)
     assert run(["run", "writer", "--seeds", "3", "--out", out, "--set", "N=4"]) == 0
+    assert capsys.readouterr().err == ""
     assert run(["run", "writer", "--seeds", "3", "--out", out, "--set", "N=5"]) == 0
+    err = capsys.readouterr().err                      # allowed, and said once
+    assert err == (f"jaxnc: note: {out} holds writer cells of other settings (N: 4 there, 5 here); they are kept "
+                   f"beside this run's, and the summary files will describe this run\n")
     import json
     assert json.loads((tmp_path / "run.json").read_text())["settings"] == {"N": 5}
 

@@ -192,7 +192,8 @@ def test_claim_records_the_run_and_refuses_what_would_mix_or_overwrite(tmp_path)
     with pytest.raises(results.FolderError, match=r"holds the results of toy with other settings \(k: 2 there, 3 "
                                                   r"here; t: 0.1,0.2 there, 0.3 here; seeds: 5 there, 6 here\)"):
         results.claim(tmp_path, "toy", {"k": 3, "t": (0.3,)}, 6)
-    results.claim(tmp_path, "toy", {"k": 3, "t": (0.3,)}, 6, keeps_cells=True)   # a sweep's cells stay apart
+    assert results.claim(tmp_path, "toy", {"k": 3, "t": (0.3,)}, 6, keeps_cells=True) == [  # a sweep's cells stay apart
+        "k: 2 there, 3 here", "t: 0.1,0.2 there, 0.3 here", "seeds: 5 there, 6 here"]
     with pytest.raises(results.FolderError, match="holds the results of experiment 'toy', not 'other'"):
         results.claim(tmp_path, "other", {"k": 3, "t": (0.3,)}, 6, keeps_cells=True)
     assert results.folder_owner(tmp_path)["settings"] == {"k": 3, "t": [0.3]}
