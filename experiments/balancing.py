@@ -15,9 +15,9 @@ is made harsher, one axis at a time (:data:`jaxnc.schemes.balancing.SWEEP_AXES`:
 burst length and the loss in a burst through the *loss* severity, the delay law from the
 Table-1 fit through the *delay* severity and beyond), both directions alike, the other
 settings at their defaults. Each (axis, value, design) is stored as soon as it is done
-(``OUT/points/<axis>_<value>_<design>.json`` with its configuration, and ``.npz`` with the
-per-seed metrics), so an interrupted run resumes where it stopped; a point stored with
-another configuration is computed again. Writes ``sweep.md`` (a table per axis with each
+(``OUT/points/<axis>_<value>_<design>-<hash>.json`` with its configuration, named by a
+hash of it, and ``.npz`` with the per-seed metrics), so an interrupted run resumes where
+it stopped; a point stored with another configuration is computed again. Writes ``sweep.md`` (a table per axis with each
 point's verdict, :data:`VERDICTS`), ``fig_sweep.png`` (upright % with 95 % Wilson
 intervals and tilt RMS against each parameter, both designs) and ``results.json``.
 """
@@ -203,7 +203,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           f"tilt sensor={settings['tilt_sensor']}, filter's tilt R={settings['kf_tilt']}\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, runs, dims=("severity", "design"))
+    per_seed.save_per_seed(out, runs, dims=("severity", "design"), experiment="balancing")
     figs = [fig7(loops, keys[0], out, _sevs(settings))]
     f5, loopback = fig5(jax.random.fold_in(jax.random.PRNGKey(settings["seed"]), 5), out)
     figs.append(f5)
@@ -247,8 +247,10 @@ def sweep_points(settings: dict) -> list[tuple[str, float]]:
     return [(a, float(v)) for a in axes for v in settings[a]]
 
 
-def point_file(out: Path, axis: str, value: float, design: str) -> Path:
-    return Path(out) / "points" / f"{axis}_{value:g}_{design}.json"
+def point_file(out: Path, cfg: dict) -> Path:
+    """The file of the sweep point whose configuration is ``cfg`` (:func:`jaxnc.sweep.cell_path`)."""
+    from jaxnc.sweep import cell_path
+    return cell_path(Path(out) / "points", f"{cfg['axis']}_{cfg['value']:g}_{cfg['design']}", cfg)
 
 
 def _channel_config(ch: wifi.WifiChannel) -> dict:
@@ -351,10 +353,12 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     design_cfg = {k: settings[k] for k in _DESIGN_KEYS}
     results, todo, compute_s = {}, [], {}
-    for (a, v, d) in loops:
-        cfg = {"design_options": design_cfg, "seeds": seeds, "axis": a, "value": v, "design": d,
-               "channel": _channel_config(channels[(a, v)]), "kf_tilt": settings["kf_tilt"]}
-        data = cells.load_cell(point_file(out, a, v, d), cfg, defaults={"kf_tilt": "design"})
+    cfgs = {(a, v, d): {"design_options": design_cfg, "seeds": seeds, "axis": a, "value": v, "design": d,
+                        "channel": _channel_config(channels[(a, v)]), "kf_tilt": settings["kf_tilt"],
+                        "chunk": settings["chunk"], "devices": len(jax.local_devices())}
+            for (a, v, d) in loops}
+    for (a, v, d), cfg in cfgs.items():
+        data = cells.load_cell(point_file(out, cfg), cfg)
         if data is None:
             todo.append(((a, v, d), cfg))
         else:
@@ -370,7 +374,7 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
         s = summarise(m)
         arrays = {**{k: np.asarray(x) for k, x in m._asdict().items()}, "unstable": ~np.asarray(m.upright, bool)}
         compute_s[(a, v, d)] = time.perf_counter() - tc
-        cells.save_cell(point_file(out, a, v, d), {"config": cfg, "summary": s, "wall_time_s": compute_s[(a, v, d)]},
+        cells.save_cell(point_file(out, cfg), {"config": cfg, "summary": s, "wall_time_s": compute_s[(a, v, d)]},
                         arrays=arrays)
         results[(a, v, d)] = s
         bar.update(1)
@@ -402,7 +406,8 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
     # this run's counts; the compute time of every stored point, whichever run computed it
     summary = {"axes": axes, "verdicts": VERDICTS, "computed": len(todo), "reused": len(loops) - len(todo),
                "compute_time_total_s": sum(compute_s.values()),
-               "per_seed": per_seed.per_seed_index(out, {k: point_file(out, *k).with_suffix(".npz") for k in loops},
+               "per_seed": per_seed.per_seed_index(out, {k: point_file(out, c).with_suffix(".npz")
+                                                         for k, c in cfgs.items()},
                                                    dims=("axis", "value", "design"))}
     config = {"settings": settings, "seeds": seeds,
               "channels": {f"{a}={v:g}": _channel_config(ch) for (a, v), ch in channels.items()}}
@@ -453,4 +458,5 @@ SWEEP = register(Experiment(
         *DESIGN_OPTIONS,
     ),
     run=run_sweep,
+    keeps_cells=True,
 ))

@@ -160,7 +160,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           " path; 'paper' Table 2's values\n")
     print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, results, dims=("case",))
+    per_seed.save_per_seed(out, results, dims=("case",), experiment="diffdrive")
     f1, f2 = plot_paths({n: l for n, l in loops.items() if n in FIGURE_ROWS}, keys[0], out)
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,
@@ -224,7 +224,8 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
     """Table 2's ratios over the two path-tracking parameters the paper does not give:
     the reference speed v_ref and the look-ahead distance (a grid), both J1 readings.
 
-    Each cell is stored as ``OUT/cells/sensitivity/v<v_ref>_lad<look-ahead>.json`` when
+    Each cell is stored as ``OUT/cells/sensitivity/v<v_ref>_lad<look-ahead>-<hash>.json``
+    (the hash of its whole configuration, :func:`jaxnc.sweep.cell_path`) when
     done (a rerun computes only the missing ones; ``shard``: only its share,
     :mod:`jaxnc.sweep`); the table, figure and ``results.json`` are written by the run
     that finds every cell stored."""
@@ -233,10 +234,10 @@ def run_sensitivity(settings: dict, *, seeds: int, out: Path, progress: bool = T
     v_refs, lads = settings["v_refs"], settings["lads"]
     out.mkdir(parents=True, exist_ok=True)
     cells = [(v, lad) for lad in lads for v in v_refs]
-    cell_f = lambda c: out / "cells" / "sensitivity" / f"v{c[0]:.10g}_lad{c[1]:.10g}.json"
     common = {k: settings[k] for k in settings if k not in ("v_refs", "lads")}
     cfg = lambda c: {"settings": common, "v_ref": c[0], "lad": c[1], "seeds": seeds,
                      "devices": len(jax.local_devices()), "version": __version__}
+    cell_f = lambda c: sweep.cell_path(out / "cells" / "sensitivity", f"v{c[0]:.10g}_lad{c[1]:.10g}", cfg(c))
     mine = shard.share(cells) if shard is not None else cells
     todo = [c for c in mine if sweep.load_cell(cell_f(c), cfg(c)) is None]
     bar = tqdm(todo, desc="(v_ref, look-ahead)", disable=not progress, dynamic_ncols=True)
@@ -320,4 +321,5 @@ SENSITIVITY = register(Experiment(
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run_sensitivity,
+    keeps_cells=True,
 ))

@@ -188,7 +188,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           f"CS = {100 * cs:.0f} % (paper 33 %)\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, runs, dims=("case",))
+    per_seed.save_per_seed(out, runs, dims=("case",), experiment="hdd")
     figs = [plot_bode(out, settings["reading"])]
     for c, loop in loops.items():
         traj = jax.device_get(jax.jit(hdd.simulate)(loop, keys[0]))
@@ -272,7 +272,8 @@ def plot_gpi(ts, tc, res, out: Path, imin) -> Path:
 
 def run_gpi(settings: dict, *, seeds: int, out: Path, progress: bool = True,
             shard: sweep.Shard | None = None) -> dict:
-    """The GPI surface. Each (i, j) point is stored as ``OUT/cells/gpi/ts<i>_tc<j>.json`` when
+    """The GPI surface. Each (i, j) point is stored as ``OUT/cells/gpi/ts<i>_tc<j>-<hash>.json``
+    (the hash of its whole configuration, :func:`jaxnc.sweep.cell_path`) when
     done (a rerun computes only the missing ones; ``shard``: only its share,
     :mod:`jaxnc.sweep`); the surface, figure and ``results.json`` are written by the run
     that finds every point stored."""
@@ -290,9 +291,9 @@ def run_gpi(settings: dict, *, seeds: int, out: Path, progress: bool = True,
     cs = hdd.controller_design(settings["m"]).cs
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     points = [(i, j) for i in range(n) for j in range(n)]
-    cell_f = lambda i, j: out / "cells" / "gpi" / f"ts{i:02d}_tc{j:02d}.json"
     cfg = lambda i, j: {"settings": settings, "seeds": seeds, "i": i, "j": j, "ts": float(ts[i]), "tc": float(tc[j]),
                         "version": __version__}
+    cell_f = lambda i, j: sweep.cell_path(out / "cells" / "gpi", f"ts{i:02d}_tc{j:02d}", cfg(i, j))
     mine = shard.share(points) if shard is not None else points
     todo = [p for p in mine if sweep.load_cell(cell_f(*p), cfg(*p)) is None]
     gpi_grid(loop, ts, tc, keys, y_tts, ise_tts, cs, progress=progress, points=todo,
@@ -359,4 +360,5 @@ EXPERIMENT_GPI = register(Experiment(
              Option("tc_max", "float", 1.0, "largest delta_c = sigma_c", low=1e-12, high=10.0),
              *_OPTS),
     run=run_gpi,
+    keeps_cells=True,
 ))

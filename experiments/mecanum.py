@@ -181,7 +181,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print("J1-J3 normalised to nominal SR (N=1, DP=0) on the same seeds; J4 = sensor transmission rate / nominal\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, results, dims=("case",))
+    per_seed.save_per_seed(out, results, dims=("case",), experiment="mecanum")
     fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)")
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,

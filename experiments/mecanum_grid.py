@@ -4,10 +4,11 @@ Every case (SR, DR, DRH, DRHE) x N x DP x path, ``--seeds`` Monte-Carlo runs per
 cell (1000 by default), event parameters of section 4.1 and h by the rule of
 ``schemes.mecanum.default_h``.
 
-* **Resumable.** Each cell is written to ``OUT/cells/<path>/N<NN>_<case>_dp<DP>.json``
+* **Resumable.** Each cell is written to ``OUT/cells/<path>/N<NN>_<case>_dp<DP>-<hash>.json``
   (with its per-seed indexes in a ``.npz`` beside it) atomically, as soon as it is
-  done; a rerun with the same settings computes only the missing cells. A cell file
-  whose configuration differs from the current one is recomputed.
+  done; a rerun with the same settings computes only the missing cells. ``<hash>`` is
+  :func:`jaxnc.sweep.config_hash` of the cell's whole configuration, so cells whose
+  settings differ anywhere (``dp=0.1`` and ``dp=0.104``) are distinct files.
 * **Across machines.** ``--shard I/N`` computes only shard I's share of the cells
   (:mod:`jaxnc.sweep`) into the shared ``OUT``; the run that finds every cell present
   (a shard, or a run without ``--shard``) writes the outputs, the same bytes however
@@ -98,8 +99,30 @@ del _
 # ----------------------------------------------------------------------------- cells
 
 
-def cell_file(out: Path, path: str, N: int, case: str, dp: float) -> Path:
-    return out / "cells" / path / f"N{N:02d}_{case}_dp{dp:.2f}.json"
+def cell_file(out: Path, cfg: dict) -> Path:
+    """The file of the cell whose configuration (:func:`_cell_config`) is ``cfg``."""
+    return sweep.cell_path(Path(out) / "cells" / cfg["path"], f"N{cfg['N']:02d}_{cfg['case']}_dp{cfg['dp']:g}", cfg)
+
+
+def plan(settings: dict, seeds: int) -> tuple[list, dict, dict]:
+    """(cells, {cell: loop}, {cell: configuration}) of the grid; ConfigError for a cell
+    whose loop cannot be built."""
+    cells, loops, cfgs = grid_cells(settings), {}, {}
+    for cell in cells:
+        p, N, case, dp = cell
+        try:
+            loops[cell] = mec.mecanum_loop(case, N, dp, p, sigma=settings["sigma"], delta=settings["delta"],
+                                           follower_kw=dict(L_ref=settings["L_ref"]))
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        cfgs[cell] = _cell_config(settings, seeds, case, N, dp, p, int(loops[cell].h))
+    return cells, loops, cfgs
+
+
+def cell_files(out: Path, settings: dict, seeds: int) -> dict:
+    """{(path, N, case, dp): cell file} of the grid that ``settings`` and ``seeds`` make."""
+    _, _, cfgs = plan(settings, seeds)
+    return {cell: cell_file(out, cfg) for cell, cfg in cfgs.items()}
 
 
 def _cell_config(settings: dict, seeds: int, case: str, N: int, dp: float, path: str, h: int) -> dict:
@@ -150,21 +173,11 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
     ``stop_after`` of them: a controlled interruption, for tests), then, if every cell of
     the grid is stored (by this run or any other), write tables and figures from them."""
     out = Path(out)
-    cells = grid_cells(settings)
+    cells, loops, cfgs = plan(settings, seeds)
     mine = set(shard.share(cells)) if shard is not None else set(cells)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
-    todo, loops = [], {}
-    for cell in cells:
-        p, N, case, dp = cell
-        try:
-            loop = mec.mecanum_loop(case, N, dp, p, sigma=settings["sigma"], delta=settings["delta"],
-                                    follower_kw=dict(L_ref=settings["L_ref"]))
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
-        loops[cell] = loop
-        cfg = _cell_config(settings, seeds, case, N, dp, p, int(loop.h))
-        if cell in mine and _load_cell(cell_file(out, p, N, case, dp), cfg) is None:
-            todo.append((cell, cfg))
+    todo = [(cell, cfgs[cell]) for cell in cells
+            if cell in mine and _load_cell(cell_file(out, cfgs[cell]), cfgs[cell]) is None]
     done_before = len(mine) - len(todo)
     computed = 0
     t0 = time.perf_counter()
@@ -175,12 +188,12 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
             if stop_after is not None and computed >= stop_after:
                 break
             p, N, case, dp = cell
-            bar.set_postfix_str(f"{p} N={N} {case} DP={dp:.1f}")
+            bar.set_postfix_str(f"{p} N={N} {case} DP={dp:g}")
             tc = time.perf_counter()
             m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[cell]),),
                                        chunk_size=min(settings["chunk"], seeds), progress=False)
             wall = time.perf_counter() - tc
-            sweep.save_cell(cell_file(out, p, N, case, dp), {"config": cfg, "summary": _summary(m), "wall_time_s": wall},
+            sweep.save_cell(cell_file(out, cfg), {"config": cfg, "summary": _summary(m), "wall_time_s": wall},
                             arrays={k: np.asarray(getattr(m, k)) for k in m._fields})
             computed += 1
             bar.update(1)
@@ -192,7 +205,7 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
     bar.close()
     elapsed = time.perf_counter() - t0
     with sweep.assembly_lock(out):
-        results = collect(out, settings, seeds, cells, loops)      # this run's cells and other shards'
+        results = collect(out, cfgs)      # this run's cells and other shards'
         complete = len(results) == len(cells)
         written = write_outputs(out, results, settings) if complete else []
     # this run's counts and time, and the totals over every run that stored a cell (a resume
@@ -204,7 +217,7 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
                           "stored cells of this grid, whichever run (or shard) computed them",
                "files": [str(f) for f in written],
                # the stored cells of this configuration, for jaxnc.load
-               "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, c[0], c[1], c[2], c[3]).with_suffix(".npz")
+               "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, cfgs[c]).with_suffix(".npz")
                                                          for c in results}, dims=("path", "N", "case", "dp"))}
     montecarlo.save_results(out / "results.json", experiment="mecanum-grid",
                             config={"settings": settings, "seeds": seeds}, results=summary, wall_time_s=elapsed)
@@ -214,22 +227,21 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
         if done_before + computed < len(mine):
             print(f"{len(mine) - done_before - computed} cells of this run missing: rerun to finish")
         else:
-            print(sweep.missing_report(cells, missing, shard, describe=lambda c: f"{c[0]} N={c[1]} {c[2]} DP={c[3]:.2f}"))
+            print(sweep.missing_report(cells, missing, shard, describe=lambda c: f"{c[0]} N={c[1]} {c[2]} DP={c[3]:g}"))
     return summary
 
 
 # ----------------------------------------------------------------------------- tables
 
 
-def collect(out: Path, settings: dict, seeds: int, cells, loops) -> dict:
-    """{(path, N, case, dp): summary dict} of the stored cells of this grid."""
+def collect(out: Path, cfgs: dict) -> dict:
+    """{(path, N, case, dp): summary dict} of the stored cells of this grid (``cfgs``:
+    each cell's configuration, :func:`plan`)."""
     res = {}
-    for cell in cells:
-        p, N, case, dp = cell
-        cfg = _cell_config(settings, seeds, case, N, dp, p, int(loops[cell].h))
-        data = _load_cell(cell_file(out, p, N, case, dp), cfg)
+    for cell, cfg in cfgs.items():
+        data = _load_cell(cell_file(out, cfg), cfg)
         if data is not None:
-            res[cell] = dict(data["summary"], h=int(loops[cell].h), compute_s=data.get("wall_time_s"))
+            res[cell] = dict(data["summary"], h=cfg["h"], compute_s=data.get("wall_time_s"))
     return res
 
 
@@ -437,7 +449,7 @@ def heatmaps(out: Path, results: dict, p: str) -> Path:
                            aspect="auto", extent=ext)
             step = max(1, len(Ns) // 6)
             ax.set_xticks(range(0, len(Ns), step), [str(n) for n in Ns[::step]])
-            ax.set_yticks(range(len(dps)), [f"{d:.1f}" for d in dps], fontsize=7)
+            ax.set_yticks(range(len(dps)), [f"{d:.1f}" if round(d, 1) == d else f"{d:g}" for d in dps], fontsize=7)
             ax.set_title(f"{j} {case}", fontsize=9)
             if r == len(INDEXES) - 1:
                 ax.set_xlabel("N")
@@ -471,4 +483,5 @@ EXPERIMENT = register(Experiment(
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,
+    keeps_cells=True,
 ))

@@ -34,6 +34,7 @@ import math
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -101,17 +102,21 @@ def build(settings: dict, cells, truth) -> dict:
     return loops
 
 
-def cell_file(out: Path, cell) -> Path:
-    case, N, dp = cell
-    return Path(out) / "cells" / f"{case}_N{N}_dp{dp:.2f}.json"
+def cell_file(out: Path, cfg: dict) -> Path:
+    """``OUT/cells/<case>_N<N>_dp<DP>-<hash>.json``: the file of the cell whose
+    configuration (:func:`_cell_config`) is ``cfg`` (:func:`jaxnc.sweep.cell_path`)."""
+    return sweep.cell_path(Path(out) / "cells", f"{cfg['case']}_N{cfg['N']}_dp{cfg['dp']:g}", cfg)
 
 
 def _cell_config(settings: dict, seeds: int, cell, loop) -> dict:
+    """What a cell's result depends on (its file is named by it; a stored cell is reused
+    only if it matches): the chunk and device count set the float32 rounding."""
     case, N, dp = cell
     return {"case": case, "N": N, "dp": dp, "h": int(loop.h), "steps": loop.steps, "seeds": seeds,
             "seed": settings["seed"], "plant": settings["plant"], "path": settings["path"],
             "scale": settings["scale"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
-            "L_ref": settings["L_ref"], "version": _version()}
+            "L_ref": settings["L_ref"], "chunk": settings["chunk"], "devices": len(jax.local_devices()),
+            "version": _version()}
 
 
 def _summary(m: mec.Metrics) -> dict:
@@ -292,9 +297,10 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     loops = build(settings, cells, truth)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     results, todo = {}, []
+    cfgs = {cell: _cell_config(settings, seeds, cell, loops[cell]) for cell in cells}
     for cell in cells:
-        cfg = _cell_config(settings, seeds, cell, loops[cell])
-        data = sweep.load_cell(cell_file(out, cell), cfg)
+        cfg = cfgs[cell]
+        data = sweep.load_cell(cell_file(out, cfg), cfg)
         if data is None:
             todo.append((cell, cfg))
         else:
@@ -302,12 +308,12 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     bar = tqdm(total=len(cells), initial=len(cells) - len(todo), desc="cells", unit="cell",
                disable=not progress, dynamic_ncols=True)
     for cell, cfg in todo:
-        bar.set_postfix_str(f"{cell[0]} N={cell[1]} DP={cell[2]:.1f}")
+        bar.set_postfix_str(f"{cell[0]} N={cell[1]} DP={cell[2]:g}")
         tc = time.perf_counter()
         m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[cell]),),
                                    chunk_size=min(settings["chunk"], seeds), progress=False)
         s = _summary(m)
-        sweep.save_cell(cell_file(out, cell), {"config": cfg, "summary": s, "wall_time_s": time.perf_counter() - tc},
+        sweep.save_cell(cell_file(out, cfg), {"config": cfg, "summary": s, "wall_time_s": time.perf_counter() - tc},
                         arrays={k: np.asarray(getattr(m, k)) for k in m._fields})
         results[cell] = dict(s, h=cfg["h"])
         bar.update(1)
@@ -338,7 +344,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
                          for c, N, dp in cells},
                "conclusions": [dict(claim=c, paper=p, ours=o, holds=h) for c, p, o, h in conclusions(results)],
                "files": [str(f) for f in files],
-               "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, c).with_suffix(".npz") for c in cells},
+               "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, cfgs[c]).with_suffix(".npz") for c in cells},
                                                    dims=("case", "N", "dp"))}
     config = {"settings": settings, "seeds": seeds, "path_length_m": float(ref.length),
               "loops": {f"{c}_N{N}_dp{dp:g}": {"h": int(loops[(c, N, dp)].h), "steps": loops[(c, N, dp)].steps}
@@ -368,4 +374,5 @@ EXPERIMENT = register(Experiment(
         Option("seed", "int", 0, "base random seed", low=0, high=2**31 - 1),
     ),
     run=run,
+    keeps_cells=True,
 ))

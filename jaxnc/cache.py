@@ -12,7 +12,9 @@ from __future__ import annotations
 import os
 import pathlib
 
-__all__ = ["default_cache_dir", "enable_cache", "cache_beside"]
+__all__ = ["default_cache_dir", "enable_cache", "cache_beside", "allow_cache_beside"]
+
+_BESIDE = [True]
 
 
 def default_cache_dir() -> pathlib.Path:
@@ -39,7 +41,14 @@ def cache_beside(out) -> None:
     """Keep compiled programs in ``out/.xla_cache`` when no cache folder is configured
     yet (the CLI's cache, ``--cache-dir`` or the test suite's take precedence), so a
     resumed study does not compile again. Only the folder is set (JAX's own minimum
-    compile time applies)."""
+    compile time applies). Nothing is set after ``allow_cache_beside(False)`` (``jaxnc
+    run --no-cache``)."""
     import jax
-    if jax.config.jax_compilation_cache_dir is None:
+    if _BESIDE[0] and jax.config.jax_compilation_cache_dir is None:
         jax.config.update("jax_compilation_cache_dir", str((pathlib.Path(out) / ".xla_cache").resolve()))
+
+
+def allow_cache_beside(allowed: bool) -> None:
+    """Whether :func:`cache_beside` may keep compiled programs beside the results (the
+    command line sets it from ``--no-cache`` for each run)."""
+    _BESIDE[0] = bool(allowed)

@@ -12,9 +12,17 @@ be a :class:`jaxnc.experiment.Experiment` or a zero-argument callable returning 
 runs exactly like a built-in one (same ``--set`` validation, ``--seeds``, ``--out`` default
 ``results/<name>``); see :func:`jaxnc.experiment.resolve_experiment`.
 
+Before anything is simulated, ``run`` checks that ``--out`` is a folder it can create
+and write in, that the seeds' keys fit in the memory available, and that the folder does
+not hold the results of another experiment, or finished results of other settings that
+this run would overwrite (:func:`jaxnc.results.claim`, which then records the run in
+``OUT/run.json``; a sweep's cells, named by their whole configuration, are kept apart
+instead).
+
 :func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
 ends by raising ``SystemExit(code)``: 0 on success, 2 for a bad command line or setting
-(one line ``jaxnc: error: <message>`` on stderr, no traceback), 130 on Ctrl-C.  Use
+(one line ``jaxnc: error: <message>`` on stderr, no traceback), 3 when a sweep run without
+``--shard`` ends with cells missing (its tables are not written), 130 on Ctrl-C.  Use
 :func:`run_cli` to get the exit code as a return value instead.  An unexpected exception
 inside an experiment is a bug and propagates with its traceback (exit code 1).
 """
@@ -27,6 +35,7 @@ import os
 import pathlib
 import re
 import sys
+import tempfile
 import warnings
 
 import jax
@@ -39,6 +48,8 @@ __all__ = ["main", "run_cli", "build_parser"]
 
 PROG = "jaxnc"
 DEFAULT_SEEDS = 1000
+#: exit code of a sweep run without --shard that ends with cells missing
+INCOMPLETE = 3
 # seed indices are uint32 (jaxnc.montecarlo.seed_keys)
 _SEEDS = _exp.Option("--seeds", "int", DEFAULT_SEEDS, "number of Monte-Carlo seeds", low=1, high=2**32 - 1)
 _CPU_DEVICES = _exp.Option("--cpu-devices", "int", 1, "CPU devices", low=1, high=256)
@@ -69,9 +80,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "module (the current directory is importable, as with python -m), "
                         "e.g. mystudy:experiment")
     r.add_argument("--seeds", default=str(DEFAULT_SEEDS), metavar="N",
-                   help=f"number of Monte-Carlo seeds, an integer in [1, {2**32 - 1}] (default {DEFAULT_SEEDS})")
+                   help=f"number of Monte-Carlo seeds, an integer in [1, {2**32 - 1}] whose keys and results "
+                        f"fit in memory (default {DEFAULT_SEEDS})")
     r.add_argument("--out", default=None, metavar="DIR",
-                   help="output directory (default results/NAME, the experiment's name)")
+                   help="output directory (default results/NAME, the experiment's name); it holds one "
+                        "experiment's results (OUT/run.json): another experiment's folder, or finished results "
+                        "of other settings that this run would overwrite, are refused")
     r.add_argument("--set", "-s", dest="settings", action="extend", nargs="+", default=[],
                    metavar="KEY=VALUE", help="override a setting; repeatable (see 'jaxnc list')")
     r.add_argument("--no-progress", dest="progress", action="store_false",
@@ -147,35 +161,72 @@ def _run(args) -> int:
             run_kw["shard"] = parse_shard(args.shard)
         except ValueError as e:
             raise ConfigError(str(e)) from None
-    if args.cpu_devices is not None:
-        n = _CPU_DEVICES.parse(args.cpu_devices)
+    cpu_devices = _CPU_DEVICES.parse(args.cpu_devices) if args.cpu_devices is not None else None
+    if not args.distributed and any(v is not None for v in (args.coordinator, args.num_processes, args.process_id)):
+        raise ConfigError("--coordinator, --num-processes and --process-id need --distributed")
+    from jaxnc import montecarlo
+    try:
+        montecarlo.check_seed_memory(seeds)
+    except montecarlo.MemoryBudgetError as e:
+        raise ConfigError(f"--seeds {seeds}: {e}") from None
+    out = _writable_out(args.out, exp.name)
+    from jaxnc import results
+    try:
+        other = results.claim(out, exp.name, settings, seeds, keeps_cells=exp.keeps_cells)
+    except results.FolderError as e:
+        raise ConfigError(f"--out: {e}") from None
+    if other:
+        sys.stderr.write(f"{PROG}: note: {out} holds {exp.name} cells of other settings ({'; '.join(other)}); "
+                         f"they are kept beside this run's, and the summary files will describe this run\n")
+    if cpu_devices is not None:
         try:
-            jax.config.update("jax_num_cpu_devices", n)
+            jax.config.update("jax_num_cpu_devices", cpu_devices)
         except RuntimeError as e:              # the backend was already initialised
             raise ConfigError(f"--cpu-devices: {e}") from None
     if args.distributed:
         _initialize_distributed(args)
-    elif any(v is not None for v in (args.coordinator, args.num_processes, args.process_id)):
-        raise ConfigError("--coordinator, --num-processes and --process-id need --distributed")
+    from jaxnc.cache import allow_cache_beside, enable_cache
+    allow_cache_beside(args.cache)
     if args.cache:
-        from jaxnc.cache import enable_cache
         try:
             enable_cache(args.cache_dir)
         except OSError as e:
             raise ConfigError(f"--cache-dir: cannot create directory '{args.cache_dir}': {e.strerror or e}") from None
-    out = pathlib.Path(args.out) if args.out is not None else pathlib.Path("results") / exp.name
+    try:
+        if args.distributed and jax.process_index() != 0:
+            # every process runs the experiment and gets the full results (and writes the same
+            # files); the tables and progress bars are process 0's
+            with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
+                exp.run(settings, seeds=seeds, out=out, progress=False, **run_kw)
+            return 0
+        done = exp.run(settings, seeds=seeds, out=out, progress=args.progress, **run_kw)
+    except montecarlo.MemoryBudgetError as e:
+        raise ConfigError(f"--seeds {seeds}: {e}") from None
+    if args.shard is None and isinstance(done, dict) and done.get("complete") is False:
+        sys.stdout.flush()
+        sys.stderr.write(f"{PROG}: error: {exp.name} ended with cells missing, so its tables were not written "
+                         f"(above); run the same command again to compute them\n")
+        return INCOMPLETE
+    return 0
+
+
+def _writable_out(text: str | None, name: str) -> pathlib.Path:
+    """The --out folder (default ``results/NAME``), created, after a test write in it;
+    ConfigError naming --out when it is empty, cannot be created or cannot be written."""
+    if text is not None and not text.strip():
+        raise ConfigError(f"--out must be a folder path, got {text!r}")
+    out = pathlib.Path(text) if text is not None else pathlib.Path("results") / name
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"--out: cannot create directory '{out}': {e.strerror or e}") from None
-    if args.distributed and jax.process_index() != 0:
-        # every process runs the experiment and gets the full results (and writes the same
-        # files); the tables and progress bars are process 0's
-        with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
-            exp.run(settings, seeds=seeds, out=out, progress=False, **run_kw)
-        return 0
-    exp.run(settings, seeds=seeds, out=out, progress=args.progress, **run_kw)
-    return 0
+    try:
+        fd, probe = tempfile.mkstemp(dir=out, prefix=".jaxnc-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ConfigError(f"--out: cannot write in directory '{out}': {e.strerror or e}") from None
+    return out
 
 
 _COORDINATOR_RE = re.compile(r"\S+:[0-9]{1,5}\Z")

@@ -21,6 +21,7 @@ import os
 import pathlib
 import re
 import sys
+import types
 import warnings
 from typing import Callable
 
@@ -177,12 +178,20 @@ class Experiment:
     settings are parsed, before anything is built. A sweep's ``run`` also takes
     ``shard`` (a :class:`jaxnc.sweep.Shard`, or None for all cells), which
     ``jaxnc run --shard I/N`` passes; the CLI refuses ``--shard`` for the others.
+
+    ``keeps_cells``: the experiment stores its results as cell files named by their whole
+    configuration (:func:`jaxnc.sweep.cell_path`), so a run with other settings into the
+    same ``--out`` keeps its cells beside the others' (only the summary files describe
+    the latest run); without it such a run is refused rather than overwriting the
+    folder's results (:func:`jaxnc.results.claim`). A sweep's ``run`` returns a dict with
+    ``"complete": False`` when it ends with cells missing.
     """
     name: str
     description: str
     options: tuple[Option, ...]
     run: Callable[..., dict]
     check: Callable[[dict], None] | None = None
+    keeps_cells: bool = False
 
     def __post_init__(self):
         names = [o.name for o in self.options]
@@ -260,6 +269,8 @@ def resolve_experiment(spec) -> Experiment:
     module's Experiment objects), and an object that is not an Experiment (naming its type).
     A ConfigError raised while importing the module or calling the factory propagates as
     is; any other exception from the user's code is a bug in it and propagates unchanged.
+    A built-in (C) function is never called (``sys:exit``, ``os:abort`` are not
+    experiments), and a factory that exits (raises SystemExit) is a ConfigError.
     """
     spec = str(spec)
     if spec in REGISTRY:
@@ -286,6 +297,9 @@ def resolve_experiment(spec) -> Experiment:
     if not callable(obj):
         raise ConfigError(f"{spec!r} is of type {_type_name(obj)}, not an Experiment "
                           f"(or a zero-argument callable returning one)")
+    if isinstance(obj, (types.BuiltinFunctionType, types.BuiltinMethodType)):
+        raise ConfigError(f"{spec!r} is a built-in function, not an Experiment (or a zero-argument "
+                          f"callable of yours returning one)")
     try:
         signature = inspect.signature(obj)
     except (TypeError, ValueError):             # no signature (some builtins): just call it
@@ -296,7 +310,11 @@ def resolve_experiment(spec) -> Experiment:
         if required:
             raise ConfigError(f"{spec!r} is a callable that needs arguments ({', '.join(required)}); "
                               f"expected an Experiment or a zero-argument callable returning one")
-    made = obj()
+    try:
+        made = obj()
+    except SystemExit as e:
+        raise ConfigError(f"{spec!r} exited (SystemExit({e.code!r})) when called, instead of returning an "
+                          f"Experiment") from None
     if not isinstance(made, Experiment):
         raise ConfigError(f"{spec!r} returned {_type_name(made)}, not an Experiment")
     return made

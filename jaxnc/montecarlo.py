@@ -36,7 +36,54 @@ from tqdm.auto import tqdm
 from jaxnc import __version__
 
 __all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results",
-           "atomic_write"]
+           "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY"]
+
+
+# ----------------------------------------------------------------------------- memory
+
+#: host bytes per seed of a key array: the uint32 index and the two uint32 words of its key
+KEY_BYTES = 12
+#: host bytes per lane of a chunk besides its outputs: the padding index (int64) and the
+#: chunk's keys on the host and on the device
+LANE_BYTES = 24
+#: at most this many bytes of keys and outputs per chunk (:func:`run_batched`)
+CHUNK_MEMORY = 1 << 30
+
+
+class MemoryBudgetError(ValueError):
+    """A run whose seeds cannot fit in the memory available; raised before anything is
+    allocated or simulated (the command line reports it as a bad ``--seeds``)."""
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new allocations (``MemAvailable`` of /proc/meminfo,
+    else the free physical pages); None where the system does not say."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.3g} GiB"
+
+
+def check_seed_memory(n: int, per_seed_bytes: int = KEY_BYTES, *, what: str = "the keys of") -> None:
+    """Raise :class:`MemoryBudgetError` when ``n`` seeds of ``per_seed_bytes`` bytes each
+    need more memory than :func:`available_memory` (no check where it is unknown)."""
+    need = int(n) * int(per_seed_bytes)
+    free = available_memory()
+    if free is not None and need > free:
+        raise MemoryBudgetError(f"{what} {n} seeds need {_gib(need)} ({per_seed_bytes} bytes per seed), more than "
+                                f"the {_gib(free)} of memory available; at most {max(free // per_seed_bytes, 0)} "
+                                f"seeds fit: run fewer seeds")
 
 
 # ----------------------------------------------------------------------------- keys
@@ -49,6 +96,9 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
     ``(seed, i)``, never on ``n`` or ``start``, so ``seed_keys(s, 10)[7]`` and
     ``seed_keys(s, 5, start=5)[2]`` are bitwise the same key and a seed's trajectory is the
     same whatever the batch it runs in.
+
+    Raises :class:`MemoryBudgetError` (before allocating) when the ``n`` keys
+    (:data:`KEY_BYTES` each) need more memory than is available.
     """
     for name, v in (("seed", seed), ("n", n), ("start", start)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
@@ -61,6 +111,7 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
         raise ValueError(f"seed_keys: n and start must be >= 0, got n={n}, start={start}")
     if start + n > 2**32:
         raise ValueError(f"seed_keys: seed indices must fit in uint32, got start+n={start + n}")
+    check_seed_memory(n, KEY_BYTES, what="seed_keys: the keys of")
     base = jax.random.PRNGKey(seed)
     idx = jnp.arange(start, start + n, dtype=jnp.uint32)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
@@ -71,6 +122,29 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
 #: seeds per vector group: chunks are padded to a multiple of this per device (16 float32
 #: lanes of a 512-bit vector unit; a multiple of the narrower units' widths too)
 LANES = 16
+
+def _out_bytes(batched: Callable, keys, args: tuple, size: int) -> int:
+    """Bytes of one key's outputs, from the shapes of a chunk of ``size`` lanes (the jitted
+    function's ``eval_shape``: traced, not run; the trace is the one the call reuses)."""
+    spec = jax.ShapeDtypeStruct((size, *keys.shape[1:]), keys.dtype)
+    shapes = batched.eval_shape(spec, args)
+    return sum(int(np.prod(x.shape[1:])) * np.dtype(x.dtype).itemsize for x in jax.tree_util.tree_leaves(shapes))
+
+
+def chunk_lanes(chunk_size: int, n: int, out_bytes: int, devices: int = 1) -> int:
+    """Lanes per compiled chunk of :func:`run_batched`: ``chunk_size`` rounded up to a
+    multiple of :data:`LANES` x ``devices``; when that many lanes would hold more than
+    :data:`CHUNK_MEMORY` bytes of keys and outputs (``LANE_BYTES + out_bytes`` per
+    lane), the smaller of the seeds ``n`` and the lanes that fit, rounded the same way
+    (at least one group)."""
+    group = LANES * devices
+    size = -(-chunk_size // group) * group
+    per_lane = LANE_BYTES + int(out_bytes)
+    if size * per_lane > CHUNK_MEMORY:
+        fit = max(group, CHUNK_MEMORY // per_lane // group * group)
+        size = min(-(-max(n, 1) // group) * group, fit)
+    return size
+
 
 # fn -> jit(vmap(fn)).  Weak keys so that a throw-away lambda (e.g. one per configuration)
 # and everything it closes over can be freed; the compiled wrapper reaches fn only through
@@ -137,6 +211,15 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     (the compiler vectorises a batched loop that many lanes at a time and computes a
     remainder with other code).
 
+    **Memory.** A chunk whose lanes would hold more than :data:`CHUNK_MEMORY` bytes of
+    keys and outputs is capped at the number of seeds and at that budget
+    (:func:`chunk_lanes`; the outputs' size comes from ``jax.eval_shape``, before
+    anything runs): ``chunk_size=2e8`` with 4 seeds runs one chunk of 16 lanes. Within
+    the budget ``chunk_size`` is used as given, so the bit-identity above holds for every
+    chunk size below it. The whole result (``len(keys)`` times the outputs of one key,
+    twice while the chunks are joined) must fit in the memory available:
+    :class:`MemoryBudgetError` before the first chunk otherwise.
+
     **Several devices.** With more than one local device (GPUs, or CPU devices from
     ``jax.config.update("jax_num_cpu_devices", n)`` / ``jaxnc run --cpu-devices n``) each
     chunk is sharded over them along the seed axis (``jax.sharding``, ``args``
@@ -171,12 +254,16 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
         raise ValueError(f"run_batched: keys must be raw uint32 keys of shape (n, 2) (from seed_keys) or a 1-D "
                          f"array of typed keys, got {keys.dtype} of shape {keys.shape}")
     batched = _compiled(fn)
+    n = int(keys.shape[0])
+    group = LANES * len(jax.local_devices())
+    out_bytes = _out_bytes(batched, keys, args, -(-chunk_size // group) * group) if n else 0
+    check_seed_memory(n, 2 * out_bytes, what="run_batched: the results of")
     if jax.process_count() > 1:
-        return _run_processes(batched, keys, args, chunk_size, progress, desc)
-    return _run_local(batched, keys, args, chunk_size, progress, desc)
+        return _run_processes(batched, keys, args, chunk_size, progress, desc, out_bytes)
+    return _run_local(batched, keys, args, chunk_size, progress, desc, out_bytes)
 
 
-def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: str):
+def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: str, out_bytes: int):
     """run_batched after jax.distributed.initialize(): this process's block of the keys
     on its local devices, then every process's block gathered on every process."""
     from jax.experimental import multihost_utils
@@ -185,7 +272,7 @@ def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: s
     rows = [max(0, min(block, n - q * block)) for q in range(count)]     # valid rows of each block
     lo = min(me * block, n)
     mine = _run_local(batched, keys[lo:lo + rows[me]], args, chunk_size, progress and me == 0,
-                      f"{desc} (process {me}/{count})")
+                      f"{desc} (process {me}/{count})", out_bytes)
     if n == 0:
         return mine
 
@@ -200,7 +287,7 @@ def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: s
         gathered, mine)
 
 
-def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str):
+def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str, out_bytes: int):
     """run_batched on this process's local devices (all of them with one process)."""
     n = int(keys.shape[0])
     if n == 0:
@@ -217,8 +304,7 @@ def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str):
     # vectorises a batched loop LANES float32 lanes at a time and computes a remainder
     # with other code, so a lane there would differ in its last bits from the same seed
     # in a full group
-    group = LANES * len(devices)
-    size = -(-chunk_size // group) * group
+    size = chunk_lanes(chunk_size, n, out_bytes, len(devices))
     if len(devices) > 1 or jax.process_count() > 1:
         # (with several processes even one local device is named: otherwise the outputs
         # spanned the other processes' devices too, and this process could not read them)

@@ -21,6 +21,13 @@ tables do (:func:`jaxnc.montecarlo.summarize`: mean, 95 % interval over the stab
 unstable fraction); the same are methods of the ``.jaxnc`` accessor
 (``jaxnc.load(folder).jaxnc.to_pandas()``).
 
+A results folder belongs to one experiment: ``run.json`` (:func:`claim`, written by
+``jaxnc run`` before anything is simulated) names the experiment, settings and seeds of
+the run that last wrote there. :func:`load` refuses a folder whose files come from two
+experiments or two runs (``run.json``, ``results.json`` and ``seeds.npz`` naming
+different experiments, a grid's cells beside a single run's ``seeds.npz``, a seed count
+that does not match the per-seed files).
+
 Writing needs only numpy; reading needs xarray (and pandas), imported when first used.
 """
 from __future__ import annotations
@@ -32,12 +39,22 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["PER_SEED_FILE", "FORMAT", "save_per_seed", "per_seed_index", "load", "summary", "to_pandas"]
+__all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "save_per_seed", "per_seed_index", "claim",
+           "folder_owner", "load", "summary", "to_pandas"]
 
 PER_SEED_FILE = "seeds.npz"
+#: the record of the experiment, settings and seeds that a folder's results come from
+RUN_FILE = "run.json"
 #: format tag stored in every per-seed file (and checked when reading one)
 FORMAT = "jaxnc-per-seed-1"
+RUN_FORMAT = "jaxnc-run-1"
 _META = "__meta__"
+_CELL_DIRS = ("cells", "points")
+
+
+class FolderError(ValueError):
+    """A results folder that holds the results of another experiment, or of other
+    settings where they would be overwritten (:func:`claim`)."""
 
 
 def _coord_value(v):
@@ -111,17 +128,21 @@ def _stack(runs: Mapping[tuple, Mapping], dims: Sequence[str]):
     return coords, data, present
 
 
-def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",)) -> pathlib.Path:
+def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, experiment: str | None = None
+                  ) -> pathlib.Path:
     """Write the per-seed metrics of a run to ``folder/seeds.npz`` (atomically); returns the file.
 
     ``runs`` maps a run's coordinates (a tuple with one label per entry of ``dims``, or a
     single label for one dimension) to its metrics: a NamedTuple or mapping of 1-D arrays,
     one value per seed (all runs the same fields and seed count), with a boolean
     ``unstable`` field. Raises ValueError / TypeError for runs that do not fit that shape.
+    ``experiment`` (the name in ``results.json``) is stored too, and :func:`load` checks it.
     """
     from jaxnc.montecarlo import atomic_write
     coords, data, present = _stack(runs, dims)
     meta = {"format": FORMAT, "dims": list(dims), "coords": coords, "variables": sorted(data)}
+    if experiment is not None:
+        meta["experiment"] = str(experiment)
     if not present.all():
         data["present"] = present
     arrays = {_META: np.asarray(json.dumps(meta)), **data}
@@ -137,6 +158,90 @@ def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -
     rows = [[*(_coord_value(v) for v in key), pathlib.Path(f).relative_to(folder).as_posix()]
             for key, f in cells.items()]
     return {"format": FORMAT, "dims": list(dims), "cells": rows}
+
+
+# ----------------------------------------------------------------------------- folders
+
+
+def _plain(x):
+    """``x`` as the JSON values it is stored as (tuples as lists, numpy as Python)."""
+    return json.loads(json.dumps(x, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v)))
+
+
+def _read_json(f: pathlib.Path):
+    try:
+        with open(f, encoding="utf-8") as fh:
+            return json.load(fh)
+    except (OSError, ValueError):
+        return None
+
+
+def folder_owner(folder) -> dict | None:
+    """``{"experiment", "settings", "seeds"}`` of the run whose results ``folder`` holds:
+    its ``run.json``, else (a folder written without one) what ``results.json`` says
+    (``settings`` and ``seeds`` None where it does not hold them in the built-in
+    experiments' layout); None for a folder with neither."""
+    folder = pathlib.Path(folder)
+    run = _read_json(folder / RUN_FILE)
+    if isinstance(run, dict) and run.get("format") == RUN_FORMAT and isinstance(run.get("experiment"), str):
+        return {"experiment": run["experiment"], "settings": run.get("settings"), "seeds": run.get("seeds")}
+    doc = _read_json(folder / "results.json")
+    if isinstance(doc, dict) and isinstance(doc.get("experiment"), str):
+        config = doc.get("config") if isinstance(doc.get("config"), dict) else {}
+        settings = config.get("settings") if isinstance(config.get("settings"), dict) else None
+        return {"experiment": doc["experiment"], "settings": settings,
+                "seeds": config.get("seeds") if settings is not None else None}
+    return None
+
+
+def _show(v) -> str:
+    if v is None:
+        return "(none)"
+    if isinstance(v, list):
+        return ",".join(_show(x) for x in v)
+    return str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def _differences(there: dict, here: dict) -> list[str]:
+    keys = list(here) + [k for k in there if k not in here]
+    return [f"{k}: {_show(there.get(k))} there, {_show(here.get(k))} here"
+            for k in keys if there.get(k) != here.get(k)]
+
+
+def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells: bool = False) -> list[str]:
+    """Record in ``folder/run.json`` that ``folder`` receives the results of ``experiment``
+    run with ``settings`` and ``seeds`` (atomically; the folder must exist).
+
+    Raises :class:`FolderError`, writing nothing, when the folder holds the results of
+    another experiment (:func:`folder_owner`), or when it holds finished results
+    (``results.json``) of the same experiment with other settings or seeds that this run
+    would overwrite; the message names every differing setting. ``keeps_cells``: the
+    experiment stores its results as cell files named by their whole configuration
+    (:func:`jaxnc.sweep.cell_path`), so a run with other settings keeps its cells beside
+    the others' and only the summary files describe the latest run: allowed, and the
+    differences are returned (``"key: A there, B here"``, empty when there are none) for
+    the caller to show.
+    """
+    from jaxnc.montecarlo import atomic_write
+    folder = pathlib.Path(folder)
+    owner = folder_owner(folder)
+    here = _plain({"settings": dict(settings), "seeds": int(seeds)})
+    if owner is not None and owner["experiment"] != experiment:
+        raise FolderError(f"{folder} holds the results of experiment {owner['experiment']!r}, not {experiment!r}; "
+                          f"choose another folder (or remove this one)")
+    diff = []
+    if owner is not None and owner["settings"] is not None:
+        there = _plain({"settings": owner["settings"], "seeds": owner["seeds"]})
+        diff = _differences(there["settings"], here["settings"])
+        if there["seeds"] != here["seeds"]:
+            diff.append(f"seeds: {_show(there['seeds'])} there, {here['seeds']} here")
+        if diff and not keeps_cells and (folder / "results.json").exists():
+            raise FolderError(f"{folder} holds the results of {experiment} with other settings ({'; '.join(diff)}), "
+                              f"which this run would overwrite; choose another folder (or remove this one)")
+    doc = {"format": RUN_FORMAT, "experiment": experiment, **here}
+    text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
+    atomic_write(folder / RUN_FILE, lambda fh: fh.write(text.encode("utf-8")))
+    return diff if keeps_cells else []
 
 
 # ----------------------------------------------------------------------------- reading
@@ -168,17 +273,24 @@ def _load_single(f: pathlib.Path):
             assert a.ndim == len(dims) + 1 and a.shape[:-1] == shape, f"{name} has shape {a.shape}"
     except (KeyError, TypeError, ValueError, AssertionError) as e:
         raise ValueError(f"{f}: damaged per-seed file ({type(e).__name__}: {e})") from None
-    return dims, coords, z
+    return dims, coords, z, meta.get("experiment")
 
 
 def _load_cells(folder: pathlib.Path, index: dict, results_file: pathlib.Path):
     try:
         dims, rows = list(index["dims"]), index["cells"]
-    except (KeyError, TypeError):
-        raise ValueError(f"{results_file}: damaged per-seed index (results['per_seed'])") from None
+        assert isinstance(rows, list) and all(isinstance(d, str) for d in dims)
+    except (KeyError, TypeError, AssertionError):
+        raise ValueError(f"{results_file}: damaged per-seed index (results['per_seed'] needs 'dims', a list of "
+                         f"names, and 'cells', a list of rows)") from None
     runs = {}
-    for row in rows:
+    for i, row in enumerate(rows):
+        if not isinstance(row, list) or len(row) != len(dims) + 1 or not isinstance(row[-1], str) or not row[-1]:
+            raise ValueError(f"{results_file}: per-seed index row {i} ({row!r}) must be [{', '.join(dims)}, "
+                             f"file name]: one coordinate per dimension, then the cell's file name")
         key, rel = tuple(row[:-1]), row[-1]
+        if pathlib.PurePosixPath(rel).is_absolute() or ".." in pathlib.PurePosixPath(rel).parts:
+            raise ValueError(f"{results_file}: per-seed index row {i}: file name {rel!r} must be inside the folder")
         f = folder / rel
         if not f.exists():
             raise FileNotFoundError(f"{f}: cell file listed in {results_file} is missing")
@@ -212,7 +324,10 @@ def load(folder):
 
     Raises FileNotFoundError naming the file when ``folder`` has no ``results.json`` or
     no per-seed data (a folder written before per-seed results existed), ValueError
-    naming the file when one is damaged.
+    naming the file when one is damaged or malformed (a ``config`` that is not a mapping,
+    a ``config.seeds`` that is not a positive integer or not the per-seed files' seed
+    count, an index row without a file name) and naming the files when the folder mixes
+    two experiments' or two runs' files (module docstring).
     """
     xr = _xarray()
     from jaxnc.montecarlo import load_results
@@ -223,19 +338,49 @@ def load(folder):
     doc = load_results(rj)
     if not isinstance(doc, dict) or "experiment" not in doc or not isinstance(doc.get("results"), dict):
         raise ValueError(f"{rj}: not a jaxnc results file (no 'experiment' or 'results')")
+    experiment = doc["experiment"]
+    config = doc.get("config")
+    config = {} if config is None else config
+    if not isinstance(config, dict):
+        raise ValueError(f"{rj}: 'config' must be a mapping (a JSON object) of the run's configuration, "
+                         f"got {type(config).__name__}")
+    if not isinstance(config.get("settings", {}), dict):
+        raise ValueError(f"{rj}: config.settings must be a mapping (a JSON object), "
+                         f"got {type(config['settings']).__name__}")
+    seeds = config.get("seeds")
+    if seeds is not None and (isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1):
+        raise ValueError(f"{rj}: config.seeds must be the number of seeds, an integer >= 1, got {seeds!r}")
+    run = folder_owner(folder) if (folder / RUN_FILE).exists() else None
+    if run is not None and run["experiment"] != experiment:
+        raise ValueError(f"{folder} mixes the files of two experiments: {rj.name} is {experiment!r}'s, "
+                         f"{RUN_FILE} {run['experiment']!r}'s; rerun the experiment into a folder of its own")
     index = doc["results"].get("per_seed")
+    single = folder / PER_SEED_FILE
+    cell_dirs = [d for d in _CELL_DIRS if (folder / d).is_dir()]
+    if index is not None and single.exists():
+        raise ValueError(f"{folder} mixes the files of two runs: {rj.name} lists per-seed cells and {PER_SEED_FILE} "
+                         f"holds a single run's; rerun the experiment into a folder of its own")
     if index is not None:
         dims, coords, data = _load_cells(folder, index, rj)
-    elif (folder / "cells").is_dir() and not (folder / PER_SEED_FILE).exists():
+    elif cell_dirs and not single.exists():
         raise FileNotFoundError(f"{rj}: lists no per-seed cells (written by a jaxnc older than per-seed results); "
                                 f"rerun the same command: the stored cells are reused and indexed")
+    elif cell_dirs:
+        raise ValueError(f"{folder} mixes the files of two runs: {cell_dirs[0]}/ holds a sweep's cells, which "
+                         f"{rj.name} does not list, beside a single run's {PER_SEED_FILE}; rerun the experiment "
+                         f"into a folder of its own")
     else:
-        dims, coords, data = _load_single(folder / PER_SEED_FILE)
+        dims, coords, data, stored = _load_single(single)
+        if stored is not None and stored != experiment:
+            raise ValueError(f"{folder} mixes the files of two experiments: {rj.name} is {experiment!r}'s, "
+                             f"{PER_SEED_FILE} {stored!r}'s; rerun the experiment into a folder of its own")
     n = next(iter(data.values())).shape[-1]
+    if seeds is not None and seeds != n:
+        raise ValueError(f"{rj}: config.seeds is {seeds} but the per-seed files hold {n} seeds (the files of two "
+                         f"runs mixed?); rerun the experiment into a folder of its own")
     all_dims = (*dims, "seed")
     variables = {k: ((tuple(dims) if k == "present" else all_dims), v) for k, v in data.items()}
-    config = doc.get("config") or {}
-    attrs = {"experiment": doc["experiment"], "settings": config.get("settings", {}),
+    attrs = {"experiment": experiment, "settings": config.get("settings", {}),
              "seeds": config.get("seeds", n), "config": config}
     attrs |= {k: doc[k] for k in ("jaxnc_version", "jax_version", "platform", "created", "wall_time_s") if k in doc}
     return xr.Dataset(variables, coords={**{d: list(coords[d]) for d in dims}, "seed": np.arange(n)}, attrs=attrs)

@@ -8,7 +8,11 @@ contiguous blocks, so that cells sharing a compiled program stay together); whic
 run finds every cell present -- a shard, or a run without ``--shard`` (which computes
 whatever is missing) -- assembles the tables from the cell files, under a lock
 (:func:`assembly_lock`), so the tables are the same bytes however the cells were
-computed. A cell file whose configuration differs from the current run's is not used.
+computed. A cell file is named by everything that makes it: a readable name and a
+hash of its whole configuration (:func:`cell_path`), so two cells whose settings differ
+anywhere (``dp=0.1`` and ``dp=0.104``, another ``sigma``, other seeds) are two files and
+never overwrite each other; a cell file whose configuration differs from the current
+run's is not used.
 
 This module does not import jax.
 """
@@ -16,12 +20,14 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import pathlib
 import re
 from typing import Callable, Iterator, Sequence
 
-__all__ = ["Shard", "parse_shard", "load_cell", "save_cell", "missing_report", "assembly_lock"]
+__all__ = ["Shard", "parse_shard", "config_hash", "cell_path", "load_cell", "save_cell", "missing_report",
+           "assembly_lock"]
 
 _SHARD_RE = re.compile(r"\s*([0-9]+)\s*/\s*([0-9]+)\s*\Z")
 
@@ -63,6 +69,29 @@ def parse_shard(text) -> Shard:
         if n >= 1 and i < n:
             return Shard(i, n)
     raise ValueError(f"--shard must be I/N with integers 0 <= I < N (shard I of N, e.g. 0/4), got {str(text)!r}")
+
+
+def config_hash(config, length: int = 12) -> str:
+    """A hex digest (``length`` characters of SHA-256) of ``config`` as JSON with sorted
+    keys: equal for equal configurations (tuples and lists alike), different as soon as
+    any value differs (``0.1`` and ``0.104``, ``1`` and ``1.0`` included)."""
+    text = json.dumps(config, sort_keys=True, separators=(",", ":"), default=_json_default)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:length]
+
+
+def _json_default(v):
+    """numpy scalars and arrays in a configuration, as JSON values."""
+    if hasattr(v, "tolist"):
+        return v.tolist()
+    raise TypeError(f"config_hash: a configuration value of type {type(v).__name__} is not JSON")
+
+
+def cell_path(folder, name: str, config: dict, suffix: str = ".json") -> pathlib.Path:
+    """``folder/<name>-<config_hash(config)><suffix>``: the file of the cell that
+    ``config`` makes, ``name`` being its readable part (e.g. ``N02_DRH_dp0.1``)."""
+    if not name or "/" in name or "\\" in name:
+        raise ValueError(f"cell_path: name must be a non-empty file name, got {name!r}")
+    return pathlib.Path(folder) / f"{name}-{config_hash(config)}{suffix}"
 
 
 def load_cell(f, config: dict, *, defaults: dict | None = None) -> dict | None:

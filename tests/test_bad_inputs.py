@@ -252,3 +252,175 @@ def test_results_file_errors_name_the_file(tmp_path):
     with pytest.raises(ValueError, match="results.json: not a jaxnc results file .not UTF-8"):
         montecarlo.load_results(p)
     json.loads(text)                                          # the full file was fine
+
+
+# ----------------------------------------------------------------------------- files, folders, memory (issue 33)
+
+from jaxnc import sweep as _sweep  # noqa: E402
+
+_GIB = 2 ** 30
+_SEEDS_RANGE = "config.seeds must be the number of seeds, an integer >= 1, got "
+
+
+@pytest.fixture
+def eight_gib(monkeypatch):
+    """8 GiB of memory available, whatever the machine has: the memory checks are deterministic."""
+    monkeypatch.setattr(montecarlo, "available_memory", lambda: 8 * _GIB)
+
+
+def _claimed(experiment, settings, seeds, finished=True):
+    """A folder prepared by a run of ``experiment`` (with its results.json when ``finished``)."""
+    def make(folder):
+        from jaxnc import results
+        folder.mkdir(parents=True, exist_ok=True)
+        results.claim(folder, experiment, settings, seeds)
+        if finished:
+            montecarlo.save_results(folder / "results.json", experiment=experiment,
+                                    config={"settings": settings, "seeds": seeds}, results={}, wall_time_s=0.0)
+    return make
+
+
+def _mecanum_settings(**kw):
+    from jaxnc.experiment import get_experiment, load_builtin
+    load_builtin()
+    return dict(get_experiment("mecanum").defaults(), **kw)
+
+
+def _not_a_folder(folder):
+    folder.mkdir()
+    (folder / "file").write_text("x")
+    return str(folder / "file" / "sub")
+
+
+CLI_FILES = [
+    # (argv after "run", prepare the --out folder or give it, fragment)
+    (["mecanum"], lambda p: "", "--out must be a folder path, got ''"),
+    (["mecanum"], lambda p: " ", "--out must be a folder path"),
+    (["mecanum"], _not_a_folder, "--out: cannot create directory"),
+    (["mecanum", "--seeds", "4294967295"], None, "--seeds 4294967295: the keys of 4294967295 seeds need 48 GiB"),
+    (["mecanum", "--seeds", "1000000000"], None, "at most 715827882 seeds fit: run fewer seeds"),
+    (["sys:exit"], None, "'sys:exit' is a built-in function, not an Experiment"),
+    (["os:getcwd"], None, "'os:getcwd' is a built-in function, not an Experiment"),
+    (["mecanum"], _claimed("mecanum-grid", {}, 4), "holds the results of experiment 'mecanum-grid', not 'mecanum'"),
+    (["mecanum-grid"], _claimed("mecanum", {}, 4, finished=False), "holds the results of experiment 'mecanum',"),
+    (["mecanum", "--seeds", "2"], lambda p: _claimed("mecanum", _mecanum_settings(), 8)(p),
+     "holds the results of mecanum with other settings (seeds: 8 there, 2 here)"),
+    (["mecanum", "--seeds", "2", "--set", "dp=0.2"], lambda p: _claimed("mecanum", _mecanum_settings(), 2)(p),
+     "(dp: 0.5 there, 0.2 here)"),
+    (["mecanum", "--seeds", "2", "--set", "sigma=0.2"], lambda p: _claimed("mecanum", _mecanum_settings(), 2)(p),
+     f"(sigma: {','.join(map(str, _mecanum_settings()['sigma']))} there, 0.2 here)"),
+]
+
+
+@pytest.mark.parametrize("args, prepare, fragment", CLI_FILES)
+def test_cli_output_folder_memory_and_target_errors(args, prepare, fragment, tmp_path, capsys, eight_gib):
+    out = str(tmp_path / "o")
+    if prepare is not None:
+        made = prepare(tmp_path / "o")
+        out = made if isinstance(made, str) else out
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    code = run_cli(["run", *args, "--out", out] + ([] if "--seeds" in args else ["--seeds", "2"]))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and fragment in err[0], err
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before          # nothing written
+
+
+def _toy_folder(folder, *, experiment="toy", seeds=5, config=None):
+    from jaxnc import results
+    m = {"J1": np.arange(seeds, dtype=np.float32), "unstable": np.zeros(seeds, bool)}
+    results.save_per_seed(folder, {"A": m}, experiment=experiment)
+    montecarlo.save_results(folder / "results.json", experiment=experiment,
+                            config={"settings": {}, "seeds": seeds} if config is None else config,
+                            results={}, wall_time_s=0.0)
+
+
+def _grid_folder(folder, rows, dims=("case",)):
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "cells").mkdir()
+    np.savez(folder / "cells" / "a.npz", J1=np.ones(5, np.float32), unstable=np.zeros(5, bool))
+    montecarlo.save_results(folder / "results.json", experiment="grid", config={"settings": {}, "seeds": 5},
+                            results={"per_seed": {"format": "jaxnc-per-seed-1", "dims": list(dims), "cells": rows}},
+                            wall_time_s=0.0)
+
+
+def _with_run_file(folder, experiment):
+    _toy_folder(folder)
+    (folder / "run.json").write_text(json.dumps({"format": "jaxnc-run-1", "experiment": experiment,
+                                                 "settings": {}, "seeds": 5}))
+
+
+def _with_cells_beside(folder):
+    _toy_folder(folder)
+    (folder / "cells").mkdir()
+
+
+def _index_and_single(folder):
+    _toy_folder(folder, experiment="grid")
+    _grid_folder(folder, [["A", "cells/a.npz"]])
+
+
+RESULTS_FOLDERS = [
+    (lambda f: _toy_folder(f, config=["settings", 5]), "'config' must be a mapping (a JSON object)"),
+    (lambda f: _toy_folder(f, config="many"), "'config' must be a mapping (a JSON object)"),
+    (lambda f: _toy_folder(f, config=7), "'config' must be a mapping (a JSON object)"),
+    (lambda f: _toy_folder(f, config={"settings": [1, 2], "seeds": 5}), "config.settings must be a mapping"),
+    (lambda f: _toy_folder(f, config={"seeds": "many"}), _SEEDS_RANGE + "'many'"),
+    (lambda f: _toy_folder(f, config={"seeds": 0}), _SEEDS_RANGE + "0"),
+    (lambda f: _toy_folder(f, config={"seeds": True}), _SEEDS_RANGE + "True"),
+    (lambda f: _toy_folder(f, config={"seeds": 2.5}), _SEEDS_RANGE + "2.5"),
+    (lambda f: _toy_folder(f, config={"seeds": 7}), "config.seeds is 7 but the per-seed files hold 5 seeds"),
+    (lambda f: _grid_folder(f, [["A"]]), "per-seed index row 0 (['A']) must be [case, file name]"),
+    (lambda f: _grid_folder(f, [["A", 3]]), "per-seed index row 0 (['A', 3]) must be [case, file name]"),
+    (lambda f: _grid_folder(f, [["A", ""]]), "per-seed index row 0 (['A', '']) must be [case, file name]"),
+    (lambda f: _grid_folder(f, ["A"]), "per-seed index row 0 ('A') must be [case, file name]"),
+    (lambda f: _grid_folder(f, [["A", "cells/a.npz"], ["B", "x", "cells/a.npz"]]), "per-seed index row 1"),
+    (lambda f: _grid_folder(f, [["A", "../a.npz"]]), "file name '../a.npz' must be inside the folder"),
+    (lambda f: _grid_folder(f, [["A", "/etc/a.npz"]]), "file name '/etc/a.npz' must be inside the folder"),
+    (lambda f: _grid_folder(f, "cells"), "damaged per-seed index"),
+    (lambda f: _grid_folder(f, [], dims=(1,)), "damaged per-seed index"),
+    (lambda f: _with_run_file(f, "mecanum-grid"),
+     "mixes the files of two experiments: results.json is 'toy''s, run.json 'mecanum-grid''s"),
+    (lambda f: (_toy_folder(f, experiment="hdd"), montecarlo.save_results(
+        f / "results.json", experiment="toy", config={"seeds": 5}, results={}, wall_time_s=0.0)),
+     "mixes the files of two experiments: results.json is 'toy''s, seeds.npz 'hdd''s"),
+    (_index_and_single, "mixes the files of two runs: results.json lists per-seed cells and seeds.npz"),
+    (_with_cells_beside, "mixes the files of two runs: cells/ holds a sweep's cells"),
+]
+
+
+@pytest.mark.parametrize("make, fragment", RESULTS_FOLDERS)
+def test_results_folders_that_do_not_hold_one_run_are_refused(make, fragment, tmp_path):
+    import jaxnc
+    folder = tmp_path / "r"
+    folder.mkdir()
+    make(folder)
+    with pytest.raises(ValueError) as e:
+        jaxnc.load(folder)
+    assert fragment in str(e.value), str(e.value)
+
+
+def _tiny(key):
+    return jnp.zeros((1000,), jnp.float32) + key[0]
+
+
+FILES_API = [
+    (lambda: montecarlo.seed_keys(0, 2**32 - 1), "seed_keys: the keys of 4294967295 seeds need 48 GiB"),
+    (lambda: montecarlo.seed_keys(0, 10**9), "seed_keys: the keys of 1000000000 seeds need"),
+    (lambda: montecarlo.run_batched(_tiny, montecarlo.seed_keys(0, 2_000_000), progress=False),
+     "run_batched: the results of 2000000 seeds need 14.9 GiB (8000 bytes per seed)"),
+    (lambda: montecarlo.check_seed_memory(10**10), "the keys of 10000000000 seeds need"),
+    (lambda: _sweep.cell_path("/tmp", "", {}), "cell_path: name must be a non-empty file name"),
+    (lambda: _sweep.cell_path("/tmp", "a/b", {}), "cell_path: name must be a non-empty file name"),
+    (lambda: _sweep.config_hash({"f": object()}), "config_hash: a configuration value of type object"),
+]
+
+
+@pytest.mark.parametrize("call, fragment", FILES_API)
+def test_files_and_memory_api_errors_name_the_parameter(call, fragment, eight_gib):
+    with pytest.raises((ValueError, TypeError)) as e:
+        call()
+    assert fragment in str(e.value), str(e.value)
+
+
+def test_the_files_battery_has_at_least_25_cases():
+    assert len(CLI_FILES) + len(RESULTS_FOLDERS) + len(FILES_API) >= 25

@@ -192,3 +192,143 @@ def test_ints_option():
     for bad in ("1,13", "1.5", "", "1,,2"):
         with pytest.raises(ConfigError, match=r"N must be a comma-separated list of integers in \[1, 12\]"):
             o.parse(bad)
+
+
+# ----------------------------------------------------------------------------- the output folder, exit codes
+
+
+def _writer(settings, *, seeds, out, progress):
+    """An experiment that writes a finished results.json, as the built-in single runs do."""
+    from jaxnc import montecarlo
+    CALLS.append(dict(settings=settings, seeds=seeds))
+    montecarlo.save_results(out / "results.json", experiment="writer", config={"settings": settings, "seeds": seeds},
+                            results={}, wall_time_s=0.0)
+    return {}
+
+
+WRITER = Experiment("writer", "writes results.json", (Option("N", "int", 2, "n", low=1, high=9),), _writer)
+
+
+def test_a_folder_of_other_settings_or_another_experiment_is_refused_before_running(tmp_path, capsys):
+    ex.register(WRITER)
+    out = str(tmp_path / "o")
+    assert run(["run", "writer", "--seeds", "3", "--out", out, "--set", "N=4"]) == 0
+    assert run(["run", "writer", "--seeds", "3", "--out", out, "--set", "N=4"]) == 0     # the same: it resumes
+    capsys.readouterr()
+    CALLS.clear()
+    assert run(["run", "writer", "--seeds", "5", "--out", out, "--set", "N=5"]) == 2
+    assert_one_line_error(capsys, "--out:", "holds the results of writer with other settings",
+                          "N: 4 there, 5 here", "seeds: 3 there, 5 here", "choose another folder")
+    assert run(["run", "dummy", "--seeds", "3", "--out", out]) == 2
+    assert_one_line_error(capsys, "holds the results of experiment 'writer', not 'dummy'")
+    assert CALLS == []                                   # refused before the experiment ran
+    # a run that never finished (no results.json) overwrites nothing: another setting is fine
+    fresh = tmp_path / "fresh"
+    assert run(["run", "dummy", "--seeds", "3", "--out", str(fresh), "--set", "N=3"]) == 0
+    assert run(["run", "dummy", "--seeds", "4", "--out", str(fresh), "--set", "N=4"]) == 0
+
+
+def test_a_sweep_keeps_the_cells_of_other_settings_apart(tmp_path, capsys):
+    ex.register(Experiment("writer", "", WRITER.options, _writer, keeps_cells=True))
+    out = str(tmp_path)
+    assert run(["run", "writer", "--seeds", "3", "--out", out, "--set", "N=4"]) == 0
+    assert capsys.readouterr().err == ""
+    assert run(["run", "writer", "--seeds", "3", "--out", out, "--set", "N=5"]) == 0
+    err = capsys.readouterr().err                      # allowed, and said once
+    assert err == (f"jaxnc: note: {out} holds writer cells of other settings (N: 4 there, 5 here); they are kept "
+                   f"beside this run's, and the summary files will describe this run\n")
+    import json
+    assert json.loads((tmp_path / "run.json").read_text())["settings"] == {"N": 5}
+
+
+@pytest.mark.parametrize("make, fragment", [
+    (lambda p: "", "--out must be a folder path, got ''"),
+    (lambda p: "  ", "--out must be a folder path, got '"),       # (spaces: the line's are collapsed)
+    (lambda p: (p.joinpath("f").write_text("x"), str(p / "f" / "sub"))[1], "--out: cannot create directory"),
+    (lambda p: (p.joinpath("f").write_text("x"), str(p / "f"))[1], "--out: cannot create directory"),
+])
+def test_bad_out_is_refused_before_running(tmp_path, capsys, make, fragment):
+    assert run(["run", "dummy", "--seeds", "2", "--out", make(tmp_path)]) == 2
+    assert_one_line_error(capsys, fragment)
+    assert CALLS == [] and not (tmp_path / "run.json").exists()
+
+
+def _unwritable(tmp_path):
+    """A folder that exists and cannot be written in, whoever runs the tests."""
+    import os
+    import pathlib
+    if os.geteuid() != 0:
+        d = tmp_path / "ro"
+        d.mkdir()
+        d.chmod(0o555)
+        return d
+    proc = pathlib.Path("/proc/self")                # root writes anywhere but in /proc
+    if not proc.is_dir():
+        pytest.skip("no unwritable folder for root here")
+    return proc
+
+
+def test_unwritable_out_fails_in_under_a_second_before_running(tmp_path, capsys):
+    import time
+    d = _unwritable(tmp_path)
+    try:
+        t0 = time.perf_counter()
+        assert run(["run", "dummy", "--seeds", "2", "--out", str(d)]) == 2
+        assert time.perf_counter() - t0 < 1.0
+        assert_one_line_error(capsys, f"--out: cannot write in directory '{d}'")
+        assert CALLS == []
+    finally:
+        if d.is_relative_to(tmp_path):
+            d.chmod(0o755)
+
+
+def test_an_incomplete_unsharded_sweep_exits_3(tmp_path, capsys):
+    def sweep_run(settings, *, seeds, out, progress, shard=None):
+        CALLS.append(shard)
+        print("1 of 4 cells are missing")
+        return {"complete": False, "missing": 1}
+
+    ex.register(Experiment("gappy", "a sweep that ends with a cell missing", (), sweep_run, keeps_cells=True))
+    assert run(["run", "gappy", "--out", str(tmp_path)]) == cli.INCOMPLETE == 3
+    cap = capsys.readouterr()
+    assert "1 of 4 cells are missing" in cap.out
+    assert cap.err.strip().startswith("jaxnc: error: gappy ended with cells missing") and cap.err.count("\n") == 1
+    # a shard that has done its share while others owe cells ends normally
+    assert run(["run", "gappy", "--out", str(tmp_path), "--shard", "0/2"]) == 0
+    # a complete sweep, or a run that returns no "complete", exits 0
+    ex.register(Experiment("full", "", (), lambda s, *, seeds, out, progress, shard=None: {"complete": True}))
+    assert run(["run", "full", "--out", str(tmp_path / "f")]) == 0
+
+
+def test_no_cache_keeps_no_compiled_programs_beside_the_results(tmp_path, monkeypatch):
+    import jax
+
+    from jaxnc.cache import cache_beside
+
+    def study(settings, *, seeds, out, progress):
+        cache_beside(out)                     # as mecanum-grid and mecanum-validation do
+        CALLS.append(jax.config.jax_compilation_cache_dir)
+        return {}
+
+    ex.register(Experiment("study", "", (), study))
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update("jax_compilation_cache_dir", None)        # as in a fresh process
+        assert run(["run", "study", "--no-cache", "--out", str(tmp_path / "a")]) == 0
+        assert CALLS == [None] and jax.config.jax_compilation_cache_dir is None
+        monkeypatch.setenv("JAXNC_CACHE_DIR", str(tmp_path / "xla"))
+        assert run(["run", "study", "--out", str(tmp_path / "b")]) == 0      # the cache, in its own folder
+        assert CALLS[-1] == str(tmp_path / "xla")
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+        from jaxnc.cache import allow_cache_beside
+        allow_cache_beside(True)
+
+
+@pytest.mark.parametrize("spec, fragment", [
+    ("sys:exit", "'sys:exit' is a built-in function, not an Experiment"),
+    ("os:getpid", "'os:getpid' is a built-in function, not an Experiment"),
+])
+def test_a_builtin_function_is_not_an_experiment(spec, fragment, tmp_path, capsys):
+    assert run(["run", spec, "--out", str(tmp_path)]) == 2
+    assert_one_line_error(capsys, fragment)

@@ -59,6 +59,11 @@ def make_with(n):
 
 def strict():
     raise ConfigError("strict needs mode=b")
+
+
+def quits():
+    import sys
+    sys.exit(0)
 '''
 
 MODULES = {
@@ -177,6 +182,8 @@ def test_set_validation_applies(user_dir, capsys, pairs, fragments):
     ("mymod:make_with", ["'mymod:make_with' is a callable that needs arguments (n)"]),
     ("mymod:Experiment", ["'mymod:Experiment' is a callable that needs arguments (name,"]),
     ("mymod:strict", ["strict needs mode=b"]),                 # a ConfigError from the factory
+    ("mymod:quits", ["'mymod:quits' exited (SystemExit(0)) when called, instead of returning an Experiment"]),
+    ("sys:exit", ["'sys:exit' is a built-in function, not an Experiment"]),     # exited 0, silently
 ])
 def test_bad_specs_exit_2_one_line(user_dir, capsys, spec, fragments):
     assert cli.run_cli(["run", spec, "--out", "o"]) == 2

@@ -41,7 +41,7 @@ def test_interrupted_grid_resumes_and_gives_identical_tables(tmp_path):
     # cell files get the same mode as results.json (they were 0600 from mkstemp)
     modes = {f.name: f.stat().st_mode & 0o777 for f in [a / "results.json", *(a / "cells").rglob("*.*")]}
     assert len(set(modes.values())) == 1, modes
-    f = mg.cell_file(a, "turn180", 2, "DRH", 0.3)
+    f = mg.cell_files(a, SETTINGS, 4)[("turn180", 2, "DRH", 0.3)]
     f.write_text('{"config": ')
     assert mg.run_grid(SETTINGS, seeds=4, out=a, progress=False)["computed"] == 1
     assert _outputs(a) == _outputs(b)
@@ -166,3 +166,28 @@ def test_default_grid_tables_are_the_saved_seed000_tables():
     w.writerow(["index", "DP", "N", *mg.mec.CASES])
     w.writerows(rows)
     assert buf.getvalue().encode() == (saved / "tables_lissajous.csv").read_bytes()
+
+
+def test_close_dps_are_two_cells_and_the_tables_are_written(tmp_path, capsys):
+    """Issue 33: dp=0.1 and dp=0.104 mapped to one cell file (dp0.10), each overwrote the
+    other and the tables were never written. A rerun with other settings into the same
+    folder keeps its cells beside the first run's, and the first run's come back."""
+    from jaxnc.cli import run_cli
+    from jaxnc.montecarlo import load_results
+    argv = ["run", "mecanum-grid", "--seeds", "2", "--no-progress", "--out", str(tmp_path),
+            "--set", "path=turn180", "case=SR", "N=1", "dp=0.1,0.104", "chunk=2"]
+    assert run_cli(argv) == 0
+    cells = sorted(f.name for f in (tmp_path / "cells" / "turn180").glob("*.json"))
+    assert len(cells) == 3 and [c.split("-")[0] for c in cells] == ["N01_SR_dp0", "N01_SR_dp0.1", "N01_SR_dp0.104"]
+    grid = (tmp_path / "grid_turn180.csv").read_text()
+    assert "turn180,1,0.1,SR" in grid and "turn180,1,0.104,SR" in grid
+    assert (tmp_path / "tables_turn180.md").exists()
+    assert load_results(tmp_path / "results.json")["results"]["complete"]
+    stamp = {f: f.stat().st_mtime_ns for f in (tmp_path / "cells").rglob("*.json")}
+    # other settings, same folder: three more cells, none of the first run's touched
+    assert run_cli([*argv, "--set", "L_ref=0.3"]) == 0
+    assert len(list((tmp_path / "cells").rglob("*.json"))) == 6
+    assert all(f.stat().st_mtime_ns == t for f, t in stamp.items())
+    r = run_cli(argv)                                  # the first settings again: all reused
+    assert r == 0 and load_results(tmp_path / "results.json")["results"]["computed"] == 0
+    capsys.readouterr()

@@ -63,7 +63,8 @@ def test_cli_run_writes_tables_results_and_resumes(tmp_path, capsys):
     tables = (tmp_path / "tables.md").read_text()
     assert "1.23" in tables                                        # the paper's DRHE J1 at N=2, DP=0.4
     assert (tmp_path / "fig15_16.png").stat().st_size > 10_000
-    arrays = np.load(tmp_path / "cells" / "DRHE_N2_dp0.40.npz")
+    [f] = (tmp_path / "cells").glob("DRHE_N2_dp0.4-*.npz")            # named by its whole configuration
+    arrays = np.load(f)
     assert arrays["J1"].shape == (2,)
     # a rerun reuses every stored cell: the same tables
     stamp = {f: f.stat().st_mtime_ns for f in (tmp_path / "cells").glob("*.json")}
@@ -76,3 +77,35 @@ def test_conclusions_of_a_run_without_table_cells_are_a_sentence():
     one = {k: v for k, v in _synthetic(mv.PAPER).items() if k[0] == "DRH"}
     assert mv.conclusions(one) == []
     assert mv.conclusions_md(one).startswith("(none")
+
+
+@pytest.mark.parametrize("name, sets", [
+    ("mecanum-validation", ["plant=kinematic", "N=2", "dp=0", "fig12=false"]),
+    ("mecanum-grid", ["path=turn180", "case=SR", "N=1", "dp=0"]),
+])
+def test_no_cache_writes_no_cache_beside_the_results(name, sets, tmp_path, capsys, monkeypatch):
+    """Issue 33: with --no-cache both still kept compiled programs in OUT/.xla_cache."""
+    import sys
+
+    import jax
+
+    from jaxnc.experiment import ConfigError, get_experiment, load_builtin
+    load_builtin()                           # (registers the built-ins the command line runs)
+    seen = []
+
+    def stop(*a, **k):                       # what the study sees once it has set its cache up
+        seen.append(jax.config.jax_compilation_cache_dir)
+        raise ConfigError("stopped before simulating")
+    module = sys.modules[get_experiment(name).run.__module__]       # the module the command line runs
+    monkeypatch.setattr(module, "true_plant" if name == "mecanum-validation" else "run_grid", stop)
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update("jax_compilation_cache_dir", None)            # as in a fresh process
+        argv = ["run", name, "--no-cache", "--seeds", "2", "--out", str(tmp_path), "--set", *sets]
+        assert _run(argv) == 2
+        assert "stopped before simulating" in capsys.readouterr().err
+        assert seen == [None] and not (tmp_path / ".xla_cache").exists()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+        from jaxnc.cache import allow_cache_beside
+        allow_cache_beside(True)

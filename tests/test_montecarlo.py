@@ -2,6 +2,7 @@
 import json
 import math
 import os
+import time
 
 import jax
 import jax.numpy as jnp
@@ -105,6 +106,51 @@ def test_run_batched_compiles_once_per_fn():
     assert len(traces) == 1
     mc.run_batched(fn, keys, chunk_size=4, progress=False)   # cached for the same fn
     assert len(traces) == 1
+
+
+def test_chunk_lanes_caps_only_a_chunk_over_the_memory_budget(monkeypatch):
+    # within the budget the chunk is as given (a seed alone or in a batch: one program)
+    assert mc.chunk_lanes(64, 1, out_bytes=40) == 64
+    assert mc.chunk_lanes(1000, 4, out_bytes=40, devices=2) == 1024
+    # issue 33: chunk_size=2e8 with 4 seeds allocated 7.2 GB; now one group of lanes
+    assert mc.chunk_lanes(200_000_000, 4, out_bytes=4) == mc.LANES
+    # a huge chunk over many seeds: the lanes that fit in CHUNK_MEMORY, a whole number of groups
+    size = mc.chunk_lanes(200_000_000, 10**9, out_bytes=4000, devices=3)
+    assert size % (3 * mc.LANES) == 0 and size * (mc.LANE_BYTES + 4000) <= mc.CHUNK_MEMORY
+    assert (size + 3 * mc.LANES) * (mc.LANE_BYTES + 4000) > mc.CHUNK_MEMORY
+    monkeypatch.setattr(mc, "CHUNK_MEMORY", 100)                 # never below one group
+    assert mc.chunk_lanes(64, 1000, out_bytes=40) == mc.LANES
+
+
+def test_run_batched_with_a_huge_chunk_runs_the_seeds_in_bounded_memory():
+    keys = mc.seed_keys(5, 4)
+    ref = mc.run_batched(_walk, keys, chunk_size=4, progress=False)
+    t0 = time.perf_counter()
+    out = mc.run_batched(_walk, keys, chunk_size=200_000_000, progress=False)
+    assert time.perf_counter() - t0 < 20                          # (it allocated 7.2 GB)
+    for k in ref:                                                 # both ran one 16-lane chunk
+        np.testing.assert_array_equal(out[k], ref[k])
+
+
+def test_results_that_cannot_fit_are_refused_before_running(monkeypatch):
+    calls = []
+
+    def fn(key):
+        calls.append(1)                      # traced (eval_shape), never run
+        return jnp.zeros((250,), jnp.float32)
+
+    monkeypatch.setattr(mc, "available_memory", lambda: 10_000)
+    with pytest.raises(mc.MemoryBudgetError, match=r"run_batched: the results of 10 seeds need .* \(2000 bytes per "
+                                                   r"seed\), more than the .* available; at most 5 seeds fit"):
+        mc.run_batched(fn, mc.seed_keys(0, 10), chunk_size=4, progress=False)
+    assert mc.run_batched(fn, mc.seed_keys(0, 5), chunk_size=4, progress=False).shape == (5, 250)
+    monkeypatch.setattr(mc, "available_memory", lambda: None)       # unknown: no check
+    assert mc.run_batched(fn, mc.seed_keys(0, 10), chunk_size=4, progress=False).shape == (10, 250)
+
+
+def test_available_memory_is_a_positive_byte_count_or_unknown():
+    free = mc.available_memory()
+    assert free is None or (isinstance(free, int) and free > 0)
 
 
 # ----------------------------------------------------------------------------- summarize

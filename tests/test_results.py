@@ -176,3 +176,48 @@ def test_balancing_dataset_means_are_the_printed_table(tmp_path, capsys):
         assert _same(float(s["tilt_rms_deg"].sel(severity="nominal", design=d)),
                      summary[name]["tilt_rms_deg"]["mean"])
         assert _row(printed, name)[1].startswith(f"{100 * float(s['upright'].sel(severity='nominal', design=d)):.1f}")
+
+
+# ----------------------------------------------------------------------------- one folder, one run
+
+
+def test_claim_records_the_run_and_refuses_what_would_mix_or_overwrite(tmp_path):
+    results.claim(tmp_path, "toy", {"k": 1, "t": (0.1, 0.2)}, 5)
+    doc = json.loads((tmp_path / results.RUN_FILE).read_text())
+    assert doc == {"format": "jaxnc-run-1", "experiment": "toy", "settings": {"k": 1, "t": [0.1, 0.2]}, "seeds": 5}
+    assert results.folder_owner(tmp_path) == {"experiment": "toy", "settings": {"k": 1, "t": [0.1, 0.2]}, "seeds": 5}
+    results.claim(tmp_path, "toy", {"k": 2, "t": (0.1, 0.2)}, 5)     # nothing finished yet: nothing to lose
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
+    results.claim(tmp_path, "toy", {"k": 2, "t": [0.1, 0.2]}, 5)     # the same run again (tuples as lists)
+    with pytest.raises(results.FolderError, match=r"holds the results of toy with other settings \(k: 2 there, 3 "
+                                                  r"here; t: 0.1,0.2 there, 0.3 here; seeds: 5 there, 6 here\)"):
+        results.claim(tmp_path, "toy", {"k": 3, "t": (0.3,)}, 6)
+    assert results.claim(tmp_path, "toy", {"k": 3, "t": (0.3,)}, 6, keeps_cells=True) == [  # a sweep's cells stay apart
+        "k: 2 there, 3 here", "t: 0.1,0.2 there, 0.3 here", "seeds: 5 there, 6 here"]
+    with pytest.raises(results.FolderError, match="holds the results of experiment 'toy', not 'other'"):
+        results.claim(tmp_path, "other", {"k": 3, "t": (0.3,)}, 6, keeps_cells=True)
+    assert results.folder_owner(tmp_path)["settings"] == {"k": 3, "t": [0.3]}
+
+
+def test_a_folder_without_run_file_is_owned_by_its_results_file(tmp_path):
+    assert results.folder_owner(tmp_path) is None
+    montecarlo.save_results(tmp_path / "results.json", experiment="mecanum",
+                            config={"settings": {"N": 2}, "seeds": 4}, results={}, wall_time_s=0.0)
+    assert results.folder_owner(tmp_path) == {"experiment": "mecanum", "settings": {"N": 2}, "seeds": 4}
+    with pytest.raises(results.FolderError, match=r"\(N: 2 there, 3 here\)"):
+        results.claim(tmp_path, "mecanum", {"N": 3}, 4)
+    (tmp_path / results.RUN_FILE).write_text("{damaged")                 # unreadable: the results file says
+    with pytest.raises(results.FolderError, match="not 'hdd'"):
+        results.claim(tmp_path, "hdd", {}, 4)
+
+
+def test_per_seed_file_names_its_experiment(tmp_path):
+    results.save_per_seed(tmp_path, {"A": _metrics(3)}, experiment="toy")
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"seeds": 3}, results={},
+                            wall_time_s=0.0)
+    assert jaxnc.load(tmp_path).attrs["experiment"] == "toy"
+    montecarlo.save_results(tmp_path / "results.json", experiment="hdd", config={"seeds": 3}, results={},
+                            wall_time_s=0.0)
+    with pytest.raises(ValueError, match="mixes the files of two experiments: results.json is 'hdd''s, "
+                                         "seeds.npz 'toy''s"):
+        jaxnc.load(tmp_path)

@@ -66,6 +66,18 @@ def test_cell_files_are_reused_only_with_their_configuration(tmp_path):
     assert load_cell(f, {"a": 1}) is None
 
 
+def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
+    from jaxnc.sweep import cell_path, config_hash
+    a = {"dp": 0.1, "sigma": (0.1, 0.2), "seeds": 4}
+    assert config_hash(a) == config_hash({"seeds": 4, "sigma": [0.1, 0.2], "dp": 0.1})   # order, tuples
+    others = [dict(a, dp=0.104), dict(a, sigma=(0.1, 0.3)), dict(a, seeds=5), dict(a, extra=None), dict(a, dp=1e-17)]
+    names = {cell_path(tmp_path, "N02_DRH_dp0.1", c).name for c in [a, *others]}
+    assert len(names) == 1 + len(others)                       # settings that differ anywhere: other files
+    f = cell_path(tmp_path / "cells", "N02_DRH_dp0.1", a)
+    assert f.parent == tmp_path / "cells" and f.name.startswith("N02_DRH_dp0.1-") and f.suffix == ".json"
+    assert len(f.stem.split("-")[-1]) == 12
+
+
 def test_missing_report_names_the_shards_that_owe_cells():
     cells = list(range(10))
     text = missing_report(cells, [5, 9], Shard(0, 3), describe=lambda c: f"cell {c}")
@@ -112,7 +124,7 @@ def test_two_shards_assemble_the_tables_of_an_unsharded_run_and_a_killed_shard_l
     script = _CHILD.format(root=str(ROOT), settings=GRID, seeds=SEEDS, out=str(shared))
     child = subprocess.Popen([sys.executable, "-c", textwrap.dedent(script)], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    files = [mg.cell_file(shared, *c) for c in first]
+    files = [mg.cell_files(shared, GRID, SEEDS)[c] for c in first]
     try:
         deadline = time.monotonic() + 240
         while not any(f.exists() for f in files):
