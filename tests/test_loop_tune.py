@@ -259,3 +259,27 @@ def test_param_paths_names_tied_groups_like_the_result():
 def test_objective_total_sums_a_pair_and_keeps_a_scalar():
     from jaxnc.tune import objective_total
     assert objective_total((1.5, 2.0)) == 3.5 and objective_total(4.0) == 4.0
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pair:
+    """A configuration with two leaves and a closed-form objective (for check_loop's run=)."""
+    b: float = 1.0
+    a: float = 1.0
+
+
+def _pair_run(cfg, key):
+    """E[J] = 10 b + a: in the log coordinates d/dlog b = 10 b, d/dlog a = a (noise keeps the
+    standard errors positive)."""
+    eps = jax.random.normal(key, (2,))
+    return 10.0 * cfg.b * (1.0 + 0.01 * eps[0]) + cfg.a * (1.0 + 0.01 * eps[1])
+
+
+def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
+    """``params`` lists b before a; the gradient vector is flattened in sorted-name order.
+    Each label must sit on its own coordinate: b's gradient is 10x a's."""
+    from jaxnc.tune import check_loop
+    c = check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8)
+    g = dict(zip(c.names, c.estimates["finite_difference"][0]))
+    assert set(g) == {"a", "b"}
+    assert g["b"] / g["a"] == pytest.approx(10.0, rel=0.02), c.table()     # both at 1: the same chain factor

@@ -282,6 +282,19 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
+def _labels(unravel, size: int) -> tuple:
+    """The label of each coordinate of a flat vector, in the vector's order: ``name`` for a
+    scalar parameter, ``name[i]`` (flat index) for an array. Read from ``unravel`` itself,
+    so the labels follow the flattening order (sorted names), not the order of ``params``."""
+    index = unravel(np.arange(size, dtype=np.float32))
+    labels = [""] * size
+    for name, pos in index.items():
+        pos = np.asarray(pos).ravel().astype(int)
+        for i, j in enumerate(pos):
+            labels[j] = name if pos.size == 1 else f"{name}[{i}]"
+    return tuple(labels)
+
+
 def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4):
     """``res`` (a SearchResult) with ``budget`` more simulations spent on its best
     ``finalists`` candidates (the same new seeds for all: common random numbers); the best
@@ -331,10 +344,7 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
     flat0, unravel, fobj = _flat(loop, spec, at)
-    labels = []
-    for n in spec.paths:
-        size = int(np.asarray(get_path(loop, spec.paths[n][0])).size)
-        labels += [n] if size == 1 else [f"{n}[{i}]" for i in range(size)]
+    labels = _labels(unravel, flat0.size)
     chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), fd_step=fd_step, temperature=temperature,
                          score_scale=score_scale, chunk_size=chunk_size, progress=progress)
     return chk._replace(names=tuple(labels))
