@@ -282,6 +282,20 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
+def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, **kw) -> GradientCheck:
+    """:func:`gradient_check` of the flat objective on seeds ``seed_keys(seed, seeds)``
+    (doubling up to ``max_seeds``), labelled, with each coordinate's value and slope
+    d value / d theta so that its table is in the user's units."""
+    def values(theta):
+        return ravel_pytree(constrain(unravel(theta), spec.constraints))[0]
+    th = jnp.asarray(flat0)
+    vals, slope = jax.jvp(values, (th,), (jnp.ones_like(th),))   # constraints act elementwise: the diagonal
+    chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
+                         max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
+                         **kw)
+    return chk._replace(values=np.asarray(vals), dvalue_dtheta=np.asarray(slope))
+
+
 def _labels(unravel, size: int) -> tuple:
     """The label of each coordinate of a flat vector, in the vector's order: ``name`` for a
     scalar parameter, ``name[i]`` (flat index) for an array. Read from ``unravel`` itself,
@@ -320,7 +334,7 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
                run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
                temperature: float = 1e-3, score_scale: float = 0.1, chunk_size: int = 256,
-               progress: bool = False) -> GradientCheck:
+               max_seeds: int | None = None, progress: bool = False) -> GradientCheck:
     """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
     loop's values of ``params`` (or at ``at``, ``{name: value}`` in natural units), the
     straight-through and score-function estimates of d E[objective] / d theta beside
@@ -330,31 +344,37 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     parameter, logit of an ``Interval``), so ``fd_step`` and ``score_scale`` are relative
     steps. ``params``, ``objective`` and ``run`` as in :func:`tune_loop`. The seeds run in
     compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
-    with a progress bar if ``progress``.
+    with a progress bar if ``progress``. Every coordinate must be resolved for an
+    estimator to be recommended; with ``max_seeds`` (> ``seeds``) the check doubles its
+    seeds until it is conclusive or reaches ``max_seeds`` (default: no increase).
 
     Returns:
-      :class:`jaxnc.tune.check.GradientCheck` (``names``: the coordinates' labels).
+      :class:`jaxnc.tune.check.GradientCheck`: ``names`` the coordinates' labels (in the
+      gradient vector's order: parameters sorted by name), ``values`` and
+      ``dvalue_dtheta`` each coordinate's value and slope, so that ``table()`` and
+      ``in_units()`` give d E[objective] / d parameter in the parameter's own units.
 
     Raises:
-      ValueError: as :func:`tune_loop`, fewer than 2 seeds, non-positive steps.
+      ValueError: as :func:`tune_loop`, fewer than 2 seeds, max_seeds below seeds,
+        non-positive steps.
     """
     spec = _prepare("check_loop", loop, params, objective, run)
     if not spec.paths:
         raise ValueError("check_loop: name at least one parameter")
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
+    check_int("max_seeds", seeds if max_seeds is None else max_seeds, seeds)
     flat0, unravel, fobj = _flat(loop, spec, at)
-    labels = _labels(unravel, flat0.size)
-    chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), fd_step=fd_step, temperature=temperature,
-                         score_scale=score_scale, chunk_size=chunk_size, progress=progress)
-    return chk._replace(names=tuple(labels))
+    return _check(spec, flat0, unravel, fobj, seeds=seeds, max_seeds=seeds if max_seeds is None else max_seeds,
+                  seed=seed, fd_step=fd_step, temperature=temperature, score_scale=score_scale,
+                  chunk_size=chunk_size, progress=progress)
 
 
 def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None = None, *,
               run: Callable | None = None, search: dict | None = None, search_budget: int | None = None,
               steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
               learning_rate: float = 0.05, score_scale: float = 0.1, fd_step: float = 0.05, seed: int = 0,
-              check_seeds: int = 32,
+              check_seeds: int = 32, check_max_seeds: int | None = None,
               eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
@@ -389,6 +409,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         the check's finite-difference step, in the raw coordinates.
       check_seeds, eval_seeds: seeds of the gradient check and of the final evaluation;
         ``eval_seed``: base seed of the evaluation (fresh: different from ``seed``).
+      check_max_seeds: the check's budget: while it recommends nothing because some
+        coordinate is unresolved, its seeds double up to this many (>= check_seeds;
+        default 16 x check_seeds, four doublings; ``check_seeds`` turns the increase off).
+        A check still inconclusive there says which coordinate and how many seeds it
+        would need (``LoopTuneResult.estimator_reason``).
 
     Returns:
       :class:`LoopTuneResult`.
@@ -418,6 +443,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
+    check_max_seeds = 16 * check_seeds if check_max_seeds is None else check_max_seeds
+    check_int("check_max_seeds", check_max_seeds, check_seeds)
     check_int("eval_seeds", eval_seeds, 2)
     check_int("seed", seed, 0, 2**32 - 3)
     check_int("eval_seed", eval_seed, 0, 2**32 - 1)
@@ -466,19 +493,21 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
-        flat0, _, flat_objective = _flat(loop1, spec)
+        flat0, unravel, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
-            chk = gradient_check(flat_objective, flat0, montecarlo.seed_keys(seed + 2, check_seeds),
-                                 temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
-                                 progress=progress)
-            sims += check_seeds * (2 * flat0.size + 3)
+            chk = _check(spec, flat0, unravel, flat_objective, seeds=check_seeds, max_seeds=check_max_seeds,
+                         seed=seed + 2, temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
+                         progress=progress)
+            sims += chk.seeds * (2 * flat0.size + 3)
             if chk.recommended is None and result_search is not None:
-                used, reason = "none", ("no estimator passed the gradient check at the search's winner ("
+                used, reason = "none", (f"no estimator passed the gradient check at the search's winner on "
+                                        f"{chk.seeds} seeds ("
                                         + "; ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
                                         + "): the gradient stage is skipped")
             elif chk.recommended is None:
-                used, reason = "score", ("no estimator agreed with finite differences at the start point; "
-                                         "the score function is unbiased for the smoothed objective")
+                used, reason = "score", (f"no estimator passed the gradient check at the start point on {chk.seeds} "
+                                         "seeds (" + "; ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
+                                         + "); the score function is unbiased for the smoothed objective")
             else:
                 used = chk.recommended
                 others = ", ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
