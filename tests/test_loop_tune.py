@@ -9,7 +9,7 @@ import pytest
 from jaxnc import loop as nc
 from jaxnc import montecarlo
 from jaxnc.tune import Interval, Positive
-from jaxnc.tune.loop_tune import get_path, is_static, mc_mean, set_paths, tune_loop
+from jaxnc.tune.loop_tune import check_loop, get_path, is_static, mc_mean, set_paths, tune_loop
 
 A = np.array([[1.0, 0.1], [0.0, 0.95]])
 B = np.array([[0.005], [0.1]])
@@ -363,3 +363,55 @@ def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     assert "inconclusive on b (" in off.estimator_reason and "seeds would resolve it" in off.estimator_reason
     with pytest.raises(ValueError, match=r"check_max_seeds must be an integer in \[8"):
         tune_loop(cfg, params, lambda j: j, check_max_seeds=4, **kw)
+
+
+def test_tune_loop_refuses_a_start_outside_its_interval():
+    """The loss probability starts at 0.2, outside Interval(0.3, 0.9): refused, not moved to 0.3."""
+    with pytest.raises(ValueError, match=r"tune_loop: the start of 'uplink.loss.p' must be inside the open "
+                                         r"interval \(0.3, 0.9\).*got 0.2"):
+        tune_loop(_loop(), {"uplink.loss.p": Interval(0.3, 0.9)})
+    with pytest.raises(ValueError, match=r"search\['uplink.loss.p'\] value 1.0: the start of 'uplink.loss.p' must "
+                                         r"be inside the open interval"):
+        tune_loop(_loop(), {"uplink.loss.p": Interval(0.0, 0.9)}, search={"uplink.loss.p": [0.1, 1.0]})
+
+
+def test_tune_loop_refuses_a_start_of_zero_under_positive():
+    """delta = 0 under Positive (log) has no raw value: refused, not replaced by 1e-6."""
+    with pytest.raises(ValueError, match=r"tune_loop: the start of 'trigger.delta' must be finite and > 0 "
+                                         r"\(Positive\(low=0\).*got 0.0"):
+        tune_loop(_loop(delta=0.0), {"trigger.delta": Positive()})
+    with pytest.raises(ValueError, match=r"the start of 'controller.K' must be finite and > 2 .*got \[\[3.0, 1.5\]\]"):
+        tune_loop(_loop(), {"controller.K": Positive(low=2.0)})       # K = (3, 1.5): one element below
+
+
+def test_tune_loop_refuses_a_search_budget_of_zero_or_without_a_search():
+    """search_budget=0 used to mean "the default"; now None is the default and 0 is refused."""
+    lp = _loop(pmf=(0.5, 0.5))
+    with pytest.raises(ValueError, match=r"search_budget must be an integer in \[1"):
+        tune_loop(lp, search={"estimator.buffer": [0, 1]}, search_budget=0)
+    with pytest.raises(ValueError, match=r"search_budget must be at least 2 \(one seed per candidate and round"):
+        tune_loop(lp, search={"estimator.buffer": [0, 1]}, search_budget=1)
+    with pytest.raises(ValueError, match="search_budget is given without a search"):
+        tune_loop(lp, {"trigger.delta": Positive()}, search_budget=64)
+
+
+def test_tune_loop_refuses_a_loop_without_a_cost():
+    """A Loop without a cost makes m.cost_raw NaN on every run: refused before tracing with
+    the default objective, and on the start's evaluation seeds with a user's objective that
+    reads it (before any of the budget is spent)."""
+    lp = dataclasses.replace(_loop(), cost=None)
+    with pytest.raises(ValueError, match=r"the loop has no cost \(Loop.cost is None\)"):
+        tune_loop(lp, {"trigger.delta": Positive()})
+    with pytest.raises(ValueError, match=r"the objective is NaN at the start on 4 of 4 evaluation seeds"):
+        tune_loop(lp, {"trigger.delta": Positive()}, lambda m: m.cost_raw + m.rate_sc, eval_seeds=4, progress=False)
+
+
+def test_tune_loop_refuses_a_part_or_a_none_field_instead_of_a_leaf():
+    lp = _loop()
+    with pytest.raises(ValueError, match=r"'trigger' is a part \(Petc\), not a leaf: name one of its fields "
+                                         r"\(trigger.sigma, trigger.delta"):
+        tune_loop(lp, {"trigger": Positive()})
+    with pytest.raises(ValueError, match=r"'controller.u_max' is None in this loop"):
+        tune_loop(lp, {"controller.u_max": Positive()})
+    with pytest.raises(ValueError, match=r"'controller_trigger' is None in this loop"):
+        check_loop(lp, ["controller_trigger"])

@@ -207,6 +207,32 @@ def param_paths(params) -> dict:
     return {_name(k): ((k,) if isinstance(k, str) else tuple(k)) for k in params}
 
 
+def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
+    """The numeric value at ``path``; ValueError when it names a part (a configuration
+    object: name one of its fields) or a field that holds None or no number."""
+    v = get_path(loop, path)
+    if dataclasses.is_dataclass(v):
+        raise ValueError(f"{fn_name}: {path!r} is a part ({type(v).__name__}), not a leaf: name one of its fields "
+                         f"({', '.join(path + '.' + f for f in _fields(v))})")
+    if v is None:
+        raise ValueError(f"{fn_name}: {path!r} is None in this loop (a part or value that is not set): a tuned "
+                         f"leaf must hold a number or an array")
+    a = np.asarray(v)
+    if a.dtype.kind not in "biuf" or a.size == 0:
+        raise ValueError(f"{fn_name}: {path!r} must hold a number or a non-empty array of numbers to be tuned, "
+                         f"got {type(v).__name__}")
+    return a
+
+
+def check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
+    """ValueError naming ``what`` when ``value`` is outside ``constraint``'s domain (nothing
+    is moved to the edge: the tuner would start somewhere the user did not ask for)."""
+    try:
+        constraint.inverse(value)
+    except ValueError as e:
+        raise ValueError(f"{fn_name}: {what} {e}") from None
+
+
 def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     """Check ``params`` / ``objective`` / ``run`` against ``loop`` before anything is traced."""
     from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
@@ -223,7 +249,7 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
         name = _name(group)
         values = []
         for path in group:
-            values.append(np.asarray(get_path(loop, path)))
+            values.append(_leaf_value(fn_name, loop, path))
             if is_static(loop, path):
                 raise ValueError(f"{fn_name}: {path!r} is static (it shapes arrays or selects code) and has no "
                                  f"gradient; give its candidate values in search={{{path!r}: [...]}}")
@@ -234,6 +260,9 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
             raise ValueError(f"{fn_name}: the constraint of {name!r} must be Positive, Interval or Unconstrained, "
                              f"got {type(c).__name__}")
         paths[name], constraints[name] = group, c
+    if objective is None and run is None and isinstance(loop, nc.Loop) and loop.cost is None:
+        raise ValueError(f"{fn_name}: the loop has no cost (Loop.cost is None), so the default objective "
+                         f"m.cost_raw is NaN on every run: give the Loop a cost= or an objective(metrics)")
     run = nc.run if run is None else run
     if not callable(run):
         raise ValueError(f"{fn_name}: run must be a function run(loop, key) -> metrics, got {type(run).__name__}")
@@ -392,7 +421,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         ``jump``) to the check and the tuner.
       run: ``run(loop, key) -> metrics`` for one seed; default :func:`jaxnc.loop.run`.
       search: ``{path: [values]}`` searched first by successive halving (static integer
-        fields allowed); ``search_budget`` simulations (default 16 per candidate). A key
+        fields allowed); ``search_budget`` simulations (default None: 16 per candidate;
+        at least one per candidate and round of successive halving). A key
         that names a parameter of ``params`` (its path, or ``"a=b"`` for a tied group)
         makes the search pick the gradient's *start* among the values (the two-stage
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
@@ -419,15 +449,25 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
       :class:`LoopTuneResult`.
 
     Raises:
-      ValueError: a path that does not exist, a static leaf in ``params``, tied paths that
-        start unequal, a budget below one step, a non-scalar objective, an unknown
-        estimator or constraint.
+      ValueError: a path that does not exist, names a part (a configuration object) or a
+        field that is None, a static leaf in ``params``, tied paths that start unequal, a
+        start (or a searched start) outside its constraint (0 under ``Positive()``, a
+        value outside its ``Interval``: nothing is moved to the edge), a budget below one
+        step, ``search_budget`` below one seed per candidate and round or without a
+        search, a non-scalar objective, the default objective on a Loop without a cost,
+        an objective that is NaN at the start on some evaluation seed (checked on the
+        evaluation's fresh seeds before the budget is spent), an unknown estimator or
+        constraint.
     """
     t0 = time.perf_counter()
     spec = _prepare("tune_loop", loop, params, objective, run)
     search = dict(search or {})
     if not spec.paths and not search:
         raise ValueError("tune_loop: name at least one parameter to tune (params or search)")
+    for name, group in spec.paths.items():
+        if name not in search:            # (a searched parameter starts at the search's winner)
+            check_in_constraint("tune_loop", f"the start of {name!r}", spec.constraints[name],
+                                np.asarray(get_path(loop, group[0])))
     tuned_paths = {p: n for n, g in spec.paths.items() for p in g}
     search_paths = {}                   # search key -> the paths it sets
     for key, vals in search.items():
@@ -440,6 +480,14 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             search_paths[key] = (key,)
         if not isinstance(vals, (list, tuple, np.ndarray)) or len(vals) == 0:
             raise ValueError(f"tune_loop: search[{key!r}] must be a non-empty list of values")
+        if key in spec.paths:            # a start candidate: inside the parameter's constraint
+            for v in vals:
+                check_in_constraint("tune_loop", f"search[{key!r}] value {v!r}: the start of {key!r}",
+                                    spec.constraints[key], v)
+    if search_budget is not None:
+        if not search:
+            raise ValueError("tune_loop: search_budget is given without a search")
+        check_int("search_budget", search_budget, 1)
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
@@ -467,6 +515,15 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     def per_seed(point, key, temp=jnp.float32(0.0)):
         return objective(run(with_temperature(set_paths(loop, point), temp), key))
 
+    # the start's evaluation first (fresh seeds, so its values are those it would have at the
+    # end): an objective that is NaN at the start is refused before the budget is spent
+    ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
+    run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
+    v0 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(loop,), chunk_size=eval_seeds, progress=False))
+    if np.any(np.isnan(v0)):
+        raise ValueError(f"tune_loop: the objective is NaN at the start on {int(np.sum(np.isnan(v0)))} of "
+                         f"{eval_seeds} evaluation seeds (a loop without a cost gives m.cost_raw = NaN): there is "
+                         f"nothing to tune; give the loop a cost or an objective that is a number on every run")
     sims = 0
     result_search = None
     loop1 = loop
@@ -478,7 +535,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         # a point sets every path of each searched key (dynamic values as float32, so one program serves all)
         val = lambda n, i: search[n][i] if all(is_static(loop, p) for p in search_paths[n]) else np.float32(search[n][i])
         points = [{p: val(n, i) for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
-        budget = search_budget or 16 * len(points)
+        budget = 16 * len(points) if search_budget is None else search_budget
+        rounds = max(1, int(np.ceil(np.log2(len(points)))))
+        if budget < rounds * len(points):
+            raise ValueError(f"tune_loop: search_budget must be at least {rounds * len(points)} (one seed per "
+                             f"candidate and round: {len(points)} candidates, {rounds} rounds), got {budget}")
         need = sum(s for _, s in halving_schedule(len(points), budget))
         keys = montecarlo.seed_keys(seed + 1, need)
         result_search = successive_halving(lambda p, k: per_seed(p, k), points, keys, budget=budget, static=static,
@@ -536,9 +597,6 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     best = result_search.best_point if result_search else {}
     final = {**{k: best[ps[0]] for k, ps in search_paths.items() if k not in spec.paths}, **tuned}
 
-    ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
-    run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
-    v0 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(loop,), chunk_size=eval_seeds, progress=False))
     v1 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(final_loop,), chunk_size=eval_seeds,
                                            progress=False))
     sims += 2 * eval_seeds
