@@ -361,6 +361,8 @@ def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     off = tune_loop(cfg, params, lambda j: j, check_max_seeds=8, **kw)
     assert off.check.seeds == 8 and off.check.recommended is None
     assert "inconclusive on b (" in off.estimator_reason and "seeds would resolve it" in off.estimator_reason
+    # the reason quotes the resolution in the user's units (d value / d theta = 0.5)
+    assert f"resolves {off.check.resolution['score'][1] / 0.5:.3g}," in off.estimator_reason
     with pytest.raises(ValueError, match=r"check_max_seeds must be an integer in \[8"):
         tune_loop(cfg, params, lambda j: j, check_max_seeds=4, **kw)
 

@@ -141,8 +141,11 @@ def _seeds_str(n) -> str:
     return "inf" if not np.isfinite(n) else f"{int(n)}"
 
 
-def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol: float, names: tuple):
-    """The check's statistics and verdicts from the per-seed values ``res`` (module docstring)."""
+def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol: float, names: tuple,
+              slope: np.ndarray):
+    """The check's statistics and verdicts from the per-seed values ``res`` (module
+    docstring); the reasons quote gradients and resolutions divided by ``|slope|`` (d value
+    / d theta: the user's units)."""
     n = len(res["value"])
     se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
     fd = np.asarray(res["finite_difference"], float)
@@ -172,7 +175,7 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
             reason = f"too noisy, std err {ratio:.3g}x the finite differences'"
         elif not np.all(resolved):
             reason = "inconclusive on " + "; ".join(
-                f"{names[j]} (resolves {resolution[j]:.3g}, gradient {size[j]:.3g}: about "
+                f"{names[j]} (resolves {resolution[j] / slope[j]:.3g}, gradient {size[j] / slope[j]:.3g}: about "
                 f"{_seeds_str(needed[j])} seeds would resolve it)" for j in np.flatnonzero(~resolved))
         else:
             reason = ""
@@ -185,7 +188,8 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
 def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
                    score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
                    estimators=None, chunk_size: int = 256, progress: bool = False, names=None,
-                   max_seeds: int | None = None, more_keys: Callable | None = None) -> GradientCheck:
+                   max_seeds: int | None = None, more_keys: Callable | None = None, values=None,
+                   dvalue_dtheta=None) -> GradientCheck:
     """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
 
     Args:
@@ -217,6 +221,10 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
       more_keys: ``more_keys(start, count) -> keys (count, 2)`` of seeds ``start ...
         start + count - 1`` (e.g. ``lambda s, c: jaxnc.montecarlo.seed_keys(base, c,
         start=s)`` when ``keys`` are ``seed_keys(base, n)``); needed when max_seeds > n.
+      values, dvalue_dtheta: float[d] each, the parameter each coordinate sets (in the
+        user's units) and its slope d value / d theta (non-zero), e.g. value = exp(theta)
+        for a log coordinate: the table and the reasons then give gradients and
+        resolutions as d E[objective] / d value (:func:`jaxnc.tune.check_loop` sets them).
 
     Returns:
       :class:`GradientCheck` (``seeds``: the seeds it ran).
@@ -244,6 +252,15 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     names = tuple(f"theta[{j}]" for j in range(d)) if names is None else tuple(names)
     if len(names) != d or not all(isinstance(x, str) for x in names):
         raise ValueError(f"gradient_check: names must be {d} strings (one per coordinate), got {names!r}")
+    if (values is None) != (dvalue_dtheta is None):
+        raise ValueError("gradient_check: give both values and dvalue_dtheta, or neither")
+    if values is not None:
+        values, dvalue_dtheta = np.asarray(values, float), np.asarray(dvalue_dtheta, float)
+        if values.shape != (d,) or dvalue_dtheta.shape != (d,) or not np.all(np.isfinite(dvalue_dtheta) &
+                                                                               (dvalue_dtheta != 0)):
+            raise ValueError(f"gradient_check: values and dvalue_dtheta must be float[{d}], the slopes finite and "
+                             f"non-zero, got {values!r}, {dvalue_dtheta!r}")
+    slope = np.ones(d) if dvalue_dtheta is None else np.abs(dvalue_dtheta)
     max_seeds = n if max_seeds is None else max_seeds
     check_int("max_seeds", max_seeds, n)
     if max_seeds > n and not callable(more_keys):
@@ -299,7 +316,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     run = lambda ks: montecarlo.run_batched(per_seed, ks, chunk_size=chunk, progress=progress, desc="gradient check")
     res = {k: np.asarray(v) for k, v in run(keys).items()}
     while True:
-        estimates, out, rec = _verdicts(res, estimators, z, max_noise, rel_tol, names)
+        estimates, out, rec = _verdicts(res, estimators, z, max_noise, rel_tol, names, slope)
         unresolved_only = any(out["reason"][nm].startswith("inconclusive") for nm in estimators)
         if rec is not None or not unresolved_only or n >= max_seeds:
             break
@@ -313,4 +330,4 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         n += m
     return GradientCheck(theta, float(np.mean(res["value"])), estimates, out["paired"], out["consistent"],
                          out["reason"], rec, names, out["diff_se"], out["resolution"], out["resolved"], out["needed"],
-                         n)
+                         n, values, dvalue_dtheta)

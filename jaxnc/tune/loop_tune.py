@@ -224,7 +224,7 @@ def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     return a
 
 
-def check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
+def _check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
     """ValueError naming ``what`` when ``value`` is outside ``constraint``'s domain (nothing
     is moved to the edge: the tuner would start somewhere the user did not ask for)."""
     try:
@@ -319,10 +319,9 @@ def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, see
         return ravel_pytree(constrain(unravel(theta), spec.constraints))[0]
     th = jnp.asarray(flat0)
     vals, slope = jax.jvp(values, (th,), (jnp.ones_like(th),))   # constraints act elementwise: the diagonal
-    chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
-                         max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
-                         **kw)
-    return chk._replace(values=np.asarray(vals), dvalue_dtheta=np.asarray(slope))
+    return gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
+                          max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
+                          values=np.asarray(vals), dvalue_dtheta=np.asarray(slope), **kw)
 
 
 def _labels(unravel, size: int) -> tuple:
@@ -466,7 +465,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         raise ValueError("tune_loop: name at least one parameter to tune (params or search)")
     for name, group in spec.paths.items():
         if name not in search:            # (a searched parameter starts at the search's winner)
-            check_in_constraint("tune_loop", f"the start of {name!r}", spec.constraints[name],
+            _check_in_constraint("tune_loop", f"the start of {name!r}", spec.constraints[name],
                                 np.asarray(get_path(loop, group[0])))
     tuned_paths = {p: n for n, g in spec.paths.items() for p in g}
     search_paths = {}                   # search key -> the paths it sets
@@ -482,7 +481,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             raise ValueError(f"tune_loop: search[{key!r}] must be a non-empty list of values")
         if key in spec.paths:            # a start candidate: inside the parameter's constraint
             for v in vals:
-                check_in_constraint("tune_loop", f"search[{key!r}] value {v!r}: the start of {key!r}",
+                _check_in_constraint("tune_loop", f"search[{key!r}] value {v!r}: the start of {key!r}",
                                     spec.constraints[key], v)
     if search_budget is not None:
         if not search:
