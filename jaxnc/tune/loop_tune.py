@@ -8,15 +8,19 @@ a loop built with the runner (attribute paths from the loop: ``"trigger.delta"``
 configuration (a paper's scheme: ``run=mecanum.run``), and a tuple of paths ties them to
 one parameter. It
 
-1. checks everything before tracing: the paths exist and are dynamic leaves (an integer
-   that shapes arrays is static: give it in ``search``), the budget, the objective is a
-   scalar;
+1. checks everything before tracing: the paths exist and are dynamic numeric leaves (not
+   a part, not None; an integer that shapes arrays is static: give it in ``search``), the
+   starts lie inside their constraints, the budgets, the objective is a scalar (and, on
+   the start's evaluation seeds, not NaN);
 2. with ``search={"path": [values, ...]}`` first runs successive halving with common
    random numbers over those values (static integers such as a buffer length or
    horizon included, each value compiling once: :func:`jaxnc.tune.search.successive_halving`);
 3. picks the gradient estimator by :func:`jaxnc.tune.check.gradient_check` at the start
-   point (``estimator="auto"``; it says which and why) and runs :func:`jaxnc.tune.tune`
-   (optax, constraints by reparametrisation, Polyak averaging);
+   point (``estimator="auto"``: an estimator that agrees with central finite differences
+   with every coordinate resolved, the seeds doubled up to ``check_max_seeds`` until the
+   check is conclusive; it says which and why, or which coordinate stayed unresolved) and
+   runs :func:`jaxnc.tune.tune` (optax, constraints by reparametrisation: log for
+   :class:`Positive`, logit for :class:`Interval`; Polyak averaging);
 4. evaluates the start and the tuned point with hard triggers on fresh seeds: means
    with 95 % intervals and the paired 95 % interval of the difference.
 
