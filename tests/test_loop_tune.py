@@ -284,6 +284,10 @@ def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
     g = dict(zip(c.names, c.estimates["finite_difference"][0]))
     assert set(g) == {"a", "b"}
     assert g["b"] / g["a"] == pytest.approx(10.0, rel=0.02), c.table()     # both at 1: the same chain factor
+    # in the user's units (the check ran in log coordinates): dE/db = 10, dE/da = 1
+    np.testing.assert_allclose(c.in_units("finite_difference")[0], [1.0, 10.0], rtol=0.02)
+    with pytest.raises(ValueError, match=r"max_seeds must be an integer in \[8"):
+        check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=4)
 
 
 def _linear(theta, key, temperature):
