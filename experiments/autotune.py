@@ -460,10 +460,10 @@ register(Experiment(
                choices=("straight_through", "sigmoid", "score", "hybrid")),
         Option("t0", "float", 1.0, "initial trigger temperature", low=1e-6, high=1e6),
         Option("t1", "float", 0.1, "final trigger temperature", low=1e-6, high=1e6),
-        Option("lr", "float", 0.3, "Adam learning rate (raw space: softplus, or logit for init=coarse)",
+        Option("lr", "float", 0.3, "Adam learning rate (raw space: log, or logit for init=coarse)",
                low=1e-6, high=10.0),
         Option("score_scale", "float", 0.5, "score / hybrid estimators: std of the parameter perturbations "
-               "(raw space: softplus, or logit for init=coarse)", low=1e-4, high=10.0),
+               "(raw space: log, or logit for init=coarse)", low=1e-4, high=10.0),
         Option("init", "choice", "coarse", "gradient start: the paper's thresholds, the grid's best (then the "
                "tuned point used both budgets), or coarse (a two-stage tuner inside the grid's budget: successive "
                "halving over the grid's points on half the budget picks the start, half the steps refine it)",
@@ -489,7 +489,7 @@ register(Experiment(
     options=(
         Option("scenario", "choice", "b", "single-rate scenario: a (PI at T) or b (PI at NT)", choices=("a", "b")),
         Option("F", "float", 0.1, "noise factor", low=0.0, high=5.0),
-        Option("lr", "float", 0.1, "Adam learning rate (raw, softplus space)", low=1e-6, high=10.0),
+        Option("lr", "float", 0.1, "Adam learning rate (raw, log space)", low=1e-6, high=10.0),
         *COMMON,
     ),
     run=run_pi,

@@ -8,8 +8,8 @@ import pytest
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo
-from jaxnc.tune import Positive
-from jaxnc.tune.loop_tune import get_path, is_static, mc_mean, set_paths, tune_loop
+from jaxnc.tune import Interval, Positive
+from jaxnc.tune.loop_tune import check_loop, get_path, is_static, mc_mean, set_paths, tune_loop
 
 A = np.array([[1.0, 0.1], [0.0, 0.95]])
 B = np.array([[0.005], [0.1]])
@@ -149,12 +149,12 @@ def test_search_over_a_tuned_parameter_picks_the_gradients_start():
     lp = dataclasses.replace(_loop(delta=1e-2), trigger=nc.Petc(sigma=1e-2, delta=1e-2))
     name = "trigger.delta=trigger.sigma"
     r = tune_loop(lp, {("trigger.delta", "trigger.sigma"): Positive()}, lambda m: m.cost_raw + 0.5 * m.rate_sc,
-                  search={name: [1e-4, 1e-2, 1.0]}, search_budget=24, steps=2, batch=4, check_seeds=4,
-                  eval_seeds=8, progress=False)
+                  search={name: [1e-4, 1e-2, 1.0]}, search_budget=24, steps=2, batch=4,
+                  estimator="straight_through", eval_seeds=8, progress=False)
     best = r.search.best_point
     assert set(best) == {"trigger.delta", "trigger.sigma"} and best["trigger.delta"] == best["trigger.sigma"]
     assert float(r.tune.history.params[name][0]) == pytest.approx(float(best["trigger.delta"]), rel=1e-6)
-    assert r.tuning_simulations == r.search.n_simulations + 4 * (2 + 3) + 2 * 4
+    assert r.tuning_simulations == r.search.n_simulations + 2 * 4
     with pytest.raises(ValueError, match="is tuned as part of 'trigger.delta=trigger.sigma': search that name"):
         tune_loop(lp, {("trigger.delta", "trigger.sigma"): Positive()}, search={"trigger.delta": [1e-3]})
 
@@ -259,3 +259,165 @@ def test_param_paths_names_tied_groups_like_the_result():
 def test_objective_total_sums_a_pair_and_keeps_a_scalar():
     from jaxnc.tune import objective_total
     assert objective_total((1.5, 2.0)) == 3.5 and objective_total(4.0) == 4.0
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Pair:
+    """A configuration with two leaves and a closed-form objective (for check_loop's run=)."""
+    b: float = 1.0
+    a: float = 1.0
+
+
+def _pair_run(cfg, key):
+    """E[J] = 10 b + a: in the log coordinates d/dlog b = 10 b, d/dlog a = a (noise keeps the
+    standard errors positive)."""
+    eps = jax.random.normal(key, (2,))
+    return 10.0 * cfg.b * (1.0 + 0.01 * eps[0]) + cfg.a * (1.0 + 0.01 * eps[1])
+
+
+def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
+    """``params`` lists b before a; the gradient vector is flattened in sorted-name order.
+    Each label must sit on its own coordinate: b's gradient is 10x a's."""
+    from jaxnc.tune import check_loop
+    c = check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8)
+    g = dict(zip(c.names, c.estimates["finite_difference"][0]))
+    assert set(g) == {"a", "b"}
+    assert g["b"] / g["a"] == pytest.approx(10.0, rel=0.02), c.table()     # both at 1: the same chain factor
+    # in the user's units (the check ran in log coordinates): dE/db = 10, dE/da = 1
+    np.testing.assert_allclose(c.in_units("finite_difference")[0], [1.0, 10.0], rtol=0.02)
+    with pytest.raises(ValueError, match=r"max_seeds must be an integer in \[8"):
+        check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=4)
+
+
+def _linear(theta, key, temperature):
+    """J = theta_0 (1 + e_0) + 0.3 theta_1 (1 + e_1), e ~ N(0, I) per seed: the gradient of
+    the mean is (1, 0.3). The score function's paired difference to the finite differences
+    has variance 4 + 0.18 on coordinate 0 and 2 + 0.36 on coordinate 1, so at z = 3
+    coordinate 0 is resolved from about 38 seeds and coordinate 1 only from about 236."""
+    e = jax.random.normal(key, (2,))
+    return theta[0] * (1.0 + e[0]) + 0.3 * theta[1] * (1.0 + e[1])
+
+
+def test_check_resolves_every_coordinate_and_names_the_unresolved_one():
+    """At 128 seeds the score function agrees with the finite differences and the largest
+    coordinate is resolved (the former rule, on the largest coordinate, passed it), but
+    coordinate 1 is not: nothing is recommended and the reason names it with the seeds it
+    needs. Doubling up to 1024 seeds makes the check conclusive. (z = 3: a doubling check
+    looks several times, and a flag, however unlikely for an unbiased estimator, ends it.)"""
+    from jaxnc.tune import gradient_check
+    kw = dict(estimators=("score",), names=("a", "b"), score_scale=0.05, z=3.0)
+    c = gradient_check(_linear, np.zeros(2, np.float32), montecarlo.seed_keys(0, 128), **kw)
+    assert c.seeds == 128 and c.recommended is None, c.table()
+    assert c.resolved["score"].tolist() == [True, False], c.table()
+    assert c.reason["score"].startswith("inconclusive on b ("), c.reason
+    need = c.seeds_needed["score"][1]
+    assert 128 < need < 1024 and f"about {int(need)} seeds" in c.reason["score"]
+    # the estimate of the seeds needed follows SE ~ 1/sqrt(n)
+    size = max(abs(c.estimates["score"][0][1]), abs(c.estimates["finite_difference"][0][1]))
+    np.testing.assert_allclose(need, np.ceil(128 * (c.resolution["score"][1] / size) ** 2))
+    assert "no (~" in c.table()
+    more = lambda start, count: montecarlo.seed_keys(0, count, start)
+    c2 = gradient_check(_linear, np.zeros(2, np.float32), montecarlo.seed_keys(0, 128), max_seeds=1024,
+                        more_keys=more, **kw)
+    assert c2.recommended == "score" and c2.resolved["score"].all(), c2.table()
+    assert c2.seeds in (256, 512, 1024)
+    # the doubled check is the single check on as many seeds (the same chunks)
+    c3 = gradient_check(_linear, np.zeros(2, np.float32), montecarlo.seed_keys(0, c2.seeds), chunk_size=128, **kw)
+    np.testing.assert_allclose(c3.estimates["score"][0], c2.estimates["score"][0], rtol=1e-6)
+    with pytest.raises(ValueError, match="needs more_keys"):
+        gradient_check(_linear, np.zeros(2, np.float32), montecarlo.seed_keys(0, 16), max_seeds=32, **kw)
+    with pytest.raises(ValueError, match=r"max_seeds must be an integer in \[16"):
+        gradient_check(_linear, np.zeros(2, np.float32), montecarlo.seed_keys(0, 16), max_seeds=8, more_keys=more)
+    with pytest.raises(ValueError, match="names must be 2 strings"):
+        gradient_check(_linear, np.zeros(2, np.float32), montecarlo.seed_keys(0, 16), names=("a",))
+
+
+def _pair_linear_run(cfg, key):
+    """E[J] = a + 0.3 b, noisy as :func:`_linear`, and the pathwise derivative in b misses
+    its mean (the straight-through gradient is wrong on b by exactly 0.3 on every seed)."""
+    e = jax.random.normal(key, (2,))
+    return cfg.a * (1.0 + e[0]) + 0.3 * jax.lax.stop_gradient(cfg.b) + 0.3 * cfg.b * e[1]
+
+
+def test_tune_loops_check_doubles_its_seeds_until_conclusive():
+    """tune_loop's check: the straight-through gradient misses b (flagged at once); the
+    score function needs more than check_seeds = 8 seeds on b, so the check doubles them
+    (up to check_max_seeds) and recommends it; the doubled seeds are counted. With the
+    increase off, the tuner falls back on the score function and says which coordinate was
+    unresolved."""
+    cfg = _Pair(b=1.0, a=1.0)
+    params = {"b": Interval(0.0, 2.0), "a": Interval(0.0, 2.0)}       # slope 0.5 at the middle
+    kw = dict(run=_pair_linear_run, steps=1, batch=2, check_seeds=8, eval_seeds=2, progress=False)
+    r = tune_loop(cfg, params, lambda j: j, check_max_seeds=1024, **kw)
+    assert r.estimator == "score" and r.check.recommended == "score", r.check.table()
+    assert r.check.reason["straight_through"].startswith("differs"), r.check.table()
+    assert 8 < r.check.seeds <= 1024
+    assert r.tuning_simulations == r.check.seeds * (2 * 2 + 3) + 2      # score: batch 2 = one antithetic pair
+    # in the user's units: dE/da = 1, dE/db = 0.3; theta is the logit, d value / d theta = 0.5
+    assert r.check.names == ("a", "b")
+    np.testing.assert_allclose(r.check.values, [1.0, 1.0], rtol=1e-6)
+    np.testing.assert_allclose(r.check.dvalue_dtheta, [0.5, 0.5], rtol=1e-6)
+    fd, fd_se = r.check.in_units("finite_difference")
+    np.testing.assert_allclose(fd, r.check.estimates["finite_difference"][0] / 0.5, rtol=1e-6)
+    assert np.all(np.abs(fd - [1.0, 0.3]) < 4 * fd_se), r.check.table()
+    assert "in the parameter's units" in r.check.table()
+    off = tune_loop(cfg, params, lambda j: j, check_max_seeds=8, **kw)
+    assert off.check.seeds == 8 and off.check.recommended is None
+    assert "inconclusive on b (" in off.estimator_reason and "seeds would resolve it" in off.estimator_reason
+    # the reason quotes the resolution in the user's units (d value / d theta = 0.5)
+    assert f"resolves {off.check.resolution['score'][1] / 0.5:.3g}," in off.estimator_reason
+    with pytest.raises(ValueError, match=r"check_max_seeds must be an integer in \[8"):
+        tune_loop(cfg, params, lambda j: j, check_max_seeds=4, **kw)
+
+
+def test_tune_loop_refuses_a_start_outside_its_interval():
+    """The loss probability starts at 0.2, outside Interval(0.3, 0.9): refused, not moved to 0.3."""
+    with pytest.raises(ValueError, match=r"tune_loop: the start of 'uplink.loss.p' must be inside the open "
+                                         r"interval \(0.3, 0.9\).*got 0.2"):
+        tune_loop(_loop(), {"uplink.loss.p": Interval(0.3, 0.9)})
+    with pytest.raises(ValueError, match=r"search\['uplink.loss.p'\] value 1.0: the start of 'uplink.loss.p' must "
+                                         r"be inside the open interval"):
+        tune_loop(_loop(), {"uplink.loss.p": Interval(0.0, 0.9)}, search={"uplink.loss.p": [0.1, 1.0]})
+
+
+def test_tune_loop_refuses_a_start_of_zero_under_positive():
+    """delta = 0 under Positive (log) has no raw value: refused, not replaced by 1e-6."""
+    with pytest.raises(ValueError, match=r"tune_loop: the start of 'trigger.delta' must be finite and > 0 "
+                                         r"\(Positive\(low=0\).*got 0.0"):
+        tune_loop(_loop(delta=0.0), {"trigger.delta": Positive()})
+    with pytest.raises(ValueError, match=r"the start of 'controller.K' must be finite and > 2 .*got \[\[3.0, 1.5\]\]"):
+        tune_loop(_loop(), {"controller.K": Positive(low=2.0)})       # K = (3, 1.5): one element below
+
+
+def test_tune_loop_refuses_a_search_budget_of_zero_or_without_a_search():
+    """search_budget=0 used to mean "the default"; now None is the default and 0 is refused."""
+    lp = _loop(pmf=(0.5, 0.5))
+    with pytest.raises(ValueError, match=r"search_budget must be an integer in \[1"):
+        tune_loop(lp, search={"estimator.buffer": [0, 1]}, search_budget=0)
+    with pytest.raises(ValueError, match=r"search_budget must be at least 2 \(one seed per candidate and round"):
+        tune_loop(lp, search={"estimator.buffer": [0, 1]}, search_budget=1)
+    with pytest.raises(ValueError, match="search_budget is given without a search"):
+        tune_loop(lp, {"trigger.delta": Positive()}, search_budget=64)
+
+
+def test_tune_loop_refuses_a_loop_without_a_cost():
+    """A Loop without a cost makes m.cost_raw NaN on every run: refused before tracing with
+    the default objective, and on the start's evaluation seeds with a user's objective that
+    reads it (before any of the budget is spent)."""
+    lp = dataclasses.replace(_loop(), cost=None)
+    with pytest.raises(ValueError, match=r"the loop has no cost \(Loop.cost is None\)"):
+        tune_loop(lp, {"trigger.delta": Positive()})
+    with pytest.raises(ValueError, match=r"the objective is NaN at the start on 4 of 4 evaluation seeds"):
+        tune_loop(lp, {"trigger.delta": Positive()}, lambda m: m.cost_raw + m.rate_sc, eval_seeds=4, progress=False)
+
+
+def test_tune_loop_refuses_a_part_or_a_none_field_instead_of_a_leaf():
+    lp = _loop()
+    with pytest.raises(ValueError, match=r"'trigger' is a part \(Petc\), not a leaf: name one of its fields "
+                                         r"\(trigger.sigma, trigger.delta"):
+        tune_loop(lp, {"trigger": Positive()})
+    with pytest.raises(ValueError, match=r"'controller.u_max' is None in this loop"):
+        tune_loop(lp, {"controller.u_max": Positive()})
+    with pytest.raises(ValueError, match=r"'controller_trigger' is None in this loop"):
+        check_loop(lp, ["controller_trigger"])

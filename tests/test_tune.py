@@ -16,7 +16,7 @@ import jaxnc.loop as jl
 from jaxnc.loop.triggers import petc_gap, soft_decision
 from jaxnc.tune import (Interval, Positive, bernoulli_fires, constrain, grid, halving_schedule,
                         mean_ci, paired_ci, random_points, relax_trigger, score_grad, score_surrogate, search,
-                        successive_halving, tune, unconstrain)
+                        successive_halving, tune, Unconstrained, unconstrain)
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
 
@@ -132,6 +132,35 @@ def test_reparametrisation_round_trips_and_respects_bounds():
     assert float(extreme["a"]) >= 0 and float(extreme["b"]) <= 2.0 and float(extreme["c"]) >= 0.5
     with pytest.raises(ValueError, match="not tuned"):
         unconstrain({"a": 1.0}, {"zz": Positive()})
+
+
+def test_positive_is_exp_of_the_raw_value_so_raw_steps_are_relative():
+    """Positive(low): value = low + exp(raw). A raw step of 0.1 multiplies value - low by
+    e^0.1 whether the value is 1e-4 or 10 (thresholds span decades); the check's and the
+    tuner's fd_step / score_scale are relative steps."""
+    for v in (1e-4, 1e-2, 1.0, 10.0):
+        raw = unconstrain({"x": v}, {"x": Positive()})["x"]
+        np.testing.assert_allclose(float(raw), np.log(v), rtol=1e-6, atol=1e-6)
+        up = constrain({"x": raw + 0.1}, {"x": Positive()})["x"]
+        np.testing.assert_allclose(float(up) / v, np.exp(0.1), rtol=1e-5)
+    raw = unconstrain({"x": 0.75}, {"x": Positive(low=0.5)})["x"]
+    np.testing.assert_allclose(float(raw), np.log(0.25), rtol=1e-6)
+
+
+@pytest.mark.parametrize("cons, value, msg", [
+    (Positive(), 0.0, r"'x' must be finite and > 0"),
+    (Positive(), -1.0, r"'x' must be finite and > 0"),
+    (Positive(low=0.5), 0.5, r"'x' must be finite and > 0.5"),
+    (Positive(), np.nan, r"'x' must be finite"),
+    (Interval(0.0, 1.0), 1.5, r"'x' must be inside the open interval \(0, 1\)"),
+    (Interval(0.0, 1.0), 0.0, r"'x' must be inside the open interval \(0, 1\)"),
+    (Unconstrained(), np.inf, r"'x' must be finite"),
+])
+def test_unconstrain_refuses_a_value_outside_its_constraint_naming_it(cons, value, msg):
+    """Nothing is moved to the edge silently (a start of 0 under Positive used to become
+    1e-6, one outside an Interval its edge)."""
+    with pytest.raises(ValueError, match=msg):
+        unconstrain({"x": value}, {"x": cons})
 
 
 @pytest.mark.parametrize("estimator", ["straight_through", "score"])

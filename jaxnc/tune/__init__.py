@@ -7,7 +7,8 @@
 * :mod:`jaxnc.tune.search` -- grid / random search and successive halving with common
   random numbers, the best point with its interval, and hard-trigger evaluation;
 * :mod:`jaxnc.tune.check` -- :func:`gradient_check`: which estimator agrees with finite
-  differences on *your* loop, and which to use;
+  differences on *your* loop, on every coordinate (each resolved, or the report says how
+  many seeds it would need; optional doubling of the seeds), and which to use;
 * :mod:`jaxnc.tune.loop_tune` -- :func:`tune_loop`: tune any :class:`jaxnc.loop.Loop` by
   naming its leaves (search for static integers, gradient for the rest, hard-trigger
   evaluation on fresh seeds); :func:`mc_mean`, a differentiable chunked Monte-Carlo mean.

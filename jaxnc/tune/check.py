@@ -17,23 +17,40 @@ computes, *on the same seeds* (common random numbers):
   can). It costs no simulation beyond the other two.
 
 Each estimate is a mean over seeds with its standard error. An estimator is *consistent*
-with the finite differences when, for every coordinate, the mean of the per-seed
-differences (estimator minus finite difference, paired on the seed) is within
-``z`` of its standard error (1.96, with Bonferroni's correction for the number of
-coordinates) or smaller than ``rel_tol`` (2 %) of the largest
-finite-difference component (the finite differences are themselves biased by O(h^2) and
-float32 rounding, so an exact gradient differs from them by a tiny but, over many
-seeds, *significant* amount: that is agreement, not a failure), *and* the check is
-conclusive (it can see a disagreement as large as the gradient: ``z`` times the paired
-standard error is at most the largest |component| of the estimate or of the finite
-differences; on an objective dominated by rare failures the finite differences are often
-too noisy for that, and agreement within their noise proves nothing), *and* its standard error is at most ``max_noise``
-(10) times the finite differences' (an estimator so noisy that it agrees with anything,
-e.g. a straight-through gradient through a very sharp sigmoid, is flagged as too noisy,
-not passed). The recommendation is the consistent estimator with
-the smallest standard error (ties: straight-through, which needs one pass); none when
-no estimator is consistent. The finite differences themselves estimate the gradient of
-the mean objective only up to O(h^2) and their own noise; both are in the report.
+with the finite differences when
+
+1. for every coordinate, the mean of the per-seed differences (estimator minus finite
+   difference, paired on the seed) is within ``z`` of its standard error (1.96, with
+   Bonferroni's correction for the number of coordinates) or smaller than ``rel_tol``
+   (2 %) of the largest finite-difference component (the finite differences are
+   themselves biased by O(h^2) and float32 rounding, so an exact gradient differs from
+   them by a tiny but, over many seeds, *significant* amount: that is agreement, not a
+   failure);
+2. its standard error is at most ``max_noise`` (10) times the finite differences' (an
+   estimator so noisy that it agrees with anything, e.g. a straight-through gradient
+   through a very sharp sigmoid, is flagged as too noisy, not passed);
+3. **every coordinate is resolved**: coordinate j is resolved when the check could have
+   seen a disagreement as large as the gradient on that coordinate,
+   ``z * SE_j <= max(|estimate_j|, |finite difference_j|)`` with SE_j the standard error
+   of the paired difference on coordinate j (its *resolution* is ``z * SE_j``). A rule on
+   the largest coordinate alone passes an estimator whose small coordinates were never
+   tested (agreement within the noise proves nothing); a coordinate whose gradient is
+   near zero (a flat direction) is resolved only with many seeds, and the check says so.
+   An unresolved coordinate's report gives the seeds that would resolve it, estimated from
+   the standard error's 1/sqrt(n) scaling: ``n * (z * SE_j / max(|estimate_j|, |fd_j|))^2``.
+
+The recommendation is the consistent estimator with the smallest standard error (ties:
+straight-through, which needs one pass); none when no estimator is consistent, so never
+one with an unresolved coordinate. With ``max_seeds`` (and ``more_keys``, which gives
+the keys of further seeds) a check that recommends nothing while some estimator fails
+only for unresolved coordinates doubles its seeds (the new seeds run on top of the old
+ones, in the same compiled chunks) until one is recommended, none is left unresolved, or
+``max_seeds`` is reached: it ends conclusive or says which coordinate is unresolved and
+how many seeds it would need. (Looking again after each doubling is a sequential test;
+the stopping rule depends on the resolution, not on the z of the disagreement.)
+
+The finite differences themselves estimate the gradient of the mean objective only up to
+O(h^2) and their own noise; both are in the report.
 """
 from __future__ import annotations
 
@@ -66,28 +83,113 @@ class GradientCheck(NamedTuple):
     consistent: dict                # name -> bool
     reason: dict                    # name -> "" when consistent, else why not
     recommended: str | None
-    names: tuple = ()               # the coordinates' labels (set by jaxnc.tune.check_loop)
-    diff_se: dict = {}              # name -> float[d]: standard error of the paired difference to FD;
-                                    # 1.96 x it is the smallest disagreement the check can see
+    names: tuple = ()               # the coordinates' labels
+    diff_se: dict = {}              # name -> float[d]: standard error of the paired difference to FD
+    resolution: dict = {}           # name -> float[d]: z x diff_se, the smallest disagreement the check sees
+    resolved: dict = {}             # name -> bool[d]: resolution <= max(|estimate|, |FD|) on the coordinate
+    seeds_needed: dict = {}         # name -> float[d]: seeds that would resolve each coordinate (SE ~ 1/sqrt(n))
+    seeds: int = 0                  # seeds the check ran (after any doubling)
+    values: np.ndarray | None = None         # float[d]: each coordinate's parameter in the user's units
+    dvalue_dtheta: np.ndarray | None = None  # float[d]: d value / d theta (the constraint's slope)
+
+    def in_units(self, name: str) -> tuple:
+        """(mean, standard error) of estimator ``name`` (or ``"finite_difference"``) as
+        d E[objective] / d value in the user's units (theta's own units when the check
+        was given no ``dvalue_dtheta``)."""
+        m, s = self.estimates[name]
+        slope = np.ones_like(m) if self.dvalue_dtheta is None else np.asarray(self.dvalue_dtheta, float)
+        return m / slope, s / np.abs(slope)
 
     def table(self) -> str:
-        """A plain-text table of the check."""
-        rows = [f"coordinates: {', '.join(self.names)}"] if self.names else []
-        rows += [f"{'estimator':<20} {'gradient':>28} {'std err':>24} {'|z| vs FD':>10}  consistent"]
-        for name, (m, s) in self.estimates.items():
-            z = self.paired_z.get(name)
-            zs = "-" if z is None else f"{float(np.max(np.abs(z))):.2f}"
-            c = "-" if name == "finite_difference" else ("yes" if self.consistent[name] else
-                                                          f"NO ({self.reason[name]})")
-            rows.append(f"{name:<20} {np.array2string(m, precision=4):>28} {np.array2string(s, precision=3):>24} "
-                        f"{zs:>10}  {c}")
-        rows.append(f"recommended: {self.recommended or 'none (no estimator agrees with the finite differences)'}")
+        """A plain-text table: one row per estimator and coordinate, gradients and the
+        resolution in the user's units when the check knows them (``values``)."""
+        d = len(self.theta)
+        labels = self.names or tuple(f"theta[{j}]" for j in range(d))
+        slope = np.ones(d) if self.dvalue_dtheta is None else np.abs(np.asarray(self.dvalue_dtheta, float))
+        units = ("d E[objective] / d parameter, in the parameter's units" if self.values is not None else
+                 "d E[objective] / d theta")
+        rows = [f"gradient check on {self.seeds} seeds ({units}; +- 95 %; resolution: the smallest disagreement "
+                f"with the finite differences the check can see)"]
+        w = max(12, *(len(x) for x in labels))
+        rows.append(f"{'estimator':<17} {'coordinate':<{w}} {'value':>10} {'gradient':>22} {'finite diff.':>22} "
+                    f"{'|z|':>6} {'resolution':>10}  resolved")
+        fd_m, fd_s = self.in_units("finite_difference")
+        for name in self.estimates:
+            if name == "finite_difference":
+                continue
+            m, s = self.in_units(name)
+            for j in range(d):
+                val = "-" if self.values is None else f"{float(self.values[j]):.4g}"
+                res = self.resolution.get(name)
+                rs = "-" if res is None else f"{float(res[j] / slope[j]):.3g}"
+                ok = self.resolved.get(name)
+                needed = self.seeds_needed.get(name)
+                okstr = "-" if ok is None else ("yes" if ok[j] else (
+                    f"no (~{_seeds_str(needed[j])} seeds)" if needed is not None else "no"))
+                rows.append(f"{name if j == 0 else '':<17} {labels[j]:<{w}} {val:>10} "
+                            f"{f'{m[j]:.4g} +- {1.96 * s[j]:.2g}':>22} {f'{fd_m[j]:.4g} +- {1.96 * fd_s[j]:.2g}':>22} "
+                            f"{abs(float(self.paired_z[name][j])):>6.2f} {rs:>10}  {okstr}")
+        for name in self.estimates:
+            if name != "finite_difference":
+                rows.append(f"{name}: " + ("consistent" if self.consistent[name] else f"NO ({self.reason[name]})"))
+        rows.append("recommended: " + (self.recommended or "none (no estimator agrees with the finite differences "
+                                                           "on every coordinate, each resolved)"))
         return "\n".join(rows)
+
+
+def _seeds_str(n) -> str:
+    return "inf" if not np.isfinite(n) else f"{int(n)}"
+
+
+def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol: float, names: tuple,
+              slope: np.ndarray):
+    """The check's statistics and verdicts from the per-seed values ``res`` (module
+    docstring); the reasons quote gradients and resolutions divided by ``|slope|`` (d value
+    / d theta: the user's units)."""
+    n = len(res["value"])
+    se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
+    fd = np.asarray(res["finite_difference"], float)
+    estimates = {"finite_difference": (fd.mean(0), se(fd))}
+    out = {k: {} for k in ("paired", "consistent", "reason", "diff_se", "resolution", "resolved", "needed")}
+    margin = rel_tol * float(np.max(np.abs(estimates["finite_difference"][0])))
+    for name in estimators:
+        g = np.asarray(res[name], float)
+        estimates[name] = (g.mean(0), se(g))
+        diff = g - fd
+        s = se(diff)
+        zz = np.where(s > 0, diff.mean(0) / np.where(s > 0, s, 1.0), np.where(diff.mean(0) == 0, 0.0, np.inf))
+        size = np.maximum(np.abs(g.mean(0)), np.abs(fd.mean(0)))       # a disagreement as large as the gradient
+        resolution = z * s
+        resolved = resolution <= size
+        with np.errstate(divide="ignore", invalid="ignore"):
+            needed = np.where(resolved, n, np.ceil(n * (resolution / size) ** 2))
+        needed = np.where(np.isnan(needed), np.inf, needed)
+        out["paired"][name], out["diff_se"][name] = zz, s
+        out["resolution"][name], out["resolved"][name], out["needed"][name] = resolution, resolved, needed
+        if not np.all(np.isfinite(g)):
+            reason = "non-finite values"
+        elif not np.all((np.abs(zz) <= z) | (np.abs(diff.mean(0)) <= margin)):
+            reason = f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
+        elif np.any(estimates[name][1] > max_noise * np.maximum(estimates["finite_difference"][1], 1e-30)):
+            ratio = float(np.max(estimates[name][1] / np.maximum(estimates["finite_difference"][1], 1e-30)))
+            reason = f"too noisy, std err {ratio:.3g}x the finite differences'"
+        elif not np.all(resolved):
+            reason = "inconclusive on " + "; ".join(
+                f"{names[j]} (resolves {resolution[j] / slope[j]:.3g}, gradient {size[j] / slope[j]:.3g}: about "
+                f"{_seeds_str(needed[j])} seeds would resolve it)" for j in np.flatnonzero(~resolved))
+        else:
+            reason = ""
+        out["reason"][name], out["consistent"][name] = reason, reason == ""
+    ok = [nm for nm in estimators if out["consistent"][nm]]
+    rec = min(ok, key=lambda nm: (float(np.max(estimates[nm][1])), nm != "straight_through")) if ok else None
+    return estimates, out, rec
 
 
 def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
                    score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
-                   estimators=None, chunk_size: int = 256, progress: bool = False) -> GradientCheck:
+                   estimators=None, chunk_size: int = 256, progress: bool = False, names=None,
+                   max_seeds: int | None = None, more_keys: Callable | None = None, values=None,
+                   dvalue_dtheta=None) -> GradientCheck:
     """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
 
     Args:
@@ -97,28 +199,42 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
       theta: float[d], the point.
       keys: the seeds' keys, shape (n, 2) (n >= 2).
       fd_step, temperature, score_scale: > 0.
-      z: the normal quantile of the consistency test; default the two-sided 95 % quantile
-        with Bonferroni's correction for the d coordinates, Phi^-1(1 - 0.025 / d) (1.96 for
-        d = 1, 2.24 for d = 2): every coordinate is tested, so without it an unbiased
-        estimator would be flagged in about d x 5 % of checks.
+      z: the normal quantile of the consistency test and of the resolution; default the
+        two-sided 95 % quantile with Bonferroni's correction for the d coordinates,
+        Phi^-1(1 - 0.025 / d) (1.96 for d = 1, 2.24 for d = 2): every coordinate is
+        tested, so without it an unbiased estimator would be flagged in about d x 5 % of
+        checks.
       max_noise: the largest ratio of an estimator's standard error to the finite
         differences' for it to count as consistent.
       rel_tol: differences below this fraction of max_j |finite-difference mean_j| agree
         whatever their z (>= 0).
       estimators: which of ``"straight_through"``, ``"score"``, ``"hybrid"`` to check;
         default all that apply (``"hybrid"`` only for a pair objective).
-      chunk_size: seeds per compiled batch (:func:`jaxnc.montecarlo.run_batched`), which
-        bounds memory; a seed's values do not depend on the other seeds.
+      chunk_size: seeds per compiled batch (:func:`jaxnc.montecarlo.run_batched`; at
+        most n, kept for every doubling), which bounds memory; a seed's values do not
+        depend on the other seeds.
       progress: a progress bar over the seeds.
+      names: the d coordinates' labels for the report (default ``theta[j]``).
+      max_seeds: the budget of the automatic increase: while nothing is recommended and
+        some estimator fails only for unresolved coordinates, the seeds double (the last
+        step capped) up to ``max_seeds`` (>= n); default n (no increase).
+      more_keys: ``more_keys(start, count) -> keys (count, 2)`` of seeds ``start ...
+        start + count - 1`` (e.g. ``lambda s, c: jaxnc.montecarlo.seed_keys(base, c,
+        start=s)`` when ``keys`` are ``seed_keys(base, n)``); needed when max_seeds > n.
+      values, dvalue_dtheta: float[d] each, the parameter each coordinate sets (in the
+        user's units) and its slope d value / d theta (non-zero), e.g. value = exp(theta)
+        for a log coordinate: the table and the reasons then give gradients and
+        resolutions as d E[objective] / d value (:func:`jaxnc.tune.check_loop` sets them).
 
     Returns:
-      :class:`GradientCheck`.
+      :class:`GradientCheck` (``seeds``: the seeds it ran).
 
     Raises:
       ValueError: theta not a non-empty 1-D vector, fewer than 2 keys, a non-positive
         step/scale/temperature, a chunk_size below 1, an unknown estimator, ``"hybrid"``
-        for an objective that is not a pair, or an objective that returns neither a
-        scalar nor a pair of scalars.
+        for an objective that is not a pair, an objective that returns neither a scalar
+        nor a pair of scalars, names not d strings, max_seeds below n, or max_seeds > n
+        without more_keys.
     """
     theta = np.asarray(theta, np.float32)
     if theta.ndim != 1 or theta.size == 0:
@@ -132,6 +248,23 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     if not (isinstance(rel_tol, (int, float)) and 0.0 <= rel_tol < 1.0):
         raise ValueError(f"gradient_check: rel_tol must be a number in [0, 1), got {rel_tol!r}")
     d = theta.shape[0]
+    n = int(keys.shape[0])
+    names = tuple(f"theta[{j}]" for j in range(d)) if names is None else tuple(names)
+    if len(names) != d or not all(isinstance(x, str) for x in names):
+        raise ValueError(f"gradient_check: names must be {d} strings (one per coordinate), got {names!r}")
+    if (values is None) != (dvalue_dtheta is None):
+        raise ValueError("gradient_check: give both values and dvalue_dtheta, or neither")
+    if values is not None:
+        values, dvalue_dtheta = np.asarray(values, float), np.asarray(dvalue_dtheta, float)
+        if values.shape != (d,) or dvalue_dtheta.shape != (d,) or not np.all(np.isfinite(dvalue_dtheta) &
+                                                                               (dvalue_dtheta != 0)):
+            raise ValueError(f"gradient_check: values and dvalue_dtheta must be float[{d}], the slopes finite and "
+                             f"non-zero, got {values!r}, {dvalue_dtheta!r}")
+    slope = np.ones(d) if dvalue_dtheta is None else np.abs(dvalue_dtheta)
+    max_seeds = n if max_seeds is None else max_seeds
+    check_int("max_seeds", max_seeds, n)
+    if max_seeds > n and not callable(more_keys):
+        raise ValueError("gradient_check: max_seeds > the number of keys needs more_keys(start, count) -> keys")
     th = jnp.asarray(theta)
     out_shape = jax.eval_shape(lambda k: objective(th, k, jnp.float32(0.0)), keys[0])
     pair = isinstance(out_shape, (tuple, list))
@@ -177,38 +310,24 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
                 out["hybrid"] = st + (jp - jm) / (2 * score_scale) * e
         return out
 
-    n = keys.shape[0]
-    # no chunk larger than the seeds: run_batched pads the last chunk to its full size
-    res = montecarlo.run_batched(per_seed, keys, chunk_size=min(chunk_size, n), progress=progress,
-                                 desc="gradient check")
-    se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
-    fd = np.asarray(res["finite_difference"], float)
-    estimates = {"finite_difference": (fd.mean(0), se(fd))}
-    paired, consistent, reason, diff_ses = {}, {}, {}, {}
-    margin = rel_tol * float(np.max(np.abs(estimates["finite_difference"][0])))
-    for name in estimators:
-        g = np.asarray(res[name], float)
-        estimates[name] = (g.mean(0), se(g))
-        diff = g - fd
-        s = se(diff)
-        zz = np.where(s > 0, diff.mean(0) / np.where(s > 0, s, 1.0), np.where(diff.mean(0) == 0, 0.0, np.inf))
-        paired[name] = zz
-        diff_ses[name] = s
-        if not np.all(np.isfinite(g)):
-            reason[name] = "non-finite values"
-        elif not np.all((np.abs(zz) <= z) | (np.abs(diff.mean(0)) <= margin)):
-            reason[name] = f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
-        elif np.any(estimates[name][1] > max_noise * np.maximum(estimates["finite_difference"][1], 1e-30)):
-            ratio = float(np.max(estimates[name][1] / np.maximum(estimates["finite_difference"][1], 1e-30)))
-            reason[name] = f"too noisy, std err {ratio:.3g}x the finite differences'"
-        elif float(np.max(z * s)) > max(float(np.max(np.abs(g.mean(0)))), float(np.max(np.abs(fd.mean(0))))):
-            reason[name] = (f"inconclusive: the check resolves differences of {float(np.max(z * s)):.3g}, more than "
-                            f"the gradient itself ({max(float(np.max(np.abs(g.mean(0)))), float(np.max(np.abs(fd.mean(0))))):.3g}); "
-                            f"more seeds or a larger fd_step")
-        else:
-            reason[name] = ""
-        consistent[name] = reason[name] == ""
-    ok = [nm for nm in estimators if consistent[nm]]
-    rec = min(ok, key=lambda nm: (float(np.max(estimates[nm][1])), nm != "straight_through")) if ok else None
-    return GradientCheck(theta, float(np.mean(res["value"])), estimates, paired, consistent, reason, rec, (),
-                         diff_ses)
+    # one chunk size for every block (no chunk larger than the first block's seeds:
+    # run_batched pads the last chunk), so a doubled check's seeds are those of one run
+    chunk = min(chunk_size, n)
+    run = lambda ks: montecarlo.run_batched(per_seed, ks, chunk_size=chunk, progress=progress, desc="gradient check")
+    res = {k: np.asarray(v) for k, v in run(keys).items()}
+    while True:
+        estimates, out, rec = _verdicts(res, estimators, z, max_noise, rel_tol, names, slope)
+        unresolved_only = any(out["reason"][nm].startswith("inconclusive") for nm in estimators)
+        if rec is not None or not unresolved_only or n >= max_seeds:
+            break
+        m = min(n, max_seeds - n)
+        more = jnp.asarray(more_keys(n, m))
+        if more.shape != (m, keys.shape[1]):
+            raise ValueError(f"gradient_check: more_keys({n}, {m}) must return keys of shape {(m, keys.shape[1])}, "
+                             f"got {more.shape}")
+        new = run(more)
+        res = {k: np.concatenate([res[k], np.asarray(new[k])]) for k in res}
+        n += m
+    return GradientCheck(theta, float(np.mean(res["value"])), estimates, out["paired"], out["consistent"],
+                         out["reason"], rec, names, out["diff_se"], out["resolution"], out["resolved"], out["needed"],
+                         n, values, dvalue_dtheta)

@@ -7,8 +7,9 @@ them with ``dataclasses.replace`` (never differentiate a whole loop: it has inte
 leaves).  :func:`tune` minimises E_seeds[loss] by stochastic gradient steps:
 
 * constraints by reparametrisation (dynamax style): the optimiser works on raw,
-  unconstrained values; :class:`Positive` maps them through softplus, :class:`Interval`
-  through a sigmoid, so no projection is ever needed;
+  unconstrained values; :class:`Positive` maps them through exp (raw = log of the value
+  above its bound, so a step in raw is a relative step, the same for a threshold of 1e-4
+  and one of 10), :class:`Interval` through a sigmoid, so no projection is ever needed;
 * each step draws ``batch`` fresh seeds (``resample=True``, stochastic optimisation) or
   reuses the same ones (sample-average approximation);
 * the trigger temperature is annealed geometrically from ``temperature[0]`` to
@@ -52,15 +53,23 @@ __all__ = ["Positive", "Interval", "Unconstrained", "constrain", "unconstrain", 
 
 @dataclasses.dataclass(frozen=True)
 class Positive:
-    """value = low + softplus(raw): strictly above ``low`` (thresholds, gains)."""
+    """value = low + exp(raw), raw = log(value - low): strictly above ``low`` (thresholds,
+    gains). Raw steps are relative steps of ``value - low``, so parameters that span
+    decades (event thresholds from 1e-5 to 1) move alike."""
     low: float = 0.0
 
+    def __post_init__(self):
+        check_range("Positive: low", self.low)
+
     def forward(self, raw):
-        return self.low + jax.nn.softplus(raw)
+        return self.low + jnp.exp(raw)
 
     def inverse(self, value):
-        v = np.maximum(np.asarray(value, np.float64) - self.low, 1e-6)
-        return np.where(v > 20.0, v, np.log(np.expm1(np.minimum(v, 20.0)))).astype(np.float32)
+        v = np.asarray(value, np.float64)
+        if not np.all(np.isfinite(v) & (v > self.low)):
+            raise ValueError(f"must be finite and > {self.low:g} (Positive(low={self.low:g}): raw = "
+                             f"log(value - low)), got {v.tolist()}")
+        return np.log(v - self.low).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +79,8 @@ class Interval:
     high: float
 
     def __post_init__(self):
+        check_range("Interval: low", self.low)
+        check_range("Interval: high", self.high)
         if not self.high > self.low:
             raise ValueError(f"Interval: high must be > low, got low={self.low}, high={self.high}")
 
@@ -77,18 +88,26 @@ class Interval:
         return self.low + (self.high - self.low) * jax.nn.sigmoid(raw)
 
     def inverse(self, value):
-        f = (np.asarray(value, np.float64) - self.low) / (self.high - self.low)
-        f = np.clip(f, 1e-6, 1 - 1e-6)
+        v = np.asarray(value, np.float64)
+        if not np.all(np.isfinite(v) & (v > self.low) & (v < self.high)):
+            raise ValueError(f"must be inside the open interval ({self.low:g}, {self.high:g}) (Interval: raw = "
+                             f"logit of the fraction of the interval), got {v.tolist()}")
+        f = (v - self.low) / (self.high - self.low)
         return np.log(f / (1 - f)).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
 class Unconstrained:
+    """value = raw: any finite real."""
+
     def forward(self, raw):
         return raw
 
     def inverse(self, value):
-        return np.asarray(value, np.float32)
+        v = np.asarray(value, np.float64)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"must be finite, got {v.tolist()}")
+        return v.astype(np.float32)
 
 
 def constrain(raw: dict, constraints: dict) -> dict:
@@ -97,11 +116,22 @@ def constrain(raw: dict, constraints: dict) -> dict:
 
 
 def unconstrain(params: dict, constraints: dict) -> dict:
-    """Parameters -> raw values (numpy float32), the inverse of :func:`constrain`."""
+    """Parameters -> raw values (float32), the inverse of :func:`constrain`.
+
+    Raises:
+      ValueError: a constraint names a parameter not in ``params``; a value outside its
+        constraint's domain (``Positive(low)``: > low; ``Interval(low, high)``: strictly
+        inside; any: finite), naming the parameter. Nothing is moved to the edge."""
     unknown = set(constraints) - set(params)
     if unknown:
         raise ValueError(f"constraints name parameters that are not tuned: {sorted(unknown)}")
-    return {k: jnp.asarray(constraints.get(k, Unconstrained()).inverse(v)) for k, v in params.items()}
+    raw = {}
+    for k, v in params.items():
+        try:
+            raw[k] = jnp.asarray(constraints.get(k, Unconstrained()).inverse(v))
+        except ValueError as e:
+            raise ValueError(f"the value of {k!r} {e}") from None
+    return raw
 
 
 class TuneHistory(NamedTuple):

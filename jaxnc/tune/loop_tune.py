@@ -8,15 +8,19 @@ a loop built with the runner (attribute paths from the loop: ``"trigger.delta"``
 configuration (a paper's scheme: ``run=mecanum.run``), and a tuple of paths ties them to
 one parameter. It
 
-1. checks everything before tracing: the paths exist and are dynamic leaves (an integer
-   that shapes arrays is static: give it in ``search``), the budget, the objective is a
-   scalar;
+1. checks everything before tracing: the paths exist and are dynamic numeric leaves (not
+   a part, not None; an integer that shapes arrays is static: give it in ``search``), the
+   starts lie inside their constraints, the budgets, the objective is a scalar (and, on
+   the start's evaluation seeds, not NaN);
 2. with ``search={"path": [values, ...]}`` first runs successive halving with common
    random numbers over those values (static integers such as a buffer length or
    horizon included, each value compiling once: :func:`jaxnc.tune.search.successive_halving`);
 3. picks the gradient estimator by :func:`jaxnc.tune.check.gradient_check` at the start
-   point (``estimator="auto"``; it says which and why) and runs :func:`jaxnc.tune.tune`
-   (optax, constraints by reparametrisation, Polyak averaging);
+   point (``estimator="auto"``: an estimator that agrees with central finite differences
+   with every coordinate resolved, the seeds doubled up to ``check_max_seeds`` until the
+   check is conclusive; it says which and why, or which coordinate stayed unresolved) and
+   runs :func:`jaxnc.tune.tune` (optax, constraints by reparametrisation: log for
+   :class:`Positive`, logit for :class:`Interval`; Polyak averaging);
 4. evaluates the start and the tuned point with hard triggers on fresh seeds: means
    with 95 % intervals and the paired 95 % interval of the difference.
 
@@ -207,6 +211,32 @@ def param_paths(params) -> dict:
     return {_name(k): ((k,) if isinstance(k, str) else tuple(k)) for k in params}
 
 
+def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
+    """The numeric value at ``path``; ValueError when it names a part (a configuration
+    object: name one of its fields) or a field that holds None or no number."""
+    v = get_path(loop, path)
+    if dataclasses.is_dataclass(v):
+        raise ValueError(f"{fn_name}: {path!r} is a part ({type(v).__name__}), not a leaf: name one of its fields "
+                         f"({', '.join(path + '.' + f for f in _fields(v))})")
+    if v is None:
+        raise ValueError(f"{fn_name}: {path!r} is None in this loop (a part or value that is not set): a tuned "
+                         f"leaf must hold a number or an array")
+    a = np.asarray(v)
+    if a.dtype.kind not in "biuf" or a.size == 0:
+        raise ValueError(f"{fn_name}: {path!r} must hold a number or a non-empty array of numbers to be tuned, "
+                         f"got {type(v).__name__}")
+    return a
+
+
+def _check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
+    """ValueError naming ``what`` when ``value`` is outside ``constraint``'s domain (nothing
+    is moved to the edge: the tuner would start somewhere the user did not ask for)."""
+    try:
+        constraint.inverse(value)
+    except ValueError as e:
+        raise ValueError(f"{fn_name}: {what} {e}") from None
+
+
 def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     """Check ``params`` / ``objective`` / ``run`` against ``loop`` before anything is traced."""
     from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
@@ -223,7 +253,7 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
         name = _name(group)
         values = []
         for path in group:
-            values.append(np.asarray(get_path(loop, path)))
+            values.append(_leaf_value(fn_name, loop, path))
             if is_static(loop, path):
                 raise ValueError(f"{fn_name}: {path!r} is static (it shapes arrays or selects code) and has no "
                                  f"gradient; give its candidate values in search={{{path!r}: [...]}}")
@@ -234,6 +264,9 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
             raise ValueError(f"{fn_name}: the constraint of {name!r} must be Positive, Interval or Unconstrained, "
                              f"got {type(c).__name__}")
         paths[name], constraints[name] = group, c
+    if objective is None and run is None and isinstance(loop, nc.Loop) and loop.cost is None:
+        raise ValueError(f"{fn_name}: the loop has no cost (Loop.cost is None), so the default objective "
+                         f"m.cost_raw is NaN on every run: give the Loop a cost= or an objective(metrics)")
     run = nc.run if run is None else run
     if not callable(run):
         raise ValueError(f"{fn_name}: run must be a function run(loop, key) -> metrics, got {type(run).__name__}")
@@ -282,6 +315,32 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
+def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, **kw) -> GradientCheck:
+    """:func:`gradient_check` of the flat objective on seeds ``seed_keys(seed, seeds)``
+    (doubling up to ``max_seeds``), labelled, with each coordinate's value and slope
+    d value / d theta so that its table is in the user's units."""
+    def values(theta):
+        return ravel_pytree(constrain(unravel(theta), spec.constraints))[0]
+    th = jnp.asarray(flat0)
+    vals, slope = jax.jvp(values, (th,), (jnp.ones_like(th),))   # constraints act elementwise: the diagonal
+    return gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
+                          max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
+                          values=np.asarray(vals), dvalue_dtheta=np.asarray(slope), **kw)
+
+
+def _labels(unravel, size: int) -> tuple:
+    """The label of each coordinate of a flat vector, in the vector's order: ``name`` for a
+    scalar parameter, ``name[i]`` (flat index) for an array. Read from ``unravel`` itself,
+    so the labels follow the flattening order (sorted names), not the order of ``params``."""
+    index = unravel(np.arange(size, dtype=np.float32))
+    labels = [""] * size
+    for name, pos in index.items():
+        pos = np.asarray(pos).ravel().astype(int)
+        for i, j in enumerate(pos):
+            labels[j] = name if pos.size == 1 else f"{name}[{i}]"
+    return tuple(labels)
+
+
 def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4):
     """``res`` (a SearchResult) with ``budget`` more simulations spent on its best
     ``finalists`` candidates (the same new seeds for all: common random numbers); the best
@@ -307,7 +366,7 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
                run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
                temperature: float = 1e-3, score_scale: float = 0.1, chunk_size: int = 256,
-               progress: bool = False) -> GradientCheck:
+               max_seeds: int | None = None, progress: bool = False) -> GradientCheck:
     """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
     loop's values of ``params`` (or at ``at``, ``{name: value}`` in natural units), the
     straight-through and score-function estimates of d E[objective] / d theta beside
@@ -317,34 +376,37 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     parameter, logit of an ``Interval``), so ``fd_step`` and ``score_scale`` are relative
     steps. ``params``, ``objective`` and ``run`` as in :func:`tune_loop`. The seeds run in
     compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
-    with a progress bar if ``progress``.
+    with a progress bar if ``progress``. Every coordinate must be resolved for an
+    estimator to be recommended; with ``max_seeds`` (> ``seeds``) the check doubles its
+    seeds until it is conclusive or reaches ``max_seeds`` (default: no increase).
 
     Returns:
-      :class:`jaxnc.tune.check.GradientCheck` (``names``: the coordinates' labels).
+      :class:`jaxnc.tune.check.GradientCheck`: ``names`` the coordinates' labels (in the
+      gradient vector's order: parameters sorted by name), ``values`` and
+      ``dvalue_dtheta`` each coordinate's value and slope, so that ``table()`` and
+      ``in_units()`` give d E[objective] / d parameter in the parameter's own units.
 
     Raises:
-      ValueError: as :func:`tune_loop`, fewer than 2 seeds, non-positive steps.
+      ValueError: as :func:`tune_loop`, fewer than 2 seeds, max_seeds below seeds,
+        non-positive steps.
     """
     spec = _prepare("check_loop", loop, params, objective, run)
     if not spec.paths:
         raise ValueError("check_loop: name at least one parameter")
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
+    check_int("max_seeds", seeds if max_seeds is None else max_seeds, seeds)
     flat0, unravel, fobj = _flat(loop, spec, at)
-    labels = []
-    for n in spec.paths:
-        size = int(np.asarray(get_path(loop, spec.paths[n][0])).size)
-        labels += [n] if size == 1 else [f"{n}[{i}]" for i in range(size)]
-    chk = gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), fd_step=fd_step, temperature=temperature,
-                         score_scale=score_scale, chunk_size=chunk_size, progress=progress)
-    return chk._replace(names=tuple(labels))
+    return _check(spec, flat0, unravel, fobj, seeds=seeds, max_seeds=seeds if max_seeds is None else max_seeds,
+                  seed=seed, fd_step=fd_step, temperature=temperature, score_scale=score_scale,
+                  chunk_size=chunk_size, progress=progress)
 
 
 def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None = None, *,
               run: Callable | None = None, search: dict | None = None, search_budget: int | None = None,
               steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
               learning_rate: float = 0.05, score_scale: float = 0.1, fd_step: float = 0.05, seed: int = 0,
-              check_seeds: int = 32,
+              check_seeds: int = 32, check_max_seeds: int | None = None,
               eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
@@ -362,7 +424,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         ``jump``) to the check and the tuner.
       run: ``run(loop, key) -> metrics`` for one seed; default :func:`jaxnc.loop.run`.
       search: ``{path: [values]}`` searched first by successive halving (static integer
-        fields allowed); ``search_budget`` simulations (default 16 per candidate). A key
+        fields allowed); ``search_budget`` simulations (default None: 16 per candidate;
+        at least one per candidate and round of successive halving). A key
         that names a parameter of ``params`` (its path, or ``"a=b"`` for a tied group)
         makes the search pick the gradient's *start* among the values (the two-stage
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
@@ -379,20 +442,35 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         the check's finite-difference step, in the raw coordinates.
       check_seeds, eval_seeds: seeds of the gradient check and of the final evaluation;
         ``eval_seed``: base seed of the evaluation (fresh: different from ``seed``).
+      check_max_seeds: the check's budget: while it recommends nothing because some
+        coordinate is unresolved, its seeds double up to this many (>= check_seeds;
+        default 16 x check_seeds, four doublings; ``check_seeds`` turns the increase off).
+        A check still inconclusive there says which coordinate and how many seeds it
+        would need (``LoopTuneResult.estimator_reason``).
 
     Returns:
       :class:`LoopTuneResult`.
 
     Raises:
-      ValueError: a path that does not exist, a static leaf in ``params``, tied paths that
-        start unequal, a budget below one step, a non-scalar objective, an unknown
-        estimator or constraint.
+      ValueError: a path that does not exist, names a part (a configuration object) or a
+        field that is None, a static leaf in ``params``, tied paths that start unequal, a
+        start (or a searched start) outside its constraint (0 under ``Positive()``, a
+        value outside its ``Interval``: nothing is moved to the edge), a budget below one
+        step, ``search_budget`` below one seed per candidate and round or without a
+        search, a non-scalar objective, the default objective on a Loop without a cost,
+        an objective that is NaN at the start on some evaluation seed (checked on the
+        evaluation's fresh seeds before the budget is spent), an unknown estimator or
+        constraint.
     """
     t0 = time.perf_counter()
     spec = _prepare("tune_loop", loop, params, objective, run)
     search = dict(search or {})
     if not spec.paths and not search:
         raise ValueError("tune_loop: name at least one parameter to tune (params or search)")
+    for name, group in spec.paths.items():
+        if name not in search:            # (a searched parameter starts at the search's winner)
+            _check_in_constraint("tune_loop", f"the start of {name!r}", spec.constraints[name],
+                                np.asarray(get_path(loop, group[0])))
     tuned_paths = {p: n for n, g in spec.paths.items() for p in g}
     search_paths = {}                   # search key -> the paths it sets
     for key, vals in search.items():
@@ -405,9 +483,19 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             search_paths[key] = (key,)
         if not isinstance(vals, (list, tuple, np.ndarray)) or len(vals) == 0:
             raise ValueError(f"tune_loop: search[{key!r}] must be a non-empty list of values")
+        if key in spec.paths:            # a start candidate: inside the parameter's constraint
+            for v in vals:
+                _check_in_constraint("tune_loop", f"search[{key!r}] value {v!r}: the start of {key!r}",
+                                    spec.constraints[key], v)
+    if search_budget is not None:
+        if not search:
+            raise ValueError("tune_loop: search_budget is given without a search")
+        check_int("search_budget", search_budget, 1)
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
+    check_max_seeds = 16 * check_seeds if check_max_seeds is None else check_max_seeds
+    check_int("check_max_seeds", check_max_seeds, check_seeds)
     check_int("eval_seeds", eval_seeds, 2)
     check_int("seed", seed, 0, 2**32 - 3)
     check_int("eval_seed", eval_seed, 0, 2**32 - 1)
@@ -430,6 +518,15 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     def per_seed(point, key, temp=jnp.float32(0.0)):
         return objective(run(with_temperature(set_paths(loop, point), temp), key))
 
+    # the start's evaluation first (fresh seeds, so its values are those it would have at the
+    # end): an objective that is NaN at the start is refused before the budget is spent
+    ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
+    run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
+    v0 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(loop,), chunk_size=eval_seeds, progress=False))
+    if np.any(np.isnan(v0)):
+        raise ValueError(f"tune_loop: the objective is NaN at the start on {int(np.sum(np.isnan(v0)))} of "
+                         f"{eval_seeds} evaluation seeds (a loop without a cost gives m.cost_raw = NaN): there is "
+                         f"nothing to tune; give the loop a cost or an objective that is a number on every run")
     sims = 0
     result_search = None
     loop1 = loop
@@ -441,7 +538,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         # a point sets every path of each searched key (dynamic values as float32, so one program serves all)
         val = lambda n, i: search[n][i] if all(is_static(loop, p) for p in search_paths[n]) else np.float32(search[n][i])
         points = [{p: val(n, i) for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
-        budget = search_budget or 16 * len(points)
+        budget = 16 * len(points) if search_budget is None else search_budget
+        rounds = max(1, int(np.ceil(np.log2(len(points)))))
+        if budget < rounds * len(points):
+            raise ValueError(f"tune_loop: search_budget must be at least {rounds * len(points)} (one seed per "
+                             f"candidate and round: {len(points)} candidates, {rounds} rounds), got {budget}")
         need = sum(s for _, s in halving_schedule(len(points), budget))
         keys = montecarlo.seed_keys(seed + 1, need)
         result_search = successive_halving(lambda p, k: per_seed(p, k), points, keys, budget=budget, static=static,
@@ -456,19 +557,21 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
-        flat0, _, flat_objective = _flat(loop1, spec)
+        flat0, unravel, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
-            chk = gradient_check(flat_objective, flat0, montecarlo.seed_keys(seed + 2, check_seeds),
-                                 temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
-                                 progress=progress)
-            sims += check_seeds * (2 * flat0.size + 3)
+            chk = _check(spec, flat0, unravel, flat_objective, seeds=check_seeds, max_seeds=check_max_seeds,
+                         seed=seed + 2, temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
+                         progress=progress)
+            sims += chk.seeds * (2 * flat0.size + 3)
             if chk.recommended is None and result_search is not None:
-                used, reason = "none", ("no estimator passed the gradient check at the search's winner ("
+                used, reason = "none", (f"no estimator passed the gradient check at the search's winner on "
+                                        f"{chk.seeds} seeds ("
                                         + "; ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
                                         + "): the gradient stage is skipped")
             elif chk.recommended is None:
-                used, reason = "score", ("no estimator agreed with finite differences at the start point; "
-                                         "the score function is unbiased for the smoothed objective")
+                used, reason = "score", (f"no estimator passed the gradient check at the start point on {chk.seeds} "
+                                         "seeds (" + "; ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
+                                         + "); the score function is unbiased for the smoothed objective")
             else:
                 used = chk.recommended
                 others = ", ".join(f"{k}: {v}" for k, v in chk.reason.items() if v)
@@ -497,9 +600,6 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     best = result_search.best_point if result_search else {}
     final = {**{k: best[ps[0]] for k, ps in search_paths.items() if k not in spec.paths}, **tuned}
 
-    ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
-    run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
-    v0 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(loop,), chunk_size=eval_seeds, progress=False))
     v1 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(final_loop,), chunk_size=eval_seeds,
                                            progress=False))
     sims += 2 * eval_seeds
