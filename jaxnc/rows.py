@@ -4,10 +4,8 @@
 The closed loops draw their noises per fast instant so that every scheme, whatever its
 multiplicity N, meets the same realisation at the same time (common random numbers), but
 the sensor and network draws are only used at slow instants, every N-th row. XLA does not
-fuse the slice into the generator, so the unused rows cost as much as the used ones: in
-the Mecanum DRHE loop at N = 10 the draws fall from ~340-380 to ~210-270 ns per seed-step
-measured alone, about 8 % of the loop on two CPU devices (none measurable on one device,
-where the draws already ran beside each other on the second core).
+fuse the slice into the generator, so the unused rows would cost as much as the used ones
+(what that measured: docs/design_notes.md).
 
 JAX's default generator (threefry 2x32 with ``jax_threefry_partitionable``, the default
 since JAX 0.5) hashes each element's flat index: element ``i`` of a float32 draw comes

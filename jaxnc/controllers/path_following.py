@@ -33,13 +33,7 @@ class FollowerState(NamedTuple):
     integ: jax.Array   # float[3], PI integrators for (Vx, Vy, W)
 
 
-# Pure-pursuit look-ahead (m). The paper gives none. We take the value that tracks best:
-# the nominal tracking error (SR, N = 1, DP = 0, 200 seeds) is flat within 5 % from 0.05
-# to 0.09 m on all three paths (minimum 0.48-0.51 cm at 0.06-0.07 m) and rises steeply
-# below 0.05 m (oscillation) and above 0.1 m (corner cutting: 1.1 cm at 0.15 m, 4.4 cm
-# at 0.3 m). Corner cutting matters beyond accuracy: held actions after lost packets turn
-# the robot later and *reduce* the cutting, which inverts the paper's trends in DP
-# (EXPERIMENTS.md). 0.08 m sits inside the flat region, 3 cm from the oscillation edge.
+# Pure-pursuit look-ahead (m); the paper gives none (how it was chosen: docs/design_notes.md).
 LOOKAHEAD = 0.08
 
 

@@ -5,8 +5,7 @@ trailing batch axes as :mod:`jaxnc.estimators.ekf_batched` uses). Only the upper
 triangle is computed, entry (j, i) is the same array as (i, j) (exactly symmetric), and
 products with structurally zero Jacobian entries (a :class:`~jaxnc.estimators.sparsity.Pattern`)
 are never formed. Every operation is elementwise: under ``vmap`` the per-seed call
-becomes loops over seeds with no reductions over matrix axes, which is what makes it
-fast with a sparse pattern (``benchmarks/RESULTS.md``, 2026-11-24).
+becomes loops over seeds with no reductions over matrix axes (docs/design_notes.md).
 
 Only the upper triangle of ``P`` is read, so reverse mode puts the cotangent of a
 symmetric input on it: entry (i, j), i < j, carries what a dense formula splits between

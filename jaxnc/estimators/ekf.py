@@ -115,9 +115,9 @@ def _symmetrize(P):
 def _mm(a, b):
     """a @ b for the small matrices of a filter, as a broadcast multiply-sum.
 
-    Under ``vmap`` XLA:CPU runs a batched ``dot_general`` of 6x6 matrices as many tiny
-    GEMM calls; the multiply-sum fuses into one vectorised loop (about 3x faster at
-    1000 seeds). Results equal ``a @ b`` up to summation order.
+    Under ``vmap`` the multiply-sum fuses into one vectorised loop where a batched
+    ``dot_general`` of small matrices does not (docs/design_notes.md). Results equal
+    ``a @ b`` up to summation order.
     """
     return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
@@ -165,9 +165,7 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
                          ca + tuple(n + j for j in cl))
     Q = jnp.asarray(Q, belief.cov.dtype)
     if structure is not None:
-        # entry by entry, structural zeros skipped (elementwise under vmap): with a sparse
-        # pattern 2x faster forward and 1.4x faster reverse than the matrix form below,
-        # dense it is slower in reverse (benchmarks/RESULTS.md, 2026-11-24)
+        # entry by entry, structural zeros skipped (elementwise under vmap; docs/design_notes.md)
         A = embed(J[:, :len(ca)], ca, n, axis=1)
         L = embed(J[:, len(ca):], cl, noise_dim, axis=1)
         return Gaussian(mean, predict_cov(belief.cov, A, L, Q, pa, pl))

@@ -1,28 +1,17 @@
 """Batched EKF with the seed axis last: a whole-sequence filter and its kernels.
 
-Why: under ``vmap`` every array is batch-first, e.g. P is (B, 6, 6), and XLA:CPU
-vectorises over the minor axis, which then has length 6. Written *batch-last* (matrix
-indices lead, the seed axis trails, every sum over a matrix index unrolled into
-slices of the leading axes: no ``reduce`` over a non-minor axis, no ``dot_general``),
-each operation is one contiguous, vectorised loop over seeds.
+Written *batch-last* (matrix indices lead, the seed axis trails, every sum over a matrix
+index unrolled into slices of the leading axes: no ``reduce`` over a non-minor axis, no
+``dot_general``), each operation is one contiguous, vectorised loop over seeds (why, and
+what it measured: docs/design_notes.md).
 
-:func:`ekf_filter` is the fast path for filtering many seeds' recorded sequences
-(Monte-Carlo studies of an estimator, issue 9's EKF benchmark): it moves the seed axis
-last once, runs the whole ``lax.scan`` batch-last, Jacobians included (forward-mode
-``jvp`` of the model's own methods on batch-last arrays), and moves it back. On a
-2-core CPU it runs 3-4x the ``jit(vmap(scan))`` of the per-seed ``ekf`` functions at
-1 000-10 000 seeds: 3.9 M steps/s on both cores, 4.6 M with the Jacobians' sparsity
-(``structure=``, :mod:`jaxnc.estimators.sparsity`) (``benchmarks/bench_mecanum.py``,
-2026-11-24; 1.6-2.2 M on busier days); at a
-single seed it is slower (use ``ekf`` there). It needs model methods that
-accept trailing batch axes (``x`` of shape (n, B)), as
-:class:`jaxnc.plants.mecanum.Mecanum`'s do; it checks that before tracing.
-
-The closed loops keep the per-seed ``ekf`` under ``vmap``: their controllers,
-triggers and channels are per-seed code, and moving the axis around the EKF alone
-costs what it saves. The drop-in kernels below (``ekf_predict`` and
-``ekf_update_diag`` with ``custom_vmap``) measure that: 1.2-2.2x faster alone, 1.0-1.2x
-in whole Mecanum loops (RESULTS.md, 2026-11-23); kept with their tests.
+:func:`ekf_filter` filters many seeds' recorded sequences: it moves the seed axis last
+once, runs the whole ``lax.scan`` batch-last, Jacobians included (forward-mode ``jvp`` of
+the model's own methods on batch-last arrays, optionally with their sparsity,
+``structure=``, :mod:`jaxnc.estimators.sparsity`), and moves it back; for a single seed
+use the per-seed ``ekf`` functions. It needs model methods that accept trailing batch
+axes (``x`` of shape (n, B)), as :class:`jaxnc.plants.mecanum.Mecanum`'s do; it checks
+that before tracing.
 
 Drop-in replacements for :func:`jaxnc.estimators.ekf.ekf_predict` and
 :func:`jaxnc.estimators.ekf.ekf_update_diag` (same signatures, same results up to
@@ -70,9 +59,8 @@ def update_diag(P, H, innovation, r, ph: Pattern | None = None):
     P <- P - (P h')(P h')' / s (exactly symmetric). ``ph`` (static): the pattern of H;
     each row's sums run over its nonzero columns only.
 
-    Written on whole (n, n, *batch) arrays, unlike :func:`predict_cov`: as lists of
-    entries, the nine chained rank-one downdates compiled to a program that ran 500x
-    slower on XLA:CPU (jax 0.10), each entry apparently recomputed once per use.
+    Written on whole (n, n, *batch) arrays, unlike :func:`predict_cov`
+    (docs/design_notes.md says why).
     """
     n, m = P.shape[0], H.shape[0]
     mh = _mask(ph, (m, n))
