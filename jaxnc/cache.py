@@ -3,8 +3,9 @@
 A closed loop compiles to a large program (tens of seconds for the seed-000 grid's
 programs on one core); with the cache on, a second run of the same program on the same
 machine loads it from disk instead. The cache lives in ``$JAXNC_CACHE_DIR`` if set, else
-``$XDG_CACHE_HOME/jaxnc/xla``, else ``~/.cache/jaxnc/xla``; only programs that took at
-least ``min_compile_time_s`` to compile are written. Entries are keyed by the program,
+``$XDG_CACHE_HOME/jaxnc/xla``, else ``~/.cache/jaxnc/xla``; every program is written
+(``min_compile_time_s`` = 0 by default), the small eager ones too, so a second run of a
+study compiles nothing. Entries are keyed by the program,
 the JAX version and the backend, so a stale entry is never used for another program.
 """
 from __future__ import annotations
@@ -25,7 +26,7 @@ def default_cache_dir() -> pathlib.Path:
     return pathlib.Path(base) / "jaxnc" / "xla"
 
 
-def enable_cache(path=None, *, min_compile_time_s: float = 1.0) -> pathlib.Path:
+def enable_cache(path=None, *, min_compile_time_s: float = 0.0) -> pathlib.Path:
     """Turn JAX's persistent compilation cache on in ``path`` (default
     :func:`default_cache_dir`), creating it; returns the folder. Raises OSError when the
     folder cannot be created."""
@@ -34,6 +35,7 @@ def enable_cache(path=None, *, min_compile_time_s: float = 1.0) -> pathlib.Path:
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
 
 

@@ -338,3 +338,14 @@ def test_a_record_spec_keeps_functions_of_the_roles_states_in_parts():
         nc.Record(signals=("x", "plant"))
     with pytest.raises(ValueError, match="Record.plant"):
         nc.Record(plant="x")
+
+
+def test_ekf_finds_its_measurements_with_N_above_1_whatever_the_ring():
+    """The link keeps the packet of slow instant k in slot k mod C (stamp kN): with N = 2 and
+    no delay, the EKF's estimates are the same for rings of 1, 3 and 4 packets (it once
+    looked in slot kN mod C and missed measurements for C > 1)."""
+    key = jax.random.PRNGKey(5)
+    xs = [np.asarray(jax.jit(nc.simulate)(_lti_loop(N=2, steps=40, buffer=0, uplink=nc.Link(capacity=c)), key).xhat)
+          for c in (1, 3, 4)]
+    np.testing.assert_allclose(xs[1], xs[0], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(xs[2], xs[0], rtol=1e-6, atol=1e-7)

@@ -1,0 +1,26 @@
+"""The direct cart-pole baseline of benchmarks/ computes the runner's run (issue 32): a
+speed ratio against it means something only if the arithmetic is the same."""
+import pathlib
+import sys
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
+
+from benchmarks.direct_cartpole import direct_cost  # noqa: E402
+from examples.cartpole import cartpole  # noqa: E402
+from jaxnc import loop as nc  # noqa: E402
+from jaxnc import montecarlo  # noqa: E402
+
+
+def test_direct_baseline_equals_the_runner_on_the_same_draws():
+    loop = cartpole()
+    keys = montecarlo.seed_keys(3, 16)
+    ours = np.asarray(jax.jit(jax.vmap(lambda k: nc.run(loop, k).cost))(keys))
+    direct = np.asarray(jax.jit(jax.vmap(lambda k: direct_cost(loop, k)))(keys))
+    assert np.all(np.isfinite(ours)) or np.any(np.isinf(ours))
+    np.testing.assert_array_equal(np.isinf(direct), np.isinf(ours))
+    ok = np.isfinite(ours)
+    assert ok.sum() >= 8
+    np.testing.assert_allclose(direct[ok], ours[ok], rtol=2e-4)
