@@ -14,7 +14,7 @@ memory (an integrator, an interlaced multi-rate controller, a disturbance observ
 continues as if it had run every period on the predictions. Without an arrival it
 computes nothing, sends nothing and keeps its state (the paper's control side works only
 when a measurement arrives). ``A = None`` holds the estimate along the cascade (a law on
-the measurement itself, without a model; then usually H = 1).
+the measurement itself, float[output_dim], without a model; then usually H = 1).
 
 A law is a pytree with ``init() -> s`` and ``step(s, k, x) -> (u, s_next, aux)``: u a
 scalar action (single input), ``aux`` anything the law reports (e.g. its disturbance
@@ -49,8 +49,9 @@ class Cascade(AbstractController):
 
     Attributes:
       law: a pytree with ``init()`` and ``step(s, k, x) -> (u, s_next, aux)``.
-      A: float[n, n], B: float[n], the single-input prediction model; A = None: the
-        estimate is held along the cascade (B unused).
+      A: float[n, n], B: float[n], the single-input prediction model on the estimate
+        float[n]; A = None: the estimate is the measurement float[output_dim], held along
+        the cascade (B unused).
       horizon: static H >= 1, actions per packet.
 
     ``step(state, xhat, fresh, k, ctx) -> (state, Packet(float[H, 1], stamp k), send)``
@@ -71,7 +72,7 @@ class Cascade(AbstractController):
 
     def init(self, ctx) -> CascadeState:
         s0 = self.law.init()
-        x0 = jnp.zeros((ctx.state_dim,), jnp.float32)
+        x0 = jnp.zeros((ctx.output_dim if self.A is None else jnp.shape(self.A)[0],), jnp.float32)
         aux0 = jax.eval_shape(lambda: self.law.step(s0, jnp.int32(0), x0)[2])
         states = jax.tree.map(lambda a: jnp.broadcast_to(a, (self.horizon + 1, *jnp.shape(a))), s0)
         zero = jnp.zeros((), jnp.int32)

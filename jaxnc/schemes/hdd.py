@@ -45,8 +45,8 @@ from jaxnc.disturbance import Dob, dob_design, dob_init, dob_output, dob_update
 from jaxnc.plants import hdd as hdd_plant
 
 __all__ = ["CASES", "STEPS", "PAPER_THRESHOLDS", "NARROW_THRESHOLDS", "hdd_loop", "MrciLaw", "controller_design",
-           "whole_run_horizon", "output", "disturbance", "held", "controller_record", "Metrics", "ise", "isep", "cc", "gpi",
-           "metrics", "run", "tts_reference"]
+           "whole_run_horizon", "output", "disturbance", "held", "controller_record", "Metrics", "ise", "isep", "cc",
+           "gpi", "metrics", "run", "tts_reference"]
 
 CASES = (1, 2, 3, 4, 5, 6)
 PAPER_THRESHOLDS = (100e-7, 1.32e-2)      # section 5: delta_s = sigma_s, delta_c = sigma_c (Fig. 5's optimum)
@@ -78,8 +78,8 @@ def controller_design(m: int = 2):
 
 
 class MrciLawState(NamedTuple):
-    mrci: Any
-    dob: Any
+    mrci: Any      # MrciState
+    dob: Any       # DobState
 
 
 @jl.pytree_dataclass
@@ -137,9 +137,9 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None 
     ts, tc = (NARROW_THRESHOLDS if case >= 5 else PAPER_THRESHOLDS) if thresholds is None else thresholds
     check_range("delta_s = sigma_s", ts, 0.0, None)
     check_range("delta_c = sigma_c", tc, 0.0, None)
-    check_range("r", r, finite=True)
-    noisy = case >= 4
-    plant = hdd_plant.hdd_model(reading, w_std=w_std if noisy else 0.0, v_std=v_std if noisy else 0.0)
+    for name, v in (("w_std", w_std), ("v_std", v_std), ("r", r)):
+        check_range(name, v, 0.0 if name != "r" else None, None)
+    plant = hdd_plant.hdd_model(reading, w_std=w_std * (case >= 4), v_std=v_std * (case >= 4))
     f = lambda a: jnp.asarray(a, jnp.float32)
     ctrl, dob = controller_design(m).as_jax(), dob_design(hdd_plant.T, dob_f_hz)
     if case <= 2:      # the law acts on the measurement itself
@@ -165,8 +165,6 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None 
                    record=jl.Record(signals=("x", "u", "z", "xhat", "sent_sc", "sent_ca", "recv_ca"),
                                     controller=controller_record))
 
-
-# ----------------------------------------------------------------------------- metrics, eq. (23)-(29)
 
 
 def output(loop: jl.Loop, tr: jl.Trajectory):
@@ -228,8 +226,7 @@ def metrics(loop: jl.Loop, tr: jl.Trajectory, y_tts, ise_tts, cs: float, W=(0.45
     """Eq. (23)-(29) of one run against the noise-free TTS output ``y_tts`` (Case 1) and
     its ISE; ``cs`` is the MRCI's computation saving (eq. 20). Uc, Ua: transmissions per
     period (TTS sends every period)."""
-    y, r = output(loop, tr), loop.controller.law.r
-    n_sc, n_ca = jnp.sum(tr.sent_sc), jnp.sum(tr.sent_ca)
+    y, r, n_sc, n_ca = output(loop, tr), loop.controller.law.r, jnp.sum(tr.sent_sc), jnp.sum(tr.sent_ca)
     uc_, ua_ = n_sc / loop.steps, n_ca / loop.steps
     unstable = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) > 100.0 * r)
     e = jnp.where(unstable, jnp.inf, isep(y, y_tts))
