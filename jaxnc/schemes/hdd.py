@@ -116,7 +116,7 @@ def controller_record(c: jl.Cascade, state: jl.CascadeState):
 def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None = None, k_max: int = 0, m: int = 2,
              steps: int = STEPS, w_std: float = hdd_plant.W_STD, v_std: float = hdd_plant.V_STD,
              we_form: str = "white", dob_f_hz: float = 300.0, r: float = 1.0) -> jl.Loop:
-    """The loop of Case ``case`` (module docstring).
+    """Returns the :class:`jaxnc.loop.Loop` of Case ``case`` (module docstring; N = 1, T = 20 us).
 
     Args:
       case: 1..6. thresholds: (delta_s = sigma_s, delta_c = sigma_c) >= 0; None: the paper's
