@@ -12,7 +12,6 @@ frequency response (``plant_bode.png``).
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from pathlib import Path
@@ -22,11 +21,13 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+import jaxnc.loop as jl
 from jaxnc import __version__, montecarlo, results as per_seed, sweep
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.plants import hdd as hdd_plant
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import hdd
+from jaxnc.tune import set_paths
 
 # Section 5 of the paper: (N_sc, Uc, N_ca, Ua, Cc %, NE) per case; None where not reported.
 PAPER = {1: dict(Uc=1.0, Ua=1.0, Cc=66, NE=0.0, ISE=3.75), 2: dict(Uc=0.54, Ua=0.16, Cc=35, NE=0.14),
@@ -42,7 +43,7 @@ def _common(settings):
                 w_std=settings["w_std"])
 
 
-def build_loops(settings: dict) -> dict[int, hdd.HddLoop]:
+def build_loops(settings: dict) -> dict[int, jl.Loop]:
     cases = hdd.CASES if settings["case"] == "all" else (int(settings["case"]),)
     try:
         return {c: hdd.hdd_loop(c, **_common(settings)) for c in cases}
@@ -75,28 +76,46 @@ def table(summary: dict) -> str:
                            "unstable %", "N_max", "held"], rows)
 
 
+def series(loop: jl.Loop, tr) -> dict:
+    """The signals the figures show, from the runner's trajectory ``tr`` of one run: the
+    output y and disturbance d, the estimated output and disturbance (C x-hat, Cbar x-hat of
+    the estimate used at each instant, eq. 15; NaN without NUMRE), the disturbance estimate
+    the controller used at an arrival (NaN elsewhere), N at arrivals, the send flags."""
+    numre = isinstance(loop.estimator, jl.Numre)
+    law, xhat = loop.controller.law, np.asarray(tr.xhat)
+    nan = np.full(loop.steps, np.nan)
+    beta = np.asarray(tr.sent_sc) > 0.5
+    dhat, N = (np.asarray(a) for a in tr.parts["controller"])
+    return dict(y=np.asarray(hdd.output(loop, tr)), d=np.asarray(hdd.disturbance(tr)), u=np.asarray(tr.u)[:, 0],
+                yhat=xhat @ np.asarray(law.C) if numre else nan, dpred=xhat @ np.asarray(law.Cbar) if numre else nan,
+                dhat=np.where(beta, dhat, np.nan), N=N, beta=beta, gamma=np.asarray(tr.sent_ca) > 0.5,
+                current=(np.asarray(tr.recv_ca) > 0) | (np.arange(loop.steps) == 0), numre=numre,
+                noise=bool(np.any(np.asarray(loop.plant.w_std) > 0)))
+
+
 def plot_case(loop, traj, out: Path, case: int) -> Path:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    s = series(loop, traj)
     t = np.arange(loop.steps) * hdd_plant.T * 1e3
     fig, ax = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
-    ax[0].plot(t, np.full_like(t, float(loop.r)), "k--", lw=1, label="reference")
-    ax[0].plot(t, np.asarray(traj.y), lw=1.3, label="output y")
-    if loop.numre:
-        ax[0].plot(t, np.asarray(traj.yhat), lw=0.8, ls=":", label="estimated output")
+    ax[0].plot(t, np.full_like(t, float(loop.controller.law.r)), "k--", lw=1, label="reference")
+    ax[0].plot(t, s["y"], lw=1.3, label="output y")
+    if s["numre"]:
+        ax[0].plot(t, s["yhat"], lw=0.8, ls=":", label="estimated output")
     ax[0].set_ylabel("position")
     ax[0].legend(fontsize=8)
-    ax[1].step(t, np.asarray(traj.u), where="post", lw=1)
-    if loop.noise:
-        ax[1].plot(t, -np.asarray(traj.d), lw=0.8, label="-d (true disturbance)")
+    ax[1].step(t, s["u"], where="post", lw=1)
+    if s["noise"]:
+        ax[1].plot(t, -s["d"], lw=0.8, label="-d (true disturbance)")
         ax[1].legend(fontsize=8)
     ax[1].set_ylabel("control u")
-    beta, gamma = np.asarray(traj.beta), np.asarray(traj.gamma)
+    beta, gamma = s["beta"], s["gamma"]
     ax[2].vlines(t[beta], 0, 1, color="C0", lw=0.6, label=f"controller used ({beta.sum()})")
     ax[2].vlines(t[gamma], 1.1, 2.1, color="C3", lw=0.6, label=f"actuator updated ({gamma.sum()})")
-    if loop.numre:
-        cur = np.asarray(traj.current) & gamma
+    if s["numre"]:
+        cur = s["current"] & gamma
         ax[2].plot(t[cur], np.full(cur.sum(), 2.25), "k.", ms=3, label="current action applied")
     ax[2].set_yticks([0.5, 1.6], ["controller", "actuator"])
     ax[2].set_xlabel("time (ms)")
@@ -122,12 +141,13 @@ def plot_disturbance_n(loop, traj, out: Path, case: int) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig_no = DISTURBANCE_FIGS[case]
+    s = series(loop, traj)
     t = np.arange(loop.steps) * hdd_plant.T * 1e3
-    beta, N = np.asarray(traj.beta), np.asarray(traj.N)
+    beta, N = s["beta"], s["N"]
     fig, ax = plt.subplots(3, 1, figsize=(8, 7))
-    ax[0].plot(t, np.asarray(traj.d), "k", lw=1.2, label="disturbance d")
-    ax[0].plot(t, np.asarray(traj.dpred), lw=0.9, label="estimate (filter, eq. 15)")
-    ax[0].plot(t[beta], np.asarray(traj.dhat)[beta], ".", ms=3, label="estimate used at an arrival")
+    ax[0].plot(t, s["d"], "k", lw=1.2, label="disturbance d")
+    ax[0].plot(t, s["dpred"], lw=0.9, label="estimate (filter, eq. 15)")
+    ax[0].plot(t[beta], s["dhat"][beta], ".", ms=3, label="estimate used at an arrival")
     ax[0].set_ylabel("d")
     ax[0].set_xlabel("time (ms)")
     ax[0].legend(fontsize=8)
@@ -142,7 +162,7 @@ def plot_disturbance_n(loop, traj, out: Path, case: int) -> Path:
     ax[2].set_ylabel("fraction of periods")
     ax[2].set_yscale("log")
     fig.suptitle(f"Fig. {fig_no}: Case {case} ({CASE_NAMES[case]}), disturbance estimate and multiplicity N\n"
-                 f"seed 0: N_max = {int(N.max())}, {int(beta.sum())} arrivals, h = {loop.h}", fontsize=10)
+                 f"seed 0: N_max = {int(N.max())}, {int(beta.sum())} arrivals, h = {loop.actuator.horizon - 1}", fontsize=10)
     fig.tight_layout()
     f = out / f"fig{fig_no}_case{case}_disturbance_N.png"
     fig.savefig(f, dpi=120)
@@ -191,19 +211,19 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     per_seed.save_per_seed(out, runs, dims=("case",), experiment="hdd")
     figs = [plot_bode(out, settings["reading"])]
     for c, loop in loops.items():
-        traj = jax.device_get(jax.jit(hdd.simulate)(loop, keys[0]))
+        traj = jax.device_get(jax.jit(jl.simulate)(loop, keys[0]))
         figs.append(plot_case(loop, traj, out, c))
         if c in DISTURBANCE_FIGS:
             figs.append(plot_disturbance_n(loop, traj, out, c))
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds, "T": hdd_plant.T, "steps": hdd.STEPS,
-              "h": {c: l.h for c, l in loops.items()},
+              "h": {c: l.actuator.horizon - 1 for c, l in loops.items() if c >= 3},
               "noise": {"w_std": settings["w_std"], "v_std": hdd_plant.V_STD},
               "filter": {"W": hdd.filter_disturbance_var(settings["w_std"]), "slope_std": hdd.FILTER_SLOPE_STD,
                          "V": hdd.FILTER_V,
                          "case6_input_std": hdd.FILTER_INPUT_STD},
-              "thresholds": {c: {"delta_s=sigma_s": float(l.delta_s), "delta_c=sigma_c": float(l.delta_c)}
-                             for c, l in loops.items()}}
+              "thresholds": {c: {"delta_s=sigma_s": float(l.trigger.delta), "delta_c=sigma_c": float(l.controller_trigger.delta)}
+                             for c, l in loops.items() if c >= 2}}
     montecarlo.save_results(out / "results.json", experiment="hdd", config=config,
                             results={"cases": {str(c): s for c, s in summary.items()}, "ISE_TTS": float(ise_tts),
                                      "CS": cs, "paper": PAPER}, wall_time_s=wall)
@@ -214,7 +234,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
 # ----------------------------------------------------------------------------- GPI surface (Fig. 5)
 
 
-def gpi_grid(loop: hdd.HddLoop, ts_values, tc_values, keys, y_tts, ise_tts, cs, *, progress=True,
+def gpi_grid(loop: jl.Loop, ts_values, tc_values, keys, y_tts, ise_tts, cs, *, progress=True,
              W=(0.45, 0.45, 0.1), points=None, on_point=None):
     """Mean GPI, Uc, Ua, NE and the unstable fraction over ``keys`` for every
     (delta_s = sigma_s, delta_c = sigma_c) pair: float[len(ts), len(tc), 5].
@@ -223,7 +243,8 @@ def gpi_grid(loop: hdd.HddLoop, ts_values, tc_values, keys, y_tts, ise_tts, cs, 
     called as each is done (the sweep stores it)."""
     @jax.jit
     def point(ts, tc, keys):
-        l = dataclasses.replace(loop, sigma_s=ts, delta_s=ts, sigma_c=tc, delta_c=tc)
+        l = set_paths(loop, {"trigger.sigma": ts, "trigger.delta": ts, "controller_trigger.sigma": tc,
+                             "controller_trigger.delta": tc})
         m = jax.vmap(lambda k: hdd.run(l, k, y_tts, ise_tts, cs, W))(keys)
         ok = ~m.unstable
         mean = lambda a: jnp.sum(jnp.where(ok, a, 0.0)) / jnp.maximum(jnp.sum(ok), 1)

@@ -121,11 +121,12 @@ def _hdd(settings) -> Problem:
 
     def objective(m):
         return jnp.where(m.unstable | ~jnp.isfinite(m.GPI), GPI_UNSTABLE, m.GPI)
+    s, c = "trigger.delta=trigger.sigma", "controller_trigger.delta=controller_trigger.sigma"
     return Problem(
-        "hdd", loop, {("delta_s", "sigma_s"): Positive(), ("delta_c", "sigma_c"): Positive()}, objective,
+        "hdd", loop, {("trigger.delta", "trigger.sigma"): Positive(),
+                      ("controller_trigger.delta", "controller_trigger.sigma"): Positive()}, objective,
         lambda lp, k: hdd.run(lp, k, y_tts, ise_tts, cs),
-        {"delta_s=sigma_s": 1e-5, "delta_c=sigma_c": 1.32e-2},
-        {"delta_s=sigma_s": np.geomspace(1e-8, 1e-3, 6), "delta_c=sigma_c": np.geomspace(1e-5, 1.0, 6)},
+        {s: 1e-5, c: 1.32e-2}, {s: np.geomspace(1e-8, 1e-3, 6), c: np.geomspace(1e-5, 1.0, 6)},
         "seed 003 HDD, Case 4 (PETC + NUMRE, noise and disturbance); GPI of eq. (29), W = (0.45, 0.45, 0.1)")
 
 

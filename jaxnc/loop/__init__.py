@@ -6,6 +6,8 @@ returns its :class:`Metrics`, and ``jaxnc.montecarlo.run_batched(run_seed, keys,
 args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 """
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
+from jaxnc.loop.cascade import Cascade, CascadeState
+from jaxnc.loop.numre import Numre, NumreState
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator,
                              AbstractFastEstimator, AbstractLoss, AbstractPlant, AbstractSenderCopyActuator,
                              AbstractSenderCopyController, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
@@ -33,4 +35,6 @@ __all__ = [
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
+    "Numre", "NumreState",
+    "Cascade", "CascadeState",
 ]

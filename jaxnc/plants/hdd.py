@@ -28,16 +28,13 @@ velocity / w) so the discretised matrices are O(1); the exact ZOH is
 """
 from __future__ import annotations
 
-import dataclasses
-
-import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from jaxnc._validate import check_nonneg, check_positive
+from jaxnc._validate import check_nonneg
+from jaxnc.loop.plants import LTI
 
-__all__ = ["T", "TABLE2", "READINGS", "HddModel", "plant_matrices", "continuous_plant", "notch_matrices",
+__all__ = ["T", "TABLE2", "READINGS", "DISTURBANCE_OUTPUT", "plant_matrices", "continuous_plant", "notch_matrices",
            "disturbance_matrices", "augment", "hdd_model", "frequency_response"]
 
 T = 20e-6                                   # s, section 5
@@ -151,33 +148,8 @@ def augment(Ap, Bp, Cp, Ad, Bd, Cd):
     return A, B, Bw, C, Cbar
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class HddModel:
-    """Augmented HDD model, eq. (4): x+ = A x + B u + Bw w, y = C x + v, d = Cbar x.
-
-    ``w_std`` is the std of the broadband w_k of eq. (2) and ``v_std`` that of v_k; the
-    paper gives neither (our values are in :func:`hdd_model`). The first 10 states are the
-    plant's, the last 2 the disturbance's.
-    """
-    A: jax.Array
-    B: jax.Array
-    Bw: jax.Array
-    C: jax.Array
-    Cbar: jax.Array
-    w_std: jax.Array
-    v_std: jax.Array
-
-    def __post_init__(self):
-        check_nonneg("HddModel.w_std", self.w_std)
-        check_nonneg("HddModel.v_std", self.v_std)
-
-    def step(self, x, u, w):
-        """Eq. (4) state update."""
-        return self.A @ x + self.B * u + self.Bw * w
-
-    def measure(self, x, v):
-        return self.C @ x + v
+#: Cbar of the augmented model (eq. 3): d = Cbar x, float[12]
+DISTURBANCE_OUTPUT = np.concatenate([np.zeros(10), disturbance_matrices()[2]])
 
 
 # Noise levels (ours; the paper gives none). Measurement noise std 3e-4 (position units,
@@ -190,11 +162,16 @@ class HddModel:
 V_STD, W_STD = 3e-4, 9e-6
 
 
-def hdd_model(reading: str = "sum", *, w_std: float = W_STD, v_std: float = V_STD, dtype=jnp.float32) -> HddModel:
-    check_positive("w_std", w_std) if w_std else None
-    A, B, Bw, C, Cbar = augment(*plant_matrices(reading), *disturbance_matrices())
-    f = lambda a: jnp.asarray(a, dtype)
-    return HddModel(f(A), f(B), f(Bw), f(C), f(Cbar), f(w_std), f(v_std))
+def hdd_model(reading: str = "sum", *, w_std: float = W_STD, v_std: float = V_STD) -> LTI:
+    """The augmented HDD model of eq. (4) as a loop plant (:class:`jaxnc.loop.LTI`, 12 states:
+    the plant's 10, then the disturbance's 2): x+ = A x + B u + Bw w, y = C x + v, with w the
+    broadband w_k of eq. (2) (std ``w_std``) and v the measurement noise (std ``v_std``); the
+    disturbance is d = Cbar x (:data:`DISTURBANCE_OUTPUT`). Raises ValueError for an unknown
+    reading or a negative std."""
+    check_nonneg("w_std", w_std)
+    check_nonneg("v_std", v_std)
+    A, B, Bw, C, _ = augment(*plant_matrices(reading), *disturbance_matrices())
+    return LTI(A=A, B=B, C=C[None, :], G=Bw, w_std=[w_std], v_std=[v_std], T=T)
 
 
 def frequency_response(reading: str = "sum", f_hz=None, Ts: float = T):

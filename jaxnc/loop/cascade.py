@@ -1,0 +1,94 @@
+"""A packet of actions from a stateful law along a model's prediction, computed on arrival
+(seed 003 eq. 14-15, section 3.2.4).
+
+At an arrival (``fresh``) at instant k the controller runs the prediction cascade from the
+estimate x(k|k): for l = 0..H-1,
+
+    u_{k+l} = law(s_{k+l}, k + l, x(k+l|k)),   x(k+l+1|k) = A x(k+l|k) + B u_{k+l},
+
+and sends the packet {u_k, ..., u_{k+H-1}} stamped k (the actuator plays it by time
+stamp, :class:`~jaxnc.loop.PacketActuator` of horizon H). The law's state is part of the
+cascade: at the next arrival, N = k' - k periods later, the law restarts from the state
+s_{k+N} its last cascade reached at that instant (s_{k+H} for N >= H), so a law with
+memory (an integrator, an interlaced multi-rate controller, a disturbance observer)
+continues as if it had run every period on the predictions. Without an arrival it
+computes nothing, sends nothing and keeps its state (the paper's control side works only
+when a measurement arrives). ``A = None`` holds the estimate along the cascade (a law on
+the measurement itself, float[output_dim], without a model; then usually H = 1).
+
+A law is a pytree with ``init() -> s`` and ``step(s, k, x) -> (u, s_next, aux)``: u a
+scalar action (single input), ``aux`` anything the law reports (e.g. its disturbance
+estimate), kept for the first action of the last packet in :attr:`CascadeState.aux`.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxnc._validate import check_int
+from jaxnc.estimators.numre import cascade
+from jaxnc.loop.base import AbstractController, Packet, blend
+from jaxnc.loop.base import pytree_dataclass as _dataclass
+from jaxnc.loop.base import static_field as _static
+
+__all__ = ["Cascade", "CascadeState"]
+
+
+class CascadeState(NamedTuple):
+    law: Any             # the law's states s_k .. s_{k+H} along the last cascade (leading axis H + 1)
+    k_last: jax.Array    # int32: the instant of the last arrival
+    aux: Any             # the law's aux output for the first action of the last cascade
+    gap: jax.Array       # int32: k - k_last at an arrival (the multiplicity, eq. 9), 0 otherwise
+
+
+@_dataclass
+class Cascade(AbstractController):
+    """The prediction-cascade controller (module docstring).
+
+    Attributes:
+      law: a pytree with ``init()`` and ``step(s, k, x) -> (u, s_next, aux)``.
+      A: float[n, n], B: float[n], the single-input prediction model on the estimate
+        float[n]; A = None: the estimate is the measurement float[output_dim], held along
+        the cascade (B unused).
+      horizon: static H >= 1, actions per packet.
+
+    ``step(state, xhat, fresh, k, ctx) -> (state, Packet(float[H, 1], stamp k), send)``
+    with send = fresh (a controller-side trigger, ``Loop.controller_trigger``, may gate it).
+    """
+
+    law: Any
+    A: Any = None
+    B: Any = None
+    horizon: int = _static(1)
+
+    def __post_init__(self):
+        check_int("Cascade.horizon", self.horizon, 1, 1_000_000)
+        for n in ("init", "step"):
+            if not callable(getattr(self.law, n, None)):
+                raise ValueError(f"Cascade.law must have init() and step(s, k, x) -> (u, s_next, aux), "
+                                 f"got {type(self.law).__name__} without {n}")
+
+    def init(self, ctx) -> CascadeState:
+        s0 = self.law.init()
+        x0 = jnp.zeros((ctx.output_dim if self.A is None else jnp.shape(self.A)[0],), jnp.float32)
+        aux0 = jax.eval_shape(lambda: self.law.step(s0, jnp.int32(0), x0)[2])
+        states = jax.tree.map(lambda a: jnp.broadcast_to(a, (self.horizon + 1, *jnp.shape(a))), s0)
+        zero = jnp.zeros((), jnp.int32)
+        return CascadeState(states, zero, jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), aux0), zero)
+
+    def step(self, state: CascadeState, xhat, fresh, k, ctx):
+        H = self.horizon
+        N = jnp.clip(k - state.k_last, 1, H)
+        s0 = jax.tree.map(lambda a: a[N], state.law)
+        n = xhat.shape[0]
+        A = jnp.eye(n, dtype=xhat.dtype) if self.A is None else self.A
+        B = jnp.zeros((n,), xhat.dtype) if self.A is None else self.B
+        # H + 1 steps: the last one only gives the law's state after the packet's last action
+        us, ss, aux = cascade(self.law.step, A, B, xhat, s0, k, H + 1)
+        new = CascadeState(ss, jnp.asarray(k, jnp.int32), jax.tree.map(lambda a: a[0], aux),
+                           jnp.asarray(k - state.k_last, jnp.int32))
+        kept = state._replace(gap=jnp.zeros((), jnp.int32))
+        return (blend(fresh, new, kept), Packet(us[:H, None], (k * ctx.N).astype(jnp.int32)),
+                jnp.asarray(fresh, jnp.float32))

@@ -1,0 +1,107 @@
+"""Non-uniform multi-rate estimator (NUMRE) as a loop estimator (seed 003, eq. 9-15).
+
+A Kalman filter for a single-output linear model whose measurement arrives after a
+time-varying number N of periods (the multiplicity, eq. 9, N = k - k_lm with k_lm the
+instant of the previous arrival). Between arrivals it only predicts the mean with the
+actions, x <- A x + B u; on arrival it corrects with the gain K(N) of the lifted model
+(eq. 10-12), from the posterior covariance of the previous arrival:
+
+    M = A^N P (A^N)' + We(N),   K(N) = M C' / (C M C' + V),   x <- x + K(N) (y - C x),
+
+and P <- (I - K C) M (I - K C)' + K V K' (Joseph form). With ``we_form="white"`` We(N) is
+the covariance of the lifted white process noise, so the filter equals a Kalman filter
+that predicts every period and corrects only at arrivals. The kernels (tables of A^N and
+We(N), the gain, the correction) are :mod:`jaxnc.estimators.numre`.
+
+The correction takes the newest delivered measurement as y_k of the arrival instant k
+(links without delay, as in the paper), and the loop's slow period must be the model's
+period (``Loop.N = 1``).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import check_choice, check_int, check_nonneg
+from jaxnc.estimators.numre import NumreTables, numre_correct, numre_tables
+from jaxnc.loop.base import AbstractEstimator, Inbox, blend
+from jaxnc.loop.base import pytree_dataclass as _dataclass
+from jaxnc.loop.base import static_field as _static
+
+__all__ = ["Numre", "NumreState"]
+
+
+class NumreState(NamedTuple):
+    mean: jax.Array      # float[n]: x(k|k) after a correction, else the prior x(k|k_lm) propagated
+    cov: jax.Array       # float[n, n]: the posterior covariance at k_lm
+    k_lm: jax.Array      # int32: the last instant a measurement arrived
+
+
+@_dataclass
+class Numre(AbstractEstimator):
+    """NUMRE (module docstring); build it with :meth:`design`.
+
+    Attributes:
+      tables: :class:`~jaxnc.estimators.numre.NumreTables` (A^N, We(N) for N <= n_max, C, V);
+        a gap longer than ``tables.n_max`` is corrected with K(n_max).
+      A: float[n, n]; B: float[n, m], the model over one period.
+      mean0: float[n]; cov0: float[n, n], the prior at k = 0.
+      inputs: static, ``"believed"`` (the actions of the controller's own packets, what a
+        filter on the control side knows) or ``"applied"`` (a filter at the actuator).
+
+    ``correct(state, inbox, k) -> (state, x)``: x float[n], the corrected mean at an
+    arrival, the propagated prior otherwise. Raises ValueError (at ``init``, i.e. when the
+    Loop is built) for ``Loop.N != 1``.
+    """
+
+    tables: NumreTables
+    A: Any
+    B: Any
+    mean0: Any
+    cov0: Any
+    inputs: str = _static("believed")
+
+    def __post_init__(self):
+        check_choice("Numre.inputs", self.inputs, ("believed", "applied"))
+
+    @classmethod
+    def design(cls, A, B, Bw, C, W, V, n_max: int, *, cov0, mean0=None, we_form: str = "white",
+               inputs: str = "believed") -> "Numre":
+        """The filter of the model x+ = A x + B u + Bw w, y = C x + v, Cov(w) = W (scalar or
+        float[q, q], Bw float[n] or float[n, q]), Var(v) = V (single output: C float[n]),
+        with tables up to the multiplicity ``n_max``. Raises ValueError for n_max < 1, a
+        negative V, a C with more than one row or an unknown ``we_form``."""
+        check_int("Numre.n_max", n_max, 1)
+        check_nonneg("Numre.V", V)
+        A = np.asarray(A, float)
+        n = A.shape[0]
+        C = np.asarray(C, float)
+        if C.size != n:
+            raise ValueError(f"Numre.C must be one output row of {n} entries (single output), got shape {C.shape}")
+        tables = numre_tables(A, Bw, C.reshape(n), W, V, n_max, we_form=we_form)
+        f = lambda a: jnp.asarray(a, jnp.float32)
+        mean0 = np.zeros(n) if mean0 is None else mean0
+        return cls(tables, f(A), f(np.asarray(B, float).reshape(n, -1)), f(mean0), f(cov0), inputs=inputs)
+
+    def init(self, ctx) -> NumreState:
+        if ctx.N != 1:
+            raise ValueError(f"Numre needs the loop's slow period to be the model's period (Loop.N = 1), got "
+                             f"N = {ctx.N}")
+        return NumreState(jnp.asarray(self.mean0), jnp.asarray(self.cov0), jnp.zeros((), jnp.int32))
+
+    def correct(self, state: NumreState, inbox: Inbox, k):
+        z, _, w = inbox.newest()
+        N = jnp.clip(k - state.k_lm, 1, self.tables.n_max)
+        mean, cov, _ = numre_correct(self.tables, state.mean, state.cov, z[0], N)
+        new = blend(w, NumreState(mean, cov, jnp.asarray(k, jnp.int32)), state)
+        return new, new.mean
+
+    def predict(self, state: NumreState, u_applied, u_believed, k):
+        u = u_believed if self.inputs == "believed" else u_applied
+        x = state.mean
+        for j in range(u.shape[0]):            # the fast periods of the slow one (static)
+            x = self.A @ x + self.B @ u[j]
+        return state._replace(mean=x)

@@ -1,0 +1,144 @@
+"""The library parts seed 003 is built from (jaxnc.loop.Numre, jaxnc.loop.Cascade, the HDD
+plant as an LTI), each against a closed form or an independent reference."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnc.loop as jl
+from jaxnc.plants import hdd as hdd_plant
+
+A2 = np.array([[1.0, 0.1], [0.0, 0.95]])
+B2 = np.array([0.005, 0.1])
+C2 = np.array([1.0, 0.0])
+W_STD, V_STD = np.array([0.01, 0.02]), 0.05
+CTX = jl.Context(N=1, steps=10, T=1.0, state_dim=2, input_dim=1, output_dim=1)
+
+
+def _numre_loop(steps=80, p_loss=0.5, inputs="believed", N=1):
+    plant = jl.LTI(A=A2, B=B2[:, None], C=C2[None], x0=[1.0, 0.0], w_std=W_STD, v_std=[V_STD], T=0.1)
+    est = jl.Numre.design(A2, B2, np.eye(2), C2, np.diag(W_STD ** 2), V_STD ** 2, steps, cov0=np.eye(2),
+                          mean0=[0.5, 0.0], inputs=inputs)
+    return jl.Loop(plant=plant, trigger=jl.Periodic(), uplink=jl.Link(jl.Bernoulli(p_loss)), estimator=est,
+                   controller=jl.StateFeedback([[3.0, 1.5]]), downlink=jl.Link(), actuator=jl.HoldLast(),
+                   N=N, steps=steps, T=0.1)
+
+
+@pytest.mark.parametrize("inputs", ["believed", "applied"])
+def test_numre_is_the_kalman_filter_with_intermittent_corrections(inputs):
+    """With white lifted noise (We(N) = sum_c A^c Q A^c', eq. 13 for white w) the NUMRE's
+    correction after a gap of N periods (eq. 11-12) equals a Kalman filter that predicts
+    every period and corrects only at arrivals: a float64 numpy filter run on the loop's
+    own measurements, arrivals and actions (half the packets lost)."""
+    loop = _numre_loop(inputs=inputs)
+    tr = jax.device_get(jax.jit(jl.simulate)(loop, jax.random.PRNGKey(4)))
+    got, recv = np.asarray(tr.recv_sc) > 0.5, np.asarray(tr.xhat)
+    z, u = np.asarray(tr.z)[:, 0], np.asarray(tr.u)[:, 0]
+    assert 20 < got.sum() < 60 and not got.all()
+    x, P, Q = np.array([0.5, 0.0]), np.eye(2), np.diag(W_STD ** 2)
+    for k in range(loop.steps):
+        if got[k]:
+            S = C2 @ P @ C2 + V_STD ** 2
+            K = P @ C2 / S
+            x = x + K * (z[k] - C2 @ x)
+            P = (np.eye(2) - np.outer(K, C2)) @ P
+        np.testing.assert_allclose(recv[k], x, rtol=2e-4, atol=2e-5, err_msg=f"k = {k}")
+        x, P = A2 @ x + B2 * u[k], A2 @ P @ A2.T + Q
+
+
+def test_numre_validation():
+    with pytest.raises(ValueError, match="Numre.n_max"):
+        jl.Numre.design(A2, B2, np.eye(2), C2, np.eye(2), 1.0, 0, cov0=np.eye(2))
+    with pytest.raises(ValueError, match="Numre.C must be one output row"):
+        jl.Numre.design(A2, B2, np.eye(2), np.eye(2), np.eye(2), 1.0, 5, cov0=np.eye(2))
+    with pytest.raises(ValueError, match="Numre.V"):
+        jl.Numre.design(A2, B2, np.eye(2), C2, np.eye(2), -1.0, 5, cov0=np.eye(2))
+    with pytest.raises(ValueError, match="Numre.inputs"):
+        jl.Numre.design(A2, B2, np.eye(2), C2, np.eye(2), 1.0, 5, cov0=np.eye(2), inputs="both")
+    with pytest.raises(ValueError, match="Loop.N = 1"):
+        _numre_loop(steps=20, N=2)
+
+
+@jl.pytree_dataclass
+class _Feedback:
+    """u = -K x + s with the integrator s+ = s + g (r - C x); aux: k."""
+    K: object
+    g: object = 0.0
+
+    def init(self):
+        return jnp.zeros((), jnp.float32)
+
+    def step(self, s, k, x):
+        return -(self.K @ x) + s, s + self.g * (1.0 - x[0]), k
+
+
+def test_cascade_packet_is_the_closed_loop_prediction():
+    """A memoryless law u = -K x along x+ = A x + B u: the packet is u_l = -K (A - B K)^l x0."""
+    K = np.array([0.4, -0.3])
+    c = jl.Cascade(_Feedback(jnp.asarray(K, jnp.float32)), jnp.asarray(A2, jnp.float32),
+                   jnp.asarray(B2, jnp.float32), horizon=6)
+    x0 = np.array([0.3, -0.1])
+    s, pkt, send = jax.jit(lambda s, x: c.step(s, x, jnp.float32(1), jnp.int32(2), CTX))(
+        c.init(CTX), jnp.asarray(x0, jnp.float32))
+    Acl = A2 - np.outer(B2, K)
+    ref = [-K @ np.linalg.matrix_power(Acl, l) @ x0 for l in range(6)]
+    np.testing.assert_allclose(np.asarray(pkt.data)[:, 0], ref, rtol=1e-5, atol=1e-7)
+    assert int(pkt.stamp) == 2 and float(send) == 1.0 and int(s.gap) == 2 and int(s.aux) == 2
+
+
+def test_cascade_restarts_the_law_where_its_last_cascade_was():
+    """At the next arrival, N periods later, the law starts from the state its previous
+    cascade reached at that instant (s_N, or s_H past the packet); without an arrival
+    nothing changes and nothing is sent."""
+    K = jnp.asarray([0.4, -0.3], jnp.float32)
+    c = jl.Cascade(_Feedback(K, 0.5), jnp.asarray(A2, jnp.float32), jnp.asarray(B2, jnp.float32), horizon=4)
+    step = jax.jit(lambda s, x, f, k: c.step(s, x, jnp.float32(f), jnp.int32(k), CTX))
+    x0 = jnp.asarray([0.3, -0.1], jnp.float32)
+    s1, _, _ = step(c.init(CTX), x0, 1.0, 0)
+    s_quiet, _, send = step(s1, x0, 0.0, 1)
+    assert float(send) == 0.0 and int(s_quiet.gap) == 0
+    for a, b in zip(jax.tree.leaves((s1.law, s1.k_last)), jax.tree.leaves((s_quiet.law, s_quiet.k_last))):
+        np.testing.assert_array_equal(a, b)
+    # the integrator along the first cascade, by hand
+    x, s, ss = np.asarray(x0, float), 0.0, []
+    for l in range(5):
+        ss.append(s)
+        u = -(np.asarray(K) @ x) + s
+        x, s = A2 @ x + B2 * u, s + 0.5 * (1.0 - x[0])
+    for k_next, idx in ((3, 3), (9, 4)):            # within the packet, and past its end (H = 4)
+        _, pkt, _ = step(s_quiet, x0, 1.0, k_next)
+        assert float(pkt.data[0, 0]) == pytest.approx(-(np.asarray(K) @ np.asarray(x0)) + ss[idx], rel=1e-5)
+
+
+def test_cascade_on_the_measurement_and_validation():
+    """A = None, H = 1: one law step on the measurement itself; its state after that step
+    is where the next arrival starts."""
+    c = jl.Cascade(_Feedback(jnp.asarray([2.0], jnp.float32), 0.5), horizon=1)
+    ctx = CTX._replace(state_dim=5)            # the estimate is the measurement, not the plant's state
+    step = jax.jit(lambda s, y, k: c.step(s, jnp.asarray([y], jnp.float32), jnp.float32(1), jnp.int32(k), ctx))
+    s1, p1, _ = step(c.init(ctx), 0.2, 0)
+    _, p2, _ = step(s1, 0.4, 2)
+    assert float(p1.data[0, 0]) == pytest.approx(-0.4) and p1.data.shape == (1, 1)
+    assert float(p2.data[0, 0]) == pytest.approx(-0.8 + 0.5 * 0.8)
+    with pytest.raises(ValueError, match="Cascade.law must have init"):
+        jl.Cascade(object(), horizon=1)
+    with pytest.raises(ValueError, match="Cascade.horizon"):
+        jl.Cascade(_Feedback(jnp.zeros(2)), horizon=0)
+
+
+def test_hdd_model_is_the_augmented_lti_of_eq4():
+    """hdd_model is an LTI with x+ = A x + B u + Bw w, y = C x + v of eq. (3)-(4), and the
+    disturbance d = Cbar x (float64 matrices, float32 plant)."""
+    A, B, Bw, C, Cbar = hdd_plant.augment(*hdd_plant.plant_matrices("unit"), *hdd_plant.disturbance_matrices())
+    p = hdd_plant.hdd_model("unit", w_std=2e-5, v_std=1e-3)
+    assert isinstance(p, jl.LTI) and (p.state_dim, p.input_dim, p.noise_dim, p.output_dim) == (12, 1, 1, 1)
+    rng = np.random.default_rng(0)
+    x, u, w, v = rng.normal(size=12), rng.normal(size=1), rng.normal(size=1), rng.normal(size=1)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    np.testing.assert_allclose(p.dynamics(f32(x), f32(u), f32(w)), A @ x + B * u + Bw * w, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(p.measure(f32(x), f32(v)), C @ x + v, rtol=1e-5)
+    np.testing.assert_array_equal(hdd_plant.DISTURBANCE_OUTPUT, Cbar)
+    np.testing.assert_allclose(p.process_std(), [2e-5])
+    np.testing.assert_allclose(p.measurement_std(), [1e-3])
+    with pytest.raises(ValueError, match="v_std"):
+        hdd_plant.hdd_model(v_std=-1.0)
