@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_choice, check_finite, check_given, check_instance, fields_concrete
+from jaxnc._validate import array_fields, check_choice, check_finite, check_given, check_instance, concrete
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
@@ -81,7 +81,7 @@ class PeriodEKF(AbstractEstimator):
             check_finite(f"PeriodEKF.{n}", getattr(self, n))
         array_fields(self, "Q", "R", "mean0", "cov0")
         object.__setattr__(self, "inputs", check_choice("PeriodEKF.inputs", self.inputs, ("applied", "believed")))
-        if not fields_concrete(self):
+        if not concrete(self.Q, self.R, self.mean0, self.cov0):
             return
         n, p = self.model.state_dim, self.model.output_dim
         for name, shape in (("mean0", (n,)), ("cov0", (n, n)), ("Q", (n, n)), ("R", (p, p))):

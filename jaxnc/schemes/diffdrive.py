@@ -44,6 +44,7 @@ DELAY_ETA, DELAY_PHI = 0.08, 0.04  # s, the delay law (ours; the paper gives onl
 V_REF = 0.14                       # m/s (ours: 3 m in ~22 s, the paper's J3)
 LAD = 0.12                         # m, look-ahead distance (ours)
 SUB = 10                           # fine steps per T
+END_TOL, MAX_DEV = 0.03, 0.3       # m: complete within END_TOL of the end; unstable beyond MAX_DEV of the path
 #: four right angles, 0.6 m legs (ours: Figs. 5-9 show the shape without dimensions)
 STAIRS = ((0.0, 0.0), (0.6, 0.0), (0.6, 0.6), (1.2, 0.6), (1.2, 1.2), (1.8, 1.2))
 
@@ -99,7 +100,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
     else:
         Gp = control.tf([float(plant.K)], [float(plant.tau), 1.0])
         pi = DualRateController.from_design(dualrate_design(Gp, pi_controller(Kp, Ti), T, N))
-    ctrl = nc.PursuitPI(path, plant, pi, v_ref=v_ref, lad=lad, assumed_delay=assumed_delay, ns=ns,
+    ctrl = nc.PursuitPI(path, plant, pi, v_ref=v_ref, lad=lad, end_tol=END_TOL, assumed_delay=assumed_delay, ns=ns,
                         h=h if scenario == "e" else 0)
     if scenario == "e":
         # the true measurement noise (floored so that F = 0 stays well-conditioned) and wheel noise
@@ -134,7 +135,7 @@ class Completion(NamedTuple):
     bad: jax.Array      # bool: failed (tube, non-finite) before completion
 
 
-def completion(loop: nc.Loop, traj: nc.Trajectory, *, end_tol: float = 0.03, max_dev: float = 0.3) -> Completion:
+def completion(loop: nc.Loop, traj: nc.Trajectory, *, end_tol: float = END_TOL, max_dev: float = MAX_DEV) -> Completion:
     """Completion and failure from the true positions at the end of every period T: the
     progress (monotone windowed nearest-point search), done when it is in the path's last
     tenth within ``end_tol`` of the end; failed when, before that, the distance exceeds
