@@ -272,3 +272,20 @@ def test_arrival_actuator_starts_at_arrival():
     assert float(pa.output(ps, 1)[1][0]) == 2.0
     with pytest.raises(ValueError, match="ArrivalActuator.horizon"):
         nc.ArrivalActuator(horizon=0)
+
+
+def test_truncated_exponential_delay_law():
+    """The downlink's delay model (section 5.1): eta + phi Exp(1) truncated to [eta, tau_max]:
+    bounds, the mean of the truncated law (closed form) within 4 standard errors, the steps
+    the seconds quantised up to the fast period, and the declared bounds."""
+    eta, phi, tmax, n, T = 0.08, 0.04, 0.17, 20000, 0.01
+    model = nc.TruncatedExponential(eta, phi, tmax)
+    steps, tau = jax.jit(lambda k: model.sample(k, n, T))(jax.random.PRNGKey(3))
+    tau, steps = np.asarray(tau, np.float64), np.asarray(steps)
+    assert tau.min() >= eta - 1e-7 and tau.max() <= tmax + 1e-7
+    c = tmax - eta
+    mean = eta + phi - c * math.exp(-c / phi) / (1 - math.exp(-c / phi))
+    assert abs(tau.mean() - mean) < 4 * tau.std() / math.sqrt(n)
+    r = tau / T                                   # ceil up to float32 rounding: r <= steps < r + 1
+    assert np.all(steps >= r - 1e-4) and np.all(steps < r + 1)
+    assert model.bounds(T) == (8, 17)
