@@ -12,6 +12,7 @@ import pytest
 from jaxnc import loop as nc
 from jaxnc import montecarlo
 from jaxnc.metrics import distance_to_points
+from jaxnc.loop.vehicles import integrated
 from jaxnc.schemes import diffdrive as dd
 
 STORED = json.loads((Path(__file__).parent / "data" / "diffdrive_headline.json").read_text())
@@ -97,7 +98,7 @@ def test_table1_prediction_pattern(e_runs):
     s, sub = 0, loop.plant.sub
     w_com, est, U, u_prior = (np.asarray(a[s]) for a in tr.parts["controller"])
     assert est.shape[1:] == (2, 5) and U.shape[1:] == (2, 2)
-    f = jax.jit(jax.vmap(lambda x, u: loop.plant.integrated(x, jnp.repeat(u, sub, axis=0), jnp.zeros(5))))
+    f = jax.jit(jax.vmap(lambda x, u: integrated(loop.plant, x, jnp.repeat(u, sub, axis=0), jnp.zeros(5))))
     K = int(m.l[s]) // 2 - 1
     np.testing.assert_allclose(np.asarray(f(est[:K, 0], U[:K])), est[:K, 1], rtol=1e-5, atol=1e-5)
     std = np.asarray(loop.plant.measurement_std())

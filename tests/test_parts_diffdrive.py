@@ -14,7 +14,7 @@ from jaxnc.controllers.pure_pursuit import pure_pursuit_curvature, pure_pursuit_
 from jaxnc.design.dualrate import DiscreteSS, single_rate_pi
 from jaxnc.loop.base import Inbox
 from jaxnc.loop.runner import Context
-from jaxnc.loop.vehicles import K_MOTOR, TAU_MOTOR
+from jaxnc.loop.vehicles import K_MOTOR, TAU_MOTOR, eq1, integrated
 from jaxnc.paths import from_waypoints
 
 Z5 = jnp.zeros(5)
@@ -27,7 +27,7 @@ def test_eq1_lifted_motor_matches_zoh_of_eq26():
     U = np.array([[30.0, -10.0], [45.0, 20.0], [-5.0, 60.0]], np.float32)   # N = 3
     w0 = np.array([1.0, -2.0], np.float32)
     x0 = jnp.concatenate([jnp.asarray(w0), jnp.zeros(3)])
-    f = jax.jit(plant.eq1)(x0, jnp.asarray(U), Z5)
+    f = jax.jit(lambda *a: eq1(plant, *a))(x0, jnp.asarray(U), Z5)
     ss = control.ss(control.sample_system(control.tf([K_MOTOR], [TAU_MOTOR, 1.0]), plant.T, method="zoh"))
     for wheel in range(2):
         x = np.linalg.solve(np.asarray(ss.C), [w0[wheel]])
@@ -35,7 +35,7 @@ def test_eq1_lifted_motor_matches_zoh_of_eq26():
             x = np.asarray(ss.A) @ x + np.asarray(ss.B).ravel() * u
         ref = float((np.asarray(ss.C) @ x)[0])
         assert abs(float(f[wheel]) - ref) < 1e-4 * max(1.0, abs(ref))
-    fine = jax.jit(plant.integrated)(x0, jnp.repeat(jnp.asarray(U), plant.sub, axis=0), Z5)
+    fine = jax.jit(lambda *a: integrated(plant, *a))(x0, jnp.repeat(jnp.asarray(U), plant.sub, axis=0), Z5)
     np.testing.assert_allclose(np.asarray(fine)[:2], np.asarray(f)[:2], rtol=1e-4, atol=1e-4)
 
 
@@ -63,11 +63,11 @@ def test_integrated_model_against_the_continuous_ode():
     got = np.asarray(jax.jit(p.period)(jnp.asarray(x0), jnp.asarray(uf), Z5), np.float64)
     err = np.abs(got - ref)
     assert np.all(err[:4] < 1e-5) and err[4] < 1e-4, err
-    eq1 = np.asarray(jax.jit(nc.DiffDrive(lifted="eq1").period)(jnp.asarray(x0), jnp.asarray(uf), Z5))
-    np.testing.assert_allclose(eq1, np.asarray(p.eq1(jnp.asarray(x0), jnp.asarray(uf.reshape(N, sub, 2).mean(1)), Z5)))
-    assert np.abs(eq1[4] - ref[4]) > 100 * err[4] and np.linalg.norm(eq1[2:4] - ref[2:4]) > 1e-4
+    e1 = np.asarray(jax.jit(nc.DiffDrive(lifted="eq1").period)(jnp.asarray(x0), jnp.asarray(uf), Z5))
+    np.testing.assert_allclose(e1, np.asarray(eq1(p, jnp.asarray(x0), jnp.asarray(uf.reshape(N, sub, 2).mean(1)), Z5)))
+    assert np.abs(e1[4] - ref[4]) > 100 * err[4] and np.linalg.norm(e1[2:4] - ref[2:4]) > 1e-4
     n1 = jnp.asarray([0.1, -0.2, 1e-3, 2e-3, -0.01])
-    np.testing.assert_allclose(np.asarray(jax.jit(p.integrated)(jnp.asarray(x0), jnp.asarray(uf), n1)),
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda *a: integrated(p, *a))(jnp.asarray(x0), jnp.asarray(uf), n1)),
                                got + np.asarray(n1), rtol=1e-6, atol=1e-6)
 
 
@@ -78,7 +78,7 @@ def test_straight_line_and_noise_once_per_T():
     p = nc.DiffDrive()
     w = 5.0
     x = jnp.asarray([w, w, 0.0, 0.0, 0.3])
-    x1 = jax.jit(p.eq1)(x, jnp.full((2, 2), w / K_MOTOR), Z5)
+    x1 = jax.jit(lambda *a: eq1(p, *a))(x, jnp.full((2, 2), w / K_MOTOR), Z5)
     d = p.r * w * 2 * p.T
     np.testing.assert_allclose(np.asarray(x1), [w, w, d * math.cos(0.3), d * math.sin(0.3), 0.3], rtol=1e-5, atol=1e-6)
 
@@ -228,7 +228,7 @@ def test_pursuit_pi_prediction_stage(assumed_delay):
     uf = np.repeat(np.asarray(U0), 10, axis=0)
     n_early = math.ceil(assumed_delay / c.model.dt - 1e-6)
     uf[:n_early] = np.repeat(np.asarray(s0.u_next), 10, axis=0)[:n_early]
-    x1 = c.model.integrated(x, jnp.asarray(uf), Z5)
+    x1 = integrated(c.model, x, jnp.asarray(uf), Z5)
     np.testing.assert_allclose(np.asarray(s.est), np.stack([np.asarray(x), np.asarray(x1)]), rtol=1e-5, atol=1e-6)
     U1, _, _, _ = c.law(pi1, idx1, x1)
     np.testing.assert_allclose(np.asarray(pkt.data), np.repeat(np.concatenate([U0, U1]), 10, axis=0), rtol=1e-5)

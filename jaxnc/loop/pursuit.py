@@ -39,7 +39,7 @@ from jaxnc.design.dualrate import DiscreteSS, DualRateController
 from jaxnc.loop.base import AbstractController, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.loop.vehicles import DiffDrive
+from jaxnc.loop.vehicles import DiffDrive, wheel_command
 from jaxnc.paths import Path
 
 __all__ = ["PursuitPI", "PursuitState"]
@@ -119,7 +119,7 @@ class PursuitPI(AbstractController):
         """Steps 1-2 from the state x float[5]: (actions float[ns, 2], w_com float[2], pi, idx)."""
         (v, om), idx = pure_pursuit_curvature(self.path, x[2:4], x[4], idx, lad=self.lad, v_ref=self.v_ref,
                                               window=self.window)
-        w_com = jnp.clip(self.model.wheel_command(v, om), -self.w_max, self.w_max)
+        w_com = jnp.clip(wheel_command(self.model, v, om), -self.w_max, self.w_max)
         e = w_com - x[:2]
         if isinstance(self.pi, DualRateController):
             U, pi = self.pi(pi, e)

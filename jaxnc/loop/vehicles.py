@@ -32,7 +32,8 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.multirate import AbstractLiftedPlant
 
-__all__ = ["DiffDrive", "DiffDriveState", "lifted_wheel_var", "K_MOTOR", "TAU_MOTOR", "LIFTED_MODELS"]
+__all__ = ["DiffDrive", "DiffDriveState", "lifted_wheel_var", "motor", "body_velocity", "wheel_command", "substep",
+           "eq1", "integrated", "K_MOTOR", "TAU_MOTOR", "LIFTED_MODELS"]
 
 K_MOTOR = 0.1276    # eq. (26), static gain
 TAU_MOTOR = 0.1235  # eq. (26), time constant, s
@@ -96,38 +97,13 @@ class DiffDrive(AbstractLiftedPlant):
     def dt(self) -> float:
         return self.T / self.sub
 
-    # -- the physics
-    def motor(self, Ts):
-        """Exact ZOH of eq. (26) at period Ts: w' = a w + g u, a = exp(-Ts/tau), g = K (1 - a)."""
-        a = jnp.exp(-Ts / jnp.asarray(self.tau, jnp.float32))
-        return a, self.K * (1.0 - a)
-
-    def body_velocity(self, w):
-        """(w_r, w_l) -> (v, omega), eq. (2)-(3)."""
-        vr, vl = self.r * w[..., 0], self.r * w[..., 1]
-        return 0.5 * (vr + vl), (vr - vl) / (2.0 * self.b)
-
-    def wheel_command(self, v, omega):
-        """(v_ref, omega_ref) -> (w_r^com, w_l^com) float[2], eq. (20)."""
-        return jnp.stack([(v + self.b * omega) / self.r, (v - self.b * omega) / self.r], axis=-1)
-
-    def substep(self, x, u):
-        """x float[5] after one fine period dt with the command u float[2] held (no noise)."""
-        u = jnp.clip(u, -self.u_max, self.u_max)
-        a, g = self.motor(self.dt)
-        w1 = a * x[:2] + g * u
-        v, om = self.body_velocity(0.5 * (x[:2] + w1))
-        h = x[4] + 0.5 * om * self.dt
-        return jnp.concatenate([w1, jnp.stack([x[2] + v * self.dt * jnp.cos(h), x[3] + v * self.dt * jnp.sin(h),
-                                               x[4] + om * self.dt])])
-
     # -- the plant protocol
     def init(self, key) -> DiffDriveState:
         return DiffDriveState(jnp.asarray(self.x0, jnp.float32), jnp.zeros((), jnp.int32))
 
     def dynamics(self, x, u, w):
-        """One fine period: the wheel noise w float[2] added to the wheel speeds, then :meth:`substep`."""
-        return self.substep(x.at[:2].add(w), u)
+        """One fine period: the wheel noise w float[2] added to the wheel speeds, then :func:`substep`."""
+        return substep(self, x.at[:2].add(w), u)
 
     def step(self, s: DiffDriveState, u, w) -> DiffDriveState:
         """The true robot: w (float[2]) enters only at the first fine step of each period T (eq. 4)."""
@@ -151,46 +127,78 @@ class DiffDrive(AbstractLiftedPlant):
         e, c, i = (jnp.asarray(self.F * v, jnp.float32) for v in (self.enc, self.cam, self.imu))
         return jnp.stack([e, e, c, c, i])
 
-    # -- slow-period models
-    def eq1(self, x, U, n1):
-        """Eq. (8) with eq. (1)-(3), (7) as printed: xi_k = f(xi_{k-1}, U) + n1 over NT.
-
-        Args:
-          x: float[5]; U: float[N, 2], the N actions of the period (one per T); n1: float[5], additive.
-        Returns:
-          float[5]: the wheel speeds by the lifted motor (eq. 7), the pose by eq. (1) with the
-          end-of-period speeds and the heading psi_{k-1} + omega_k NT.
-        """
-        N = U.shape[0]
-        a, g = self.motor(self.T)
-        powers = a ** jnp.arange(N - 1, -1, -1, dtype=jnp.float32)          # a^{N-1-c}
-        U = jnp.clip(U, -self.u_max, self.u_max)
-        w = (a ** N) * x[:2] + g * jnp.sum(powers[:, None] * U, axis=0)
-        v, om = self.body_velocity(w)
-        NT = N * self.T
-        h = x[4] + om * NT
-        return jnp.concatenate([w, jnp.stack([x[2] + v * NT * jnp.cos(h), x[3] + v * NT * jnp.sin(h),
-                                              x[4] + om * NT])]) + n1
-
-    def integrated(self, x, u_fine, n1):
-        """The true plant's integrator over M fine periods, noise-free, plus n1 float[5] at the end.
-
-        ``u_fine`` float[M, 2]: the commands of the M fine periods, applied in order by
-        :meth:`substep`; it follows a command that changes in the middle of a slot T."""
-        x1, _ = jax.lax.scan(lambda xc, u: (self.substep(xc, u), None), x, u_fine)
-        return x1 + n1
-
     def period(self, x, us, w):
         """The slow-period model selected by ``lifted``: ``us`` float[M, 2] the fine commands
         of the period (M a multiple of sub), w float[5] additive. "eq1" uses, per slot T,
         the mean of its fine commands."""
         if self.lifted == "eq1":
-            return self.eq1(x, jnp.mean(us.reshape(-1, self.sub, 2), axis=1), w)
-        return self.integrated(x, us, w)
+            return eq1(self, x, jnp.mean(us.reshape(-1, self.sub, 2), axis=1), w)
+        return integrated(self, x, us, w)
+
+
+# ----------------------------------------------------------------------------- the physics (kernels)
+
+
+def motor(robot: DiffDrive, Ts):
+    """(a, g): the exact ZOH of eq. (26) at period Ts: w' = a w + g u, a = exp(-Ts/tau), g = K (1 - a)."""
+    a = jnp.exp(-Ts / jnp.asarray(robot.tau, jnp.float32))
+    return a, robot.K * (1.0 - a)
+
+
+def body_velocity(robot: DiffDrive, w):
+    """(w_r, w_l) -> (v, omega), eq. (2)-(3)."""
+    vr, vl = robot.r * w[..., 0], robot.r * w[..., 1]
+    return 0.5 * (vr + vl), (vr - vl) / (2.0 * robot.b)
+
+
+def wheel_command(robot: DiffDrive, v, omega):
+    """(v_ref, omega_ref) -> (w_r^com, w_l^com) float[2], eq. (20)."""
+    return jnp.stack([(v + robot.b * omega) / robot.r, (v - robot.b * omega) / robot.r], axis=-1)
+
+
+def substep(robot: DiffDrive, x, u):
+    """x float[5] after one fine period dt with the command u float[2] held (no noise)."""
+    u = jnp.clip(u, -robot.u_max, robot.u_max)
+    a, g = motor(robot, robot.dt)
+    w1 = a * x[:2] + g * u
+    v, om = body_velocity(robot, 0.5 * (x[:2] + w1))
+    h = x[4] + 0.5 * om * robot.dt
+    return jnp.concatenate([w1, jnp.stack([x[2] + v * robot.dt * jnp.cos(h), x[3] + v * robot.dt * jnp.sin(h),
+                                           x[4] + om * robot.dt])])
+
+
+def eq1(robot: DiffDrive, x, U, n1):
+    """Eq. (8) with eq. (1)-(3), (7) as printed: xi_k = f(xi_{k-1}, U) + n1 over NT.
+
+    Args:
+      x: float[5]; U: float[N, 2], the N actions of the period (one per T); n1: float[5], additive.
+    Returns:
+      float[5]: the wheel speeds by the lifted motor (eq. 7), the pose by eq. (1) with the
+      end-of-period speeds and the heading psi_{k-1} + omega_k NT.
+    """
+    N = U.shape[0]
+    a, g = motor(robot, robot.T)
+    powers = a ** jnp.arange(N - 1, -1, -1, dtype=jnp.float32)          # a^{N-1-c}
+    U = jnp.clip(U, -robot.u_max, robot.u_max)
+    w = (a ** N) * x[:2] + g * jnp.sum(powers[:, None] * U, axis=0)
+    v, om = body_velocity(robot, w)
+    NT = N * robot.T
+    h = x[4] + om * NT
+    return jnp.concatenate([w, jnp.stack([x[2] + v * NT * jnp.cos(h), x[3] + v * NT * jnp.sin(h),
+                                          x[4] + om * NT])]) + n1
+
+
+def integrated(robot: DiffDrive, x, u_fine, n1):
+    """The true plant's integrator over M fine periods, noise-free, plus n1 float[5] at the end.
+
+    ``u_fine`` float[M, 2]: the commands of the M fine periods, applied in order by
+    :func:`substep`; it follows a command that changes in the middle of a slot T."""
+    x1, _ = jax.lax.scan(lambda xc, u: (substep(robot, xc, u), None), x, u_fine)
+    return x1 + n1
 
 
 def lifted_wheel_var(plant: DiffDrive, std_T, N: int):
     """Variance over NT of wheel-speed noise of std ``std_T`` added every T and filtered by
     the motor: std_T^2 sum_{c<N} a^{2c}, a = exp(-T/tau) (the n1 of eq. 7)."""
-    a, _ = plant.motor(plant.T)
+    a, _ = motor(plant, plant.T)
     return jnp.asarray(std_T, jnp.float32) ** 2 * jnp.sum(a ** (2 * jnp.arange(N, dtype=jnp.float32)))
