@@ -31,13 +31,13 @@ import numpy as np
 
 from jaxnc import loop as nc
 from jaxnc._validate import check_choice, check_int, check_range
-from jaxnc.loop.vehicles import LIFTED_MODELS
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
+from jaxnc.loop.vehicles import LIFTED_MODELS
 from jaxnc.metrics import distance_to_path, distance_to_points
 from jaxnc.paths import Path, closest_index, from_waypoints, point_at
 
 SCENARIOS = ("a", "b", "c", "d", "e")
-PREDICTIONS = LIFTED_MODELS                  # e's slow-period model: "integrated" or "eq1" (eq. 1 as printed)
+PREDICTIONS = LIFTED_MODELS        # e's slow-period model: "integrated" or "eq1" (eq. 1 as printed)
 KP, TI = 6.0, 0.12                 # section 5.1
 TAU_MAX = 0.17                     # s, section 5.1
 DELAY_ETA, DELAY_PHI = 0.08, 0.04  # s, the delay law (ours; the paper gives only tau_max)
