@@ -354,12 +354,18 @@ def pi_ss(Kp, Ki, Ts) -> DiscreteSS:
                       D=jnp.asarray(Kp, jnp.float32))
 
 
-def diffdrive_terms(loop: dd.DiffDriveLoop, key, Kp, Ki):
+def with_pi(loop, Kp, Ki):
+    """``loop`` (a single-rate scenario of :func:`jaxnc.schemes.diffdrive.diffdrive_loop`) with
+    the PI gains (Kp, Ki) at its sensing period (eq. 30-31, :func:`pi_ss`)."""
+    c = loop.controller
+    return dataclasses.replace(loop, controller=dataclasses.replace(c, pi=pi_ss(Kp, Ki, c.ns * loop.plant.T)))
+
+
+def diffdrive_terms(loop, key, Kp, Ki):
     """Per-seed (J1', unstable, J1_mean, J2): J1 of eq. (23) in mm; unstable runs are
     charged max_dev at every NT instant of the horizon (the worst a tube-bound run scores)."""
-    lp = dataclasses.replace(loop, sr=pi_ss(Kp, Ki, loop.ns * loop.plant.T))
-    m = dd.run(lp, key)
-    penalty = 1000.0 * loop.max_dev * (loop.steps // loop.N)
+    m = dd.run(with_pi(loop, Kp, Ki), key)
+    penalty = 1000.0 * dd.MAX_DEV * (loop.steps // (2 * loop.plant.sub))
     j1 = jnp.where(m.unstable, penalty, m.J1)
     return j1, m.unstable, m.J1_mean, m.J2
 
@@ -370,7 +376,7 @@ def run_pi(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> d
         loop = dd.diffdrive_loop(settings["scenario"], F=settings["F"])
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    Ts = loop.ns * loop.plant.T
+    Ts = loop.controller.ns * loop.plant.T
     paper = {"Kp": np.float32(dd.KP), "Ki": np.float32(dd.KP / dd.TI)}
     steps, batch = settings["steps"], settings["batch"]
     budget = steps * batch

@@ -8,7 +8,9 @@ factor of scenario e (0.1 low, 0.45 high); ``e_high=true`` adds a run of e at F 
 ``e_clean=true`` one of e without noise (F = 0, the delays kept: where the prediction hides
 the delay, as the paper claims, it equals c).  ``prediction`` is e's slow-period model
 (``integrated``, the default, or ``eq1``, eq. 1 as printed); ``compare=true`` repeats
-every e row with the other model (rows marked ``[eq1]`` / ``[integrated]``).
+every e row with the other model (rows marked ``[eq1]`` / ``[integrated]``);
+``assumed_delay`` is how long e's prediction stage assumes the previous packet's actions play
+each period (0, the default: the paper's prediction, which does not measure the delay).
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxnc import __version__, montecarlo, results as per_seed, sweep
+from jaxnc import __version__, loop as nc, montecarlo, results as per_seed, sweep
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import diffdrive as dd
@@ -29,12 +31,13 @@ PAPER_TABLE2 = {   # Table 2: J1 (mm, sum over NT instants), J2 (mm), J3 (s)
     "d": (1684.4, 44.33, 21.6), "e": (1030.0, 38.97, 21.6)}
 
 
-def build_loops(settings: dict) -> dict[str, dd.DiffDriveLoop]:
+def build_loops(settings: dict) -> dict[str, nc.Loop]:
     """Scenarios a-e, then the optional e rows: ``e (F=0)`` (``e_clean``), ``e (F=0.45)``
     (``e_high``), and with ``compare`` each e row again with the other prediction model."""
     kw = dict(N=settings["N"], lad=settings["lad"], eta=settings["eta"], phi=settings["phi"],
               v_ref=settings["v_ref"])
     pred = settings.get("prediction", "integrated")
+    ad = settings.get("assumed_delay", 0.0)
     e_rows = [("e", settings["F"])]
     if settings.get("e_clean", False):
         e_rows.append(("e (F=0)", 0.0))
@@ -43,11 +46,12 @@ def build_loops(settings: dict) -> dict[str, dd.DiffDriveLoop]:
     try:
         loops = {s: dd.diffdrive_loop(s, h=settings["h"], **kw) for s in dd.SCENARIOS if s != "e"}
         for name, F in e_rows:
-            loops[name] = dd.diffdrive_loop("e", h=settings["h"], F=F, prediction=pred, **kw)
+            loops[name] = dd.diffdrive_loop("e", h=settings["h"], F=F, prediction=pred, assumed_delay=ad, **kw)
         if settings.get("compare", False):
-            other = next(p for p in dd.PREDICTIONS if p != loops["e"].prediction)
+            other = next(p for p in dd.PREDICTIONS if p != loops["e"].plant.lifted)
             for name, F in e_rows:
-                loops[f"{name} [{other}]"] = dd.diffdrive_loop("e", h=settings["h"], F=F, prediction=other, **kw)
+                loops[f"{name} [{other}]"] = dd.diffdrive_loop("e", h=settings["h"], F=F, prediction=other,
+                                                               assumed_delay=ad, **kw)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     return loops
@@ -98,19 +102,36 @@ def table(summary: dict, printed: bool = False) -> str:
                            "packets", "pkt/a", "unstable %"], rows)
 
 
+def describe(name: str, loop: nc.Loop, settings: dict) -> dict:
+    """The configuration of one row, as results.json keeps it (read from the loop's parts)."""
+    c, p, scenario = loop.controller, loop.plant, name[0]
+    return {"scenario": scenario, "N": settings["N"], "h": c.h if scenario == "e" else settings["h"],
+            "n_slow": loop.steps // (settings["N"] * p.sub), "F": float(p.F),
+            "prediction": p.lifted if scenario == "e" else None, "v_ref": float(c.v_ref), "lad": float(c.lad),
+            "eta": settings["eta"], "phi": settings["phi"], "tau_max": dd.TAU_MAX, "r": float(p.r), "b": float(p.b),
+            "noise_F1": {k: float(getattr(p, k)) for k in ("wheel", "enc", "cam", "imu")},
+            "path": {"name": c.path.name, "length_m": float(c.path.length), "waypoints": dd.STAIRS}}
+
+
+def _fine_t(loop: nc.Loop, tr: nc.Trajectory) -> dict:
+    """The run every period T (x, u) and the periods until completion, for the figures."""
+    sub = loop.plant.sub
+    return {"x": tr.x[::sub], "u": tr.u[::sub], "l": dd.completion(loop, tr).l}
+
+
 def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    ref = np.asarray(next(iter(loops.values())).path.points)
+    ref = np.asarray(next(iter(loops.values())).controller.path.points)
     n = len(loops)
     fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 3.4), sharey=True)
     trajs = {}
     for ax, (name, loop) in zip(np.atleast_1d(axes), loops.items()):
-        tr = jax.device_get(jax.jit(dd.simulate)(loop, key))
+        tr = jax.device_get(jax.jit(lambda lp, k: _fine_t(lp, nc.simulate(lp, k)))(loop, key))
         trajs[name] = tr
-        xy = np.asarray(tr.x[: int(tr.l), 2:4])
+        xy = np.asarray(tr["x"][: int(tr["l"]), 2:4])
         ax.plot(ref[:, 0], ref[:, 1], "k-", lw=1.2)
         ax.plot(xy[:, 0], xy[:, 1], "b-", lw=1.0)
         ax.set_title(name)
@@ -125,10 +146,10 @@ def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
     fig, axes = plt.subplots(1, 2 if "e (F=0.45)" in trajs else 1, figsize=(10, 3.4), squeeze=False)
     for ax, name in zip(axes[0], [k for k in ("e", "e (F=0.45)") if k in trajs]):
         tr, T = trajs[name], loops[name].plant.T
-        l = int(tr.l)
+        l = int(tr["l"])
         t = np.arange(l) * T
-        ax.step(t, np.asarray(tr.u)[:l, 0], where="post", label="u_r")
-        ax.step(t, np.asarray(tr.u)[:l, 1], where="post", label="u_l")
+        ax.step(t, np.asarray(tr["u"])[:l, 0], where="post", label="u_r")
+        ax.step(t, np.asarray(tr["u"])[:l, 1], where="post", label="u_l")
         ax.set_title(f"control signal, scenario {name}")
         ax.set_xlabel("t (s)")
         ax.legend(fontsize=8)
@@ -145,18 +166,19 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     results = {}
     for name, loop in loops.items():
-        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=min(64, max(seeds, 1)),
-                                   progress=progress, desc=f"scenario {name}")
+        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k, settings["N"]), keys,
+                                   chunk_size=min(64, max(seeds, 1)), progress=progress, desc=f"scenario {name}")
         results[name] = {k: np.asarray(v) for k, v in m._asdict().items()}
     summary = summarise(results)
     print(f"\nseed 004 differential drive, N={settings['N']}, h={settings['h']}, F(e)={settings['F']}, "
-          f"prediction={loops['e'].prediction}, seeds={seeds}")
+          f"prediction={loops['e'].plant.lifted}, seeds={seeds}")
     print("J1 = sum over NT instants of the distance to the path (eq. 23), J2 max (eq. 24), J3 time (eq. 25);"
           " '/a' normalised to scenario a, 'paper' the same ratio from Table 2\n")
     print(table(summary))
     ref = loops["a"]
     print(f"\nThe same runs with eq. (23)-(24) as printed: the distance to the nearest NT sample of the reference"
-          f" trajectory (references {1000 * float(ref.v_ref) * ref.N * float(ref.plant.T):.0f} mm apart), not to the"
+          f" trajectory (references {1000 * float(ref.controller.v_ref) * settings['N'] * ref.plant.T:.0f} mm apart),"
+          " not to the"
           " path; 'paper' Table 2's values\n")
     print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
@@ -164,14 +186,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     f1, f2 = plot_paths({n: l for n, l in loops.items() if n in FIGURE_ROWS}, keys[0], out)
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,
-              "loops": {n: {"scenario": l.scenario, "N": l.N, "h": l.h, "n_slow": l.n_slow, "F": float(l.noise.F),
-                            "prediction": l.prediction if l.scenario == "e" else None,
-                            "v_ref": float(l.v_ref), "lad": float(l.lad), "eta": float(l.eta), "phi": float(l.phi),
-                            "tau_max": float(l.tau_max), "r": float(l.plant.r), "b": float(l.plant.b),
-                            "noise_F1": {k: float(getattr(l.noise, k)) for k in ("wheel", "enc", "cam", "imu")},
-                            "path": {"name": l.path.name, "length_m": float(l.path.length),
-                                     "waypoints": dd.STAIRS}}
-                        for n, l in loops.items()},
+              "loops": {n: describe(n, l, settings) for n, l in loops.items()},
               "paper_table2": PAPER_TABLE2}
     montecarlo.save_results(out / "results.json", experiment="diffdrive", config=config, results=summary,
                             wall_time_s=wall)
@@ -191,6 +206,8 @@ EXPERIMENT = register(Experiment(
         Option("prediction", "choice", "integrated", "scenario e's slow-period model: integrated (the true "
                "plant's integrator with the fine actions applied) or eq1 (eq. 1 as printed)", choices=dd.PREDICTIONS),
         Option("compare", "bool", True, "repeat every e row with the other prediction model"),
+        Option("assumed_delay", "float", 0.0, "scenario e: how long (s) the prediction stage assumes the previous "
+               "packet's actions play each period (0: the paper's, the delay is not measured)", low=0.0, high=0.2),
         Option("lad", "float", dd.LAD, "pure-pursuit look-ahead distance, m", low=0.02, high=1.0),
         Option("v_ref", "float", dd.V_REF, "reference speed along the path, m/s", low=0.01, high=1.0),
         Option("eta", "float", dd.DELAY_ETA, "delay shift, s (< tau_max = 0.17)", low=0.0, high=0.17),
@@ -209,8 +226,8 @@ def sensitivity_cell(settings: dict, v: float, lad: float, keys) -> dict:
     loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False, e_clean=False, compare=False))
     results = {}
     for name, loop in loops.items():
-        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k), keys, chunk_size=min(64, max(len(keys), 1)),
-                                   progress=False)
+        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k, settings["N"]), keys,
+                                   chunk_size=min(64, max(len(keys), 1)), progress=False)
         results[name] = {k: np.asarray(v_) for k, v_ in m._asdict().items()}
     s = summarise(results)
     return {"v_ref": v, "lad": lad,

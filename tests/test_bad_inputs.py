@@ -136,6 +136,10 @@ PYTHON_API = [
     (lambda: mecanum.mecanum_loop("XY"), "case must be one of SR, DR, DRH, DRHE"),
     (lambda: mecanum.mecanum_loop(N=2.0), "N must be an integer in [1, 100]"),
     (lambda: diffdrive.diffdrive_loop("z"), "scenario must be one of a, b, c, d, e"),
+    (lambda: diffdrive.diffdrive_loop(horizon_s=-5), "horizon_s must be in (0, inf)"),
+    (lambda: diffdrive.diffdrive_loop("d", tau_max=0.2), "tau_max must be in [0, 0.2)"),
+    (lambda: diffdrive.diffdrive_loop(assumed_delay=0.5), "assumed_delay must be in [0, 0.2]"),
+    (lambda: diffdrive.diffdrive_loop(N=0), "N must be an integer in [1, 50]"),
     # EKF functions: shapes against the model, definiteness of a concrete R
     (lambda: ekf_predict(_F, _G, jnp.zeros(1), jnp.eye(3), 2), "ekf_predict: Q must be 2x2 or a vector of 2 variances"),
     (lambda: ekf_predict(_F, _G, jnp.zeros(1), jnp.ones(3), 2), "ekf_predict: Q must be 2x2"),

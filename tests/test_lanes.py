@@ -41,7 +41,7 @@ def _balancing():
 
 def _diffdrive():
     from jaxnc.schemes import diffdrive as dd
-    return (lambda k, lp: dd.simulate(lp, k).x[-1]), dd.diffdrive_loop("e", horizon_s=4.0)
+    return (lambda k, lp: nc.simulate(lp, k).x[-1]), dd.diffdrive_loop("e", horizon_s=4.0)
 
 
 LOOPS = {"runner": _runner, "mecanum": _mecanum, "hdd": _hdd, "balancing": _balancing, "diffdrive": _diffdrive}

@@ -24,7 +24,7 @@ import numpy as np
 
 from jaxnc._validate import check_int, check_nonneg, check_positive
 from jaxnc.controllers.pi import pi_step, wrap_angle
-from jaxnc.controllers.pure_pursuit import pure_pursuit
+from jaxnc.controllers.pure_pursuit import pure_pursuit_velocity
 from jaxnc.paths import Path
 
 
@@ -50,7 +50,7 @@ class PathFollower:
     # look-ahead: the paper gives none; see LOOKAHEAD
     L_ref: jax.Array = LOOKAHEAD
     window: int = dataclasses.field(default=80, metadata=dict(static=True))   # path points searched ahead
-    back: int = dataclasses.field(default=50, metadata=dict(static=True))     # ... and behind (see pure_pursuit)
+    back: int = dataclasses.field(default=50, metadata=dict(static=True))     # ... and behind (see pure_pursuit_velocity)
     # along a noise-free prediction the robot moves at most omega_max * R * T = 0.1 m
     # (10 path points) per step: a narrow forward window suffices there
     window_step: int = dataclasses.field(default=16, metadata=dict(static=True))
@@ -74,7 +74,7 @@ class PathFollower:
         ``narrow=True`` searches the path only ``window_step`` points ahead, for the
         steps of the prediction stage after the first."""
         window, back = (self.window_step, 0) if narrow else (self.window, self.back)
-        v_w, idx = pure_pursuit(self.path, mean[3:5], state.idx,
+        v_w, idx = pure_pursuit_velocity(self.path, mean[3:5], state.idx,
                                 L_ref=self.L_ref, V_ref=self.V_ref, window=window, back=back)
         c, s = jnp.cos(mean[5]), jnp.sin(mean[5])
         ref = jnp.stack([c * v_w[0] + s * v_w[1],

@@ -21,6 +21,10 @@ from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
+from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF, PeriodEKFState
+from jaxnc.loop.vehicles import DiffDrive, DiffDriveState, lifted_wheel_var
+from jaxnc.loop.pursuit import PursuitPI, PursuitState
+from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
 
 __all__ = [
     "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
@@ -37,4 +41,8 @@ __all__ = [
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",
     "Cascade", "CascadeState",
+    "AbstractLiftedPlant", "PeriodEKF", "PeriodEKFState",
+    "DiffDrive", "DiffDriveState", "lifted_wheel_var",
+    "PursuitPI", "PursuitState",
+    "ArrivalActuator", "ArrivalState",
 ]
