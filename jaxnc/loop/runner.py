@@ -165,6 +165,18 @@ class Quadratic:
 
 
 @_dataclass
+class _FunctionCost:
+    """A plain function ``fn(x, u) -> scalar`` as a loop's cost, held as a static field (part
+    of the compiled program, no leaves): a function is not a pytree leaf jax can pass to a
+    compiled program. Define it at module level so that loops built twice share one program."""
+
+    fn: Any = _static()
+
+    def __call__(self, x, u):
+        return self.fn(x, u)
+
+
+@_dataclass
 class Loop:
     """A networked closed loop: one value per role, and the static sizes.
 
@@ -180,8 +192,9 @@ class Loop:
         only at the instants the controller would send (its state unchanged otherwise) (seed 003
         eq. 21-22); None: every computed packet is sent.
       monitor: failure detection.
-      cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`,
-        or None.
+      cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`
+        (a pytree whose numbers are leaves), a plain Python function (kept static: part of
+        the compiled program, so define it at module level to reuse one program), or None.
       N: static, fast periods per slow period (>= 1).
       steps: static, fast periods simulated (a multiple of N).
       T: static, the fast period in seconds (links quantise delays to it).
@@ -216,6 +229,8 @@ class Loop:
         check_instance("Loop.monitor", self.monitor, Monitor, "a jaxnc.loop.Monitor")
         if self.cost is not None:
             check_callable("Loop.cost", self.cost, "a function cost(x, u) -> scalar (e.g. jaxnc.loop.Quadratic) or None")
+            if any(leaf is self.cost for leaf in jax.tree.leaves(self.cost)):     # a plain function
+                object.__setattr__(self, "cost", _FunctionCost(self.cost))
         object.__setattr__(self, "record", Record.of(self.record))
         check_int("Loop.N", self.N, 1, 100_000)
         check_int("Loop.steps", self.steps, self.N, None)
