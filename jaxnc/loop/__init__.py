@@ -15,6 +15,7 @@ from jaxnc.loop.estimators import EKF, EKFState, Passthrough
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
+from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Record,
                                Trajectory, draw, evaluate, run, run_seed, simulate)
@@ -32,5 +33,6 @@ __all__ = [
     "Periodic", "Petc", "PetcState", "petc_gap",
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
+    "PID", "PIDState",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
 ]
