@@ -15,6 +15,8 @@ from jaxnc.loop.estimators import EKF, EKFState, Passthrough
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
+from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
+                               RateLimitState, Saturation)
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Record,
@@ -34,5 +36,7 @@ __all__ = [
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PID", "PIDState",
+    "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
+    "LimitedSensor",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
 ]
