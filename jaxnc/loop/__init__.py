@@ -17,6 +17,8 @@ from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDela
                               truncated_exponential)
 from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
                                RateLimitState, Saturation)
+from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState, UKFState,
+                                  measurement_at, slow_system)
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Loop, Metrics, Monitor, Quadratic, Record,
@@ -38,5 +40,7 @@ __all__ = [
     "PID", "PIDState",
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",
+    "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF", "UKFState", "measurement_at",
+    "slow_system",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
 ]
