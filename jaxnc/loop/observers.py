@@ -82,8 +82,12 @@ def _slow_noise(A, G, Q, N: int):
     return acc
 
 
-def _check_model(owner, model):
-    check_instance(f"{owner}.model", model, LTI, "a linear plant model (a jaxnc.loop.LTI)")
+def _check_linear(owner, obj):
+    """The LTI model and ``inputs`` of a linear observer; mean0 None becomes zeros."""
+    check_instance(f"{owner}.model", obj.model, LTI, "a linear plant model (a jaxnc.loop.LTI)")
+    _check_inputs(owner, obj.inputs)
+    if obj.mean0 is None:
+        object.__setattr__(obj, "mean0", np.zeros(obj.model.state_dim, np.float32))
 
 
 def _check_vector(owner, name, v, n):
@@ -128,11 +132,8 @@ class Luenberger(AbstractEstimator):
     inputs: str = _static("believed")
 
     def __post_init__(self):
-        _check_model("Luenberger", self.model)
-        _check_inputs("Luenberger", self.inputs)
+        _check_linear("Luenberger", self)
         n, p = self.model.state_dim, self.model.output_dim
-        if self.mean0 is None:
-            object.__setattr__(self, "mean0", np.zeros(n, np.float32))
         check_given("Luenberger.L", self.L, "a gain matrix (n x p)")
         check_finite("Luenberger.L", self.L)
         array_fields(self, "L", "mean0")
@@ -209,11 +210,8 @@ class SteadyStateKF(AbstractEstimator):
     inputs: str = _static("believed")
 
     def __post_init__(self):
-        _check_model("SteadyStateKF", self.model)
-        _check_inputs("SteadyStateKF", self.inputs)
+        _check_linear("SteadyStateKF", self)
         n = self.model.state_dim
-        if self.mean0 is None:
-            object.__setattr__(self, "mean0", np.zeros(n, np.float32))
         array_fields(self, "Q", "R", "mean0")
         _check_covariances("SteadyStateKF", self.model, self.Q, self.R)
         _check_vector("SteadyStateKF", "mean0", self.mean0, n)
