@@ -142,3 +142,28 @@ def test_gains_are_differentiable_leaves():
 def test_bad_parameters_name_the_field(kwargs, field):
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
         nc.PID(**kwargs)
+
+
+def test_tracking_metrics_of_the_pid_loop_match_python_control_step_info():
+    K = 120
+    ref = refs.Step(1.0)
+    # gains chosen so that no sample lies on a rise-time threshold (Kp = 3, Ki = 6 puts y_2 at 0.9 exactly,
+    # where float32 and float64 round to opposite sides)
+    loop = nc.Loop(plant=nc.LTI(A=[[A_P]], B=[[B_P]], C=[[1.0]], x0=[0.0]), trigger=nc.Periodic(),
+                   uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.PID(Kp=2.5, Ki=5.0, reference=ref, anti_windup="none"),
+                   downlink=nc.Link(), actuator=nc.HoldLast(), T=H, steps=K)
+    tracking = nc.Tracking(ref, index=0, window=10)
+    from jaxnc import montecarlo
+    m, tm = montecarlo.run_batched(nc.run_tracking, montecarlo.seed_keys(0, 4), args=(loop, tracking),
+                                   progress=False, chunk_size=4)
+    y = np.asarray(jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0)).x[:, 0], np.float64)
+    info = control.step_info(y, timepts=H * np.arange(K), yfinal=1.0)
+    assert info["Overshoot"] > 5                                     # an underdamped response
+    np.testing.assert_allclose(tm.overshoot[:, 0], info["Overshoot"], rtol=1e-4)
+    np.testing.assert_allclose(tm.settling_time[:, 0], info["SettlingTime"], rtol=1e-6)
+    np.testing.assert_allclose(tm.rise_time[:, 0], info["RiseTime"], rtol=1e-6)
+    np.testing.assert_allclose(tm.ise[:, 0], np.sum((1.0 - y) ** 2) * H, rtol=1e-5)
+    np.testing.assert_allclose(tm.steady_state_error[:, 0], np.mean(1.0 - y[-10:]), atol=1e-6)
+    with pytest.raises(ValueError, match="Tracking.index"):
+        nc.Tracking(ref, index=(0, 0))

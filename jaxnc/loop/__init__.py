@@ -15,6 +15,7 @@ from jaxnc.loop.estimators import EKF, EKFState, Passthrough
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
+from jaxnc.loop.costs import Tracking, TrackingMetrics, run_tracking
 from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
                                RateLimitState, Saturation)
 from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState, UKFState,
@@ -38,6 +39,7 @@ __all__ = [
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PID", "PIDState",
+    "Tracking", "TrackingMetrics", "run_tracking",
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",
     "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF", "UKFState", "measurement_at",
