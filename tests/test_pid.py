@@ -25,7 +25,7 @@ def _closed_loop(pid, r, x0=0.0):
         s, u = pid.update(s, x[None], rk[None], H)
         return (A_P * x + B_P * u[0], s), x
     z = jnp.zeros((1,), r.dtype)
-    s0 = nc.PIDState(z, z, z, z, jnp.zeros((), r.dtype))
+    s0 = nc.PIDState(z, z, z, z, jnp.zeros((), r.dtype), jnp.zeros((), jnp.int32))
     return jax.lax.scan(body, (jnp.asarray(x0, r.dtype), s0), r)[1]
 
 
@@ -104,10 +104,14 @@ def test_no_measurement_holds_the_output_and_the_state():
     fresh = [1, 0, 0, 1, 0]
     ys = [0.0, 5.0, -5.0, 0.5, 9.0]                # stale values must not be used
     u, integral, send = _drive(pid, ys, fresh)
-    ref_u, ref_i, _ = _drive(pid, [0.0, 0.5], [1, 1])     # the same without the silent instants
+    # by the equations: a computation at k = 0 (h_0 = h = 1), the next at k = 3 over h_3 = 3
+    s1, u0 = pid.update(pid.init(_ctx(T=1.0)), jnp.zeros(1), jnp.ones(1), 1.0)
+    s2, u3 = pid.update(s1, jnp.full(1, 0.5), jnp.ones(1), 3.0)
+    # u0 = Kp e = 1, I = 0.5; then D = 0.2 (-0.5) / 3.5, u3 = 0.5 + 0.5 + D, I = 0.5 + 3 * 0.5 * 0.5
+    np.testing.assert_allclose([u0[0], u3[0], s2.integral[0]], [1.0, 1.0 - 0.1 / 3.5, 1.25], rtol=1e-6)
     np.testing.assert_array_equal(send, fresh)
-    np.testing.assert_allclose(u, [ref_u[0], ref_u[0], ref_u[0], ref_u[1], ref_u[1]], rtol=1e-7)
-    np.testing.assert_allclose(integral, [ref_i[0]] * 3 + [ref_i[1]] * 2, rtol=1e-7)
+    np.testing.assert_allclose(u, [u0[0]] * 3 + [u3[0]] * 2, rtol=1e-6)
+    np.testing.assert_allclose(integral, [s1.integral[0]] * 3 + [s2.integral[0]] * 2, rtol=1e-6)
     u2, _, send2 = _drive(nc.PID(Kp=1.0, reference=refs.Step(1.0), hold=False), ys, fresh)
     np.testing.assert_allclose(u2, 1.0 - np.asarray(ys), rtol=1e-7)      # computes on whatever it is given
     assert np.all(np.asarray(send2) == 1)

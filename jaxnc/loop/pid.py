@@ -8,27 +8,33 @@ entry with :class:`~jaxnc.loop.Passthrough`, a state's with an observer or an
 :mod:`jaxnc.references` object) and drives the plant's input i (the packet's action has
 ``c`` entries, so ``c`` must equal the plant's ``input_dim``).
 
-At a slow instant k where it computes (Åström and Hägglund, *Advanced PID control*,
-section 3.7, backward differences):
+At a slow instant k where it computes, with h_k the time since its previous computation
+(h at the first one, and at every instant when it computes at every instant; Åström and
+Hägglund, *Advanced PID control*, section 3.7, backward differences, with Årzén's
+event-based sampling interval):
 
     e = r - y,  e_p = b r - y,  e_d = c_w r - y                         (setpoint weights b, c)
     P_k = Kp e_p
-    D_k = (Tf D_{k-1} + Kd (e_d,k - e_d,k-1)) / (Tf + h)               (first-order filter, Tf >= 0)
-    v_k = P_k + I_k + D_k,   u_k = clip(v_k, u_min, u_max)
-    I_{k+1} = I_k + h Ki e                                              (anti_windup="none")
-            = I_k + h Ki e, unless v_k > u_max and Ki e > 0
-                            or v_k < u_min and Ki e < 0 (then I_k)     ("clamping")
-            = I_k + h (Ki e + Kb (u_k - v_k))                           ("back_calculation")
+    D_k = (Tf D_prev + Kd (e_d - e_d,prev)) / (Tf + h_k)               (first-order filter, Tf >= 0)
+    v_k = P_k + I + D_k,   u_k = clip(v_k, u_min, u_max)
+    I <- I + h_k Ki e                                                   (anti_windup="none")
+       = I + h_k Ki e, unless v_k > u_max and Ki e > 0
+                       or v_k < u_min and Ki e < 0 (then I)            ("clamping")
+       = I + h_k (Ki e + Kb (u_k - v_k))                                ("back_calculation")
 
-The first computation takes e_d,k-1 = e_d,k (no derivative kick at start-up).
+(I is updated after u_k is computed: u_k uses the integral of the errors before k.) The
+first computation takes e_d,prev = e_d (no derivative kick at start-up).
 
 No measurement (``hold=True``, the default): at an instant where ``fresh == 0`` (the
 estimator received nothing) the controller does not compute: its state (integral,
-filtered derivative, previous e_d, last output) is unchanged, the packet carries its last
-output u_{k-1} (0 before the first computation) and ``send`` is 0, so a
-:func:`~jaxnc.loop.HoldLast` actuator keeps applying u_{k-1}: bumpless, no integration of
-a stale error, no derivative of a held measurement. ``hold=False``: it computes at every
-instant (for an estimator that predicts between measurements) and always sends.
+filtered derivative, previous e_d, last output, instant of the last computation) is
+unchanged, the packet carries its last output u_prev (0, clipped to the limits, before
+the first computation) and ``send`` is 0, so a :func:`~jaxnc.loop.HoldLast` actuator
+keeps applying u_prev: bumpless, no integration of a stale error, no derivative of a held
+measurement; the next computation integrates over the whole elapsed time h_k, so the
+integral action per second does not depend on how often measurements arrive.
+``hold=False``: it computes at every instant (h_k = h, for an estimator that predicts
+between measurements) and always sends.
 
 All gains, limits and weights are differentiable leaves; ``fresh`` enters as the 0/1
 float blend ``fresh * new + (1 - fresh) * old`` (a trigger's straight-through gradient
@@ -54,13 +60,14 @@ _ANTI_WINDUP = ("none", "clamping", "back_calculation")
 
 
 class PIDState(NamedTuple):
-    """A :class:`PID`'s state (float[c] each, ``started`` float[])."""
+    """A :class:`PID`'s state (float[c] each, ``started`` float[], ``last`` int32[])."""
 
-    integral: jax.Array   # I_k
-    deriv: jax.Array      # D_{k-1}, the filtered derivative term
-    e_d: jax.Array        # e_d,k-1
-    u: jax.Array          # u_{k-1}, the last output (held when nothing arrives)
+    integral: jax.Array   # I
+    deriv: jax.Array      # D_prev, the filtered derivative term
+    e_d: jax.Array        # e_d,prev
+    u: jax.Array          # u_prev, the last output (held when nothing arrives)
     started: jax.Array    # 1.0 once it has computed
+    last: jax.Array       # int32, the slow instant of the last computation
 
 
 @_dataclass
@@ -147,7 +154,7 @@ class PID(AbstractController):
     def init(self, ctx) -> PIDState:
         z = jnp.zeros((self.channels,), jnp.float32)
         u0 = jnp.clip(z, self.u_min, self.u_max) if self._limited else z
-        return PIDState(z, z, z, u0, jnp.zeros((), jnp.float32))
+        return PIDState(z, z, z, u0, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32))
 
     @property
     def _limited(self) -> bool:
@@ -161,7 +168,8 @@ class PID(AbstractController):
 
     def update(self, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]:
         """One computation (module docstring) from the measurements y float[c] and the
-        reference r float[c] at sample period h: (the new state, u float[c])."""
+        reference r float[c], h the time since the previous computation (h_k): (the new
+        state, u float[c]); ``last`` is left to the caller."""
         e, ep, ed = r - y, self.b * r - y, self.c * r - y
         ed_prev = jnp.where(state.started > 0.5, state.e_d, ed)
         D = (self.Tf * state.deriv + self.Kd * (ed - ed_prev)) / (self.Tf + h)
@@ -175,11 +183,15 @@ class PID(AbstractController):
         elif self.anti_windup == "back_calculation":
             gain = gain + self.Kb * (u - v)
         integral = state.integral + h * gain
-        return PIDState(integral, D, ed, u, jnp.ones_like(state.started)), u
+        return state._replace(integral=integral, deriv=D, e_d=ed, u=u, started=jnp.ones_like(state.started)), u
 
     def step(self, state: PIDState, xhat, fresh, k, ctx):
         y = jnp.asarray(xhat)[jnp.asarray(self.index)]
-        new, u = self.update(state, y, self._r(k, ctx), ctx.N * ctx.T)
+        h = ctx.N * ctx.T
+        if self.hold:
+            h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(jnp.float32)
+        new, u = self.update(state, y, self._r(k, ctx), h)
+        new = new._replace(last=jnp.asarray(k, jnp.int32))
         if self.hold:
             w = jnp.asarray(fresh, jnp.float32)
             new, send = blend(w, new, state), w
