@@ -32,40 +32,11 @@ def thermal_pid(delta=0.25, p_gb=0.05):
 # ----------------------------------------------------------------------------- beyond the loop
 
 
-def summary(metrics, tracking):
-    """{name: montecarlo.Summary} of a batch: ISE, overshoot (%), settling time (s), sensor
-    and controller transmissions per period."""
-    import numpy as np
-    from jaxnc import montecarlo
-    bad = np.asarray(metrics.unstable)
-    return {"ise": montecarlo.summarize(tracking.ise[:, 0], bad),
-            "overshoot_pct": montecarlo.summarize(tracking.overshoot[:, 0], bad),
-            "settling_time_s": montecarlo.summarize(tracking.settling_time[:, 0], bad),
-            "sensor_rate": montecarlo.summarize(metrics.rate_sc, bad),
-            "controller_rate": montecarlo.summarize(metrics.rate_ca, bad)}
-
-
-def report(name, results, seeds):
-    """Print the summaries of :func:`summary` (mean +- 95 % interval)."""
-    print(f"{name}, {seeds} seeds:")
-    for key, s in results.items():
-        print(f"  {key:16s} {s.mean:.4g} +- {s.ci95:.2g} (95 %), not finite or unstable {s.unstable_fraction:.1%}")
-
-
 def _run_experiment(settings, *, seeds, out, progress):
-    import time
-    from jaxnc import montecarlo
-    t0 = time.time()
+    from examples._study import run_study
     loop = thermal_pid(delta=settings["delta"], p_gb=settings["p_gb"])
-    m, tm = montecarlo.run_batched(nc.run_tracking, montecarlo.seed_keys(settings["seed"], seeds),
-                                   args=(loop, TRACKING), chunk_size=min(seeds, 1024), progress=progress,
-                                   desc="thermal PID")
-    results = summary(m, tm)
-    report(f"heated chamber, PID over a bursty link with PETC (delta={settings['delta']:g}, "
-           f"p_gb={settings['p_gb']:g})", results, seeds)
-    montecarlo.save_results(out / "results.json", experiment="thermal_pid", config=dict(settings, seeds=seeds),
-                            results=results, wall_time_s=time.time() - t0)
-    return results
+    title = f"heated chamber, PID over a bursty link with PETC (delta={settings['delta']:g}, p_gb={settings['p_gb']:g})"
+    return run_study("thermal_pid", title, loop, TRACKING, {"": 0}, settings, seeds=seeds, out=out, progress=progress)
 
 
 def _experiment():

@@ -33,36 +33,13 @@ def two_axis(p_loss=0.2, force=1.0):
 # ----------------------------------------------------------------------------- beyond the loop
 
 
-def summary(metrics, tracking):
-    """{name: montecarlo.Summary} of a batch: per axis ISE, overshoot (%) and settling time
-    (s); sensor transmissions per period."""
-    import numpy as np
-    from jaxnc import montecarlo
-    bad = np.asarray(metrics.unstable)
-    out = {}
-    for i, axis in enumerate("xy"):
-        out[f"ise_{axis}"] = montecarlo.summarize(tracking.ise[:, i], bad)
-        out[f"overshoot_pct_{axis}"] = montecarlo.summarize(tracking.overshoot[:, i], bad)
-        out[f"settling_time_s_{axis}"] = montecarlo.summarize(tracking.settling_time[:, i], bad)
-    out["sensor_rate"] = montecarlo.summarize(metrics.rate_sc, bad)
-    return out
-
-
 def _run_experiment(settings, *, seeds, out, progress):
-    import time
-    from jaxnc import montecarlo
-    from examples.thermal_pid import report
-    t0 = time.time()
+    from examples._study import run_study
     loop = two_axis(p_loss=settings["p_loss"], force=settings["force"])
-    m, tm = montecarlo.run_batched(nc.run_tracking, montecarlo.seed_keys(settings["seed"], seeds),
-                                   args=(loop, TRACKING), chunk_size=min(seeds, 1024), progress=progress,
-                                   desc="two-axis stage")
-    results = summary(m, tm)
-    report(f"two-axis stage, LQR from a steady-state KF, forces within +-{settings['force']:g} N, "
-           f"p_loss={settings['p_loss']:g}", results, seeds)
-    montecarlo.save_results(out / "results.json", experiment="two_axis_observer",
-                            config=dict(settings, seeds=seeds), results=results, wall_time_s=time.time() - t0)
-    return results
+    title = (f"two-axis stage, LQR from a steady-state KF, forces within +-{settings['force']:g} N, "
+             f"p_loss={settings['p_loss']:g}")
+    return run_study("two_axis_observer", title, loop, TRACKING, {"_x": 0, "_y": 1}, settings, seeds=seeds, out=out,
+                     progress=progress)
 
 
 def _experiment():
