@@ -171,3 +171,33 @@ def test_tracking_metrics_of_the_pid_loop_match_python_control_step_info():
     np.testing.assert_allclose(tm.steady_state_error[:, 0], np.mean(1.0 - y[-10:]), atol=1e-6)
     with pytest.raises(ValueError, match="Tracking.index"):
         nc.Tracking(ref, index=(0, 0))
+
+
+def _pid_loop(Kp):
+    plant = nc.LTI(A=[[A_P]], B=[[B_P]], C=[[1.0]], x0=[0.0], w_std=0.05, v_std=0.02)
+    return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(nc.Bernoulli(0.3)), estimator=nc.Passthrough(),
+                   controller=nc.PID(Kp=Kp, Ki=1.0, Kd=0.05, Tf=0.05, u_min=-3.0, u_max=3.0,
+                                     reference=refs.Step(1.0)),
+                   downlink=nc.Link(), actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0], R=[0.01]),
+                   T=H, steps=60)
+
+
+def test_the_loop_cost_is_differentiable_in_a_gain_through_the_hold():
+    """d cost / d Kp through a lossy loop (the hold blends on fresh) equals central
+    differences of the same seeds' cost."""
+    keys = jax.random.split(jax.random.PRNGKey(2), 8)
+
+    def mean_cost(kp):
+        loop = _pid_loop(jnp.asarray([1.0], jnp.float32) * kp)
+        return jnp.mean(jax.vmap(lambda k: nc.run(loop, k).cost_raw)(keys))
+    g = float(jax.jit(jax.grad(mean_cost))(jnp.float32(1.5)))
+    f = jax.jit(mean_cost)
+    fd = (float(f(jnp.float32(1.5 + 1e-2))) - float(f(jnp.float32(1.5 - 1e-2)))) / 2e-2
+    assert g != 0 and abs(g - fd) < 2e-2 * abs(fd) + 1e-4, (g, fd)
+
+
+def test_a_pid_with_more_channels_than_plant_inputs_is_refused_by_the_loop():
+    with pytest.raises(ValueError, match="Loop.controller"):
+        nc.Loop(plant=nc.LTI(A=np.eye(2) * 0.9, B=[[1.0], [0.0]], C=np.eye(2)), trigger=nc.Periodic(),
+                uplink=nc.Link(), estimator=nc.Passthrough(), controller=nc.PID(Kp=1.0, index=(0, 1)),
+                downlink=nc.Link(), actuator=nc.HoldLast())
