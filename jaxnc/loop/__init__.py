@@ -17,6 +17,12 @@ from jaxnc.loop.estimators import EKF, EKFState, Passthrough
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
+from jaxnc.loop.costs import Tracking, TrackingMetrics, run_tracking
+from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
+                               RateLimitState, Saturation)
+from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState, UKFState,
+                                  measurement_at, slow_system)
+from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
@@ -38,6 +44,12 @@ __all__ = [
     "Periodic", "Petc", "PetcState", "petc_gap",
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
+    "PID", "PIDState",
+    "Tracking", "TrackingMetrics", "run_tracking",
+    "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
+    "LimitedSensor",
+    "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF", "UKFState", "measurement_at",
+    "slow_system",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",
     "Cascade", "CascadeState",

@@ -199,8 +199,9 @@ class Loop:
         only at the instants the controller would send (its state unchanged otherwise) (seed 003
         eq. 21-22); None: every computed packet is sent.
       monitor: failure detection.
-      cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`,
-        or None.
+      cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`
+        (a pytree whose numbers are leaves), a plain Python function (kept static: part of
+        the compiled program, so define it at module level to reuse one program), or None.
       N: static, fast periods per slow period (>= 1).
       steps: static, fast periods simulated (a multiple of N).
       T: static, the fast period in seconds (links quantise delays to it).

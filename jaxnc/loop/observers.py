@@ -1,0 +1,323 @@
+"""Observers as estimator parts: Luenberger, steady-state Kalman filter, unscented Kalman filter.
+
+Each is an :class:`~jaxnc.loop.base.AbstractEstimator` on the runner's inbox with
+intermittent measurements: at slow instant k it corrects with the measurement stamped kN
+if that packet has arrived (sent and not lost: its 0/1 ``Inbox.weight``, so a trigger's
+straight-through gradient passes), and otherwise only predicts. A measurement that
+arrives late (stamped before kN) is not used: these parts have no late-measurement
+buffer (the :class:`~jaxnc.loop.EKF` has one).
+
+The two linear observers work on the slow-period system of an :class:`~jaxnc.loop.LTI`
+model (x+ = A x + B u + G w, z = C x + v at the fast period T, N fast periods per slow
+period h = N T):
+
+    x_{k+1} = A_N x_k + B_N [u_kN; ...; u_kN+N-1] + w_N,   A_N = A^N,
+    B_N = [A^{N-1} B, ..., A B, B],   Q_N = sum_{j<N} A^j G Q G' A^j'   (cov of w_N)
+
+* :class:`Luenberger` (predictor form, :func:`jaxnc.estimators.steady_state.luenberger_step`
+  on that system): x̂_{k+1} = A_N x̂_k + B_N u + gamma_k L (z_k - C x̂_k), gamma_k = 1
+  when z_k arrived; the controller uses x̂_k (from measurements up to k - 1). Without
+  noise and with every measurement the error obeys e_{k+1} = (A_N - L C) e_k.
+* :class:`SteadyStateKF` (current, filter form): x̂_k = x̂_k^- + gamma_k M (z_k - C x̂_k^-),
+  x̂_{k+1}^- = A_N x̂_k + B_N u, with the stationary gain M = P C' (C P C' + R)^-1 and P
+  the prior covariance of :func:`~jaxnc.estimators.steady_state.dlqe` (A_N, I, C, Q_N, R),
+  computed in :meth:`SteadyStateKF.init` (differentiable in the model, Q and R). With a
+  measurement at every instant it is the limit of the time-varying Kalman filter
+  (:class:`~jaxnc.loop.EKF` on the same LTI model), and equal to it from the start when
+  that filter starts at ``cov0 = P``.
+* :class:`UKF`: the unscented Kalman filter of :mod:`jaxnc.estimators.ukf`
+  (:func:`~jaxnc.estimators.ukf.ukf_update` at the slow instant, then
+  :func:`~jaxnc.estimators.ukf.ukf_predict` at every fast period of the slow period), on
+  any plant model.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnc._validate import array_fields, check_finite, check_given, check_instance, fields_concrete
+from jaxnc.estimators.ekf import Gaussian
+from jaxnc.estimators.steady_state import dlqe, luenberger_step
+from jaxnc.estimators.ukf import ukf_predict, ukf_update
+from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
+from jaxnc.loop.base import pytree_dataclass as _dataclass
+from jaxnc.loop.base import static_field as _static
+from jaxnc.loop.plants import LTI
+
+__all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF", "UKFState",
+           "measurement_at", "slow_system"]
+
+
+def measurement_at(inbox: Inbox, stamp):
+    """(z, gamma): the payload of the packet stamped ``stamp`` and its weight (the 0/1
+    float ``Inbox.weight``: sent and not lost) if it has arrived, else gamma = 0 (z is then
+    a slot's payload, to be blended away)."""
+    match = (inbox.stamp == stamp) & inbox.arrived
+    i = jnp.argmax(match)
+    z = jax.tree.map(lambda a: a[i], inbox.data)
+    return z, jnp.where(match[i], inbox.weight[i], 0.0)
+
+
+def slow_system(A, B, N: int):
+    """(A_N float[n, n], B_N float[n, N m]): x_{k+1} = A_N x_k + B_N [u_0; ...; u_{N-1}]
+    over N fast periods (N static)."""
+    A, B = jnp.asarray(A), jnp.asarray(B)
+    powers = [jnp.eye(A.shape[0], dtype=A.dtype)]
+    for _ in range(N - 1):
+        powers.append(A @ powers[-1])
+    return A @ powers[-1], jnp.concatenate([P @ B for P in reversed(powers)], axis=1)
+
+
+def _slow_noise(A, G, Q, N: int):
+    """Q_N = sum_{j<N} A^j G Q G' A^j' (Q float[q, q] or float[q] variances)."""
+    A, G, Q = jnp.asarray(A), jnp.asarray(G), jnp.asarray(Q)
+    W = (G * Q[None, :]) @ G.T if Q.ndim == 1 else G @ Q @ G.T
+    acc, term = W, W
+    for _ in range(N - 1):
+        term = A @ term @ A.T
+        acc = acc + term
+    return acc
+
+
+def _check_linear(owner, obj):
+    """The LTI model and ``inputs`` of a linear observer; mean0 None becomes zeros."""
+    check_instance(f"{owner}.model", obj.model, LTI, "a linear plant model (a jaxnc.loop.LTI)")
+    _check_inputs(owner, obj.inputs)
+    if obj.mean0 is None:
+        object.__setattr__(obj, "mean0", np.zeros(obj.model.state_dim, np.float32))
+
+
+def _check_vector(owner, name, v, n):
+    check_given(f"{owner}.{name}", v)
+    check_finite(f"{owner}.{name}", v)
+    if not isinstance(v, jax.Array) and np.shape(v) != (n,):
+        raise ValueError(f"{owner}.{name} must have {n} entries (the model's state), got shape {np.shape(v)}")
+
+
+def _check_inputs(owner, inputs):
+    if inputs not in ("believed", "applied"):
+        raise ValueError(f"{owner}.inputs must be one of believed, applied, got {inputs!r}")
+
+
+class LuenbergerState(NamedTuple):
+    """x̂_k (float[n]), the measurement used at k (C x̂_k where none arrived, float[p]) and
+    t = kN (int32, the stamp of the measurement expected now)."""
+
+    xhat: jax.Array
+    z: jax.Array
+    t: jax.Array
+
+
+@_dataclass
+class Luenberger(AbstractEstimator):
+    """Predictor-form Luenberger observer on the slow-period system (module docstring).
+
+    Attributes:
+      model: a :class:`~jaxnc.loop.LTI` (A, B, C used).
+      L: float[n, p], the gain of the slow-period system (A_N - L C Schur for convergence;
+        for N = 1, of (A, C)).
+      mean0: float[n], x̂_0 (default 0).
+      inputs: static, ``"believed"`` (the controller's own packets) or ``"applied"``.
+
+    Raises: ValueError naming the field for a model that is not an LTI, a non-finite or
+    mis-shaped L or mean0, or an unknown ``inputs``.
+    """
+
+    model: Any
+    L: Any
+    mean0: Any = None
+    inputs: str = _static("believed")
+
+    def __post_init__(self):
+        _check_linear("Luenberger", self)
+        n, p = self.model.state_dim, self.model.output_dim
+        check_given("Luenberger.L", self.L, "a gain matrix (n x p)")
+        check_finite("Luenberger.L", self.L)
+        array_fields(self, "L", "mean0")
+        _check_vector("Luenberger", "mean0", self.mean0, n)
+        if fields_concrete(self) and np.shape(self.L) != (n, p):
+            raise ValueError(f"Luenberger.L must be {n}x{p} (state x output), got shape {np.shape(self.L)}")
+
+    def init(self, ctx) -> LuenbergerState:
+        x = jnp.asarray(self.mean0, jnp.float32)
+        return LuenbergerState(x, jnp.asarray(self.model.C, jnp.float32) @ x, jnp.zeros((), jnp.int32))
+
+    def correct(self, state: LuenbergerState, inbox: Inbox, k):
+        z, gamma = measurement_at(inbox, state.t)
+        z = blend(gamma, jnp.asarray(z, jnp.float32), jnp.asarray(self.model.C, jnp.float32) @ state.xhat)
+        return state._replace(z=z), state.xhat
+
+    def predict(self, state: LuenbergerState, u_applied, u_believed, k) -> LuenbergerState:
+        us = u_believed if self.inputs == "believed" else u_applied
+        A_N, B_N = slow_system(self.model.A, self.model.B, us.shape[0])
+        x = luenberger_step(A_N, B_N, jnp.asarray(self.model.C), jnp.asarray(self.L), state.xhat, us.reshape(-1),
+                            state.z)
+        return state._replace(xhat=x, t=state.t + us.shape[0])
+
+
+
+class SteadyStateKFState(NamedTuple):
+    """The prior x̂_k^- (float[n]) before the correction at k, and after it the
+    posterior; the stationary gain M (float[n, p]); t = kN (int32)."""
+
+    mean: jax.Array
+    gain: jax.Array
+    t: jax.Array
+
+
+def _check_covariances(owner, model, Q, R):
+    q, p = model.noise_dim, model.output_dim
+    for name, v in (("Q", Q), ("R", R)):
+        check_given(f"{owner}.{name}", v, "a covariance matrix (or a vector of variances for Q)")
+        check_finite(f"{owner}.{name}", v)
+    if isinstance(Q, jax.Array) or isinstance(R, jax.Array):
+        return
+    Qa, Ra = np.asarray(Q, float), np.asarray(R, float)
+    if Qa.shape not in ((q,), (q, q)):
+        raise ValueError(f"{owner}.Q must be {q}x{q} or a vector of {q} variances (the model's noise_dim), "
+                         f"got shape {Qa.shape}")
+    if Ra.shape != (p, p):
+        raise ValueError(f"{owner}.R must be {p}x{p} (the model's output_dim), got shape {Ra.shape}")
+    if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < 0):
+        raise ValueError(f"{owner}.Q must be positive semi-definite")
+    if not np.allclose(Ra, Ra.T) or np.linalg.eigvalsh((Ra + Ra.T) / 2).min() <= 0:
+        raise ValueError(f"{owner}.R must be symmetric positive definite")
+
+
+@_dataclass
+class SteadyStateKF(AbstractEstimator):
+    """Steady-state (stationary-gain) Kalman filter in current form (module docstring).
+
+    Attributes:
+      model: a :class:`~jaxnc.loop.LTI` (A, B, C, G used).
+      Q: float[q, q] or float[q] (variances), covariance of the model's w per fast period.
+      R: float[p, p], covariance of v.
+      mean0: float[n], the prior mean at k = 0 (default 0).
+      inputs: static, ``"believed"`` or ``"applied"``.
+
+    Raises: ValueError naming the field for a model that is not an LTI, Q, R of the wrong
+    shape, Q not PSD or R not PD, a mis-shaped mean0, or (checked at the slow period N = 1
+    when built) no stabilising Riccati solution (from :func:`~jaxnc.estimators.steady_state.dlqe`).
+    """
+
+    model: Any
+    Q: Any
+    R: Any
+    mean0: Any = None
+    inputs: str = _static("believed")
+
+    def __post_init__(self):
+        _check_linear("SteadyStateKF", self)
+        n = self.model.state_dim
+        array_fields(self, "Q", "R", "mean0")
+        _check_covariances("SteadyStateKF", self.model, self.Q, self.R)
+        _check_vector("SteadyStateKF", "mean0", self.mean0, n)
+        if fields_concrete(self):
+            try:
+                self.stationary(1)
+            except ValueError as e:
+                raise ValueError(f"SteadyStateKF: {e}") from None
+
+    def stationary(self, N: int = 1):
+        """(M float[n, p], P float[n, n]): the filter gain and the prior covariance of the
+        slow-period system with N fast periods per slow period."""
+        A, C, G = jnp.asarray(self.model.A), jnp.asarray(self.model.C), jnp.asarray(self.model.G)
+        A_N, _ = slow_system(A, jnp.asarray(self.model.B), N)
+        Q_N = _slow_noise(A, G, self.Q, N)
+        _, P, _ = dlqe(A_N, jnp.eye(A.shape[0], dtype=A.dtype), C, Q_N, jnp.asarray(self.R, A.dtype))
+        S = C @ P @ C.T + jnp.asarray(self.R, A.dtype)
+        return jnp.linalg.solve(S, C @ P).T, P             # P C' S^-1 (P, S symmetric)
+
+    def init(self, ctx) -> SteadyStateKFState:
+        M, _ = self.stationary(ctx.N)
+        return SteadyStateKFState(jnp.asarray(self.mean0, jnp.float32), M.astype(jnp.float32),
+                                  jnp.zeros((), jnp.int32))
+
+    def correct(self, state: SteadyStateKFState, inbox: Inbox, k):
+        z, gamma = measurement_at(inbox, state.t)
+        C = jnp.asarray(self.model.C, jnp.float32)
+        post = state.mean + gamma * (state.gain @ (jnp.asarray(z, jnp.float32) - C @ state.mean))
+        return state._replace(mean=post), post
+
+    def predict(self, state: SteadyStateKFState, u_applied, u_believed, k) -> SteadyStateKFState:
+        us = u_believed if self.inputs == "believed" else u_applied
+        A_N, B_N = slow_system(self.model.A, self.model.B, us.shape[0])
+        return state._replace(mean=A_N @ state.mean + B_N @ us.reshape(-1), t=state.t + us.shape[0])
+
+
+class UKFState(NamedTuple):
+    """The belief (prior before the correction at k, posterior after it) and t = kN."""
+
+    belief: Gaussian
+    t: jax.Array
+
+
+@_dataclass
+class UKF(AbstractEstimator):
+    """Unscented Kalman filter with intermittent measurements (module docstring).
+
+    Attributes:
+      model: an :class:`~jaxnc.loop.base.AbstractPlant` (its ``dynamics`` and ``measure``).
+      Q: float[q, q] or float[q], covariance of w per fast period; R: float[p, p], of v.
+      mean0: float[n]; cov0: float[n, n] (positive definite), the prior at t = 0.
+      alpha, beta, kappa: the Merwe sigma points' parameters
+        (:func:`~jaxnc.estimators.ukf.merwe_sigma_points`).
+      inputs: static, ``"believed"`` or ``"applied"``.
+
+    Raises: ValueError naming the field for a model that is not a plant, Q, R, mean0 or
+    cov0 of the wrong shape, Q not PSD, R or cov0 not PD, or an unknown ``inputs``.
+    """
+
+    model: Any
+    Q: Any
+    R: Any
+    mean0: Any
+    cov0: Any
+    alpha: Any = 1.0
+    beta: Any = 2.0
+    kappa: Any = 0.0
+    inputs: str = _static("believed")
+
+    def __post_init__(self):
+        check_instance("UKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
+        _check_inputs("UKF", self.inputs)
+        for n in ("alpha", "beta", "kappa"):
+            check_given(f"UKF.{n}", getattr(self, n))
+            check_finite(f"UKF.{n}", getattr(self, n))
+        array_fields(self, "Q", "R", "mean0", "cov0")
+        _check_covariances("UKF", self.model, self.Q, self.R)
+        n = self.model.state_dim
+        _check_vector("UKF", "mean0", self.mean0, n)
+        check_given("UKF.cov0", self.cov0)
+        check_finite("UKF.cov0", self.cov0)
+        if not isinstance(self.cov0, jax.Array):
+            P0 = np.asarray(self.cov0, float)
+            if P0.shape != (n, n):
+                raise ValueError(f"UKF.cov0 must be {n}x{n}, got shape {P0.shape}")
+            if not np.allclose(P0, P0.T) or np.linalg.eigvalsh((P0 + P0.T) / 2).min() <= 0:
+                raise ValueError("UKF.cov0 must be symmetric positive definite")
+
+    def _kw(self):
+        return dict(alpha=self.alpha, beta=self.beta, kappa=self.kappa)
+
+    def init(self, ctx) -> UKFState:
+        g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
+        return UKFState(g, jnp.zeros((), jnp.int32))
+
+    def correct(self, state: UKFState, inbox: Inbox, k):
+        z, gamma = measurement_at(inbox, state.t)
+        post = ukf_update(self.model.measure, state.belief, jnp.asarray(z, jnp.float32), self.R,
+                          self.model.output_dim, **self._kw())
+        g = blend(gamma, post, state.belief)
+        return state._replace(belief=g), g.mean
+
+    def predict(self, state: UKFState, u_applied, u_believed, k) -> UKFState:
+        us = u_believed if self.inputs == "believed" else u_applied
+
+        def body(g, u):
+            return ukf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim, **self._kw()), None
+        g, _ = jax.lax.scan(body, state.belief, us)
+        return UKFState(g, state.t + us.shape[0])

@@ -1,0 +1,110 @@
+"""Observers as estimator parts (jaxnc.loop.observers): the steady-state KF is the limit of
+the time-varying filter, the Luenberger error decays as (A_N - L C)^k, the UKF equals the
+Kalman filter on a linear model; intermittent measurements."""
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnc import loop as nc
+from jaxnc.estimators.steady_state import dlqe
+
+A = np.array([[1.0, 0.1], [0.0, 0.95]])
+B = np.array([[0.005], [0.1]])
+C = np.array([[1.0, 0.0]])
+K = np.array([[2.0, 1.0]])
+Q, R = np.array([1e-4, 4e-4]), np.array([[2.5e-3]])
+
+
+def _plant(noise=True):
+    return nc.LTI(A=A, B=B, C=C, x0=[1.0, -0.5], w_std=np.sqrt(Q) if noise else 0.0,
+                  v_std=np.sqrt(R[0]) if noise else 0.0)
+
+
+def _loop(estimator, N=1, trigger=None, uplink=None, noise=True, steps=200):
+    return nc.Loop(plant=_plant(noise), trigger=trigger or nc.Periodic(), uplink=uplink or nc.Link(capacity=1),
+                   estimator=estimator, controller=nc.StateFeedback(K), downlink=nc.Link(),
+                   actuator=nc.HoldLast(), N=N, T=0.1, steps=steps)
+
+
+def _xhat(loop, seed=0):
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(seed))
+    return np.asarray(tr.xhat), np.asarray(tr.x), tr
+
+
+@pytest.mark.parametrize("N", [1, 2])
+def test_steady_state_kf_equals_the_time_varying_filter_started_at_its_covariance(N):
+    sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
+    _, P = sskf.stationary(N)
+    ekf = nc.EKF(_plant(), Q=Q, R=R, mean0=np.zeros(2), cov0=np.asarray(P))      # P: a fixed point of the Riccati map
+    a, _, _ = _xhat(_loop(sskf, N), seed=3)
+    b, _, _ = _xhat(_loop(ekf, N), seed=3)
+    np.testing.assert_allclose(a, b, atol=2e-5)
+
+
+def test_steady_state_kf_is_the_limit_of_the_time_varying_filter():
+    sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
+    ekf = nc.EKF(_plant(), Q=Q, R=R, mean0=np.zeros(2), cov0=np.eye(2))
+    a, _, _ = _xhat(_loop(sskf, steps=300))
+    b, _, _ = _xhat(_loop(ekf, steps=300))
+    d = np.abs(a - b).max(axis=1)
+    assert d[:5].max() > 1e-2 and d[-100:].max() < 1e-5, (d[:5], d[-100:].max())
+
+
+def test_steady_state_kf_gain_is_dlqe_filter_gain():
+    sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
+    with jax.enable_x64(True):
+        L, P, _ = dlqe(A, np.eye(2), C, np.diag(Q), R)
+    M, P1 = sskf.stationary(1)
+    np.testing.assert_allclose(P1, P, rtol=1e-4)
+    np.testing.assert_allclose(A @ np.asarray(M), L, rtol=1e-4)        # predictor gain L = A M
+
+
+@pytest.mark.parametrize("N, every", [(1, 1), (2, 1), (1, 2)])
+def test_luenberger_error_decays_as_the_closed_loop_observer_matrix(N, every):
+    A_N = np.linalg.matrix_power(A, N)
+    L = np.array([[0.9], [1.2]]) if N == 1 else np.array([[1.0], [1.5]])
+    assert np.max(np.abs(np.linalg.eigvals(A_N - L @ C))) < 1
+    obs = nc.Luenberger(_plant(), L=L, mean0=[0.0, 0.0])
+    xhat, x, _ = _xhat(_loop(obs, N, trigger=nc.Periodic(every), noise=False, steps=40))
+    e = x[::N] - xhat                                   # x at the slow instants
+    e_ref = [e[0]]
+    for k in range(len(e) - 1):                           # corrected only at the instants a measurement is sent
+        M = A_N - L @ C if k % every == 0 else A_N
+        e_ref.append(M @ e_ref[-1])
+    np.testing.assert_allclose(e, np.asarray(e_ref), atol=1e-5)
+    assert np.abs(e[-1]).max() < 1e-2 * np.abs(e[0]).max()
+
+
+@pytest.mark.parametrize("N", [1, 2])
+def test_ukf_equals_the_kalman_filter_on_a_linear_model_with_losses(N):
+    est = dict(Q=Q, R=R, mean0=np.zeros(2), cov0=np.eye(2) * 0.5)
+    up = nc.Link(nc.Bernoulli(0.4), capacity=1)
+    a, _, tr = _xhat(_loop(nc.UKF(_plant(), **est), N, uplink=up), seed=5)
+    b, _, _ = _xhat(_loop(nc.EKF(_plant(), **est), N, uplink=up), seed=5)
+    assert 0.4 < float(np.mean(np.asarray(tr.recv_sc))) < 0.8          # intermittent
+    np.testing.assert_allclose(a, b, atol=2e-5)
+
+
+def test_a_late_measurement_is_not_used():
+    sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
+    late = nc.Link(delay=nc.PmfDelay([0.0, 1.0]), capacity=2)             # each packet one period late
+    xhat, _, tr = _xhat(_loop(sskf, uplink=late, steps=20))
+    assert np.all(xhat == 0) and float(np.sum(tr.recv_sc)) == 19     # x̂_0 = 0 and u = -K x̂ = 0: stays 0
+
+
+@pytest.mark.parametrize("build, field", [
+    (lambda: nc.Luenberger(nc.HoldLast(), L=[[1.0], [1.0]]), "Luenberger.model"),
+    (lambda: nc.Luenberger(_plant(), L=[[1.0, 2.0]]), "Luenberger.L"),
+    (lambda: nc.Luenberger(_plant(), L=[[1.0], [1.0]], mean0=[0.0]), "Luenberger.mean0"),
+    (lambda: nc.SteadyStateKF(_plant(), Q=Q, R=[[-1.0]]), "SteadyStateKF.R"),
+    (lambda: nc.SteadyStateKF(_plant(), Q=[1.0], R=R), "SteadyStateKF.Q"),
+    (lambda: nc.SteadyStateKF(nc.LTI(A=[[2.0]], B=[[1.0]], C=[[0.0]]), Q=[1.0], R=[[1.0]]), "SteadyStateKF"),
+    (lambda: nc.UKF(_plant(), Q=Q, R=R, mean0=np.zeros(2), cov0=-np.eye(2)), "UKF.cov0"),
+    (lambda: nc.UKF(_plant(), Q=Q, R=R, mean0=np.zeros(2), cov0=np.eye(2), inputs="x"), "UKF.inputs"),
+])
+def test_bad_observers_name_the_field(build, field):
+    with pytest.raises(ValueError, match=field):
+        build()

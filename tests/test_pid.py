@@ -1,0 +1,203 @@
+"""jaxnc.loop.PID against the z-domain closed loop (float64), python-control's simulation of
+the same loop, hand-computed anti-windup sequences, and its hold on stale instants."""
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.signal
+from jax.test_util import check_grads
+
+from jaxnc import loop as nc
+from jaxnc import references as refs
+
+A_P, B_P, H = 0.9, 0.2, 0.1       # first-order plant x+ = a x + b u at period h
+
+
+def _ctx(N=1, T=H):
+    return nc.Context(N=N, steps=10, T=T, state_dim=1, input_dim=1, output_dim=1)
+
+
+def _closed_loop(pid, r, x0=0.0):
+    """y_k of x+ = a x + b u with u_k = PID(y_k, r_k), every step computed (float64)."""
+    def body(c, rk):
+        x, s = c
+        s, u = pid.update(s, x[None], rk[None], H)
+        return (A_P * x + B_P * u[0], s), x
+    z = jnp.zeros((1,), r.dtype)
+    s0 = nc.PIDState(z, z, z, z, jnp.zeros((), r.dtype), jnp.zeros((), jnp.int32))
+    return jax.lax.scan(body, (jnp.asarray(x0, r.dtype), s0), r)[1]
+
+
+def test_pi_with_setpoint_weight_equals_the_z_domain_closed_loop_float64():
+    Kp, Ki, b = 1.5, 2.0, 0.4
+    with jax.enable_x64(True):
+        f64 = lambda v: np.asarray([v], np.float64)
+        pid = nc.PID(Kp=f64(Kp), Ki=f64(Ki), b=f64(b), anti_windup="none")
+        r = jnp.ones(60, jnp.float64)
+        y = np.asarray(jax.jit(_closed_loop)(pid, r))
+    # Y (z - a)(z - 1) = b_p [(Kp b (z - 1) + h Ki) R - (Kp (z - 1) + h Ki) Y]
+    num = [0.0, B_P * Kp * b, B_P * (H * Ki - Kp * b)]
+    den = [1.0, B_P * Kp - A_P - 1.0, A_P - B_P * Kp + B_P * H * Ki]
+    expected = scipy.signal.lfilter(num, den, np.ones(60))
+    np.testing.assert_allclose(y, expected, rtol=1e-12, atol=1e-13)
+    assert abs(y[-1] - 1.0) < 0.05            # integral action: no steady-state error
+
+
+def _controller_tfs(Kp, Ki, Kd, Tf, b, c):
+    z = control.tf([1, 0], [1], dt=H)
+    i = H * Ki / (z - 1)
+    d = Kd * (z - 1) / ((Tf + H) * z - Tf)
+    return Kp + i + d, Kp * b + i + c * d          # u = Cr r - Cy y
+
+
+def test_pid_loop_equals_python_control_forced_response():
+    Kp, Ki, Kd, Tf, b, c = 1.2, 1.5, 0.05, 0.02, 0.7, 0.3
+    K = 80
+    ref = refs.Step(1.0, time=5 * H)              # r = 0 before: zero initial conditions in both
+    loop = nc.Loop(plant=nc.LTI(A=[[A_P]], B=[[B_P]], C=[[1.0]], x0=[0.0]), trigger=nc.Periodic(),
+                   uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.PID(Kp=Kp, Ki=Ki, Kd=Kd, Tf=Tf, b=b, c=c, reference=ref, anti_windup="none"),
+                   downlink=nc.Link(), actuator=nc.HoldLast(), T=H, steps=K)
+    x = np.asarray(jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0)).x[:, 0])
+    Cy, Cr = _controller_tfs(Kp, Ki, Kd, Tf, b, c)
+    P = control.tf([B_P], [1, -A_P], dt=H)
+    r = np.asarray(refs.evaluate(ref, K, H))[:, 0]
+    y = control.forced_response(control.feedback(P, Cy) * Cr, timepts=H * np.arange(K), inputs=r).outputs
+    np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5)
+    assert np.ptp(y) > 0.5
+
+
+def _drive(pid, ys, fresh):
+    ctx = _ctx(T=1.0)
+
+    def body(s, inp):
+        k, y, f = inp
+        s, pkt, send = pid.step(s, y[None], f, k, ctx)
+        return s, (pkt.data[0, 0], s.integral[0], send)
+    ks = jnp.arange(len(ys), dtype=jnp.int32)
+    return jax.jit(lambda: jax.lax.scan(body, pid.init(ctx), (ks, jnp.asarray(ys, jnp.float32),
+                                                              jnp.asarray(fresh, jnp.float32)))[1])()
+
+
+# Kp = Ki = 1, h = 1, limits +-1, r = 2; y = 0 for four instants (e = 2), then y = 3 (e = -1)
+_YS = [0, 0, 0, 0, 3, 3, 3]
+_HAND = {   # (u_k, I_{k+1}) by hand from the module docstring's equations
+    "none": ([1, 1, 1, 1, 1, 1, 1], [2, 4, 6, 8, 7, 6, 5]),
+    "clamping": ([1, 1, 1, 1, -1, -1, -1], [0, 0, 0, 0, -1, -1, -1]),
+    "back_calculation": ([1, 1, 1, 1, 1, 0.40625, -0.59375],
+                         [1.5, 2.25, 2.625, 2.8125, 1.40625, 0.40625, -0.59375]),   # Kb = 0.5
+}
+
+
+@pytest.mark.parametrize("anti_windup", sorted(_HAND))
+def test_anti_windup_follows_the_hand_computed_sequence(anti_windup):
+    pid = nc.PID(Kp=1.0, Ki=1.0, u_min=-1.0, u_max=1.0, Kb=0.5, reference=refs.Step(2.0), anti_windup=anti_windup)
+    u, integral, send = _drive(pid, _YS, np.ones(len(_YS)))
+    np.testing.assert_array_equal(u, _HAND[anti_windup][0])
+    np.testing.assert_array_equal(integral, _HAND[anti_windup][1])
+    assert np.all(np.asarray(send) == 1)
+
+
+def test_no_measurement_holds_the_output_and_the_state():
+    pid = nc.PID(Kp=1.0, Ki=0.5, Kd=0.2, Tf=0.5, reference=refs.Step(1.0))
+    fresh = [1, 0, 0, 1, 0]
+    ys = [0.0, 5.0, -5.0, 0.5, 9.0]                # stale values must not be used
+    u, integral, send = _drive(pid, ys, fresh)
+    # by the equations: a computation at k = 0 (h_0 = h = 1), the next at k = 3 over h_3 = 3
+    s1, u0 = pid.update(pid.init(_ctx(T=1.0)), jnp.zeros(1), jnp.ones(1), 1.0)
+    s2, u3 = pid.update(s1, jnp.full(1, 0.5), jnp.ones(1), 3.0)
+    # u0 = Kp e = 1, I = 0.5; then D = 0.2 (-0.5) / 3.5, u3 = 0.5 + 0.5 + D, I = 0.5 + 3 * 0.5 * 0.5
+    np.testing.assert_allclose([u0[0], u3[0], s2.integral[0]], [1.0, 1.0 - 0.1 / 3.5, 1.25], rtol=1e-6)
+    np.testing.assert_array_equal(send, fresh)
+    np.testing.assert_allclose(u, [u0[0]] * 3 + [u3[0]] * 2, rtol=1e-6)
+    np.testing.assert_allclose(integral, [s1.integral[0]] * 3 + [s2.integral[0]] * 2, rtol=1e-6)
+    u2, _, send2 = _drive(nc.PID(Kp=1.0, reference=refs.Step(1.0), hold=False), ys, fresh)
+    np.testing.assert_allclose(u2, 1.0 - np.asarray(ys), rtol=1e-7)      # computes on whatever it is given
+    assert np.all(np.asarray(send2) == 1)
+
+
+def test_two_channels_with_per_channel_gains_and_reference():
+    pid = nc.PID(Kp=[1.0, 2.0], reference=refs.Step([1.0, -1.0]), index=(2, 0))
+    ctx = nc.Context(N=2, steps=10, T=0.5, state_dim=3, input_dim=2, output_dim=3)
+    _, pkt, _ = pid.step(pid.init(ctx), jnp.asarray([0.5, 7.0, 0.25]), jnp.float32(1), jnp.int32(3), ctx)
+    np.testing.assert_allclose(pkt.data, [[0.75, -3.0]])
+    assert int(pkt.stamp) == 6
+
+
+def test_gains_are_differentiable_leaves():
+    with jax.enable_x64(True):
+        r = jnp.ones(30, jnp.float64)
+
+        def f(kp, ki, kd, tf):
+            pid = nc.PID(Kp=kp, Ki=ki, Kd=kd, Tf=tf, b=jnp.ones(1), c=jnp.ones(1), Kb=jnp.ones(1),
+                         anti_windup="none")
+            return jnp.sum((_closed_loop(pid, r) - 1.0) ** 2)
+        check_grads(f, tuple(jnp.asarray([v], jnp.float64) for v in (1.0, 0.8, 0.05, 0.1)), order=1,
+                    modes=("rev",), eps=1e-5)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(Tf=-0.1), "PID.Tf"), (dict(Kp=np.nan), "PID.Kp"), (dict(u_min=1.0, u_max=0.0), "PID.u_min"),
+    (dict(index=-1), "PID.index"), (dict(index=(0, 0)), "PID.index"), (dict(anti_windup="clip"), "PID.anti_windup"),
+    (dict(reference=1.0), "PID.reference"), (dict(Kp=[1.0, 2.0]), "PID.Kp"), (dict(Kb=-1.0), "PID.Kb"),
+    (dict(reference=refs.Step([1.0, 2.0, 3.0]), index=(0, 1)), "PID.reference"),
+])
+def test_bad_parameters_name_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+        nc.PID(**kwargs)
+
+
+def test_tracking_metrics_of_the_pid_loop_match_python_control_step_info():
+    K = 120
+    ref = refs.Step(1.0)
+    # gains chosen so that no sample lies on a rise-time threshold (Kp = 3, Ki = 6 puts y_2 at 0.9 exactly,
+    # where float32 and float64 round to opposite sides)
+    loop = nc.Loop(plant=nc.LTI(A=[[A_P]], B=[[B_P]], C=[[1.0]], x0=[0.0]), trigger=nc.Periodic(),
+                   uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.PID(Kp=2.5, Ki=5.0, reference=ref, anti_windup="none"),
+                   downlink=nc.Link(), actuator=nc.HoldLast(), T=H, steps=K)
+    tracking = nc.Tracking(ref, index=0, window=10)
+    from jaxnc import montecarlo
+    m, tm = montecarlo.run_batched(nc.run_tracking, montecarlo.seed_keys(0, 4), args=(loop, tracking),
+                                   progress=False, chunk_size=4)
+    y = np.asarray(jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0)).x[:, 0], np.float64)
+    info = control.step_info(y, timepts=H * np.arange(K), yfinal=1.0)
+    assert info["Overshoot"] > 5                                     # an underdamped response
+    np.testing.assert_allclose(tm.overshoot[:, 0], info["Overshoot"], rtol=1e-4)
+    np.testing.assert_allclose(tm.settling_time[:, 0], info["SettlingTime"], rtol=1e-6)
+    np.testing.assert_allclose(tm.rise_time[:, 0], info["RiseTime"], rtol=1e-6)
+    np.testing.assert_allclose(tm.ise[:, 0], np.sum((1.0 - y) ** 2) * H, rtol=1e-5)
+    np.testing.assert_allclose(tm.steady_state_error[:, 0], np.mean(1.0 - y[-10:]), atol=1e-6)
+    with pytest.raises(ValueError, match="Tracking.index"):
+        nc.Tracking(ref, index=(0, 0))
+
+
+def _pid_loop(Kp):
+    plant = nc.LTI(A=[[A_P]], B=[[B_P]], C=[[1.0]], x0=[0.0], w_std=0.05, v_std=0.02)
+    return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(nc.Bernoulli(0.3)), estimator=nc.Passthrough(),
+                   controller=nc.PID(Kp=Kp, Ki=1.0, Kd=0.05, Tf=0.05, u_min=-3.0, u_max=3.0,
+                                     reference=refs.Step(1.0)),
+                   downlink=nc.Link(), actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0], R=[0.01]),
+                   T=H, steps=60)
+
+
+def test_the_loop_cost_is_differentiable_in_a_gain_through_the_hold():
+    """d cost / d Kp through a lossy loop (the hold blends on fresh) equals central
+    differences of the same seeds' cost."""
+    keys = jax.random.split(jax.random.PRNGKey(2), 8)
+
+    def mean_cost(kp):
+        loop = _pid_loop(jnp.asarray([1.0], jnp.float32) * kp)
+        return jnp.mean(jax.vmap(lambda k: nc.run(loop, k).cost_raw)(keys))
+    g = float(jax.jit(jax.grad(mean_cost))(jnp.float32(1.5)))
+    f = jax.jit(mean_cost)
+    fd = (float(f(jnp.float32(1.5 + 1e-2))) - float(f(jnp.float32(1.5 - 1e-2)))) / 2e-2
+    assert g != 0 and abs(g - fd) < 2e-2 * abs(fd) + 1e-4, (g, fd)
+
+
+def test_a_pid_with_more_channels_than_plant_inputs_is_refused_by_the_loop():
+    with pytest.raises(ValueError, match="Loop.controller"):
+        nc.Loop(plant=nc.LTI(A=np.eye(2) * 0.9, B=[[1.0], [0.0]], C=np.eye(2)), trigger=nc.Periodic(),
+                uplink=nc.Link(), estimator=nc.Passthrough(), controller=nc.PID(Kp=1.0, index=(0, 1)),
+                downlink=nc.Link(), actuator=nc.HoldLast())
