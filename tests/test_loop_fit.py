@@ -67,9 +67,9 @@ CASES = [
     (lambda: _loop(trigger=nc.Petc(delta=[0.1, 0.1], reading="each")), "Loop.trigger.delta has shape (2,)"),
     (lambda: _loop(controller_trigger=nc.Petc(sigma=[0.1, 0.2])), "Loop.controller_trigger.sigma has shape (2,)"),
     # the loop's period and the plant's
-    (lambda: _loop(T=0.05), "Loop.T (0.05 s) must equal the plant's fast period Loop.plant.T (0.1 s)"),
+    (lambda: _loop(T=0.05), "Loop.T (0.05 s) must equal the plant's step period (LTI.step_period = 0.1 s)"),
     (lambda: _loop(plant=nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_f, h=_h, input_dim=1, noise_dim=2,
-                                       output_dim=1, T=0.02)), "must equal the plant's fast period"),
+                                       output_dim=1, T=0.02)), "must equal the plant's step period"),
     # a state that is not a vector, dynamics of the wrong type
     (lambda: _discrete(x0=[[0.0], [1.0]]), "Discrete.x0 must be a vector"),
     (lambda: _discrete(f=_f_int), "f(x, u, w) must return float32 values"),

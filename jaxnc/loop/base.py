@@ -141,9 +141,9 @@ class AbstractPlant(abc.ABC):
     #: "estimate"),)}``; ``()`` is a scalar)
     field_shapes: ClassVar[dict] = {}
 
-    #: the plant's own fast period in seconds, when it has one (a Loop checks that its T
-    #: equals it); None: the plant takes the loop's
-    T = None
+    #: seconds of one ``dynamics`` step, when the plant has its own (a Loop checks that its
+    #: fast period T equals it; e.g. a sampled LTI's T); None: the plant takes the loop's
+    step_period = None
 
     #: int: state, input, process-noise and output/measurement-noise dimensions
     state_dim: int

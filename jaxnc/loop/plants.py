@@ -159,6 +159,10 @@ class Continuous(Discrete):
         check_int("Continuous.substeps", self.substeps, 1, 100_000)
         super().__post_init__()
 
+    @property
+    def step_period(self):
+        return self.T
+
     def dynamics(self, x, u, w):
         return rk4(self.f, x, u, w, jnp.asarray(self.T, x.dtype), self.substeps)
 
@@ -186,6 +190,10 @@ class LTI(AbstractPlant):
     v_std: Any = 0.0
     T: Any = None
     state_names: Any = _static(None)
+
+    @property
+    def step_period(self):
+        return self.T
 
     def __post_init__(self):
         for n in ("A", "B", "C"):

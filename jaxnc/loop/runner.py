@@ -247,11 +247,11 @@ class Loop:
             object.__setattr__(self, "T", float(self.T))        # a numpy scalar: a plain float (static)
         if isinstance(self.T, bool) or not (isinstance(self.T, (int, float)) and np.isfinite(self.T) and self.T > 0):
             raise ValueError(f"Loop.T must be a number > 0 (seconds), got {self.T!r}")
-        plant_T = self.plant.T
+        plant_T = self.plant.step_period
         if plant_T is not None and concrete(plant_T) and np.ndim(plant_T) == 0 \
                 and abs(float(plant_T) - float(self.T)) > 1e-6 * float(self.T):      # float32 rounding
-            raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the plant's fast period "
-                             f"Loop.plant.T ({float(plant_T):g} s)")
+            raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the plant's step period "
+                             f"({type(self.plant).__name__}.step_period = {float(plant_T):g} s)")
         if self.cost is not None and not ({"x", "u"} <= set(self.record.signals)):
             raise ValueError(f"Loop.cost needs the signals x and u recorded, but Loop.record keeps only "
                              f"{self.record.signals}: add them, or set cost=None")

@@ -97,6 +97,11 @@ class DiffDrive(AbstractLiftedPlant):
     def dt(self) -> float:
         return self.T / self.sub
 
+    @property
+    def step_period(self) -> float:
+        """One ``dynamics`` step is the fine period dt = T / sub."""
+        return self.dt
+
     # -- the plant protocol
     def init(self, key) -> DiffDriveState:
         return DiffDriveState(jnp.asarray(self.x0, jnp.float32), jnp.zeros((), jnp.int32))
