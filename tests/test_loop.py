@@ -1,5 +1,6 @@
 """The one runner (jaxnc.loop) against independent references: closed forms, numpy loops."""
 import dataclasses
+import typing
 
 import control
 import jax
@@ -349,3 +350,45 @@ def test_ekf_finds_its_measurements_with_N_above_1_whatever_the_ring():
           for c in (1, 3, 4)]
     np.testing.assert_allclose(xs[1], xs[0], rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(xs[2], xs[0], rtol=1e-6, atol=1e-7)
+
+
+class _SettledState(typing.NamedTuple):
+    inside: jax.Array     # int32: consecutive fast periods within the band
+
+
+@nc.pytree_dataclass
+class _Settled(nc.AbstractMonitor):
+    """Complete once |x_0| < band for ``hold`` consecutive fast periods; failed beyond 5."""
+
+    band: float = 0.05
+    hold: int = nc.static_field(3)
+    freeze = False
+
+    def init(self, ctx):
+        return _SettledState(jnp.zeros((), jnp.int32))
+
+    def step(self, state, x, u, t):
+        inside = jnp.where(jnp.abs(x[0]) < self.band, state.inside + 1, 0)
+        return _SettledState(inside), jnp.abs(x[0]) > 5.0, inside >= self.hold
+
+
+def _inside(monitor, state):
+    return state.inside
+
+
+def test_a_monitor_with_state_reports_completion_and_is_recorded():
+    """A user monitor (AbstractMonitor): completion at the first fast instant after which
+    x_0 has stayed in the band for ``hold`` periods, read back from the recorded x."""
+    loop = _lti_loop(N=2, steps=60, monitor=_Settled(), cost=None,
+                     record=nc.Record(signals=("x",), monitor=_inside))
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(2))
+    x0 = np.asarray(tr.x[:, 0])
+    xs_after = np.concatenate([x0[1:], [np.asarray(tr.final_plant)[0]]])   # the state after step t
+    inside = np.zeros(60, int)
+    for t in range(60):
+        inside[t] = (inside[t - 1] + 1 if t else 1) if abs(xs_after[t]) < 0.05 else 0
+    np.testing.assert_array_equal(np.asarray(tr.parts["monitor"]), inside)
+    first = np.flatnonzero(inside >= 3)
+    assert bool(tr.done) == (first.size > 0) and first.size > 0
+    assert int(tr.done_step) == first[0] + 1
+    assert not bool(tr.failed) and int(tr.fail_step) == 60

@@ -51,7 +51,7 @@ from jaxnc._validate import checked_pytree
 
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger",
            "AbstractEstimator", "AbstractFastEstimator", "AbstractController", "AbstractSenderCopyController",
-           "AbstractActuator", "AbstractSenderCopyActuator", "AbstractLoss", "AbstractDelay"]
+           "AbstractActuator", "AbstractSenderCopyActuator", "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
 
 
 def static_field(default=dataclasses.MISSING):
@@ -312,6 +312,29 @@ class AbstractSenderCopyActuator(AbstractActuator):
     @abc.abstractmethod
     def receive_from_sender(self, state, inbox: Inbox, sent):
         """As :meth:`receive`, with ``sent`` the sender's copy (the runner's believed state)."""
+
+
+class AbstractMonitor(abc.ABC):
+    """Watches the true plant after every fast period: whether the run has failed (the
+    plant left its safe set, or diverged) and whether it is complete (e.g. a path's end
+    reached). Failure and completion are each recorded once, at their first instant
+    (``Trajectory.fail_step``, ``done_step``); a monitor may keep state (e.g. progress
+    along a path) and have it recorded with ``Record(monitor=fn)``.
+
+    ``freeze`` (declared): once failed, the runner holds the plant at its last good state,
+    so divergence stays data (finite numbers and a flag) rather than NaN."""
+
+    field_shapes: ClassVar[dict] = {}
+    freeze = True
+
+    @abc.abstractmethod
+    def init(self, ctx):
+        """State before the first fast period."""
+
+    @abc.abstractmethod
+    def step(self, state, x, u, t):
+        """(state, failed bool, done bool) after the fast period t, for the plant's state
+        vector x float[n] (``plant.state_vector``) reached with the action u float[m]."""
 
 
 class AbstractLoss(abc.ABC):

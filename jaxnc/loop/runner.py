@@ -27,7 +27,7 @@ from jaxnc._validate import (array_fields, check_bool, check_callable, check_fin
                              check_int, check_range, concrete, fields_concrete)
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractFastEstimator,
-                             AbstractPlant, AbstractSenderCopyActuator, AbstractSenderCopyController, AbstractTrigger,
+                             AbstractMonitor, AbstractPlant, AbstractSenderCopyActuator, AbstractSenderCopyController, AbstractTrigger,
                              Inbox)
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -58,7 +58,7 @@ class Context(NamedTuple):
 
 
 SIGNALS = ("x", "u", "z", "xhat", "sent_sc", "recv_sc", "sent_ca", "recv_ca")
-PARTS = ("plant", "estimator", "controller", "actuator")
+PARTS = ("plant", "estimator", "controller", "actuator", "monitor")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +74,7 @@ class Record:
         prediction), ``parts["estimator"]`` [S, ...].
       controller: ``fn(controller, state)`` after each step, ``parts["controller"]`` [S, ...].
       actuator: ``fn(actuator, state, t)`` after each output, ``parts["actuator"]`` [K, ...].
+      monitor: ``fn(monitor, state)`` after each fast period, ``parts["monitor"]`` [K, ...].
 
     The functions are static (part of the compiled program): define them at module level
     so that equal specs compare equal.
@@ -84,6 +85,7 @@ class Record:
     estimator: Any = None
     controller: Any = None
     actuator: Any = None
+    monitor: Any = None
 
     def __post_init__(self):
         if isinstance(self.signals, str) or not isinstance(self.signals, (tuple, list)) \
@@ -113,10 +115,10 @@ class Record:
 
 
 @_dataclass
-class Monitor:
-    """Failure detection: non-finite state, or |x_i| > bounds_i for any i (bounds float[n],
-    inf where unbounded; None: only non-finite). ``freeze`` (static): hold the plant at its
-    last good state once failed."""
+class Monitor(AbstractMonitor):
+    """Failure detection, no state: non-finite state, or |x_i| > bounds_i for any i (bounds
+    float[n], inf where unbounded; None: only non-finite); never complete. ``freeze``
+    (static): hold the plant at its last good state once failed."""
 
     field_shapes: ClassVar[dict] = {"bounds": ((), ("state",))}
 
@@ -128,11 +130,14 @@ class Monitor:
         check_range("Monitor.bounds", self.bounds, 0.0, None, low_open=True, finite=False)   # None: unbounded
         array_fields(self, "bounds")
 
-    def failed(self, xv):
-        bad = ~jnp.all(jnp.isfinite(xv))
+    def init(self, ctx):
+        return ()
+
+    def step(self, state, x, u, t):
+        bad = ~jnp.all(jnp.isfinite(x))
         if self.bounds is not None:
-            bad = bad | jnp.any(jnp.abs(xv) > self.bounds)
-        return bad
+            bad = bad | jnp.any(jnp.abs(x) > self.bounds)
+        return state, bad, jnp.zeros((), bool)
 
 
 @_dataclass
@@ -233,7 +238,8 @@ class Loop:
         if self.controller_trigger is not None:
             check_instance("Loop.controller_trigger", self.controller_trigger, AbstractTrigger,
                            "a trigger (a jaxnc.loop.AbstractTrigger: Periodic, Petc) or None")
-        check_instance("Loop.monitor", self.monitor, Monitor, "a jaxnc.loop.Monitor")
+        check_instance("Loop.monitor", self.monitor, AbstractMonitor, "a monitor (a jaxnc.loop.AbstractMonitor: "
+                       "Monitor)")
         if self.cost is not None:
             check_callable("Loop.cost", self.cost, "a function cost(x, u) -> scalar (e.g. jaxnc.loop.Quadratic) or None")
             if jax.tree.leaves(self.cost) == [self.cost]:       # a plain function: part of the program
@@ -412,6 +418,12 @@ def _check_fit(loop: Loop) -> None:
     _same_structure("Loop.actuator's output", a0, a1)
     if ua.shape != (m,):
         raise ValueError(f"Loop.actuator's action is {_shapes(ua)}; the plant takes float32[{m}]")
+    m0 = _stage("Loop.monitor", "cannot build its state", lambda: loop.monitor.init(ctx))
+    m1, bad, done = _stage("Loop.monitor", f"cannot watch a state vector float32[{n}]",
+                           lambda: loop.monitor.step(_zeros(m0), f32((n,)), f32((m,)), jnp.int32(0)))
+    _same_structure("Loop.monitor's step", m0, m1)
+    if bad.shape != () or done.shape != ():
+        raise ValueError(f"Loop.monitor's step must return scalar flags (failed, done), got {_shapes((bad, done))}")
     if loop.cost is not None:
         K = loop.steps
         J = _stage("Loop.cost", f"cannot evaluate cost(x float32[{K}, {n}], u float32[{K}, {m}])",
@@ -479,10 +491,12 @@ class Trajectory(NamedTuple):
     recv_ca: jax.Array    # float[K] a packet reached the actuator
     failed: jax.Array     # bool
     fail_step: jax.Array  # int32: first failed fast instant (K if never)
+    done: jax.Array       # bool: the monitor found the run complete
+    done_step: jax.Array  # int32: first fast instant after which it was complete (K if never)
     tx_sc: jax.Array      # float: sensor transmissions in the run
     tx_ca: jax.Array      # float: controller transmissions in the run
     parts: Any = ()       # dict role -> what Record's function of that role kept ("plant" [K, ...],
-    #                       "estimator" [S, ...], "controller" [S, ...], "actuator" [K, ...])
+    #                       "estimator" [S, ...], "controller" [S, ...], "actuator" [K, ...], "monitor" [K, ...])
     final_plant: Any = ()   # the plant's state at the end of the run
 
 
@@ -500,8 +514,11 @@ class _Carry(NamedTuple):
     down: Any
     act: Any
     bel: Any
+    mon: Any
     failed: jax.Array
     fail_step: jax.Array
+    done: jax.Array
+    done_step: jax.Array
 
 
 def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
@@ -533,8 +550,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     carry0 = _Carry(
         x=x0, trig=loop.trigger.init(ctx._replace(signal_dim=ctx.output_dim)),
         up=loop.uplink.init(z0), est=est0, ctrl=ctrl0, ctrig=ctrig0,
-        down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0,
-        failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32))
+        down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0, mon=loop.monitor.init(ctx),
+        failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32),
+        done=jnp.zeros((), bool), done_step=jnp.asarray(loop.steps, jnp.int32))
     believed_needed = loop.estimator.inputs == "believed"
     from_sent = believed_needed and isinstance(loop.controller, AbstractSenderCopyController)
     from_sender = believed_needed and isinstance(act_role, AbstractSenderCopyActuator)
@@ -574,7 +592,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             bel = act_role.receive(bel, own)
 
         def fast(fc, inp_j):
-            x, down, act, bel, failed, fail_step, est = fc
+            x, down, act, bel, mon, failed, fail_step, done, done_step, est = fc
             j, w_t = inp_j
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
@@ -584,9 +602,12 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             u_ok = jnp.all(jnp.isfinite(u))
             u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
             x_new = plant.step(x, u, w_t)
-            bad = loop.monitor.failed(plant.state_vector(x_new)) | ~u_ok
+            mon, bad, complete = loop.monitor.step(mon, plant.state_vector(x_new), u, t)
+            bad = bad | ~u_ok
             fail_step = jnp.where(bad & ~failed, t + 1, fail_step)
             failed = failed | bad
+            done_step = jnp.where(complete & ~done, t + 1, done_step)
+            done = done | complete
             if loop.monitor.freeze:
                 x_new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), x, x_new)
             if fast_predict:
@@ -594,19 +615,20 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             out = (plant.state_vector(x) if want("x") else (), u, ub if believed_needed else (),
                    jnp.sum(box.new) if want("recv_ca") else (),
                    rec.actuator(act_role, act, t) if rec.actuator is not None else (),
-                   rec.plant(plant, x_new) if rec.plant is not None else ())
-            return (x_new, down, act, bel, failed, fail_step, est), out
+                   rec.plant(plant, x_new) if rec.plant is not None else (),
+                   rec.monitor(loop.monitor, mon) if rec.monitor is not None else ())
+            return (x_new, down, act, bel, mon, failed, fail_step, done, done_step, est), out
 
-        fc0 = (c.x, down, c.act, bel, c.failed, c.fail_step, est)
-        fc, (xs, us, ubs, rca, arec, prec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
-        x, down, act, bel, failed, fail_step, est = fc
+        fc0 = (c.x, down, c.act, bel, c.mon, c.failed, c.fail_step, c.done, c.done_step, est)
+        fc, (xs, us, ubs, rca, arec, prec, mrec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
+        x, down, act, bel, mon, failed, fail_step, done, done_step, est = fc
         # 7. estimator prediction over the period (or, a fast estimator, fast period by fast period above)
         if not fast_predict:
             est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
-        c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, failed, fail_step)
+        c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, mon, failed, fail_step, done, done_step)
         outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
                     sent_sc=send_sc, recv_sc=inbox.fresh if want("recv_sc") else (), sent_ca=send_ca,
-                    recv_ca=rca, actuator=arec, plant=prec,
+                    recv_ca=rca, actuator=arec, plant=prec, monitor=mrec,
                     estimator=rec.estimator(loop.estimator, est) if rec.estimator is not None else (),
                     controller=rec.controller(loop.controller, ctrl) if rec.controller is not None else ())
         return c, outs
@@ -626,8 +648,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     return Trajectory(
         x=pick("x", True), u=pick("u", True), z=pick("z"), xhat=pick("xhat"), sent_sc=o["sent_sc"],
         recv_sc=pick("recv_sc"), sent_ca=o["sent_ca"], recv_ca=pick("recv_ca", True),
-        failed=final.failed, fail_step=final.fail_step, tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
-        parts={r: fast_rows(o[r]) if r in ("plant", "actuator") else o[r] for r in PARTS
+        failed=final.failed, fail_step=final.fail_step, done=final.done, done_step=final.done_step,
+        tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
+        parts={r: fast_rows(o[r]) if r in ("plant", "actuator", "monitor") else o[r] for r in PARTS
                if getattr(rec, r) is not None},
         final_plant=final.x)
 
