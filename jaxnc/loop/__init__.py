@@ -6,12 +6,14 @@ returns its :class:`Metrics`, and ``jaxnc.montecarlo.run_batched(run_seed, keys,
 args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 """
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
+from jaxnc.loop.arrival import ArrivalHold, DirtyDerivative, DirtyDerivativeState
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator,
                              AbstractFastEstimator, AbstractLoss, AbstractPlant, AbstractSenderCopyActuator,
                              AbstractSenderCopyController, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
                              static_field)
 from jaxnc.loop.controllers import Function, Predictive, StateFeedback
 from jaxnc.loop.estimators import EKF, EKFState, Passthrough
+from jaxnc.loop.lead import LeadFeedback
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
@@ -33,4 +35,7 @@ __all__ = [
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
+    "DirtyDerivative", "DirtyDerivativeState",
+    "ArrivalHold",
+    "LeadFeedback",
 ]
