@@ -75,8 +75,7 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
         ``"sensor"`` the tilt sensor's stationary error variance.
       ring: the emulation links' ring (a packet later than ``ring - 1`` steps is lost).
       horizon_s, theta0_deg, step_m, t_step, tilt_limit_deg: the scenario.
-      record: the loop's :class:`~jaxnc.loop.Record` (default: the state, all the
-        metrics need).
+      record: the loop's :class:`~jaxnc.loop.Record`; it must keep ``"x"`` (the metrics').
 
     Returns:
       a :class:`jaxnc.loop.Loop` with ``steps = horizon_s / Ts``, ``T = Ts``.
@@ -99,6 +98,8 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
     check_int("lead", lead, 1, 50)
     check_int("N_buf", N_buf, 1, 10_000)
     check_int("ring", ring, 2, 10_000)
+    if "x" not in nc.Record.of(record).signals:
+        raise ValueError(f"record must keep the signal 'x' (the metrics need it), got {record!r}")
     if theta is not None:
         check_range("theta", theta, 0.0, 1.0, low_open=True)
     if derivative == "simple" and tau_d is not None:
@@ -174,9 +175,7 @@ def run_seed(key, loop: nc.Loop) -> Metrics:
 
 
 def _pmf(d: dict, size: int = 19) -> np.ndarray:
-    p = np.zeros(size, np.float32)
-    for k, q in d.items():
-        p[k] = q
+    p = np.asarray([d.get(k, 0.0) for k in range(size)], np.float32)
     return p / p.sum()
 
 
