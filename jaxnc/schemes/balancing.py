@@ -33,7 +33,7 @@ import numpy as np
 
 from jaxnc import loop as nc
 from jaxnc import references, wifi
-from jaxnc._validate import check_choice, check_instance, check_int, check_positive, check_range
+from jaxnc._validate import check_bool, check_choice, check_instance, check_int, check_positive, check_range
 from jaxnc.controllers.hold_lq import dlqr, hold_lq_gain
 from jaxnc.plants.balancing import Balancing
 
@@ -98,6 +98,7 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
     check_int("lead", lead, 1, 50)
     check_int("N_buf", N_buf, 1, 10_000)
     check_int("ring", ring, 2, 10_000)
+    check_bool("hold", hold)
     if "x" not in nc.Record.of(record).signals:
         raise ValueError(f"record must keep the signal 'x' (the metrics need it), got {record!r}")
     if theta is not None:
