@@ -1,13 +1,13 @@
 """Experiment ``balancing``: seed 001 (Branz et al. 2020), model-based vs emulation design.
 
 For each network severity (nominal Table 1 fit, more loss, more delay) and each seed, both
-designs replay the same pair of network traces and the same noise (common random
-numbers).  Reports the fraction of runs that stay upright (|theta| < limit for the whole
+designs meet the same network and noise: the runner's draws from the seed's key (common
+random numbers).  Reports the fraction of runs that stay upright (|theta| < limit for the whole
 run) with a 95 % Wilson interval, the tilt RMS and the final tracking error over the
 upright runs, writes ``results.json``, the per-seed metrics (``seeds.npz``,
 :func:`jaxnc.load`; dimensions severity, design, seed), ``fig7_time_responses.png``
-(Fig. 7: tilt and wheel angle of both designs for seed 0, on the same network traces and
-noise, at each severity run) and ``fig5_loopback_cdf.png`` / ``.csv`` (Fig. 5: the
+(Fig. 7: tilt and wheel angle of both designs for seed 0, on the same network and noise,
+at each severity run) and ``fig5_loopback_cdf.png`` / ``.csv`` (Fig. 5: the
 loop-back delay CDF of the network model at the three noise levels of section 4).
 
 Experiment ``balancing-sweep``: the same two designs and outcomes as one network parameter
@@ -30,6 +30,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxnc import loop as nc
 from jaxnc import montecarlo, wifi, results as per_seed
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import fmt, markdown_table
@@ -109,13 +110,11 @@ def fig7(loops: dict, key, out: Path, sevs) -> Path:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, len(sevs), figsize=(5.5 * len(sevs), 5.5), squeeze=False, sharex=True)
-    sim = jax.jit(bal.simulate)
+    sim = jax.jit(nc.simulate)
     for j, sev in enumerate(sevs):
-        ch = bal.SEVERITIES[sev]
         for d in bal.DESIGNS:
             loop = loops[(sev, d)]
-            sc, ca = bal.traces(key, ch, ch, loop.steps)
-            tr = jax.device_get(sim(loop, sc, ca, jax.random.fold_in(key, 2)))
+            tr = jax.device_get(sim(loop, key))
             end = int(tr.fail_step) + 1 if bool(tr.failed) else loop.steps
             t = np.arange(end) * loop.T
             lab = d + (f" (fell at {t[-1]:.2f} s)" if bool(tr.failed) else "")
@@ -123,7 +122,7 @@ def fig7(loops: dict, key, out: Path, sevs) -> Path:
             axes[1, j].plot(t, tr.x[:end, 0] + tr.x[:end, 1], lw=0.8, label=lab)     # gamma = delta + theta
         t = np.arange(loop.steps) * loop.T
         axes[1, j].plot(t, np.asarray(bal.reference(loop)), "k--", lw=0.8, label="reference")
-        axes[0, j].set_title(f"network: {sev} (seed 0, both designs on the same traces)", fontsize=9)
+        axes[0, j].set_title(f"network: {sev} (seed 0, both designs on the same draws)", fontsize=9)
         axes[0, j].set_ylabel("tilt \u03b8 (deg)")
         axes[1, j].set_ylabel("wheel angle \u03b3 = \u03b4 + \u03b8 (rad)")
         axes[1, j].set_xlabel("t (s)")
@@ -193,7 +192,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     summary, runs = {}, {}
     for (sev, d), loop in loops.items():
         # the loop's links carry the severity's channel in both directions
-        m = montecarlo.run_batched(lambda k, loop=loop: bal.run(loop, k), keys,
+        m = montecarlo.run_batched(bal.run_seed, keys, args=(loop,),
                                    chunk_size=min(settings["chunk"], seeds), progress=progress,
                                    desc=f"{sev:>8} {d:>9}")
         summary[f"{sev} / {d}"] = summarise(m)

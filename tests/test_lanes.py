@@ -36,7 +36,7 @@ def _hdd():
 
 def _balancing():
     from jaxnc.schemes import balancing as bal
-    return (lambda k, lp: bal.run(lp, k).tilt_max_deg), bal.balancing_loop("model", horizon_s=0.5)
+    return (lambda k, lp: bal.run_seed(k, lp).tilt_max_deg), bal.balancing_loop("model", horizon_s=0.5)
 
 
 def _diffdrive():

@@ -8,12 +8,14 @@ args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
 from jaxnc.loop.cascade import Cascade, CascadeState
 from jaxnc.loop.numre import Numre, NumreState
+from jaxnc.loop.unstamped import ArrivalHold, DirtyDerivative, DirtyDerivativeState
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator,
                              AbstractFastEstimator, AbstractLoss, AbstractMonitor, AbstractPlant, AbstractSenderCopyActuator,
                              AbstractSenderCopyController, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
                              static_field)
 from jaxnc.loop.controllers import Function, Predictive, StateFeedback
 from jaxnc.loop.estimators import EKF, EKFState, Passthrough
+from jaxnc.loop.lead import LeadFeedback
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
@@ -57,4 +59,7 @@ __all__ = [
     "DiffDrive", "DiffDriveState", "lifted_wheel_var",
     "PursuitPI", "PursuitState",
     "ArrivalActuator", "ArrivalState",
+    "DirtyDerivative", "DirtyDerivativeState",
+    "ArrivalHold",
+    "LeadFeedback",
 ]

@@ -6,8 +6,8 @@ intermittent observations and a bounded buffer for delayed ones. It keeps the in
 the last ``buffer`` slow periods and the prior at the start of that window; at every slow
 instant it re-runs the window, correcting at each instant whose measurement has arrived by
 now (``Inbox.arrived``) and propagating with the stored inputs, so the estimate is the one
-an on-time filter would have had with the same measurements (seed 001 eq. 9-15, extended
-to a nonlinear model; :mod:`jaxnc.estimators.buffered_kf` is its linear, one-rate form). A
+an on-time filter would have had with the same measurements (seed 001 eq. 9-15, the
+buffered Kalman filter, extended to a nonlinear model and to N fast periods a slow one). A
 measurement older than the window is lost. ``buffer=0`` is the plain intermittent filter:
 only a measurement stamped now is used.
 

@@ -34,9 +34,10 @@ chooses its error model:
   with the gyro integrated exactly and the accelerometer's error from the robot's own
   acceleration neglected (ours), has the error ``e_k = a e_{k-1} + a Ts sigma_gyro n_k +
   (1 - a) sigma_accel m_k``: a first-order Gauss-Markov sequence independent of the
-  state (:meth:`Balancing.tilt_error`), of stationary std ~0.016 deg with the numbers
-  below, but changing only ~1e-3 deg from one sample to the next;
-* ``"white"``: ``th_k + sigma_theta v_k`` with white ``v`` (0.1 deg), the former model.
+  state, of stationary std ~0.016 deg with the numbers below (:meth:`Balancing.tilt_error_std`),
+  changing only ~1e-3 deg from one sample to the next. The error is the sensor's own state:
+  it is the fifth entry of the plant's state, driven by the third process noise;
+* ``"white"``: ``th_k + sigma_theta v_k`` with white ``v`` (0.1 deg).
 
 The paper publishes no sensor numbers; ours are of the order of a consumer MEMS IMU at
 1 kHz: gyro 0.11 deg/s and accelerometer tilt 0.5 deg per sample (std), ``tau_cf = 0.5 s``.
@@ -46,13 +47,15 @@ with either sensor.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from jaxnc._validate import check_positive, check_nonneg
+from jaxnc._validate import check_nonneg, check_positive, check_range
+from jaxnc.loop.base import AbstractPlant, pytree_dataclass
 
 STATE_DIM = 4
 INPUT_DIM = 1
@@ -61,10 +64,27 @@ G = 9.81
 TILT_SENSORS = ("complementary", "white")   # error models of the tilt measurement (module docstring)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Balancing:
-    """Physical parameters (SI units) and the sampling period ``Ts`` (static)."""
+@pytree_dataclass
+class Balancing(AbstractPlant):
+    """The robot as a loop plant (:class:`jaxnc.loop.AbstractPlant`) at the period ``Ts``.
+
+    State float[5]: ``(delta, theta, delta', theta', e)``, the rigid body and the tilt
+    sensor's error ``e`` (0 for the white sensor); :meth:`state_vector` is the rigid body,
+    float[4]. Input ``u`` float[1], the wheel acceleration (rad/s^2). Process noise ``w``
+    float[3]: servo error and tilt acceleration (rad/s^2, held over the period) and the
+    complementary filter's drive (rad); measurement noise ``v`` float[2] (``v[0]`` unused:
+    the encoder's error is its quantisation; ``v[1]`` the white sensor's tilt noise). The
+    robot starts at rest with tilt ``theta0`` (rad) and ``e`` in its stationary law.
+    Parameters in SI units; ``tilt_sensor`` and ``Ts`` static.
+
+    Raises:
+      ValueError: a parameter out of its range (naming it), an unknown ``tilt_sensor``.
+    """
+
+    state_dim = 4
+    input_dim = 1
+    noise_dim = 3
+    output_dim = 2
 
     M: float = 1.0          # body mass, kg
     l: float = 0.10         # axle -> body centre of mass, m
@@ -81,6 +101,7 @@ class Balancing:
     sigma_gyro: float = np.deg2rad(0.11)      # gyro noise per sample, rad/s ("complementary")
     sigma_accel: float = np.deg2rad(0.5)      # accelerometer tilt noise per sample, rad
     tau_cf: float = 0.5                       # complementary filter's time constant, s
+    theta0: Any = 0.0                         # initial tilt, rad
     tilt_sensor: str = dataclasses.field(default="complementary", metadata=dict(static=True))
     Ts: float = dataclasses.field(default=1e-3, metadata=dict(static=True))
 
@@ -92,6 +113,7 @@ class Balancing:
             check_positive(f"Balancing.{name}", getattr(self, name))
         for name in ("b", "w_theta", "w_servo", "sigma_theta", "sigma_gyro", "sigma_accel"):
             check_nonneg(f"Balancing.{name}", getattr(self, name))
+        check_range("Balancing.theta0", self.theta0, -np.pi / 2, np.pi / 2, low_open=True, high_open=True)
 
     # -- eq. (20) coefficients ---------------------------------------------------------
     def coefficients(self) -> dict:
@@ -136,10 +158,16 @@ class Balancing:
         return jnp.stack([delta_d, th_d, u + 0.0 * th, th_dd])
 
     def dynamics(self, x, u, w):
-        """One period ``Ts`` of the nonlinear model, input held (ZOH), RK4 with 2 substeps.
+        """One period ``Ts``: the rigid body by RK4 (2 substeps), input held (ZOH), and the
+        tilt sensor's error ``e+ = a e + w[2]``.
 
-        ``u`` (shape (1,)) is saturated at ``u_max``; ``w = (servo error, tilt accel.)``
-        in rad/s^2 is held over the period.
+        Args:
+          x: float[5] (or float[4]: the rigid body only, without the sensor).
+          u: float[1], saturated at ``u_max``.
+          w: float[3] (servo error, tilt acceleration, sensor drive), or float[2].
+
+        Returns:
+          float[5] (float[4] for a float[4] state).
         """
         ua = jnp.clip(u[0], -self.u_max, self.u_max) + w[0]
         h = self.Ts / 2
@@ -147,21 +175,45 @@ class Balancing:
         def f(x):
             return self.derivative(x, ua) + jnp.stack([0.0 * w[1], 0.0 * w[1], 0.0 * w[1], w[1]])
 
+        body = x[:4]
         for _ in range(2):
-            k1 = f(x)
-            k2 = f(x + 0.5 * h * k1)
-            k3 = f(x + 0.5 * h * k2)
-            k4 = f(x + h * k3)
-            x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-        return x
+            k1 = f(body)
+            k2 = f(body + 0.5 * h * k1)
+            k3 = f(body + 0.5 * h * k2)
+            k4 = f(body + h * k3)
+            body = body + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        if x.shape[0] == 4:
+            return body
+        a, _ = self._cf()
+        return jnp.concatenate([body, (a * x[4] + w[2])[None]])
 
     def measure(self, x, v):
-        """(encoder-quantised delta, tilt + error): section 3. ``v`` is the tilt error in
-        rad for the ``"complementary"`` sensor (a sample of :meth:`tilt_error`) and a
-        standard normal for the ``"white"`` one (scaled by ``sigma_theta``)."""
+        """``(q round(delta / q), theta + e + v[1])``, float[2] (section 3; ``q`` the
+        encoder step, ``e = x[4]`` the complementary filter's error)."""
         q = self.encoder_step
-        e = v if self.tilt_sensor == "complementary" else self.sigma_theta * v
-        return jnp.stack([q * jnp.round(x[0] / q), x[1] + e])
+        return jnp.stack([q * jnp.round(x[0] / q), x[1] + x[4] + v[1]])
+
+    def process_std(self):
+        """float[3]: servo error, tilt acceleration, sensor drive (0 for the white sensor)."""
+        drive = self._cf()[1] if self.tilt_sensor == "complementary" else 0.0
+        return jnp.stack([jnp.asarray(self.w_servo, jnp.float32), jnp.asarray(self.w_theta, jnp.float32),
+                          jnp.asarray(drive, jnp.float32)])
+
+    def measurement_std(self):
+        """float[2]: 0 and, for the white sensor, ``sigma_theta``."""
+        s = self.sigma_theta if self.tilt_sensor == "white" else 0.0
+        return jnp.stack([jnp.float32(0.0), jnp.asarray(s, jnp.float32)])
+
+    def init(self, key):
+        """float[5]: at rest, tilt ``theta0``, the sensor's error drawn from its stationary law."""
+        th = jnp.asarray(self.theta0, jnp.float32)
+        e = self.tilt_error_std() * jax.random.normal(key, (), jnp.float32) if self.tilt_sensor == "complementary" \
+            else jnp.float32(0.0)
+        return jnp.stack([0.0 * th, th, 0.0 * th, 0.0 * th, e])
+
+    def state_vector(self, x):
+        """float[4]: the rigid body ``(delta, theta, delta', theta')``."""
+        return x[:4]
 
     def _cf(self):
         a = jnp.asarray(self.tau_cf, jnp.float32) / (self.tau_cf + self.Ts)
@@ -173,41 +225,25 @@ class Balancing:
         a, drive = self._cf()
         return drive / jnp.sqrt(1.0 - a * a)
 
-    def tilt_error(self, key, K: int) -> jax.Array:
-        """float32[K]: the complementary filter's tilt error ``e_0 .. e_{K-1}`` (rad, module
-        docstring), started in its stationary law: ``e_{-1} ~ N(0, tilt_error_std^2)``,
-        then ``e_k = a e_{k-1} + drive_k`` with ``drive_k`` i.i.d. normal of std
-        ``hypot(a Ts sigma_gyro, (1 - a) sigma_accel)``. ``K`` is static; the parameters
-        may be traced."""
-        a, drive = self._cf()
-        k0, kd = jax.random.split(key)
-        e0 = self.tilt_error_std() * jax.random.normal(k0, (), jnp.float32)
-        d = drive * jax.random.normal(kd, (int(K),), jnp.float32)
-
-        def step(e, dk):
-            e = a * e + dk
-            return e, e
-
-        return jax.lax.scan(step, e0, d)[1]
-
     def noise_std(self) -> np.ndarray:
-        """Std of ``w`` (rad/s^2), used to draw it and for the filter's Q."""
+        """float64[2]: std of the servo error and tilt acceleration (rad/s^2), the filter's Q."""
         return np.array([float(self.w_servo), float(self.w_theta)])
 
-    def kalman_QR(self) -> tuple[np.ndarray, np.ndarray]:
-        """Discrete Q, R matching the noises: w held over Ts enters like an input.
-
-        The encoder quantisation is modelled as uniform noise of variance q^2/12.
-        """
-        A, B, _ = self.discrete()
-        Ac, _ = self.continuous()
-        # the tilt disturbance enters through e_4 like the input through B
+    def noise_input(self) -> np.ndarray:
+        """float64[4, 2]: how ``w[:2]``, held over ``Ts``, enters the discrete rigid body
+        (exact ZOH of the servo error through ``Bc`` and the tilt acceleration through ``e_4``)."""
+        Ac, Bc = self.continuous()
         n = 4
         Mx = np.zeros((n + 2, n + 2))
         Mx[:n, :n] = Ac
-        Mx[:n, n:] = np.column_stack([self.continuous()[1][:, 0], np.eye(n)[:, 3]])
-        E = scipy.linalg.expm(Mx * float(self.Ts))
-        Gw = E[:n, n:]
+        Mx[:n, n:] = np.column_stack([Bc[:, 0], np.eye(n)[:, 3]])
+        return scipy.linalg.expm(Mx * float(self.Ts))[:n, n:]
+
+    def kalman_QR(self) -> tuple[np.ndarray, np.ndarray]:
+        """Discrete Q float[4, 4] (``G diag(noise_std^2) G'``, G = :meth:`noise_input`) and R
+        float[2, 2]: the encoder quantisation as uniform noise of variance q^2/12, the tilt
+        as white noise of std ``sigma_theta``."""
+        Gw = self.noise_input()
         Q = Gw @ np.diag(self.noise_std() ** 2) @ Gw.T
         R = np.diag([float(self.encoder_step) ** 2 / 12.0, float(self.sigma_theta) ** 2])
         return Q, R
