@@ -42,6 +42,7 @@ import jax.scipy.linalg as jsl
 
 from jaxnc._validate import check_nonneg, check_positive, check_range
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
+from jaxnc.loop.triggers import petc_gap
 
 __all__ = [
     "FilterRecord", "estimator_pass", "trajectory_inputs", "mecanum_pass", "Bounds", "measure_bounds", "worst_case",
@@ -144,7 +145,7 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
         if trigger is None:
             g = jnp.ones((), bool)
         else:
-            g = (k == 0) | (trigger.fires(z_last, z) > 0.5)
+            g = (k == 0) | (petc_gap(z_last, z, trigger.sigma, trigger.delta, trigger.reading) > 0)
         sent = slow_k & g
         z_last = jnp.where(sent, z, z_last)
         corrected, H, M, K = _correction(model, belief, z, R)

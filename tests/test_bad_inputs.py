@@ -187,7 +187,7 @@ PYTHON_API = [
     (lambda: _loop(estimator=None), "Loop.estimator must be an estimator"),
     (lambda: _loop(controller=lambda x: x), "Loop.controller must be a controller"),
     (lambda: _loop(cost=3.0), "Loop.cost must be a function"),
-    (lambda: _loop(monitor=[1.0]), "Loop.monitor must be a jaxnc.loop.Monitor"),
+    (lambda: _loop(monitor=[1.0]), "Loop.monitor must be a monitor (a jaxnc.loop.AbstractMonitor"),
     (lambda: _loop(controller=nc.StateFeedback(K=[[1.0, 0.0, 0.0]])), "Loop.controller.K has shape (1, 3)"),
     (lambda: _loop(N=2.0, steps=10), "Loop.N must be an integer"),
     (lambda: _loop(N=2, steps=7), "Loop.steps must be a multiple of N=2"),
