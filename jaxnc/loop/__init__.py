@@ -16,6 +16,7 @@ from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDela
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
                               truncated_exponential)
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
+from jaxnc.loop.roundtrip import RoundTrip
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
@@ -33,4 +34,5 @@ __all__ = [
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
+    "RoundTrip",
 ]
