@@ -1,11 +1,12 @@
-"""The one runner against the hand-written loop it replaced: seed-000 DRHE, same run.
+"""The one runner's throughput and compile time on seed-000 DRHE (N = 10, DP = 0.5).
 
 Run:  .venv/bin/python benchmarks/bench_runner.py [--batches 1000 10000] [--cpu-devices 2]
 
-The former hand-written Mecanum loop is kept as tests/legacy/mecanum_legacy.py; both run
-through montecarlo.run_batched with the configuration as a runtime argument, interleaved
-(legacy, runner, legacy, runner: best of the repeats), so machine load hits both. Prints
-a table and appends it to benchmarks/RESULTS.md.
+The loop runs through montecarlo.run_batched with the configuration as a runtime
+argument (best of the repeats). To compare against another version of the code in the
+same conditions, run this script in a checkout of that version right after (the
+hand-written loop it was first compared with is retired). Prints a table and appends it
+to benchmarks/RESULTS.md.
 """
 from __future__ import annotations
 
@@ -24,11 +25,6 @@ from _record import record  # noqa: E402
 from jaxnc import montecarlo  # noqa: E402
 from jaxnc.report import markdown_table  # noqa: E402
 from jaxnc.schemes import mecanum as runner_impl  # noqa: E402
-from tests.legacy import mecanum_legacy as legacy_impl  # noqa: E402
-
-
-def _legacy_seed(key, loop):
-    return legacy_impl.run(loop, key)
 
 
 def _runner_seed(key, loop):
@@ -36,8 +32,7 @@ def _runner_seed(key, loop):
 
 
 def bench(batches, repeat, case="DRHE", N=10, dp=0.5):
-    impls = {"hand-written (legacy)": (legacy_impl.mecanum_loop(case, N, dp), _legacy_seed),
-             "runner (jaxnc.loop)": (runner_impl.mecanum_loop(case, N, dp), _runner_seed)}
+    impls = {"runner (jaxnc.loop)": (runner_impl.mecanum_loop(case, N, dp), _runner_seed)}
     rows, rates = [], {}
     for B in batches:
         keys = montecarlo.seed_keys(0, B)
@@ -57,8 +52,6 @@ def bench(batches, repeat, case="DRHE", N=10, dp=0.5):
             rates[(name, B)] = B * steps / best[name]
             rows.append([f"{case} N={N} DP={dp}, {name}", B, f"{max(first[name] - best[name], 0):.1f}",
                          f"{best[name]:.2f}", f"{rates[(name, B)]:,.0f}"])
-        ratio = rates[("runner (jaxnc.loop)", B)] / rates[("hand-written (legacy)", B)]
-        rows.append([f"runner / hand-written at B={B}", "", "", "", f"{ratio:.3f}x"])
     return markdown_table(["closed loop (Lissajous)", "seeds", "compile s", "run s", "seed-steps/s"], rows)
 
 
@@ -74,8 +67,7 @@ def main():
     table = bench(a.batches, a.repeat)
     print(table)
     if not a.no_record:
-        record(HERE / "RESULTS.md", [table], note="Same run, interleaved: the runner's rebuilt DRHE loop against "
-                                                  "the hand-written one it replaced (tests/legacy).")
+        record(HERE / "RESULTS.md", [table], note="The runner's seed-000 DRHE loop (runner's own draws).")
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateK
                                   measurement_at, slow_system)
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
+from jaxnc.loop.roundtrip import RoundTrip
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
@@ -62,4 +63,5 @@ __all__ = [
     "DirtyDerivative", "DirtyDerivativeState",
     "ArrivalHold",
     "LeadFeedback",
+    "RoundTrip",
 ]

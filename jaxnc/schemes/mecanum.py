@@ -5,7 +5,7 @@ Roles: the true robot with the path monitor (:class:`Robot`), the sensor's trigg
 (:func:`sensor_trigger`), an uplink with losses only, the remote NUDREKF
 (:class:`~jaxnc.estimators.nudrekf.NudrekfEstimator`) and controller
 (:class:`~jaxnc.estimators.nudrekf.ChainController`), a downlink with losses and the lumped
-round-trip delay (:class:`RoundTrip`), and the actuator
+round-trip delay (:class:`~jaxnc.loop.RoundTrip`), and the actuator
 (:class:`~jaxnc.estimators.nudrekf.ChainActuator`), whose packets are prediction chains.
 
 Timing (fast period T, slow period NT, k the slow index, t = kN the fast instant):
@@ -32,9 +32,11 @@ Cases (section 4.1):
 * DRH  dual rate + h-step prediction: h*N actions per packet;
 * DRHE DRH + PETC at the sensor (eq. 4).
 
-The network draws (losses, delays) and the noises are drawn up front from the key,
-per fast instant, so that every case sees the same realisation at the same time
-(common random numbers), whatever N.
+The network draws (losses, delays) and the noises are the runner's
+(:func:`jaxnc.loop.draw`: one stream per purpose from the key, drawn up front): the
+noises scaled by the robot's ``process_std`` / ``measurement_std``, the losses and
+delays from the links' models. The four cases of one N therefore meet the same
+realisation (common random numbers); runs at different N draw different ones.
 
 A run is *unstable* when the robot leaves a tube of ``max_dev`` (0.5 m) around the
 path, a state becomes non-finite, or it has not reached the end of the path within
@@ -58,13 +60,12 @@ from jaxnc.estimators.nudrekf import (ChainActuator, ChainController, NudrekfEst
                                      belief_means)
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2, local_distance
-from jaxnc.loop import AbstractDelay, AbstractPlant, Bernoulli, Link, LinkDraws, Loop, Monitor, Petc, Record
-from jaxnc.loop import Draws as LoopDraws
+from jaxnc.loop import (AbstractPlant, Bernoulli, Link, Loop, Monitor, Petc, Record, RoundTrip,
+                        ShiftedExponential)
 from jaxnc.loop import simulate as run_loop
-from jaxnc.network import Channel, late, quantise_delay
+from jaxnc.network import Channel
 from jaxnc.paths import Path, closest_index, get_path
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
-from jaxnc.rows import exponential_rows, normal_rows, uniform_rows
 
 CASES = ("SR", "DR", "DRH", "DRHE")
 
@@ -286,46 +287,16 @@ def ekf_structure(plant: Mecanum) -> EKFStructure:
     return _STRUCTURES[key]
 
 
-class Draws(NamedTuple):
-    """Exogenous randomness of one run (common random numbers). The draws are defined per
-    fast instant, so that every N meets the same realisation at the same time; those used
-    only at slow instants are kept at the slow instants alone (``every`` = N, rows 0, N, 2N,
-    ...: :mod:`jaxnc.rows` computes exactly those rows of the per-fast-instant draw)."""
-
-    w: jax.Array         # [K, 7] process noise n1
-    v: jax.Array         # [K/every, 9] measurement noise n2
-    sc_u: jax.Array      # [K/every] uniforms: sensor packet lost when < p_sc
-    ca_u: jax.Array      # [K/every] uniforms: actuator packet lost when < p_ca
-    delay_e: jax.Array   # [K/every] Exponential(1) draws: ca delay = eta + phi * e
-    delay_sc_e: jax.Array  # [K/every] independent Exponential(1) draws for the sc delay
-
-
-def draw(key, steps: int, every: int = 1) -> Draws:
-    """All random draws of a run, split per purpose from one key; the slow-instant ones
-    (all but ``w``) at every ``every``-th fast instant, bit for bit the rows of the
-    per-fast-instant draw (``every=1``)."""
-    kw, kv, ks, kc, kd = jax.random.split(key, 5)
-    return Draws(
-        w=jax.random.normal(kw, (steps, PROCESS_NOISE_DIM)),
-        v=normal_rows(kv, (steps, OUTPUT_DIM), every),
-        sc_u=uniform_rows(ks, (steps,), every),
-        ca_u=uniform_rows(kc, (steps,), every),
-        delay_e=exponential_rows(kd, (steps,), every),
-        # its own stream, folded in so that adding it left the other streams unchanged
-        delay_sc_e=exponential_rows(jax.random.fold_in(key, 101), (steps,), every))
-
-
 class Trajectory(NamedTuple):
     """Per fast instant: true state, estimate (remote belief), applied action;
-    per slow instant: sent / received / delivered flags; and run summaries."""
+    per slow instant: sent / received flags; and run summaries."""
 
     x: jax.Array          # [K, 6]
     mean: jax.Array       # [K, 6]
     u: jax.Array          # [K, 4]
     dist: jax.Array       # [K] distance to the path (robot's own branch, metrics.local_distance)
     sent: jax.Array       # [K/N] sensor transmissions (beta)
-    received: jax.Array   # [K/N] sensor packet reached the controller
-    delivered: jax.Array  # [K/N] control packet reached the actuator
+    received: jax.Array   # [K/N] sensor packet reached the controller (a control packet was sent)
     l: jax.Array          # fast steps until the path was completed (K if never)
     done: jax.Array       # bool: path completed
     bad: jax.Array        # bool: left the tube or non-finite
@@ -358,7 +329,9 @@ class Robot(AbstractPlant):
     step, the monitor advances the robot's progress along the path (``closest_index`` in a
     window of TRACK_WINDOW points), its distance to the path, completion (within ``end_tol``
     of the end, past 90 % of the points; ``l`` = the steps taken until then) and ``bad``
-    (left the ``max_dev`` tube before completion, or a non-finite state).
+    (left the ``max_dev`` tube before completion, or a non-finite state). ``noise`` is the
+    true process (n1, 7) and measurement (n2, 9) noise: the runner scales its standard
+    normal draws by :meth:`process_std` and :meth:`measurement_std`.
     """
 
     truth: Any
@@ -366,12 +339,18 @@ class Robot(AbstractPlant):
     x0: Any               # float[6], the start pose on the path, at rest
     max_dev: Any
     end_tol: Any
+    noise: MecanumNoise
     steps: int = dataclasses.field(default=1, metadata=dict(static=True))
-    # False: ``record`` gives the distance to the path only (what the metrics need)
     state_dim = STATE_DIM
     input_dim = INPUT_DIM
     noise_dim = PROCESS_NOISE_DIM
     output_dim = OUTPUT_DIM
+
+    def process_std(self):
+        return self.noise.process_std()
+
+    def measurement_std(self):
+        return self.noise.measurement_std()
 
     def init(self, key) -> RobotState:
         s0 = self.truth.init(key, self.x0)
@@ -414,31 +393,6 @@ def robot_dist(robot: Robot, x: RobotState):
     return x.track.dist
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class RoundTrip(AbstractDelay):
-    """The round-trip delay lumped on the controller -> actuator direction (eq. 6-7): the
-    sum of the two directions' shifted exponentials, (eta_ca + phi_ca e1) + (eta_sc + phi_sc
-    e2) seconds, quantised up to the fast period (a delay model of :class:`jaxnc.loop.Link`)."""
-
-    ca: Channel
-    sc: Channel
-
-    def seconds(self, e_ca, e_sc):
-        return (self.ca.eta + self.ca.phi * e_ca) + (self.sc.eta + self.sc.phi * e_sc)
-
-    def bounds(self, T):
-        try:
-            return int(quantise_delay(float(self.ca.eta) + float(self.sc.eta), T)), None
-        except TypeError:                                   # traced
-            return 0, None
-
-    def sample(self, key, n: int, T):
-        k1, k2 = jax.random.split(key)
-        tau = self.seconds(jax.random.exponential(k1, (n,)), jax.random.exponential(k2, (n,)))
-        return quantise_delay(tau, T), tau
-
-
 def sensor_trigger(loop: MecanumLoop) -> Petc:
     """The sensor of section 4.1: PETC (eq. 3-4) with the optional safety condition
     ``max_silence`` in DRHE; every other case sends at every slow instant (max_silence 1).
@@ -454,7 +408,7 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
     lumped downstream), first exchange delivered; remote side
     :class:`~jaxnc.estimators.nudrekf.NudrekfEstimator` and
     :class:`~jaxnc.estimators.nudrekf.ChainController`; downlink: Bernoulli(p_ca) loss,
-    :class:`RoundTrip` delay, packets later than ``tau_max`` discarded, first exchange
+    :class:`~jaxnc.loop.RoundTrip` delay, packets later than ``tau_max`` discarded, first exchange
     delivered; actuator :class:`~jaxnc.estimators.nudrekf.ChainActuator` (h*N actions held
     by the prediction chain, the last one held beyond). Plant :class:`Robot`."""
     plant, fol, N, K = loop.plant, loop.follower, loop.N, loop.steps
@@ -468,44 +422,24 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
         mean0=x0, cov0=jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2),
         noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure)
     return Loop(
-        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, steps=K),
+        plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, loop.noise, steps=K),
         trigger=sensor_trigger(loop),
         uplink=Link(loss=Bernoulli(loop.sc.p_loss), reliable_first=True, capacity=1),
         estimator=estimator,
         controller=ChainController(plant, fol, Ts),
-        downlink=Link(loss=Bernoulli(loop.ca.p_loss), delay=RoundTrip(loop.ca, loop.sc), tau_max=loop.tau_max,
+        downlink=Link(loss=Bernoulli(loop.ca.p_loss), delay=RoundTrip(ShiftedExponential(loop.ca.eta, loop.ca.phi),
+                                                                      ShiftedExponential(loop.sc.eta, loop.sc.phi)),
+                      tau_max=loop.tau_max,
                       reliable_first=True, capacity=2),
         actuator=ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM),
         monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T),
         record=Record(plant=robot_track, estimator=belief_means) if full else
-        Record(signals=("sent_sc", "xhat"), plant=robot_dist, estimator=belief_finite))
-
-
-def runner_draws(loop: MecanumLoop, key) -> LoopDraws:
-    """The runner's draws of one run, bit for bit those of the hand-written loop: the
-    streams of :func:`draw` (``split(key, 5)`` and ``fold_in(key, 101)``) scaled by the true
-    noise, the losses and delays encoded per slow instant (-1: lost or later than tau_max;
-    a delay of N or more arrives at the next slow instant), and ``fold_in(key, 202)`` for
-    the true plant's initial state."""
-    K, N, T = loop.steps, loop.N, loop.plant.T
-    S = K // N
-    d = draw(key, K, N)
-    w = (d.w * loop.noise.process_std()[None, :]).reshape(S, N, PROCESS_NOISE_DIM)
-    v = d.v * loop.noise.measurement_std()[None, :]
-    first = jnp.arange(S) == 0
-    sc_lost = (d.sc_u < loop.sc.p_loss) & ~first
-    ca_lost = (d.ca_u < loop.ca.p_loss) & ~first
-    tau = RoundTrip(loop.ca, loop.sc).seconds(d.delay_e, d.delay_sc_e)
-    too_late = late(tau, loop.tau_max) & ~first
-    dsteps = jnp.minimum(quantise_delay(tau, T), N)
-    return LoopDraws(w, v, LinkDraws(jnp.where(sc_lost, -1, 0).astype(jnp.int32)),
-                     LinkDraws(jnp.where(ca_lost | too_late, -1, dsteps).astype(jnp.int32)),
-                     jax.random.fold_in(key, 202))
+        Record(signals=("sent_sc", "recv_sc"), plant=robot_dist, estimator=belief_finite))
 
 
 def simulate(loop: MecanumLoop, key, full: bool = True) -> Trajectory:
     """One closed-loop run of ``loop.case``: :func:`build_loop` run by :func:`jaxnc.loop.simulate`
-    on :func:`runner_draws`. Pure function of (loop, key); vmap it over keys. ``full=False``
+    on the runner's own draws. Pure function of (loop, key); vmap it over keys. ``full=False``
     records only what the metrics need (``x``, ``mean`` and ``u`` come back empty; the
     rest is bit for bit the same).
 
@@ -521,10 +455,7 @@ def simulate(loop: MecanumLoop, key, full: bool = True) -> Trajectory:
 def _simulate(loop: MecanumLoop, key, full: bool) -> Trajectory:
     """:func:`simulate`; ``full=False`` leaves x, mean and u empty (:func:`build_loop`)."""
     K, N = loop.steps, loop.N
-    draws = runner_draws(loop, key)
-    tr = run_loop(build_loop(loop, full), key, draws=draws)
-    received = tr.xhat.weight
-    delivered = received * (draws.downlink.delay >= 0).astype(received.dtype)
+    tr = run_loop(build_loop(loop, full), key)
     end = tr.final_plant.track
     if full:
         track = tr.parts["plant"]
@@ -536,8 +467,8 @@ def _simulate(loop: MecanumLoop, key, full: bool) -> Trajectory:
         finite = jnp.all(tr.parts["estimator"])
         dist = tr.parts["plant"]
     bad = end.bad | ~finite | tr.failed
-    return Trajectory(x=x, mean=mean, u=u, dist=dist, sent=tr.sent_sc, received=received,
-                      delivered=delivered, l=end.l, done=end.done, bad=bad)
+    return Trajectory(x=x, mean=mean, u=u, dist=dist, sent=tr.sent_sc, received=tr.recv_sc,
+                      l=end.l, done=end.done, bad=bad)
 
 
 class Metrics(NamedTuple):

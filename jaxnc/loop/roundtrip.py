@@ -1,0 +1,63 @@
+"""A round-trip delay lumped on one direction of the loop.
+
+When the sensor-to-controller delay is not modelled on the uplink (the controller runs as
+soon as a measurement arrives, seed 000 section 2.3), the delay that matters to the
+actuator is the sum of both directions' delays (seed 000 eq. 6-7): :class:`RoundTrip`
+draws each direction from its own delay model, adds the seconds and quantises the sum up
+to whole fast periods (:func:`jaxnc.network.quantise_delay`), as one delay model of a
+:class:`~jaxnc.loop.Link`.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+
+from jaxnc._validate import check_instance
+from jaxnc.loop.base import AbstractDelay
+from jaxnc.loop.base import pytree_dataclass as _dataclass
+from jaxnc.network import quantise_delay
+
+__all__ = ["RoundTrip"]
+
+
+@_dataclass
+class RoundTrip(AbstractDelay):
+    """tau = tau_forward + tau_back seconds, quantised up to the fast period.
+
+    Args:
+      forward: the delay model of the direction the link carries (e.g. controller ->
+        actuator, :class:`~jaxnc.loop.ShiftedExponential`, seed 000 eq. 7).
+      back: the delay model of the other direction (sensor -> controller), drawn
+        independently.
+
+    ``sample(key, n, T)`` returns ``(steps int32[n], seconds float32[n])`` with
+    ``seconds = forward_seconds + back_seconds`` and ``steps = ceil(seconds / T)``; the
+    two directions use ``split(key)``'s two keys.
+
+    Raises:
+      ValueError: when ``forward`` or ``back`` is not a delay model.
+    """
+
+    forward: Any
+    back: Any
+
+    def __post_init__(self):
+        check_instance("RoundTrip.forward", self.forward, AbstractDelay, "a delay model (AbstractDelay)")
+        check_instance("RoundTrip.back", self.back, AbstractDelay, "a delay model (AbstractDelay)")
+
+    def bounds(self, T):
+        """(lo, hi) in fast periods: ceil(a + b) >= ceil(a) + ceil(b) - 1 gives the
+        lower bound; the upper bound is the sum of the parts' (None if either is)."""
+        lo_f, hi_f = self.forward.bounds(T)
+        lo_b, hi_b = self.back.bounds(T)
+        lo = max(lo_f, lo_b, lo_f + lo_b - 1, 0)
+        hi = None if hi_f is None or hi_b is None else hi_f + hi_b
+        return lo, hi
+
+    def sample(self, key, n: int, T):
+        kf, kb = jax.random.split(key)
+        _, sf = self.forward.sample(kf, n, T)
+        _, sb = self.back.sample(kb, n, T)
+        tau = sf + sb
+        return quantise_delay(tau, T), tau
