@@ -108,3 +108,19 @@ def test_a_late_measurement_is_not_used():
 def test_bad_observers_name_the_field(build, field):
     with pytest.raises(ValueError, match=field):
         build()
+
+
+def test_the_ukf_has_the_ekfs_window_of_late_measurements():
+    """UKF(buffer=3) is the EKF part with form="unscented": on a linear plant with
+    measurements up to 3 periods late it equals the EKF with the same window (the unscented
+    transform is exact for a linear model), and both differ from the filters without the
+    window (which drop the late measurements)."""
+    plant = _plant()
+    est = dict(Q=np.eye(2) * 1e-3, R=np.eye(1) * 0.01, mean0=np.zeros(2), cov0=np.eye(2))
+    up = nc.Link(nc.Bernoulli(0.2), nc.PmfDelay([0.4, 0.3, 0.3]), order="all", capacity=4)
+    def xhat(e):
+        return np.asarray(jax.jit(nc.simulate)(_loop(e, 1, uplink=up), jax.random.PRNGKey(7)).xhat)
+    u3, e3 = xhat(nc.UKF(plant, buffer=3, **est)), xhat(nc.EKF(plant, buffer=3, **est))
+    u0 = xhat(nc.UKF(plant, **est))
+    np.testing.assert_allclose(u3, e3, rtol=2e-4, atol=2e-5)
+    assert np.max(np.abs(u3 - u0)) > 1e-3

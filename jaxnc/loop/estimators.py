@@ -24,6 +24,7 @@ import numpy as np
 
 from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, fields_concrete
 from jaxnc.estimators.ekf import Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_sqrt
+from jaxnc.estimators.ukf import ukf_predict, ukf_update
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -62,7 +63,11 @@ class EKF(AbstractEstimator):
         by QR: :func:`~jaxnc.estimators.ekf.ekf_update_sqrt`; positive semi-definite in
         float32 also with zero process noise and very precise measurements, where the Joseph
         form can lose definiteness; the state's Gaussians are then
-        :class:`~jaxnc.estimators.ekf.SqrtGaussian`).
+        :class:`~jaxnc.estimators.ekf.SqrtGaussian`) or ``"unscented"`` (the unscented
+        Kalman filter: :func:`~jaxnc.estimators.ukf.ukf_predict` and
+        :func:`~jaxnc.estimators.ukf.ukf_update` with Merwe's sigma points, the same window
+        of late measurements; :func:`jaxnc.loop.UKF` builds it).
+      sigma_points: static (alpha, beta, kappa) of the unscented form's sigma points.
     """
 
     model: Any
@@ -73,6 +78,7 @@ class EKF(AbstractEstimator):
     buffer: int = _static(0)
     inputs: str = _static("believed")
     form: str = _static("joseph")
+    sigma_points: tuple = _static((1.0, 2.0, 0.0))
 
     def __post_init__(self):
         check_instance("EKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
@@ -83,8 +89,12 @@ class EKF(AbstractEstimator):
         check_int("EKF.buffer", self.buffer, 0, 10_000)
         if self.inputs not in ("believed", "applied"):
             raise ValueError(f"EKF.inputs must be one of believed, applied, got {self.inputs!r}")
-        if self.form not in ("joseph", "sqrt"):
-            raise ValueError(f"EKF.form must be one of joseph, sqrt, got {self.form!r}")
+        if self.form not in ("joseph", "sqrt", "unscented"):
+            raise ValueError(f"EKF.form must be one of joseph, sqrt, unscented, got {self.form!r}")
+        sp = self.sigma_points
+        if not (isinstance(sp, tuple) and len(sp) == 3 and all(isinstance(v, (int, float)) for v in sp)
+                and np.all(np.isfinite(sp)) and sp[0] > 0):
+            raise ValueError(f"EKF.sigma_points must be (alpha > 0, beta, kappa), three numbers, got {sp!r}")
         if not fields_concrete(self):
             return
         n, q, p = self.model.state_dim, self.model.noise_dim, self.model.output_dim
@@ -128,8 +138,13 @@ class EKF(AbstractEstimator):
         u = jnp.zeros((self.buffer, ctx.N, ctx.input_dim), jnp.float32)
         return EKFState(g, u, g, g)
 
+    def _sigma(self):
+        return dict(zip(("alpha", "beta", "kappa"), self.sigma_points))
+
     def _predict_period(self, g: Gaussian, us):
         def body(g, u):
+            if self.form == "unscented":
+                return ukf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim, **self._sigma()), None
             predict = ekf_predict_sqrt if self.form == "sqrt" else ekf_predict
             return predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
         g, _ = jax.lax.scan(body, g, us)
@@ -143,6 +158,9 @@ class EKF(AbstractEstimator):
         ok = (inbox.stamp[slot] == stamp) & inbox.arrived[slot] & (stamp >= 0)
         w = jnp.where(ok, inbox.weight[slot], 0.0)
         z = jax.tree.map(lambda a: a[slot], inbox.data)
+        if self.form == "unscented":
+            post = ukf_update(self.model.measure, g, z, self.R, self.model.output_dim, **self._sigma())
+            return blend(w, post, g)
         update = ekf_update_sqrt if self.form == "sqrt" else ekf_update
         return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
 

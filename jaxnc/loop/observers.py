@@ -25,10 +25,9 @@ period h = N T):
   measurement at every instant it is the limit of the time-varying Kalman filter
   (:class:`~jaxnc.loop.EKF` on the same LTI model), and equal to it from the start when
   that filter starts at ``cov0 = P``.
-* :class:`UKF`: the unscented Kalman filter of :mod:`jaxnc.estimators.ukf`
-  (:func:`~jaxnc.estimators.ukf.ukf_update` at the slow instant, then
-  :func:`~jaxnc.estimators.ukf.ukf_predict` at every fast period of the slow period), on
-  any plant model.
+* :func:`UKF`: the unscented Kalman filter of :mod:`jaxnc.estimators.ukf`, built as the
+  :class:`~jaxnc.loop.EKF` part with ``form="unscented"`` (so with its window of late
+  measurements), on any plant model.
 """
 from __future__ import annotations
 
@@ -41,13 +40,13 @@ import numpy as np
 from jaxnc._validate import array_fields, check_finite, check_given, check_instance, fields_concrete
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import dlqe, luenberger_step
-from jaxnc.estimators.ukf import ukf_predict, ukf_update
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
+from jaxnc.loop.estimators import EKF
 from jaxnc.loop.plants import LTI
 
-__all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF", "UKFState",
+__all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF",
            "measurement_at", "slow_system"]
 
 
@@ -248,76 +247,37 @@ class SteadyStateKF(AbstractEstimator):
         return state._replace(mean=A_N @ state.mean + B_N @ us.reshape(-1), t=state.t + us.shape[0])
 
 
-class UKFState(NamedTuple):
-    """The belief (prior before the correction at k, posterior after it) and t = kN."""
+def UKF(model, Q, R, mean0, cov0, alpha=1.0, beta=2.0, kappa=0.0, *, buffer: int = 0,
+        inputs: str = "believed") -> EKF:
+    """The unscented Kalman filter with intermittent, time-stamped measurements: the
+    :class:`~jaxnc.loop.EKF` part with ``form="unscented"`` (Merwe's sigma points,
+    :func:`~jaxnc.estimators.ukf.ukf_predict` every fast period and
+    :func:`~jaxnc.estimators.ukf.ukf_update` at the slow instants), so it has the EKF's window
+    of ``buffer`` slow periods of late measurements too.
 
-    belief: Gaussian
-    t: jax.Array
+    Args: model (an :class:`~jaxnc.loop.base.AbstractPlant`), Q float[q, q] or float[q], R
+    float[p, p], mean0 float[n], cov0 float[n, n] (positive definite: the sigma points use
+    its Cholesky factor); alpha > 0, beta, kappa (static numbers); buffer, inputs as the EKF's.
 
-
-@_dataclass
-class UKF(AbstractEstimator):
-    """Unscented Kalman filter with intermittent measurements (module docstring).
-
-    Attributes:
-      model: an :class:`~jaxnc.loop.base.AbstractPlant` (its ``dynamics`` and ``measure``).
-      Q: float[q, q] or float[q], covariance of w per fast period; R: float[p, p], of v.
-      mean0: float[n]; cov0: float[n, n] (positive definite), the prior at t = 0.
-      alpha, beta, kappa: the Merwe sigma points' parameters
-        (:func:`~jaxnc.estimators.ukf.merwe_sigma_points`).
-      inputs: static, ``"believed"`` or ``"applied"``.
-
-    Raises: ValueError naming the field for a model that is not a plant, Q, R, mean0 or
-    cov0 of the wrong shape, Q not PSD, R or cov0 not PD, or an unknown ``inputs``.
+    Raises: ValueError naming the field (``UKF.cov0`` not positive definite, ``UKF.inputs``,
+    ``UKF.alpha``..., and the EKF's own checks).
     """
-
-    model: Any
-    Q: Any
-    R: Any
-    mean0: Any
-    cov0: Any
-    alpha: Any = 1.0
-    beta: Any = 2.0
-    kappa: Any = 0.0
-    inputs: str = _static("believed")
-
-    def __post_init__(self):
-        check_instance("UKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
-        _check_inputs("UKF", self.inputs)
-        for n in ("alpha", "beta", "kappa"):
-            check_given(f"UKF.{n}", getattr(self, n))
-            check_finite(f"UKF.{n}", getattr(self, n))
-        array_fields(self, "Q", "R", "mean0", "cov0")
-        _check_covariances("UKF", self.model, self.Q, self.R)
-        n = self.model.state_dim
-        _check_vector("UKF", "mean0", self.mean0, n)
-        check_given("UKF.cov0", self.cov0)
-        check_finite("UKF.cov0", self.cov0)
-        if not isinstance(self.cov0, jax.Array):
-            P0 = np.asarray(self.cov0, float)
-            if P0.shape != (n, n):
-                raise ValueError(f"UKF.cov0 must be {n}x{n}, got shape {P0.shape}")
-            if not np.allclose(P0, P0.T) or np.linalg.eigvalsh((P0 + P0.T) / 2).min() <= 0:
-                raise ValueError("UKF.cov0 must be symmetric positive definite")
-
-    def _kw(self):
-        return dict(alpha=self.alpha, beta=self.beta, kappa=self.kappa)
-
-    def init(self, ctx) -> UKFState:
-        g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
-        return UKFState(g, jnp.zeros((), jnp.int32))
-
-    def correct(self, state: UKFState, inbox: Inbox, k):
-        z, gamma = measurement_at(inbox, state.t)
-        post = ukf_update(self.model.measure, state.belief, jnp.asarray(z, jnp.float32), self.R,
-                          self.model.output_dim, **self._kw())
-        g = blend(gamma, post, state.belief)
-        return state._replace(belief=g), g.mean
-
-    def predict(self, state: UKFState, u_applied, u_believed, k) -> UKFState:
-        us = u_believed if self.inputs == "believed" else u_applied
-
-        def body(g, u):
-            return ukf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim, **self._kw()), None
-        g, _ = jax.lax.scan(body, state.belief, us)
-        return UKFState(g, state.t + us.shape[0])
+    _check_inputs("UKF", inputs)
+    for n, v in (("alpha", alpha), ("beta", beta), ("kappa", kappa)):
+        check_given(f"UKF.{n}", v)
+        check_finite(f"UKF.{n}", v)
+        if np.ndim(v) != 0:
+            raise ValueError(f"UKF.{n} must be a single number, got shape {np.shape(v)}")
+    if float(alpha) <= 0:
+        raise ValueError(f"UKF.alpha must be > 0, got {float(alpha):g}")
+    check_given("UKF.cov0", cov0)
+    check_finite("UKF.cov0", cov0)
+    if not isinstance(cov0, jax.Array):
+        P0 = np.asarray(cov0, float)
+        n = model.state_dim
+        if P0.shape != (n, n):
+            raise ValueError(f"UKF.cov0 must be {n}x{n}, got shape {P0.shape}")
+        if not np.allclose(P0, P0.T) or np.linalg.eigvalsh((P0 + P0.T) / 2).min() <= 0:
+            raise ValueError("UKF.cov0 must be symmetric positive definite")
+    return EKF(model, Q, R, mean0, cov0, buffer=buffer, inputs=inputs, form="unscented",
+               sigma_points=(float(alpha), float(beta), float(kappa)))
