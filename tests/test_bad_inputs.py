@@ -428,3 +428,118 @@ def test_files_and_memory_api_errors_name_the_parameter(call, fragment, eight_gi
 
 def test_the_files_battery_has_at_least_25_cases():
     assert len(CLI_FILES) + len(RESULTS_FOLDERS) + len(FILES_API) >= 25
+
+
+# ----------------------------------------------------------------------------- parts that do not fit each other
+# The Loop's shape contract (issue 33): refused when the Loop is built, naming the part,
+# the field and both sizes; none reaches a JAX error inside tracing or a wrong run.
+
+_FIT_PLANT = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.1)      # n = 2, m = 1, p = 1
+_FIT_EKF = nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))
+
+
+def _fit_loop(**kw):
+    base = dict(plant=_FIT_PLANT, trigger=nc.Periodic(), uplink=nc.Link(), estimator=_FIT_EKF,
+                controller=nc.StateFeedback(K=[[1.0, 0.5]]), downlink=nc.Link(), actuator=nc.HoldLast(), T=0.1)
+    return nc.Loop(**{**base, **kw})
+
+
+def _fit_f_int(x, u, w):
+    return (x > 0).astype(jnp.int32)
+
+
+def _fit_f_tuple(x, u, w):
+    return x, x
+
+
+def _fit_f_complex(x, u, w):
+    return x * (1 + 1j)
+
+
+def _fit_h_half(x, v):
+    return (x[:1] + v).astype(jnp.float16)
+
+
+def _fit_f(x, u, w):
+    return x + w
+
+
+def _fit_h(x, v):
+    return x[:1] + v
+
+
+def _fit_discrete(**kw):
+    return nc.Discrete(**{**dict(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_fit_f, h=_fit_h, input_dim=1, noise_dim=2,
+                                 output_dim=1), **kw})
+
+
+_FIT_MODEL3 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=np.eye(2), T=0.1)       # two outputs
+
+
+def _fit_cost_vector(x, u):
+    return jnp.sum(x, axis=0)
+
+
+LOOP_FIT = [
+    # an EKF re-running its window on a ring too short for it
+    (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=2),
+                   uplink=nc.Link(capacity=2)), "EKF.buffer=2 re-runs 2 slow periods"),
+    # a minimum delay that outlives the ring (no tau_max)
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.5), capacity=2)),
+     "Loop.uplink.capacity must be >= 6: every packet is delayed at least 5"),
+    # vectors longer than the signal they apply to
+    (lambda: _fit_loop(trigger=nc.Petc(sigma=[0.1, 0.1, 0.1])), "Loop.trigger.sigma has shape (3,)"),
+    (lambda: _fit_loop(trigger=nc.Petc(delta=[0.1, 0.1], reading="each")), "Loop.trigger.delta has shape (2,)"),
+    (lambda: _fit_loop(controller_trigger=nc.Petc(sigma=[0.1, 0.2])), "Loop.controller_trigger.sigma has shape (2,)"),
+    # the loop's period and the plant's
+    (lambda: _fit_loop(T=0.05), "Loop.T (0.05 s) must equal the plant's step period (LTI.step_period = 0.1 s)"),
+    (lambda: _fit_loop(plant=nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_fit_f, h=_fit_h, input_dim=1, noise_dim=2,
+                                       output_dim=1, T=0.02)), "must equal the plant's step period"),
+    # a state that is not a vector, dynamics of the wrong type
+    (lambda: _fit_discrete(x0=[[0.0], [1.0]]), "Discrete.x0 must be a vector"),
+    (lambda: _fit_discrete(f=_fit_f_int), "f(x, u, w) must return float32 values"),
+    (lambda: _fit_discrete(f=_fit_f_tuple), "f(x, u, w) must return one array"),
+    (lambda: _fit_discrete(f=_fit_f_complex), "f(x, u, w) must return float32 values"),
+    (lambda: _fit_discrete(h=_fit_h_half), "h(x, v) must return float32 values"),
+    # a cost that cannot be computed from what is recorded, or is not a scalar
+    (lambda: _fit_loop(cost=nc.Quadratic(Q=[1.0, 1.0], R=[0.1]), record=("u",)), "Loop.cost needs the signals x and u"),
+    (lambda: _fit_loop(cost=_fit_cost_vector), "Loop.cost must return a scalar"),
+    # sizes of the parts' fields against the loop's
+    (lambda: _fit_loop(monitor=nc.Monitor(bounds=[1.0, 1.0, 1.0])), "Loop.monitor.bounds has shape (3,)"),
+    (lambda: _fit_loop(cost=nc.Quadratic(Q=np.eye(3), R=[0.1])), "Loop.cost.Q has shape (3, 3)"),
+    (lambda: _fit_loop(cost=nc.Quadratic(Q=[1.0, 1.0], R=[0.1, 0.1])), "Loop.cost.R has shape (2,)"),
+    (lambda: _fit_loop(cost=nc.Quadratic(Q=[1.0, 1.0], R=[0.1], x_ref=[0.0, 0.0, 0.0])), "Loop.cost.x_ref has shape (3,)"),
+    (lambda: _fit_loop(controller=nc.StateFeedback(K=[[1.0, 0.5, 0.1]])), "Loop.controller.K has shape (1, 3)"),
+    (lambda: _fit_loop(controller=nc.StateFeedback(K=[[1.0, 0.5]], x_ref=[0.0, 0.0, 1.0])),
+     "Loop.controller.x_ref has shape (3,)"),
+    (lambda: _fit_loop(controller=nc.StateFeedback(K=[[1.0, 0.5]], u_min=[-1.0, -1.0])), "Loop.controller.u_min has shape (2,)"),
+    (lambda: _fit_loop(estimator=nc.Passthrough(z0=[0.0, 0.0]), controller=nc.StateFeedback(K=[[1.0]])),
+     "Loop.estimator.z0 has shape (2,)"),
+    # an estimator's model that does not take the plant's actions or give its measurements
+    (lambda: _fit_loop(estimator=nc.EKF(_FIT_MODEL3, Q=np.eye(2), R=np.eye(2), mean0=[0.0, 0.0], cov0=np.eye(2))),
+     "EKF.model takes 1 inputs and gives 2 outputs, the plant takes 1 and gives 1"),
+    # a predictive law for another state size
+    (lambda: _fit_loop(controller=nc.Predictive(nc.StateFeedback(K=[[1.0, 0.5, 0.2]]), _FIT_PLANT, horizon=2),
+                   actuator=nc.PacketActuator(horizon=2)), "Loop.controller cannot act on the estimator's estimate"),
+    # loss and delay parameters are single numbers
+    (lambda: nc.Bernoulli(p=[0.1, 0.2]), "Bernoulli.p must be a single number"),
+    (lambda: nc.ShiftedExponential(eta=[0.1, 0.2]), "ShiftedExponential.eta must be a single number"),
+    (lambda: nc.GilbertElliott(p_gb=[0.1, 0.1]), "GilbertElliott.p_gb must be a single number"),
+    (lambda: nc.TruncatedExponential(eta=0.0, phi=[0.1, 0.1], tau_max=0.5), "TruncatedExponential.phi must be a single"),
+    (lambda: nc.Link(tau_max=[0.1, 0.2]), "Link.tau_max must be a single number"),
+    (lambda: nc.Petc(max_silence=[1, 2]), "Petc.max_silence"),
+    # records
+    (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
+    (lambda: nc.Record(estimator=3), "Record.estimator must be"),
+]
+
+
+@pytest.mark.parametrize("call, fragment", LOOP_FIT)
+def test_parts_that_do_not_fit_are_refused_when_the_loop_is_built(call, fragment):
+    with pytest.raises(ValueError) as e:
+        call()
+    assert fragment in str(e.value), str(e.value)
+
+
+def test_the_loop_fit_battery_adds_at_least_30_cases():
+    assert len(LOOP_FIT) >= 30

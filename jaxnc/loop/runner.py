@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Any, ClassVar, NamedTuple
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -279,6 +280,11 @@ class Loop:
             if hi is not None and link.capacity < ring(hi):
                 raise ValueError(f"Loop.{name}.capacity must be >= {ring(hi)} for delays up to {hi} fast periods "
                                  f"with N={self.N}, got {link.capacity}")
+            if hi is None:              # allowed, and visible: the tail of an unbounded law is lost
+                warnings.warn(f"Loop.{name}: the delay model {type(link.delay).__name__} has no bound and the link "
+                              f"no tau_max, so a packet still in flight when its slot in the ring of {link.capacity} "
+                              f"is reused (delayed about {link.capacity - 1} slow periods or more) is lost; set "
+                              f"tau_max or a larger capacity to decide", UserWarning, stacklevel=3)
         if fields_concrete(self):
             self._check_dims()
 
