@@ -27,6 +27,8 @@ _EMPTY = -(2**30)
 
 
 class ActuatorState(NamedTuple):
+    """The state of a :class:`PacketActuator`: its buffered packets and the last action."""
+
     u: jax.Array         # float[B, H, m] actions of the buffered packets
     stamp: jax.Array     # int32[B] their stamps (_EMPTY: free slot)
     last: jax.Array      # float[m] the last action applied

@@ -27,6 +27,8 @@ _EMPTY = -(2**30)
 
 
 class ArrivalState(NamedTuple):
+    """The state of an :class:`ArrivalActuator`: the newest packet and when its actions started."""
+
     u: jax.Array         # float[H, m] the newest packet's actions
     stamp: jax.Array     # int32 its time stamp (the start of its period)
     start: jax.Array     # int32 fast instant its first action started (_EMPTY: none yet)

@@ -37,6 +37,8 @@ __all__ = ["Cascade", "CascadeState"]
 
 
 class CascadeState(NamedTuple):
+    """The state of a :class:`Cascade` controller: the law's states along the last cascade."""
+
     law: Any             # the law's states s_k .. s_{k+H} along the last cascade (leading axis H + 1)
     k_last: jax.Array    # int32: the instant of the last arrival
     aux: Any             # the law's aux output for the first action of the last cascade

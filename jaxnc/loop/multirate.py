@@ -42,6 +42,8 @@ class AbstractLiftedPlant(AbstractPlant):
 
 
 class PeriodEKFState(NamedTuple):
+    """The state of a :class:`PeriodEKF`: the belief before and after this instant's measurement."""
+
     prior: Gaussian     # belief at this slow instant before its measurement
     post: Gaussian      # corrected belief (the estimate)
 

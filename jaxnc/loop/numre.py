@@ -35,6 +35,8 @@ __all__ = ["Numre", "NumreState"]
 
 
 class NumreState(NamedTuple):
+    """The state of a :class:`Numre` filter: the estimate, its covariance and the last arrival."""
+
     mean: jax.Array      # float[n]: x(k|k) after a correction, else the prior x(k|k_lm) propagated
     cov: jax.Array       # float[n, n]: the posterior covariance at k_lm
     k_lm: jax.Array      # int32: the last instant a measurement arrived

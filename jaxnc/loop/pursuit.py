@@ -46,6 +46,8 @@ __all__ = ["PursuitPI", "PursuitState"]
 
 
 class PursuitState(NamedTuple):
+    """The state of a :class:`PursuitPI` controller: the PI, the path progress and the predicted actions."""
+
     pi: Any             # PI state: float[2, n] (single rate) or a DualRateState
     idx: jax.Array      # int32 path progress
     u_next: jax.Array   # float[ns, 2] the actions predicted for the next period (u_{k+1|k})

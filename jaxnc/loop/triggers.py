@@ -59,6 +59,8 @@ def petc_gap(last, s, sigma, delta, reading: str = "sum"):
 
 
 class PetcState(NamedTuple):
+    """The state of a :class:`Petc` trigger: the last value sent (zbar) and the silence since."""
+
     last: jax.Array      # zbar: the last value sent
     silent: jax.Array    # int32: slow instants since the last send
 

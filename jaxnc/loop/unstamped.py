@@ -30,6 +30,8 @@ __all__ = ["DirtyDerivative", "DirtyDerivativeState", "ArrivalHold"]
 
 
 class DirtyDerivativeState(NamedTuple):
+    """The state of a :class:`DirtyDerivative` estimator: the held measurement and its rate."""
+
     z: jax.Array        # float[p] the held measurement
     rate: jax.Array     # float[p] its (filtered) difference quotient
     held: jax.Array     # float 0/1: a measurement has arrived

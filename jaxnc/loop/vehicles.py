@@ -42,6 +42,8 @@ LIFTED_MODELS = ("integrated", "eq1")
 
 
 class DiffDriveState(NamedTuple):
+    """The state of a :class:`DiffDrive` plant: wheel speeds and pose, and the fine-step counter."""
+
     x: jax.Array        # float[5] (w_r, w_l, x, y, psi)
     t: jax.Array        # int32 fine steps taken
 
