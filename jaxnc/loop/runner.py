@@ -280,7 +280,7 @@ class Loop:
             if hi is not None and link.capacity < ring(hi):
                 raise ValueError(f"Loop.{name}.capacity must be >= {ring(hi)} for delays up to {hi} fast periods "
                                  f"with N={self.N}, got {link.capacity}")
-            if hi is None:              # allowed, and visible: the tail of an unbounded law is lost
+            if hi is None and link.tau_max is None:     # allowed, and visible: an unbounded law's tail is lost
                 warnings.warn(f"Loop.{name}: the delay model {type(link.delay).__name__} has no bound and the link "
                               f"no tau_max, so a packet still in flight when its slot in the ring of {link.capacity} "
                               f"is reused (delayed about {link.capacity - 1} slow periods or more) is lost; set "
