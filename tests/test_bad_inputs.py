@@ -543,3 +543,40 @@ def test_parts_that_do_not_fit_are_refused_when_the_loop_is_built(call, fragment
 
 def test_the_loop_fit_battery_adds_at_least_30_cases():
     assert len(LOOP_FIT) >= 30
+
+
+# ----------------------------------------------------------------------------- tuning (issue 33's tune_loop cases)
+
+def _tune_loop_fixture(delta=1e-3, cost=True):
+    plant = nc.LTI(A=[[1.0, 0.1], [0.0, 1.0]], B=[[0.005], [0.1]], C=[[1.0, 0.0]], x0=[1.0, 0.0],
+                   w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
+    ekf = nc.EKF(plant, Q=np.diag([0.01, 0.02]) ** 2, R=np.eye(1) * 0.05**2, mean0=[0.0, 0.0], cov0=np.eye(2))
+    return nc.Loop(plant=plant, trigger=nc.Petc(delta=delta), uplink=nc.Link(nc.Bernoulli(0.2)), estimator=ekf,
+                   controller=nc.StateFeedback(np.asarray([[3.0, 1.5]])), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   cost=nc.Quadratic(Q=[1.0, 0.1], R=[0.01]) if cost else None, steps=40, T=0.1)
+
+
+def _tuning_cases():
+    from jaxnc.tune import Interval, Positive, check_loop, tune_loop
+    return [
+        (lambda: tune_loop(_tune_loop_fixture(), {"uplink.loss.p": Interval(0.3, 0.9)}),
+         "the start of 'uplink.loss.p' must be inside the open interval (0.3, 0.9)"),
+        (lambda: tune_loop(_tune_loop_fixture(delta=0.0), {"trigger.delta": Positive()}),
+         "the start of 'trigger.delta' must be finite and > 0"),
+        (lambda: tune_loop(_tune_loop_fixture(), {"trigger.delta": Positive()}, search={"trigger.delta": [1e-3, 1e-2]},
+                           search_budget=0), "search_budget must be an integer in [1"),
+        (lambda: tune_loop(_tune_loop_fixture(cost=False), {"trigger.delta": Positive()}),
+         "the loop has no cost (Loop.cost is None)"),
+        (lambda: tune_loop(_tune_loop_fixture(), {"trigger": Positive()}), "'trigger' is a part (Petc), not a leaf"),
+        (lambda: tune_loop(_tune_loop_fixture(), {"controller.u_max": Positive()}),
+         "'controller.u_max' is None in this loop"),
+        (lambda: check_loop(_tune_loop_fixture(), ["controller_trigger"]), "'controller_trigger' is None in this loop"),
+    ]
+
+
+@pytest.mark.parametrize("i", range(7))
+def test_tuning_inputs_are_refused_naming_the_parameter(i):
+    call, fragment = _tuning_cases()[i]
+    with pytest.raises(ValueError) as e:
+        call()
+    assert fragment in str(e.value), str(e.value)
