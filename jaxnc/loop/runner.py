@@ -308,9 +308,7 @@ class Loop:
 
 def _first_estimate(loop: Loop, ctx: Context):
     """The estimator's output at k = 0 on an empty inbox (for shapes)."""
-    z0 = jnp.zeros((ctx.output_dim,), jnp.float32)
-    inbox, _ = loop.uplink.inbox(loop.uplink.init(z0), jnp.int32(0))
-    return loop.estimator.correct(loop.estimator.init(ctx), inbox, jnp.int32(0))[1]
+    return loop.estimator.correct(loop.estimator.init(ctx), _first_inbox(loop, ctx), jnp.int32(0))[1]
 
 
 def _shapes(tree) -> str:
@@ -443,6 +441,7 @@ def _zeros(tree):
 
 
 def _first_inbox(loop: Loop, ctx: Context):
+    """The uplink's inbox at k = 0, before anything was sent (for shapes)."""
     inbox, _ = loop.uplink.inbox(loop.uplink.init(jnp.zeros((ctx.output_dim,), jnp.float32)), jnp.int32(0))
     return inbox
 
