@@ -23,7 +23,7 @@ from jaxnc.loop.costs import Tracking, TrackingMetrics, run_tracking
 from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
                                RateLimitState, Saturation)
 from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState,
-                                  measurement_at, slow_system)
+                                  slow_system)
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.roundtrip import RoundTrip
@@ -51,7 +51,7 @@ __all__ = [
     "Tracking", "TrackingMetrics", "run_tracking",
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",
-    "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF", "measurement_at",
+    "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF",
     "slow_system",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",

@@ -105,6 +105,14 @@ class Inbox(NamedTuple):
         """1.0 when anything was delivered now (a 0/1 float)."""
         return jnp.minimum(jnp.sum(self.new), 1.0)
 
+    def packet(self, k, stamp):
+        """(data, weight) of the packet the sender sent at slow instant k (the link keeps it
+        in slot k mod C) if it is stamped ``stamp`` and has arrived; weight 0 otherwise (the
+        data is then the slot's, to be blended away)."""
+        slot = jnp.mod(k, self.stamp.shape[0])
+        ok = (self.stamp[slot] == stamp) & self.arrived[slot] & (stamp >= 0)
+        return jax.tree.map(lambda a: a[slot], self.data), jnp.where(ok, self.weight[slot], 0.0)
+
     def newest(self):
         """(data, stamp, weight) of the newest delivered packet by time stamp; weight 0 when
         nothing was delivered."""

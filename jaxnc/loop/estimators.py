@@ -150,14 +150,9 @@ class EKF(AbstractEstimator):
         g, _ = jax.lax.scan(body, g, us)
         return g
 
-    def _correct_at(self, g: Gaussian, inbox: Inbox, s, N, C):
-        """Correct with the measurement of slow instant s (stamp sN), if it has arrived: the
-        link keeps it in slot s mod C."""
-        stamp = s * N
-        slot = jnp.mod(s, C)
-        ok = (inbox.stamp[slot] == stamp) & inbox.arrived[slot] & (stamp >= 0)
-        w = jnp.where(ok, inbox.weight[slot], 0.0)
-        z = jax.tree.map(lambda a: a[slot], inbox.data)
+    def _correct_at(self, g: Gaussian, inbox: Inbox, s, N):
+        """Correct with the measurement of slow instant s (stamp sN), if it has arrived."""
+        z, w = inbox.packet(s, s * N)
         if self.form == "unscented":
             post = ukf_update(self.model.measure, g, z, self.R, self.model.output_dim, **self._sigma())
             return blend(w, post, g)
@@ -165,17 +160,16 @@ class EKF(AbstractEstimator):
         return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
 
     def correct(self, state: EKFState, inbox: Inbox, k) -> tuple[EKFState, jax.Array]:
-        C = inbox.stamp.shape[0]
         N = state.u.shape[1]                             # fast periods per slow period
         g = state.base
         next_base = state.base
         for i in range(self.buffer):                     # the window k - D .. k - 1 (static D)
             s = k - self.buffer + i
-            g1 = self._predict_period(self._correct_at(g, inbox, s, N, C), state.u[i])
+            g1 = self._predict_period(self._correct_at(g, inbox, s, N), state.u[i])
             g = blend((s >= 0).astype(jnp.float32), g1, g)
             if i == 0:
                 next_base = g
-        post = self._correct_at(g, inbox, k, N, C)
+        post = self._correct_at(g, inbox, k, N)
         return state._replace(post=post, next_base=next_base), post.mean
 
     def predict(self, state: EKFState, u_applied, u_believed, k) -> EKFState:

@@ -47,17 +47,7 @@ from jaxnc.loop.estimators import EKF
 from jaxnc.loop.plants import LTI
 
 __all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF",
-           "measurement_at", "slow_system"]
-
-
-def measurement_at(inbox: Inbox, stamp):
-    """(z, gamma): the payload of the packet stamped ``stamp`` and its weight (the 0/1
-    float ``Inbox.weight``: sent and not lost) if it has arrived, else gamma = 0 (z is then
-    a slot's payload, to be blended away)."""
-    match = (inbox.stamp == stamp) & inbox.arrived
-    i = jnp.argmax(match)
-    z = jax.tree.map(lambda a: a[i], inbox.data)
-    return z, jnp.where(match[i], inbox.weight[i], 0.0)
+           "slow_system"]
 
 
 def slow_system(A, B, N: int):
@@ -145,7 +135,7 @@ class Luenberger(AbstractEstimator):
         return LuenbergerState(x, jnp.asarray(self.model.C, jnp.float32) @ x, jnp.zeros((), jnp.int32))
 
     def correct(self, state: LuenbergerState, inbox: Inbox, k):
-        z, gamma = measurement_at(inbox, state.t)
+        z, gamma = inbox.packet(k, state.t)
         z = blend(gamma, jnp.asarray(z, jnp.float32), jnp.asarray(self.model.C, jnp.float32) @ state.xhat)
         return state._replace(z=z), state.xhat
 
@@ -236,7 +226,7 @@ class SteadyStateKF(AbstractEstimator):
                                   jnp.zeros((), jnp.int32))
 
     def correct(self, state: SteadyStateKFState, inbox: Inbox, k):
-        z, gamma = measurement_at(inbox, state.t)
+        z, gamma = inbox.packet(k, state.t)
         C = jnp.asarray(self.model.C, jnp.float32)
         post = state.mean + gamma * (state.gain @ (jnp.asarray(z, jnp.float32) - C @ state.mean))
         return state._replace(mean=post), post
