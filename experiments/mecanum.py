@@ -17,6 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxnc import loop as nc
 from jaxnc import montecarlo, results as per_seed
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -28,8 +29,8 @@ CASE_CHOICES = (*mec.CASES, "all")
 UNSTABLE_CELL = 0.5   # a cell is shown as inf when more than half of its runs are unstable
 
 
-def loop_config(loop: mec.MecanumLoop) -> dict:
-    """JSON-friendly description of a configuration (the path by name)."""
+def loop_config(loop: nc.Loop) -> dict:
+    """JSON-friendly description of a loop (the path by name, functions by name)."""
     def conv(obj):
         if hasattr(obj, "describe"):          # e.g. the MJX plant: its parameters, not its arrays
             return obj.describe()
@@ -37,6 +38,10 @@ def loop_config(loop: mec.MecanumLoop) -> dict:
             if isinstance(obj, RefPath):
                 return {"name": obj.name, "length_m": float(obj.length)}
             return {f.name: conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        if isinstance(obj, tuple):
+            return [conv(a) for a in obj]
+        if callable(obj):
+            return obj.__qualname__
         a = np.asarray(obj)
         return a.tolist() if a.ndim else a.item()
     return conv(loop)
@@ -76,7 +81,7 @@ def true_plant(name: str):
     raise ConfigError(f"plant must be 'kinematic' or 'mjx', got {name!r}")
 
 
-def build_loops(settings: dict) -> dict[str, mec.MecanumLoop]:
+def build_loops(settings: dict) -> dict[str, nc.Loop]:
     """Validated configurations (a bad combination is a ConfigError, before any tracing)."""
     cases = mec.CASES if settings["case"] == "all" else (settings["case"],)
     kw = dict(path=settings["path"], sigma=settings["sigma"], delta=settings["delta"],
@@ -132,7 +137,12 @@ def table(summary: dict) -> str:
     return markdown_table(["case", "J1", "J2", "J3", "J4", "J1 abs (cm)", "unstable %"], rows)
 
 
-_simulate = jax.jit(mec.simulate)   # one compilation per loop structure (N, true plant)
+_simulate = jax.jit(nc.simulate)   # one compilation per loop structure (N, true plant)
+
+
+def horizon(loop: nc.Loop) -> int:
+    """h, the prediction horizon in slow periods, of a :func:`~jaxnc.schemes.mecanum.mecanum_loop` loop."""
+    return int(loop.actuator.horizon) // loop.N
 
 
 def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
@@ -141,13 +151,14 @@ def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 5))
-    path = next(iter(loops.values())).follower.path
+    path = next(iter(loops.values())).monitor.path
     ref = np.asarray(path.points)
     ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.5, label="reference")
     for name, loop in loops.items():
-        traj = _simulate(uniform_dtypes(loop), key)
-        xy = np.asarray(traj.x[:, 3:5])[: int(traj.l)]
-        unstable = bool(traj.bad | ~traj.done)
+        full = dataclasses.replace(loop, record=mec.FULL_RECORD)
+        traj = _simulate(uniform_dtypes(full), key)
+        xy = np.asarray(traj.x[:, 3:5])[: int(traj.done_step)]
+        unstable = bool(mec.metrics(full, traj).unstable)
         ax.plot(xy[:, 0], xy[:, 1], ls=":" if unstable else "-", lw=1.2,
                 label=name + (" (unstable)" if unstable else ""))
     lo, hi = ref.min(axis=0) - 0.6, ref.max(axis=0) + 0.6   # unstable runs leave the frame
@@ -174,7 +185,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
         # the configuration is a runtime argument: the cases of one N share a compilation
         results[name] = montecarlo.run_batched(
             run_seed, keys, args=(uniform_dtypes(loop),), progress=progress, chunk_size=min(256, seeds),
-            desc=f"{name:>10} N={loop.N} DP={float(loop.sc.p_loss):.2f} h={int(loop.h)}")
+            desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
     summary = summarise(results)
     print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}, "
           f"plant={settings.get('plant', 'kinematic')}")
@@ -185,7 +196,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)")
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,
-              "loops": {n: {"case": l.case, "N": l.N, "h": int(l.h), "steps": l.steps, "config": loop_config(l)}
+              "loops": {n: {"case": n.split()[0], "N": l.N, "h": horizon(l), "steps": l.steps,
+                            "config": loop_config(l)}
                         for n, l in loops.items()}}
     montecarlo.save_results(out / "results.json", experiment="mecanum", config=config,
                             results=summary, wall_time_s=wall)

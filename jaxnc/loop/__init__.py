@@ -27,6 +27,7 @@ from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateK
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.roundtrip import RoundTrip
+from jaxnc.loop.monitors import PathMonitor, PathMonitorState, path_distance
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
@@ -64,4 +65,5 @@ __all__ = [
     "ArrivalHold",
     "LeadFeedback",
     "RoundTrip",
+    "PathMonitor", "PathMonitorState", "path_distance",
 ]

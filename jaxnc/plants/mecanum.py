@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_positive, check_nonneg
+from jaxnc.loop.base import AbstractPlant
 
 STATE_DIM = 6
 INPUT_DIM = 4
@@ -39,8 +40,50 @@ DEFAULT_BEACONS = ((-2.5, -2.5), (2.5, -2.5), (2.5, 2.5), (-2.5, 2.5))
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class Mecanum:
-    """Kinematic Mecanum platform sampled at the fast period ``T`` (eq. 1-2, 9).
+class MecanumNoise:
+    """Standard deviations of process (n1) and measurement (n2) noise; see module docstring."""
+
+    omega: jax.Array = 0.2       # rad/s, wheel speed (actuation) noise
+    xy: jax.Array = 0.002        # m per step, pose slip
+    psi: jax.Array = 0.003       # rad per step
+    enc: jax.Array = 0.05        # rad/s, encoder noise
+    yaw: jax.Array = 0.01        # rad, yaw sensor noise
+    dist: jax.Array = 0.02       # m, beacon distance noise
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            check_nonneg(f"MecanumNoise.{f.name}", getattr(self, f.name))
+
+    def process_std(self):
+        o, p, q = (jnp.asarray(a, jnp.float32) for a in (self.omega, self.xy, self.psi))
+        return jnp.stack([o, o, o, o, p, p, q])
+
+    def measurement_std(self):
+        e, y, d = (jnp.asarray(a, jnp.float32) for a in (self.enc, self.yaw, self.dist))
+        return jnp.stack([e, e, e, e, y, d, d, d, d])
+
+    def Q(self):
+        """Process noise covariance (of n1)."""
+        return jnp.diag(self.process_std() ** 2)
+
+    def R(self):
+        """Measurement noise covariance (of n2)."""
+        return jnp.diag(self.measurement_std() ** 2)
+
+    def scaled(self, factor):
+        return MecanumNoise(*(getattr(self, f.name) * factor for f in dataclasses.fields(self)))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Mecanum(AbstractPlant):
+    """Kinematic Mecanum platform sampled at the fast period ``T`` (eq. 1-2, 9), a loop
+    plant (:class:`jaxnc.loop.AbstractPlant`) and the model of seed 000's estimator and
+    controller.
+
+    As a true plant it starts at rest at ``x0`` (float[6]) and the runner scales its
+    standard normal draws by ``noise`` (:class:`MecanumNoise`: process n1, 7 entries, and
+    measurement n2, 9 entries); a model ignores both.
 
     The model methods take one seed's vectors, e.g. ``x`` of shape (6,), or the same
     with trailing batch axes, (6, B), as :func:`jaxnc.estimators.ekf_batched.ekf_filter`
@@ -54,6 +97,8 @@ class Mecanum:
     z_fb: jax.Array = 2.0
     z_mb: jax.Array = 0.3
     omega_max: jax.Array = 20.0   # wheel speed saturation, rad/s (1 m/s at R = 0.05)
+    x0: jax.Array = dataclasses.field(default_factory=lambda: np.zeros(STATE_DIM, np.float32))
+    noise: MecanumNoise = dataclasses.field(default_factory=MecanumNoise)
     T: float = dataclasses.field(default=0.1, metadata=dict(static=True))
 
     def __post_init__(self):
@@ -62,6 +107,21 @@ class Mecanum:
         check_positive("Mecanum.Ly", self.Ly)
         check_positive("Mecanum.T", self.T)
         check_positive("Mecanum.omega_max", self.omega_max)
+
+    state_dim = STATE_DIM
+    input_dim = INPUT_DIM
+    noise_dim = PROCESS_NOISE_DIM
+    output_dim = OUTPUT_DIM
+
+    @property
+    def step_period(self) -> float:
+        return self.T
+
+    def process_std(self):
+        return self.noise.process_std()
+
+    def measurement_std(self):
+        return self.noise.measurement_std()
 
     # -- eq. (1), first three lines ------------------------------------------------
     def body_velocity(self, omega):
@@ -106,20 +166,6 @@ class Mecanum:
         psi = x[5] + v[2] * T + m * w[6]
         return jnp.concatenate([v, jnp.stack([X, Y, psi])])
 
-    # -- the true-plant interface of the closed loop (the MJX plant has the same) ----------
-    def init(self, key, x0):
-        """Initial true state: the kinematic state itself (``key`` is unused)."""
-        del key
-        return x0
-
-    def step(self, x, u, w):
-        """One fast period of the true plant: eq. (1)."""
-        return self.dynamics(x, u, w)
-
-    def state(self, x):
-        """The kinematic state (Vx, Vy, W, X, Y, psi) of a true state: itself."""
-        return x
-
     def distances(self, xy):
         """Beacon distances d_i, eq. (2). ``xy`` is (2,) or (2, *batch)."""
         dz2 = (self.z_fb - self.z_mb) ** 2
@@ -131,39 +177,3 @@ class Mecanum:
         """z = h(xi, n2): encoders (eq. 9 of the state velocities), yaw, eq. (2)."""
         omega = self.inverse_kinematics(x[:3])
         return jnp.concatenate([omega, x[5:6], self.distances(x[3:5])]) + v
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class MecanumNoise:
-    """Standard deviations of process (n1) and measurement (n2) noise; see module docstring."""
-
-    omega: jax.Array = 0.2       # rad/s, wheel speed (actuation) noise
-    xy: jax.Array = 0.002        # m per step, pose slip
-    psi: jax.Array = 0.003       # rad per step
-    enc: jax.Array = 0.05        # rad/s, encoder noise
-    yaw: jax.Array = 0.01        # rad, yaw sensor noise
-    dist: jax.Array = 0.02       # m, beacon distance noise
-
-    def __post_init__(self):
-        for f in dataclasses.fields(self):
-            check_nonneg(f"MecanumNoise.{f.name}", getattr(self, f.name))
-
-    def process_std(self):
-        o, p, q = (jnp.asarray(a, jnp.float32) for a in (self.omega, self.xy, self.psi))
-        return jnp.stack([o, o, o, o, p, p, q])
-
-    def measurement_std(self):
-        e, y, d = (jnp.asarray(a, jnp.float32) for a in (self.enc, self.yaw, self.dist))
-        return jnp.stack([e, e, e, e, y, d, d, d, d])
-
-    def Q(self):
-        """Process noise covariance (of n1)."""
-        return jnp.diag(self.process_std() ** 2)
-
-    def R(self):
-        """Measurement noise covariance (of n2)."""
-        return jnp.diag(self.measurement_std() ** 2)
-
-    def scaled(self, factor):
-        return MecanumNoise(*(getattr(self, f.name) * factor for f in dataclasses.fields(self)))

@@ -57,7 +57,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
-from jaxnc.plants.mecanum import Mecanum
+from jaxnc.loop.base import AbstractPlant
+from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum
 
 try:   # optional extra
     import mujoco
@@ -153,12 +154,19 @@ class MjxState(NamedTuple):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class MjxMecanum:
-    """The multibody platform as a jaxnc plant: ``init``, ``step``, ``state``, ``measure``.
+class MjxMecanum(AbstractPlant):
+    """The multibody platform as a loop plant (:class:`jaxnc.loop.AbstractPlant`).
 
     Build it with :func:`mjx_mecanum`. ``kin`` is the kinematic model it is built from
-    (geometry, beacons, sampling period T); the loop's estimator keeps using it.
+    (geometry, beacons, sampling period T, start pose ``kin.x0`` and noise ``kin.noise``);
+    the loop's estimator keeps using the kinematic model. Its state is an
+    :class:`MjxState`; :meth:`state_vector` is the kinematic state of eq. (1).
     """
+
+    state_dim = STATE_DIM
+    input_dim = INPUT_DIM
+    noise_dim = PROCESS_NOISE_DIM
+    output_dim = OUTPUT_DIM
 
     model: "mjx.Model"                 # motors (kv, tau_max, dead zone) live in the model
     kin: Mecanum
@@ -171,9 +179,19 @@ class MjxMecanum:
     def T(self) -> float:
         return self.kin.T
 
-    # -- the plant interface used by jaxnc.schemes.mecanum.simulate -------------------
-    def init(self, key, x0) -> MjxState:
-        """A robot at rest at pose ``x0[3:6]`` with this seed's friction and mass."""
+    @property
+    def step_period(self) -> float:
+        return self.kin.T
+
+    def process_std(self):
+        return self.kin.noise.process_std()
+
+    def measurement_std(self):
+        return self.kin.noise.measurement_std()
+
+    def init(self, key) -> MjxState:
+        """A robot at rest at pose ``kin.x0[3:6]`` with this seed's friction and mass."""
+        x0 = jnp.asarray(self.kin.x0, jnp.float32)
         kf, km = jax.random.split(key)
         fr = jnp.asarray(self.friction_range, jnp.float32)
         mr = jnp.asarray(self.mass_range, jnp.float32)
@@ -193,7 +211,7 @@ class MjxMecanum:
                                                time=jnp.zeros_like(data.time)))
         return MjxState(data, psi, mu, ms)
 
-    def step(self, s: MjxState, u, w) -> MjxState:
+    def dynamics(self, s: MjxState, u, w) -> MjxState:
         """One fast period T: ``substeps`` physics steps with the wheel-speed loop."""
         u, motion = self.kin.commanded(u)                # saturation and noise scale of eq. (1)'s plant
         ref = u + motion * w[:4]
@@ -203,7 +221,7 @@ class MjxMecanum:
         psi = s.psi + _wrap(yaw - s.psi)
         return MjxState(data, psi, s.friction, s.mass_scale)
 
-    def state(self, s: MjxState):
+    def state_vector(self, s: MjxState):
         """The kinematic state (Vx, Vy, W in the body frame, X, Y, psi) of eq. (1)."""
         q = s.data.qvel
         c, sn = jnp.cos(s.psi), jnp.sin(s.psi)

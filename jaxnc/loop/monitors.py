@@ -1,0 +1,89 @@
+"""Monitors beyond the runner's :class:`~jaxnc.loop.Monitor`: path following.
+
+A monitor (:class:`~jaxnc.loop.AbstractMonitor`) watches the true plant's state vector
+after every fast period and says whether the run has failed and whether it is complete;
+the runner records the first instant of each (``Trajectory.fail_step``, ``done_step``).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxnc._validate import check_bool, check_instance, check_int, check_range
+from jaxnc.loop.base import AbstractMonitor, pytree_dataclass, static_field
+from jaxnc.metrics import local_distance
+from jaxnc.paths import Path, closest_index
+
+__all__ = ["PathMonitor", "PathMonitorState", "path_distance"]
+
+
+class PathMonitorState(NamedTuple):
+    idx: jax.Array       # int32: the plant's progress, the index of its nearest path point
+    dist: jax.Array      # float32: distance to the path (the polyline on the plant's own branch)
+    done: jax.Array      # bool: the path's end was reached
+
+
+@pytree_dataclass
+class PathMonitor(AbstractMonitor):
+    """Progress, distance, completion and failure of a plant following a planar path
+    (the path tube of seed 000 section 4.1 and seed 004 section 4).
+
+    After every fast period, with the position p = (x[xy], x[xy + 1]) of the state vector:
+
+    * progress: the nearest path point searched monotonically in a window of ``window``
+      points ahead (:func:`jaxnc.paths.closest_index`), so the search stays on the plant's
+      own branch where the path crosses itself;
+    * distance: to the two segments meeting at that point (:func:`jaxnc.metrics.local_distance`);
+    * complete: once the progress is in the path's last tenth and p within ``end_tol`` of
+      its end (stays complete);
+    * failed: the distance exceeds ``max_dev`` before completion (afterwards the plant may
+      coast off the end), or the state is not finite.
+
+    Record the distance with ``Record(monitor=path_distance)``.
+
+    Attributes:
+      path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0.
+      xy: static, the index of the position's first coordinate in the state vector.
+      window: static, path points searched per period (more than the plant moves in one).
+      freeze: static; hold the plant at its last good state once failed (default False).
+
+    Raises:
+      ValueError: naming the field, for a value outside its range.
+    """
+
+    path: Any
+    max_dev: Any = 0.5
+    end_tol: Any = 0.1
+    xy: int = static_field(0)
+    window: int = static_field(32)
+    freeze: bool = static_field(False)
+
+    def __post_init__(self):
+        check_instance("PathMonitor.path", self.path, Path, "a jaxnc.paths.Path")
+        check_range("PathMonitor.max_dev", self.max_dev, 0.0, None, low_open=True)
+        check_range("PathMonitor.end_tol", self.end_tol, 0.0, None, low_open=True)
+        check_int("PathMonitor.xy", self.xy, 0, None)
+        check_int("PathMonitor.window", self.window, 1, None)
+        check_bool("PathMonitor.freeze", self.freeze)
+
+    def init(self, ctx) -> PathMonitorState:
+        if self.xy + 2 > ctx.state_dim:
+            raise ValueError(f"PathMonitor.xy must be at most {ctx.state_dim - 2} for a state of "
+                             f"{ctx.state_dim} entries, got {self.xy}")
+        return PathMonitorState(jnp.zeros((), jnp.int32), jnp.zeros((), jnp.float32), jnp.zeros((), bool))
+
+    def step(self, state: PathMonitorState, x, u, t):
+        p, path = x[self.xy:self.xy + 2], self.path
+        idx, _ = closest_index(path, p, state.idx, self.window)
+        dist = local_distance(path, p, idx)
+        at_end = (idx >= (9 * path.M) // 10) & (jnp.sum((p - path.points[-1]) ** 2) < self.end_tol ** 2)
+        done = state.done | at_end
+        failed = ((dist > self.max_dev) & ~done) | ~jnp.all(jnp.isfinite(x))
+        return PathMonitorState(idx, dist, done), failed, done
+
+
+def path_distance(monitor: PathMonitor, state: PathMonitorState):
+    """The distance to the path after each fast period (a :class:`jaxnc.loop.Record` function)."""
+    return state.dist
