@@ -184,7 +184,8 @@ def bench_loops(batches):
             run()
             first = time.perf_counter() - t0
             t = _time(run, repeat=2)
-            rows.append([f"{case} N={N} DP={dp} h={int(loop.h)}" + (" (dense EKF)" if loop.structure is None else ""), B, f"{max(first - t, 0.0):.1f}", f"{t:.2f}",
+            dense = loop.estimator.structure is None
+            rows.append([f"{case} N={N} DP={dp} h={int(loop.actuator.horizon) // N}" + (" (dense EKF)" if dense else ""), B, f"{max(first - t, 0.0):.1f}", f"{t:.2f}",
                          f"{B * loop.steps / t:,.0f}"])
     return markdown_table(["closed loop (Lissajous)", "seeds", "compile s", "run s", "seed-steps/s"], rows)
 
@@ -201,11 +202,11 @@ def bench_grad(B=64, repeat=5):
         loop = mec.mecanum_loop("DRHE", 10, 0.3, trigger_temperature=0.05, jacobian_grad=exact)
 
         def objective(delta, kp, loop=loop):
-            lp = dataclasses.replace(loop, trigger=dataclasses.replace(loop.trigger, delta=delta),
-                                     follower=dataclasses.replace(loop.follower, Kp=kp))
+            lp = mec.with_follower(dataclasses.replace(loop, trigger=dataclasses.replace(loop.trigger, delta=delta)),
+                                   Kp=kp)
             return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(lp, k))(keys))
 
-        args = (jnp.asarray(loop.trigger.delta), jnp.asarray(loop.follower.Kp))
+        args = (jnp.asarray(loop.trigger.delta), jnp.asarray(loop.controller.law.Kp))
         for name, f in (("forward", jax.jit(objective)),
                         ("value_and_grad", jax.jit(jax.value_and_grad(objective, argnums=(0, 1))))):
             t0 = time.perf_counter()

@@ -109,7 +109,7 @@ def bench_study(seeds, seconds, chunk=256):
                                      progress=True, desc="DRHE on MJX")
     jax.block_until_ready(metrics)
     wall = time.perf_counter() - t
-    physics = seeds * loop.steps * loop.truth.substeps
+    physics = seeds * loop.steps * loop.plant.substeps
     return [(f"DRHE N=10 DP=0.5 on MJX, {seconds:g} s simulated", seeds, f"{wall:.0f}", physics, physics / wall)]
 
 

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxnc import loop as jl
 from jaxnc import metrics, montecarlo
 from jaxnc.design.dualrate import DiscreteSS
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -47,21 +48,22 @@ EVAL_SEED_OFFSET = 1_000_003   # evaluation seeds never overlap the tuning / gri
 # ----------------------------------------------------------------------------- Mecanum objective
 
 
-def mecanum_terms(loop: mec.MecanumLoop, key, j1_nom):
+def mecanum_terms(loop: jl.Loop, key, j1_nom):
     """Per-seed (J1'/J1_nom, J4, unstable, J1, J2) of seed 000 eq. (21), (22), (24).
 
     The completion step l and the instability flag carry no gradient; the mean and
     maximum distance and the transmission count do (through the trigger's estimator)."""
-    traj = mec.simulate(loop, key, full=False)
+    traj = jl.simulate(loop, key)
     K, N = loop.steps, loop.N
-    l = jax.lax.stop_gradient(traj.l)
+    l = jax.lax.stop_gradient(traj.done_step)
+    dist = traj.parts["monitor"]
     mask = jnp.arange(K) < l
-    j1 = metrics.J1(traj.dist, mask)
-    slow_mask = ((jnp.arange(K // N) * N) < l).astype(traj.sent.dtype)
-    j4 = jnp.sum(traj.sent * slow_mask) / l      # nominal SR sends every fast period: rate 1
-    unstable = traj.bad | ~traj.done
-    j1p = jnp.where(unstable | ~jnp.isfinite(j1), loop.max_dev, j1)
-    j2 = metrics.J2(traj.dist, mask)
+    j1 = metrics.J1(dist, mask)
+    slow_mask = ((jnp.arange(K // N) * N) < l).astype(traj.sent_sc.dtype)
+    j4 = jnp.sum(traj.sent_sc * slow_mask) / l      # nominal SR sends every fast period: rate 1
+    unstable = mec.metrics(loop, traj).unstable
+    j1p = jnp.where(unstable | ~jnp.isfinite(j1), loop.monitor.max_dev, j1)
+    j2 = metrics.J2(dist, mask)
     return j1p / j1_nom, j4, unstable, j1, j2
 
 
@@ -87,14 +89,15 @@ def mecanum_loss_fn(loop, j1_nom, w, estimator, near_miss=0.0):
 
     ``near_miss`` = r0 > 0 adds the gradient (not the value: p - stop_gradient(p)) of
     :func:`near_miss_penalty` with the failure charge, so the reported objective stays L_w."""
-    charge = float(loop.max_dev) / j1_nom
+    max_dev = loop.monitor.max_dev
+    charge = float(max_dev) / j1_nom
 
     def loss(p, key, temperature):
         lt = with_thresholds(loop, p["sigma"], p["delta"], estimator, temperature)
         j1n, j4, unstable, _, j2 = mecanum_terms(lt, key, j1_nom)
         smooth = jnp.where(unstable, 0.0, j1n) + w * j4
         if near_miss > 0:
-            pen = near_miss_penalty(j2, unstable, loop.max_dev, near_miss, charge)
+            pen = near_miss_penalty(j2, unstable, max_dev, near_miss, charge)
             smooth = smooth + pen - jax.lax.stop_gradient(pen)
         if estimator == "hybrid":
             return smooth, jnp.where(unstable, j1n, 0.0)
@@ -179,8 +182,8 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
         nominal = mec.mecanum_loop("SR", 1, 0.0, path=settings["path"])
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    if settings["near_miss"] >= float(loop.max_dev):
-        raise ConfigError(f"near_miss must lie in [0, max_dev = {float(loop.max_dev):g} m); got {settings['near_miss']}")
+    if settings["near_miss"] >= float(loop.monitor.max_dev):
+        raise ConfigError(f"near_miss must lie in [0, max_dev = {float(loop.monitor.max_dev):g} m); got {settings['near_miss']}")
     weights = settings["weights"]
     steps, batch = settings["steps"], settings["batch"]
     budget = steps * simulations_per_step(settings["estimator"], batch)   # the grid gets the same
@@ -275,7 +278,7 @@ def run_mecanum(settings: dict, *, seeds: int, out: Path, progress: bool = True)
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds, "grid": {"sigma_scale": s_axis, "delta": d_axis,
                                                              "seeds": grid_seeds},
-              "h": int(loop.h), "steps": loop.steps, "J1_nom_m": j1_nom,
+              "h": int(loop.actuator.horizon) // loop.N, "steps": loop.steps, "J1_nom_m": j1_nom,
               "objective": "J1'/J1_nom + w J4; J1' = tube radius for unstable runs"}
     montecarlo.save_results(out / "results.json", experiment="autotune-mecanum", config=config,
                             results={"table": tab, **results}, wall_time_s=wall)
@@ -320,15 +323,15 @@ def _plot_mecanum(loop, paper, results, histories, front, key0, out: Path):
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(7, 5))
-    ref = np.asarray(loop.follower.path.points)
+    ref = np.asarray(loop.monitor.path.points)
     ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.5, label="reference")
-    sim = jax.jit(mec.simulate)
+    sim = jax.jit(jl.simulate)
     wmid = list(results)[len(results) // 2]
     tuned = {k: np.asarray(v, np.float32) for k, v in results[wmid]["tuned"].items()}
     for name, p in (("paper's hand-set", paper), (f"tuned ({wmid})", tuned)):
-        traj = sim(with_thresholds(loop, p["sigma"], p["delta"]), key0)
-        xy = np.asarray(traj.x[:, 3:5])[: int(traj.l)]
-        sent = np.flatnonzero(np.asarray(traj.sent) > 0.5) * loop.N
+        traj = sim(with_thresholds(dataclasses.replace(loop, record=mec.FULL_RECORD), p["sigma"], p["delta"]), key0)
+        xy = np.asarray(traj.x[:, 3:5])[: int(traj.done_step)]
+        sent = np.flatnonzero(np.asarray(traj.sent_sc) > 0.5) * loop.N
         sent = sent[sent < len(xy)]
         line, = ax.plot(xy[:, 0], xy[:, 1], lw=1.2, label=f"{name}: {len(sent)} transmissions")
         ax.plot(xy[sent, 0], xy[sent, 1], ".", color=line.get_color(), ms=4)

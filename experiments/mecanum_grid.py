@@ -50,7 +50,7 @@ from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
-from .mecanum import UNSTABLE_CELL, run_seed, uniform_dtypes
+from .mecanum import UNSTABLE_CELL, horizon, run_seed, uniform_dtypes
 
 INF = math.inf
 GRID_N = tuple(range(1, 13))
@@ -115,7 +115,7 @@ def plan(settings: dict, seeds: int) -> tuple[list, dict, dict]:
                                            follower_kw=dict(L_ref=settings["L_ref"]))
         except ValueError as e:
             raise ConfigError(str(e)) from None
-        cfgs[cell] = _cell_config(settings, seeds, case, N, dp, p, int(loops[cell].h))
+        cfgs[cell] = _cell_config(settings, seeds, case, N, dp, p, horizon(loops[cell]))
     return cells, loops, cfgs
 
 

@@ -46,7 +46,7 @@ from jaxnc.paths import PATHS, get_path, scaled
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
-from .mecanum import UNSTABLE_CELL, plot_paths, run_seed, true_plant, uniform_dtypes
+from .mecanum import UNSTABLE_CELL, horizon, plot_paths, run_seed, true_plant, uniform_dtypes
 from .mecanum_grid import _version
 
 INF = math.inf
@@ -112,7 +112,7 @@ def _cell_config(settings: dict, seeds: int, cell, loop) -> dict:
     """What a cell's result depends on (its file is named by it; a stored cell is reused
     only if it matches): the chunk and device count set the float32 rounding."""
     case, N, dp = cell
-    return {"case": case, "N": N, "dp": dp, "h": int(loop.h), "steps": loop.steps, "seeds": seeds,
+    return {"case": case, "N": N, "dp": dp, "h": horizon(loop), "steps": loop.steps, "seeds": seeds,
             "seed": settings["seed"], "plant": settings["plant"], "path": settings["path"],
             "scale": settings["scale"], "sigma": list(settings["sigma"]), "delta": list(settings["delta"]),
             "L_ref": settings["L_ref"], "chunk": settings["chunk"], "devices": len(jax.local_devices()),
@@ -347,7 +347,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
                "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, cfgs[c]).with_suffix(".npz") for c in cells},
                                                    dims=("case", "N", "dp"))}
     config = {"settings": settings, "seeds": seeds, "path_length_m": float(ref.length),
-              "loops": {f"{c}_N{N}_dp{dp:g}": {"h": int(loops[(c, N, dp)].h), "steps": loops[(c, N, dp)].steps}
+              "loops": {f"{c}_N{N}_dp{dp:g}": {"h": horizon(loops[(c, N, dp)]), "steps": loops[(c, N, dp)].steps}
                         for c, N, dp in cells}}
     montecarlo.save_results(out / "results.json", experiment="mecanum-validation", config=config,
                             results=summary, wall_time_s=wall)

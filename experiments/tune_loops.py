@@ -6,7 +6,7 @@ The three loops:
 * ``drhe`` -- seed 000's DRHE loop (N = 10, DP = 0.3, Lissajous; the paper's loop, no
   safety condition), thresholds delta and sigma (one value for every output), objective
   L_w = J1'/J1_nom + w J4 (``experiments/autotune.py``: a run that leaves the tube costs
-  the tube radius), run by :func:`jaxnc.schemes.mecanum.simulate`;
+  the tube radius), the loop of :func:`jaxnc.schemes.mecanum.mecanum_loop`;
 * ``drhe-safe`` -- the same loop with the time-triggered safety condition (max_silence = 2)
   and a smooth cost (mean distance over the horizon / J1_nom + w x sensor rate);
 * ``hdd`` -- seed 003's HDD servo (Case 4, PETC + NUMRE with noise and disturbance), thresholds delta_s = sigma_s and
@@ -73,7 +73,8 @@ def _j1_nom() -> float:
 def _drhe_loop(max_silence: int):
     from jaxnc.schemes import mecanum as mec
     loop = mec.mecanum_loop("DRHE", 10, 0.3, max_silence=max_silence)
-    return dataclasses.replace(loop, trigger=jl.Petc(sigma=np.float32(1e-3), delta=np.float32(0.1)))
+    return dataclasses.replace(loop, trigger=dataclasses.replace(loop.trigger, sigma=np.float32(1e-3),
+                                                                 delta=np.float32(0.1)))
 
 
 DRHE_AXES = {"trigger.delta": np.geomspace(0.003, 1.0, 6), "trigger.sigma": np.geomspace(1e-4, 0.1, 4)}
@@ -104,8 +105,8 @@ def _drhe_safe(settings) -> Problem:
     j1_nom, w = _j1_nom(), float(settings["w_drhe"])
 
     def run(lp, k):
-        tr = mec.simulate(lp, k, full=False)
-        return jnp.mean(tr.dist) / j1_nom, jnp.sum(tr.sent) / lp.steps
+        tr = jl.simulate(lp, k)
+        return jnp.mean(tr.parts["monitor"]) / j1_nom, jnp.sum(tr.sent_sc) / lp.steps
     return Problem(
         "drhe-safe", _drhe_loop(2), DRHE_PARAMS, lambda t: t[0] + w * t[1], run,
         {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,

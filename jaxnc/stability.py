@@ -77,16 +77,17 @@ class FilterRecord(NamedTuple):
 
 
 def trajectory_inputs(traj):
-    """(xs, us, moving) for :func:`estimator_pass` from a ``schemes.mecanum.Trajectory``.
+    """(xs, us, moving) for :func:`estimator_pass` from a :class:`jaxnc.loop.Trajectory`
+    that recorded x and u (e.g. ``schemes.mecanum.mecanum_loop(..., full=True)``).
 
-    ``traj.x[t] = f(traj.x[t-1], traj.u[t], w_t)``, so the pass starts at ``traj.x[0]``
-    and steps with ``traj.u[1:]``: xs has K states, us K - 1 inputs. ``moving`` marks
-    the steps whose applied action is non-zero and that precede the completion of the
-    path (``traj.l``): the motion-scaled process noise of the plant vanishes at rest.
+    ``traj.x[t + 1] = f(traj.x[t], traj.u[t], w_t)``, so xs has K states and us the K - 1
+    inputs between them. ``moving`` marks the steps whose applied action is non-zero and
+    that precede the completion of the path (``traj.done_step``): the motion-scaled process
+    noise of the plant vanishes at rest.
     """
-    xs, us = traj.x, traj.u[1:]
+    xs, us = traj.x, traj.u[:-1]
     k = jnp.arange(us.shape[0])
-    moving = (jnp.max(jnp.abs(us), axis=-1) > 0) & (k + 1 < traj.l)
+    moving = (jnp.max(jnp.abs(us), axis=-1) > 0) & (k < traj.done_step)
     return xs, us, moving
 
 
@@ -167,16 +168,17 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
 
 
 def mecanum_pass(loop, traj, key, *, N, dp, trigger=None):
-    """:func:`estimator_pass` along a Mecanum closed-loop run with the loop's own filter
-    covariances (``loop.filter_noise``), true measurement noise and initial uncertainty.
+    """:func:`estimator_pass` along a Mecanum closed-loop run (a loop of
+    ``schemes.mecanum.mecanum_loop(..., full=True)`` and its trajectory) with the loop's own
+    filter (model, covariances, initial uncertainty) and the robot's true measurement noise.
 
     Returns ``(bounds, err2, moving)``: the eq. (18) constants over the moving steps,
     ||xi_{k+1} - xi_{k+1|k}||^2 per step and the mask. Pure JAX: vmap over (traj, key)."""
-    Qf, Rf = loop.filter_noise.Q(), loop.filter_noise.R()
-    P0 = jnp.diag(jnp.asarray(loop.P0_std, jnp.float32) ** 2)
+    est = loop.estimator
+    Qf, Rf = jnp.diag(jnp.asarray(est.Q)), jnp.diag(jnp.asarray(est.R))
     xs, us, moving = trajectory_inputs(traj)
-    rec = estimator_pass(loop.plant, xs, us, key, N=N, dp=dp, Q=Qf, R=Rf,
-                         v_std=loop.noise.measurement_std(), P0=P0, trigger=trigger)
+    rec = estimator_pass(est.model, xs, us, key, N=N, dp=dp, Q=Qf, R=Rf, v_std=loop.plant.measurement_std(),
+                         P0=jnp.asarray(est.cov0), trigger=trigger)
     return measure_bounds(rec, Qf, Rf, moving), jnp.sum(rec.err_pred ** 2, axis=-1), moving
 
 

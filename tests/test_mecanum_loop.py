@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
+from jaxnc import loop as nc
 from jaxnc import montecarlo
 from jaxnc.plants.mecanum import MecanumNoise
 from jaxnc.schemes import mecanum as mec
@@ -14,8 +15,8 @@ SHORT = 8.0  # s of simulated time for the quick tests
 
 
 def test_seed_is_bit_identical_alone_and_in_a_batch_of_100():
-    loop = mec.mecanum_loop("DRHE", 4, 0.3, horizon_s=SHORT, sigma=0.0)
-    fn = lambda k: mec.simulate(loop, k).x
+    loop = mec.mecanum_loop("DRHE", 4, 0.3, horizon_s=SHORT, sigma=0.0, full=True)
+    fn = lambda k: nc.simulate(loop, k).x
     keys = montecarlo.seed_keys(3, 100)
     batch = montecarlo.run_batched(fn, keys, chunk_size=64, progress=False)      # 2 chunks
     alone = montecarlo.run_batched(fn, keys[7:8], chunk_size=64, progress=False)
@@ -29,9 +30,31 @@ def test_noise_free_nominal_loop_tracks_the_path():
     assert not bool(m.unstable)
     assert float(m.J1) < 0.03          # mean distance to the path, m
     assert float(m.J2) < 0.10
-    nominal_time = float(loop.follower.path.length) / 0.2
+    nominal_time = float(loop.monitor.path.length) / 0.2
     # finishing within end_tol of the end and cutting the turn save a little time
     assert nominal_time - 2.0 < float(m.J3) < 1.3 * nominal_time
+
+
+def test_every_case_dp_h_and_max_silence_of_one_N_share_one_compiled_program():
+    """The grid experiment's premise: the case, DP, h and max_silence are leaves, so loops of
+    one N (passed as arguments, uniform dtypes) trace once; another N traces again."""
+    from experiments.mecanum import uniform_dtypes
+    traces = []
+
+    @jax.jit
+    def run(loop, key):
+        traces.append(1)
+        return mec.run(loop, key).l
+
+    key = jax.random.PRNGKey(0)
+    kw = dict(path="turn180", horizon_s=1.0)
+    loops = [mec.mecanum_loop(c, 2, dp, **kw) for c in mec.CASES for dp in (0.0, 0.4)]
+    loops += [mec.mecanum_loop("DRHE", 2, 0.2, h=7, max_silence=3, **kw)]
+    for loop in loops:
+        run(uniform_dtypes(loop), key)
+    assert len(traces) == 1
+    run(uniform_dtypes(mec.mecanum_loop("DR", 5, 0.0, **kw)), key)
+    assert len(traces) == 2
 
 
 def test_dr_and_drh_coincide_without_dropouts():
@@ -39,17 +62,17 @@ def test_dr_and_drh_coincide_without_dropouts():
     without delay (with delay DRH also bridges the first fast periods of each NT with
     predicted actions where DR holds its last one)."""
     kw = dict(horizon_s=SHORT, eta=0.0, phi=0.0)
-    dr = mec.mecanum_loop("DR", 4, 0.0, **kw)
-    drh = mec.mecanum_loop("DRH", 4, 0.0, h=3, **kw)
+    dr = mec.mecanum_loop("DR", 4, 0.0, full=True, **kw)
+    drh = mec.mecanum_loop("DRH", 4, 0.0, h=3, full=True, **kw)
     key = jax.random.PRNGKey(1)
-    a = jax.jit(mec.simulate)(dr, key)
-    b = jax.jit(mec.simulate)(drh, key)
+    a = jax.jit(nc.simulate)(dr, key)
+    b = jax.jit(nc.simulate)(drh, key)
     np.testing.assert_allclose(a.x, b.x, atol=1e-5)
 
 
 def test_single_rate_holds_each_action_for_NT():
-    loop = mec.mecanum_loop("SR", 3, 0.0, horizon_s=SHORT)
-    tr = jax.jit(mec.simulate)(loop, jax.random.PRNGKey(2))
+    loop = mec.mecanum_loop("SR", 3, 0.0, horizon_s=SHORT, full=True)
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(2))
     u = np.asarray(tr.u)
     # actions change at most once per NT (the delay shifts the instant, not the rate)
     changes = np.flatnonzero(np.any(np.diff(u, axis=0) != 0, axis=1))
@@ -64,7 +87,7 @@ def test_transmissions_J4_ordering():
     for case in ("SR", "DRH", "DRHE"):
         N = 1 if case == "SR" else 2
         loop = mec.mecanum_loop(case, N, 0.0, **kw)
-        tr = montecarlo.run_batched(lambda k, loop=loop: mec.simulate(loop, k).sent, keys, chunk_size=8,
+        tr = montecarlo.run_batched(lambda k, loop=loop: nc.simulate(loop, k).sent_sc, keys, chunk_size=8,
                                     progress=False)
         rate[case] = tr.sum(axis=1).mean() / loop.steps
     assert rate["SR"] == pytest.approx(1.0)
@@ -97,8 +120,8 @@ def test_gradients_of_mean_J1_are_finite(objective):
     keys = montecarlo.seed_keys(0, 4)
 
     def cost(kp, delta):
-        loop = dataclasses.replace(base, follower=dataclasses.replace(base.follower, Kp=kp),
-                                   trigger=dataclasses.replace(base.trigger, delta=delta))
+        loop = mec.with_follower(dataclasses.replace(base, trigger=dataclasses.replace(base.trigger, delta=delta)),
+                                 Kp=kp)
         return jnp.mean(jax.vmap(lambda k: per_seed(loop, k))(keys))
 
     assert np.isfinite(float(jax.jit(cost)(jnp.full(3, 0.2), jnp.full(9, 0.1))))   # all runs completed
@@ -140,9 +163,9 @@ def test_time_triggered_safety_condition_bounds_sensor_silence():
     max_silence = 5 makes it send every 5th slow period."""
     kw = dict(horizon_s=SHORT, sigma=0.0, delta=1e6)
     key = jax.random.PRNGKey(4)
-    sim = jax.jit(mec.simulate)
-    silent = sim(mec.mecanum_loop("DRHE", 2, 0.0, **kw), key).sent
-    safe = sim(mec.mecanum_loop("DRHE", 2, 0.0, max_silence=5, **kw), key).sent
+    sim = jax.jit(nc.simulate)
+    silent = sim(mec.mecanum_loop("DRHE", 2, 0.0, **kw), key).sent_sc
+    safe = sim(mec.mecanum_loop("DRHE", 2, 0.0, max_silence=5, **kw), key).sent_sc
     n = len(safe)
     assert float(silent.sum()) == 1.0
     np.testing.assert_array_equal(np.flatnonzero(np.asarray(safe)), np.arange(0, n, 5))
@@ -156,8 +179,8 @@ def test_jacobian_grad_false_same_run_close_gradient():
     grads = {}
     for exact in (True, False):
         base = mec.mecanum_loop("DRHE", 2, 0.2, horizon_s=6.0, sigma=0.0, trigger_temperature=0.05,
-                                jacobian_grad=exact)
-        traj = jax.jit(jax.vmap(lambda k: mec.simulate(base, k)))(keys)
+                                jacobian_grad=exact, full=True)
+        traj = jax.jit(jax.vmap(lambda k: nc.simulate(base, k)))(keys)
         if exact:
             ref = traj
         else:
@@ -165,8 +188,8 @@ def test_jacobian_grad_false_same_run_close_gradient():
                 np.testing.assert_array_equal(a, b)
 
         def cost(kp, delta, base=base):
-            loop = dataclasses.replace(base, follower=dataclasses.replace(base.follower, Kp=kp),
-                                       trigger=dataclasses.replace(base.trigger, delta=delta))
+            loop = mec.with_follower(dataclasses.replace(base, trigger=dataclasses.replace(base.trigger, delta=delta)),
+                                     Kp=kp)
             return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(loop, k))(keys))
         g = jax.jit(jax.grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
         grads[exact] = np.concatenate([np.ravel(x) for x in g])

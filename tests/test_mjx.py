@@ -3,6 +3,7 @@
 Skipped, with the reason, when the optional extra is not installed
 (``pip install 'jaxnc[mjx]'``; ``make test`` installs it, so CI runs these).
 """
+import dataclasses
 import subprocess
 import sys
 
@@ -15,6 +16,7 @@ mjx = pytest.importorskip("mujoco.mjx", reason="MuJoCo MJX not installed: pip in
 
 from jaxnc.plants.mecanum import Mecanum  # noqa: E402
 from jaxnc.plants.mecanum_mjx import mjx_mecanum  # noqa: E402
+from jaxnc import loop as nc  # noqa: E402
 from jaxnc.schemes import mecanum as mec  # noqa: E402
 
 SECONDS = 5.0
@@ -28,11 +30,11 @@ def nominal():
 
 def _open_loop(plant, u, steps):
     """Constant wheel-speed references from rest; the kinematic state at every period."""
-    s = plant.init(jax.random.PRNGKey(0), jnp.zeros(6))
+    s = plant.init(jax.random.PRNGKey(0))          # at rest at the origin (kin.x0)
 
     def body(s, _):
         s = plant.step(s, u, jnp.zeros(7))
-        return s, plant.state(s)
+        return s, plant.state_vector(s)
 
     return jax.lax.scan(body, s, None, length=steps)[1]
 
@@ -59,15 +61,16 @@ def test_holonomy_matches_kinematic_model(nominal):
 def test_measurements_are_quantised_and_noisy(nominal):
     @jax.jit
     def one(plant):
-        s = plant.init(jax.random.PRNGKey(1), jnp.asarray([0, 0, 0, 1.0, -0.5, 0.3]))
+        s = plant.init(jax.random.PRNGKey(1))
         s = plant.step(s, jnp.asarray([3.0, 4, 5, 6]), jnp.zeros(7))
         return s, plant.measure(s, jnp.zeros(9))
 
-    s, z = one(nominal)
+    x0 = np.asarray([0, 0, 0, 1.0, -0.5, 0.3], np.float32)
+    s, z = one(dataclasses.replace(nominal, kin=dataclasses.replace(nominal.kin, x0=x0)))
     z = np.asarray(z)
     res = 2 * np.pi / (float(nominal.cpr) * nominal.T)
     np.testing.assert_allclose(z[:4] / res, np.round(z[:4] / res), atol=1e-3)   # whole counts per period
-    x = np.asarray(nominal.state(s))
+    x = np.asarray(nominal.state_vector(s))
     np.testing.assert_allclose(z[4], x[5], atol=1e-6)
     np.testing.assert_allclose(z[5:], np.asarray(Mecanum().distances(jnp.asarray(x[3:5]))), atol=1e-5)
 
@@ -75,7 +78,7 @@ def test_measurements_are_quantised_and_noisy(nominal):
 def test_domain_randomisation_per_seed():
     plant = mjx_mecanum()
     keys = jax.random.split(jax.random.PRNGKey(0), 64)
-    s = jax.jit(jax.vmap(lambda p, k: p.init(k, jnp.zeros(6)), in_axes=(None, 0)))(plant, keys)
+    s = jax.jit(jax.vmap(lambda p, k: p.init(k), in_axes=(None, 0)))(plant, keys)
     mu, ms = np.asarray(s.friction), np.asarray(s.mass_scale)
     assert mu.min() >= 0.6 and mu.max() <= 1.0 and mu.std() > 0.05
     assert ms.min() >= 0.8 and ms.max() <= 1.2 and ms.std() > 0.05
@@ -84,15 +87,15 @@ def test_domain_randomisation_per_seed():
 def test_closed_loop_runs_unchanged_on_mjx_plant():
     """The schemes run unchanged with the MJX plant as the truth: same key, same run;
     finite states; a short DRHE run starts following the path."""
-    loop = mec.mecanum_loop("DRHE", 5, 0.3, truth=mjx_mecanum(), horizon_s=4.0)
-    sim = jax.jit(jax.vmap(mec.simulate, in_axes=(None, 0)))
+    loop = mec.mecanum_loop("DRHE", 5, 0.3, truth=mjx_mecanum(), horizon_s=4.0, full=True)
+    sim = jax.jit(jax.vmap(nc.simulate, in_axes=(None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
     a, b = sim(loop, keys), sim(loop, keys)
     np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
     assert np.all(np.isfinite(np.asarray(a.x)))
     travelled = np.hypot(*(np.asarray(a.x[:, -1, 3:5]) - np.asarray(a.x[:, 0, 3:5])).T)
     assert np.all(travelled > 0.3), travelled          # about V_ref * 4 s
-    assert np.all(np.asarray(a.dist).max(axis=1) < 0.2)
+    assert np.all(np.asarray(a.parts["monitor"]).max(axis=1) < 0.2)
 
 
 def test_bad_configuration_is_rejected_before_tracing():
@@ -129,7 +132,7 @@ def test_experiment_option_builds_mjx_loops():
     settings = get_experiment("mecanum").parse_settings(["plant=mjx", "case=DRHE"])
     loops = exp.build_loops(settings)
     assert set(loops) == {"SR nominal", "DRHE"}
-    assert all(isinstance(l.truth, MjxMecanum) for l in loops.values())
+    assert all(isinstance(l.plant, MjxMecanum) for l in loops.values())
     cfg = exp.loop_config(loops["DRHE"])
-    assert cfg["truth"]["plant"] == "mjx" and cfg["truth"]["substeps"] == 20
+    assert cfg["plant"]["plant"] == "mjx" and cfg["plant"]["substeps"] == 20
     json.dumps(cfg)

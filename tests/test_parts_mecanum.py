@@ -79,7 +79,7 @@ def test_mecanum_loop_draws_scale_the_robots_noise_and_deliver_the_first_exchang
     robot's std (sample std within 5 % on a few thousand draws), first packet of both
     links delivered, uplink loss rate DP within 5 SEs."""
     noise = MecanumNoise(omega=0.3, xy=0.004, dist=0.05)
-    loop = mec.build_loop(mec.mecanum_loop("DRH", 10, 0.4, noise=noise, horizon_s=20.0, sparse=False), full=False)
+    loop = mec.mecanum_loop("DRH", 10, 0.4, noise=noise, horizon_s=20.0, sparse=False)
     assert isinstance(loop.downlink.delay, nc.RoundTrip)
     np.testing.assert_array_equal(loop.plant.process_std(), noise.process_std())
     np.testing.assert_array_equal(loop.plant.measurement_std(), noise.measurement_std())

@@ -1,5 +1,4 @@
-"""Seed 000 (Carbonell et al., ISA Trans. 2024), loops SR, DR, DRH and DRHE of section 4.1,
-as loops of library parts.
+"""Seed 000 (Carbonell et al., ISA Trans. 2024), loops SR, DR, DRH and DRHE of section 4.1.
 
 :func:`mecanum_loop` returns a :class:`jaxnc.loop.Loop`: the robot
 (:class:`~jaxnc.plants.mecanum.Mecanum`, eq. 1-2, or another true plant such as
@@ -49,19 +48,15 @@ CASES = ("SR", "DR", "DRH", "DRHE")
 # Paper, section 4.1: delta(i) = 0.1; sigma(i) = 0.1 for the four wheel speeds, 0.05 else.
 PAPER_SIGMA = (0.1, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05, 0.05)
 PAPER_DELTA = (0.1,) * 9
-# Our default sigma(i) = 0 (eq. 4 allows sigma(i) in {0, 1}): with the paper's sigma in SI
-# units DRHE fires on a few per cent of slow instants and loses the path (docs/mecanum.md).
+# Ours sigma(i) = 0 (eq. 4 allows it): with the paper's in SI units DRHE loses the path (README).
 DEFAULT_SIGMA = (0.0,) * 9
 PAPER_ETA, PAPER_PHI = 0.01, 0.02   # delay distribution, eq. (7), section 4.1
-# The filter's wheel-speed process noise (rad/s), 15x the true 0.2 rad/s: the remote side
-# propagates along the actions it *sent*; a lost control packet leaves it overconfident
-# with the true Q (docs/design_notes.md).
+# The filter's wheel-speed process noise (rad/s), 15x the true 0.2: the remote side propagates
+# along the actions it *sent*; with the true Q a lost control packet leaves it overconfident.
 FILTER_OMEGA_STD = 3.0
 P0_STD = (0.01, 0.01, 0.01, 0.02, 0.02, 0.01)   # initial estimation uncertainty (std per state)
 MAX_DEV, END_TOL = 0.5, 0.1                      # m: the path tube, and completion's distance to the end
-# Path points searched ahead each fast period: the robot moves at most omega_max R T = 0.1 m
-# (10 points at the 1 cm spacing) per period.
-TRACK_WINDOW = 32
+TRACK_WINDOW = 32   # path points searched per period: the robot moves at most 10 (omega_max R T = 0.1 m)
 
 #: what a Monte-Carlo run records: what :func:`metrics` reads
 METRICS_RECORD = nc.Record(signals=("sent_sc", "recv_sc"), monitor=nc.path_distance, estimator=belief_finite)
@@ -79,8 +74,7 @@ def default_h(case: str, N: int, dp: float, n_slow: int) -> int:
     periods the longest such run reaches r with probability about
     1 - exp(-n_slow (1 - q) q^r) (Erdos-Renyi law of runs). DRH takes h = r + 1 with that
     probability at 5 %; DRHE, whose sensor is also silent between events, at least
-    hN = 100 fast periods as in the paper. SR and DR: h = 1.
-    """
+    hN = 100 fast periods as in the paper. SR and DR: h = 1."""
     if case in ("SR", "DR"):
         return 1
     q = 1.0 - (1.0 - dp) ** 2
@@ -152,7 +146,6 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         thresholds[name] = np.broadcast_to(v, (OUTPUT_DIM,)).copy()
     if tau_max is not None:          # (0, N T]: no packet disorder (seed 000 section 2.3)
         check_range("tau_max", tau_max, 0.0, N * T * (1 + 1e-6), low_open=True)
-    tau_max = N * T if tau_max is None else tau_max
     if truth is not None and abs(float(truth.T) - T) > 1e-9:
         raise ValueError(f"truth must have the model's period T={T}, got {truth.T}")
     horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0 if horizon_s is None else horizon_s
@@ -181,7 +174,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         # the round trip lumped on the downlink: this direction's law, the uplink's none
         downlink=nc.Link(loss=nc.Bernoulli(dp), delay=nc.RoundTrip(nc.ShiftedExponential(eta, phi),
                                                                     nc.ShiftedExponential(0.0, 0.0)),
-                         tau_max=tau_max, reliable_first=True, capacity=2),
+                         tau_max=N * T if tau_max is None else tau_max, reliable_first=True, capacity=2),
         actuator=actuator,
         monitor=nc.PathMonitor(p, max_dev=MAX_DEV, end_tol=END_TOL, xy=3, window=TRACK_WINDOW),
         N=N, steps=steps, T=T, record=FULL_RECORD if full else METRICS_RECORD)
@@ -236,6 +229,14 @@ def metrics(loop: nc.Loop, traj: nc.Trajectory) -> Metrics:
     return Metrics(J1=jnp.where(unstable, inf, J1(dist, mask)), J2=jnp.where(unstable, inf, J2(dist, mask)),
                    J3=jnp.where(unstable, inf, l * loop.T), tx_sc=jnp.sum(traj.sent_sc * slow_mask),
                    tx_ca=jnp.sum(traj.recv_sc * slow_mask), l=l, unstable=unstable)
+
+
+def with_follower(loop: nc.Loop, **changes) -> nc.Loop:
+    """``loop`` with fields of its :class:`PathFollower` replaced (e.g. ``Kp=``) where the law
+    lives: the controller's and the actuator's prediction chains."""
+    law = dataclasses.replace(loop.controller.law, **changes)
+    return dataclasses.replace(loop, controller=dataclasses.replace(loop.controller, law=law),
+                               actuator=dataclasses.replace(loop.actuator, law=law))
 
 
 def run(loop: nc.Loop, key) -> Metrics:
