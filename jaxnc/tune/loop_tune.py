@@ -411,8 +411,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
     Args:
-      loop: a :class:`jaxnc.loop.Loop`, or any configuration dataclass ``run`` accepts
-        (e.g. :class:`jaxnc.schemes.mecanum.MecanumLoop` with ``run=mecanum.run``).
+      loop: a :class:`jaxnc.loop.Loop` (e.g. :func:`jaxnc.schemes.mecanum.mecanum_loop`'s with
+        ``run=mecanum.run``), or any configuration dataclass ``run`` accepts.
       params: ``{path: constraint}`` (``Positive()``, ``Interval(lo, hi)``,
         ``Unconstrained()``) or a list of paths (unconstrained). A key may be a tuple of
         paths, *tied*: one parameter written at all of them (they must start equal), e.g.

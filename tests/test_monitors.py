@@ -1,0 +1,89 @@
+"""The path monitor (jaxnc.loop.PathMonitor) against closed forms on a straight path."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnc import loop as nc
+from jaxnc.paths import from_waypoints
+
+LINE = from_waypoints(np.array([[0.0, 0.0], [10.0, 0.0]]), "line", ds=0.1)     # 101 points on y = 0
+CTX = nc.Context(N=1, steps=10, T=0.1, state_dim=2, input_dim=1, output_dim=2)
+
+
+def _watch(monitor, xs):
+    """(failed, done, dist) after each state of xs [K, n], by the monitor's step in a scan."""
+    def body(s, x):
+        s, failed, done = monitor.step(s, x, jnp.zeros(1), jnp.int32(0))
+        return s, (failed, done, s.dist)
+    return jax.jit(lambda xs: jax.lax.scan(body, monitor.init(CTX), xs)[1])(jnp.asarray(xs, jnp.float32))
+
+
+def test_leaving_the_tube_fails_at_the_first_state_beyond_max_dev():
+    """p_t = (0.05 t, 0.12 t): the distance to y = 0 is 0.12 t, beyond max_dev = 0.5 from t = 5 on."""
+    t = np.arange(10)
+    failed, done, dist = _watch(nc.PathMonitor(LINE, max_dev=0.5), np.stack([0.05 * t, 0.12 * t], 1))
+    np.testing.assert_allclose(dist, 0.12 * t, atol=1e-5)
+    np.testing.assert_array_equal(failed, t >= 5)
+    assert not np.any(done)
+
+
+def test_completion_at_the_end_and_no_tube_afterwards():
+    """A plant on the path reaches its end (10, 0) at t = 10 (done from then on; not before,
+    though (9, 0) is in the last tenth, 1 m from the end); leaving sideways afterwards is no failure."""
+    xs = np.concatenate([np.stack([np.arange(11.0), np.zeros(11)], 1), [[10.0, 3.0]]])
+    failed, done, _ = _watch(nc.PathMonitor(LINE, max_dev=0.5, end_tol=0.1, window=32), xs)
+    np.testing.assert_array_equal(done, np.arange(12) >= 10)
+    assert not np.any(failed)
+
+
+def test_position_index_and_non_finite_state():
+    """``xy`` picks the position inside a longer state; a non-finite entry anywhere fails."""
+    ctx = CTX._replace(state_dim=4)
+    m = nc.PathMonitor(LINE, xy=1)
+    s0 = m.init(ctx)
+    _, failed, _ = m.step(s0, jnp.asarray([9.0, 1.0, 0.2, 7.0]), jnp.zeros(1), 0)
+    assert not bool(failed)
+    _, failed, _ = m.step(s0, jnp.asarray([jnp.nan, 1.0, 0.2, 7.0]), jnp.zeros(1), 0)
+    assert bool(failed)
+
+
+def test_in_a_loop_the_runner_records_first_failure_and_completion():
+    """A plant at constant velocity (1, vy) m/s, T = 0.1, from the start of a 2 m line: after
+    step t its position is (0.1, 0.1 vy) (t + 1). With vy = 0.3 it leaves the 0.5 m tube at
+    t + 1 = 17 and never completes; with vy = 0 it reaches the end (within 0.06 m) at
+    t + 1 = 20 and never fails (K = 30 is the runner's "never"); the distance is recorded."""
+    line = from_waypoints(np.array([[0.0, 0.0], [2.0, 0.0]]), "line2", ds=0.01)
+    A = np.array([[1.0, 0, 0.1, 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]])
+
+    def run(vy):
+        plant = nc.LTI(A=A, B=np.zeros((4, 1)), C=np.eye(4), x0=[0.0, 0.0, 1.0, vy], T=0.1)
+        loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                       controller=nc.StateFeedback(np.zeros((1, 4))), downlink=nc.Link(), actuator=nc.HoldLast(),
+                       monitor=nc.PathMonitor(line, max_dev=0.5, end_tol=0.06, xy=0), N=1, steps=30, T=0.1,
+                       record=nc.Record(signals=("x",), monitor=nc.path_distance))
+        return jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
+
+    off, on = run(0.3), run(0.0)
+    assert (bool(off.failed), int(off.fail_step), bool(off.done), int(off.done_step)) == (True, 17, False, 30)
+    assert (bool(on.failed), int(on.fail_step), bool(on.done), int(on.done_step)) == (False, 30, True, 20)
+    np.testing.assert_allclose(off.parts["monitor"][:19], 0.03 * np.arange(1, 20), atol=1e-5)
+    np.testing.assert_allclose(on.parts["monitor"][:20], 0.0, atol=1e-6)    # on the line up to its end
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(max_dev=0.0), "PathMonitor.max_dev"),
+    (dict(end_tol=-1.0), "PathMonitor.end_tol"),
+    (dict(window=0), "PathMonitor.window"),
+    (dict(xy=-1), "PathMonitor.xy"),
+])
+def test_bad_fields_name_themselves(kw, match):
+    with pytest.raises(ValueError, match=match):
+        nc.PathMonitor(LINE, **kw)
+
+
+def test_refuses_a_non_path_and_a_position_beyond_the_state():
+    with pytest.raises(ValueError, match="PathMonitor.path"):
+        nc.PathMonitor(np.zeros((5, 2)))
+    with pytest.raises(ValueError, match="PathMonitor.xy"):
+        nc.PathMonitor(LINE, xy=1).init(CTX)
