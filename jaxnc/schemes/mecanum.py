@@ -421,17 +421,18 @@ def build_loop(loop: MecanumLoop, full: bool = True) -> Loop:
         model=plant, Q=loop.filter_noise.process_std() ** 2, R=loop.filter_noise.measurement_std() ** 2,
         mean0=x0, cov0=jnp.diag(jnp.asarray(loop.P0_std, dtype) ** 2),
         noise_dim=PROCESS_NOISE_DIM, jacobian_grad=loop.jacobian_grad, structure=loop.structure)
+    actuator = ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM)
     return Loop(
         plant=Robot(truth, fol.path, x0, loop.max_dev, loop.end_tol, loop.noise, steps=K),
         trigger=sensor_trigger(loop),
         uplink=Link(loss=Bernoulli(loop.sc.p_loss), reliable_first=True, capacity=1),
         estimator=estimator,
-        controller=ChainController(plant, fol, Ts),
+        controller=ChainController(actuator),
         downlink=Link(loss=Bernoulli(loop.ca.p_loss), delay=RoundTrip(ShiftedExponential(loop.ca.eta, loop.ca.phi),
                                                                       ShiftedExponential(loop.sc.eta, loop.sc.phi)),
                       tau_max=loop.tau_max,
                       reliable_first=True, capacity=2),
-        actuator=ChainActuator(plant, fol, Ts, H, hold, x0, noise_dim=PROCESS_NOISE_DIM),
+        actuator=actuator,
         monitor=Monitor(freeze=False), N=N, steps=K, T=float(plant.T),
         record=Record(plant=robot_track, estimator=belief_means) if full else
         Record(signals=("sent_sc", "recv_sc"), plant=robot_dist, estimator=belief_finite))
