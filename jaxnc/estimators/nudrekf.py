@@ -300,10 +300,12 @@ class ChainActuator(AbstractActuator):
     def receive(self, state: ChainActuatorState, inbox: Inbox) -> ChainActuatorState:
         """Install the newest delivered packet's chain at the current instant, with the
         packet's weight."""
-        pkt, stamp, wn = inbox.newest()
-        w = wn * pkt.weight
-        d = jnp.clip(state.now - stamp, 0, pkt.chain.j.shape[0] - 1)
-        chain = jax.tree.map(lambda a: a[d], pkt.chain)
+        # the newest packet's slot, then one gather of its chain at position d (not the whole period's)
+        i, stamp, wn = inbox._replace(data=jnp.arange(inbox.stamp.shape[0])).newest()
+        pkt = inbox.data
+        w = wn * pkt.weight[i]
+        d = jnp.clip(state.now - stamp, 0, pkt.chain.j.shape[1] - 1)
+        chain = jax.tree.map(lambda a: a[i, d], pkt.chain)
         return ChainActuatorState(blend(w, chain, state.chain), jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32),
                                   state.now)
 
