@@ -1,6 +1,9 @@
-"""The one runner's throughput and compile time on seed-000 DRHE (N = 10, DP = 0.5).
+"""The one runner's throughput and compile time on seed-000 loops (default DRHE, N = 10, DP = 0.5).
 
-Run:  .venv/bin/python benchmarks/bench_runner.py [--batches 1000 10000] [--cpu-devices 2]
+Run:  .venv/bin/python benchmarks/bench_runner.py [--batches 1000 10000] [--cpu-devices 2] [--cells DRHE:10 DRHE:1]
+
+Throughput is in seed-steps/s (seeds x fast periods per second; issue 32's goal: DRHE N = 10 at
+10 000 seeds >= 3 M on two cores, N = 1 >= 1 M); ``--batches 1000`` is the quick form.
 
 The loop runs through montecarlo.run_batched with the configuration as a runtime
 argument (best of the repeats). To compare against another version of the code in the
@@ -31,28 +34,32 @@ def _runner_seed(key, loop):
     return runner_impl.run(loop, key)
 
 
-def bench(batches, repeat, case="DRHE", N=10, dp=0.5):
+def bench(batches, repeat, case="DRHE", N=10, dp=0.5, rows=None):
+    """Rows (cell, seeds, compile s, best wall s, seed-steps/s, its process CPU s, seed-steps
+    per CPU-second): on a shared machine the CPU time is the steadier of the two."""
     impls = {"runner (jaxnc.loop)": (runner_impl.mecanum_loop(case, N, dp), _runner_seed)}
-    rows, rates = [], {}
+    rows, rates = ([] if rows is None else rows), {}
     for B in batches:
         keys = montecarlo.seed_keys(0, B)
-        first, best = {}, {}
+        first, best, cpu = {}, {}, {}
         for name, (loop, fn) in impls.items():
             t0 = time.perf_counter()
             jax.block_until_ready(montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=B, progress=False).J1)
             first[name] = time.perf_counter() - t0
-            best[name] = np.inf
+            best[name] = cpu[name] = np.inf
         for _ in range(repeat):
             for name, (loop, fn) in impls.items():
-                t0 = time.perf_counter()
-                montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=B, progress=False)
+                t0, c0 = time.perf_counter(), time.process_time()
+                jax.block_until_ready(montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=B, progress=False).J1)
                 best[name] = min(best[name], time.perf_counter() - t0)
+                cpu[name] = min(cpu[name], time.process_time() - c0)
         steps = next(iter(impls.values()))[0].steps
         for name in impls:
             rates[(name, B)] = B * steps / best[name]
             rows.append([f"{case} N={N} DP={dp}, {name}", B, f"{max(first[name] - best[name], 0):.1f}",
-                         f"{best[name]:.2f}", f"{rates[(name, B)]:,.0f}"])
-    return markdown_table(["closed loop (Lissajous)", "seeds", "compile s", "run s", "seed-steps/s"], rows)
+                         f"{best[name]:.2f}", f"{rates[(name, B)]:,.0f}", f"{cpu[name]:.2f}",
+                         f"{B * steps / cpu[name]:,.0f}"])
+    return rows
 
 
 def main():
@@ -60,14 +67,21 @@ def main():
     ap.add_argument("--batches", type=int, nargs="+", default=[1000, 10000])
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--cpu-devices", type=int, default=1)
+    ap.add_argument("--cells", nargs="+", default=["DRHE:10"], help="CASE:N pairs, e.g. DRHE:10 DRHE:1 SR:10")
+    ap.add_argument("--dp", type=float, default=0.5)
     ap.add_argument("--no-record", action="store_true")
     a = ap.parse_args()
     if a.cpu_devices > 1:
         jax.config.update("jax_num_cpu_devices", a.cpu_devices)
-    table = bench(a.batches, a.repeat)
+    rows = []
+    for cell in a.cells:
+        case, N = cell.split(":")
+        bench(a.batches, a.repeat, case, int(N), a.dp, rows)
+    table = markdown_table(["closed loop (Lissajous)", "seeds", "compile s", "run s", "seed-steps/s", "CPU s",
+                            "seed-steps per CPU-s"], rows)
     print(table)
     if not a.no_record:
-        record(HERE / "RESULTS.md", [table], note="The runner's seed-000 DRHE loop (runner's own draws).")
+        record(HERE / "RESULTS.md", [table], note="The runner's seed-000 loops (runner's own draws).")
 
 
 if __name__ == "__main__":

@@ -1,12 +1,19 @@
 """Prediction stage of the NUDREKF (seed 000, section 3.3.1): the lazily advanced
-packet chain yields exactly the actions and controller states of the materialised packet."""
+packet chain yields exactly the actions and controller states of the materialised packet;
+the scheme's loop roles (estimator, copy-keeping controller, chain actuator) against chains
+advanced by hand."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxnc import loop as nc
 from jaxnc.controllers.path_following import PathFollower
-from jaxnc.estimators.nudrekf import advance_chain, exhausted_chain, predict_horizon, start_chain
+from jaxnc.estimators.ekf import Gaussian, ekf_predict
+from jaxnc.estimators.nudrekf import (ChainActuator, ChainController, ChainEstimate, NudrekfEstimator, advance_chain,
+                                      exhausted_chain, predict_horizon, start_chain)
 from jaxnc.paths import get_path
 from jaxnc.plants.mecanum import PROCESS_NOISE_DIM, Mecanum
 
@@ -51,3 +58,117 @@ def test_exhausted_chain_holds_its_action():
         ch = advance_chain(plant, nxt, ch, 5, 1, PROCESS_NOISE_DIM)
         np.testing.assert_array_equal(ch.u, u)
         assert int(ch.j) == 5
+
+
+# ------------------------------------------------------------------ the scheme's loop roles
+N_ROLES = 4
+
+
+def _roles(H=12, hold=1):
+    plant, fol = Mecanum(), PathFollower(get_path("lissajous"))
+    x0 = jnp.array([0.05, -0.02, 0.1, 0.0, 0.0, 0.2], jnp.float32)
+    act = ChainActuator(plant, fol, plant.T * hold, jnp.int32(H), jnp.int32(hold), x0, noise_dim=PROCESS_NOISE_DIM)
+    ctx = nc.Context(N=N_ROLES, steps=4 * N_ROLES, T=float(plant.T), state_dim=6, input_dim=4, output_dim=9)
+    return plant, fol, act, ChainController(act), ctx
+
+
+def _advance_n(plant, fol, act, chain, n):
+    nxt = lambda m, c: fol(plant, m, c, act.Ts, narrow=True)
+    for _ in range(n):
+        chain = advance_chain(plant, nxt, chain, act.horizon, act.hold, PROCESS_NOISE_DIM)
+    return chain
+
+
+def test_parts_implement_at_most_three_methods():
+    # issue 30's acceptance: a part implements at most three methods (docs/build_your_own_loop.md)
+    for cls in (NudrekfEstimator, ChainController, ChainActuator):
+        own = [n for n, v in vars(cls).items() if callable(v) and not n.startswith("_")]
+        assert len(own) <= 3, (cls.__name__, own)
+
+
+def test_controller_copy_starts_a_chain_and_sends_its_period():
+    """The packet is the copy at each instant of the period: position 0 is the chain started
+    from the estimate (with the copy's controller state), position j that chain advanced j
+    times (advance_chain by hand); sent() are the copy's N actions; a weight-0 packet continues
+    the old copy."""
+    plant, fol, act, ctrl, ctx = _roles()
+    mean = jnp.array([0.04, -0.01, 0.12, 0.02, -0.03, 0.21], jnp.float32)
+    s0 = ctrl.init(ctx)
+    step = jax.jit(lambda s, w, k: ctrl.step(s, ChainEstimate(mean, jnp.float32(w)), 1.0, jnp.int32(k), ctx))
+    s1, pkt, send = step(s0, 1.0, 3)
+    assert int(pkt.stamp) == 3 * N_ROLES and float(send) == 1.0 and float(pkt.data.weight) == 1.0
+    start = start_chain(lambda m, c: fol(plant, m, c, act.Ts), mean, s0.chain.c_before)
+    for j in range(N_ROLES + 1):
+        want = _advance_n(plant, fol, act, start, j)
+        got = jax.tree.map(lambda a: a[j], pkt.data.chain)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(ctrl.sent(s1), pkt.data.chain.u[:N_ROLES])
+    assert ctrl.sent(s1).shape == (N_ROLES, 4) and not np.allclose(ctrl.sent(s1)[0], 0.0)
+    # no measurement now: the copy continues where it was
+    s2, pkt2, _ = step(s1, 0.0, 4)
+    np.testing.assert_allclose(pkt2.data.chain.x[0], s1.chain.x)
+    np.testing.assert_allclose(pkt2.data.chain.u[0], s1.chain.u)
+    np.testing.assert_allclose(ctrl.sent(s2), _period_u(plant, fol, act, s1.chain), rtol=1e-5, atol=1e-6)
+
+
+def _period_u(plant, fol, act, chain):
+    return np.stack([np.asarray(_advance_n(plant, fol, act, chain, j).u) for j in range(N_ROLES)])
+
+
+@pytest.mark.parametrize("d", [0, 2, N_ROLES])
+def test_actuator_installs_the_chain_at_its_arrival(d):
+    """A packet stamped s arriving at t = s + d: the actuator applies at t the action the
+    packet's chain holds at position d (its first action advanced d times by hand), and
+    afterwards continues that chain; a packet of weight 0 is not installed."""
+    plant, fol, act, ctrl, ctx = _roles()
+    mean = jnp.array([0.04, -0.01, 0.12, 0.02, -0.03, 0.21], jnp.float32)
+    k = 2
+    _, pkt, _ = ctrl.step(ctrl.init(ctx), ChainEstimate(mean, jnp.float32(1.0)), 1.0, jnp.int32(k), ctx)
+    s = k * N_ROLES
+
+    def box(t, w, arrived):
+        data = jax.tree.map(lambda a: a[None], pkt.data._replace(weight=jnp.float32(w)))
+        new = jnp.asarray([float(arrived)], jnp.float32)
+        return nc.Inbox(data, jnp.asarray([s], jnp.int32), jnp.ones((1,)), jnp.asarray([arrived]), new)
+
+    @jax.jit
+    def run(w):
+        st = act.init(ctx)
+        us = []
+        for t in range(s + d + 3):
+            st = act.receive(st, box(t, w, t == s + d))
+            st, u = act.output(st, jnp.int32(t))
+            us.append(u)
+        return jnp.stack(us)
+
+    us = run(1.0)
+    start = start_chain(lambda m, c: fol(plant, m, c, act.Ts), mean, fol.init())
+    for j in range(3):
+        np.testing.assert_allclose(us[s + d + j], _advance_n(plant, fol, act, start, d + j).u, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(us[:s + d], 0.0)               # the idle chain holds zero
+    np.testing.assert_array_equal(run(0.0), 0.0)                 # weight 0: never installed
+
+
+def test_estimator_predicts_along_the_believed_actions():
+    plant, fol, act, ctrl, ctx = _roles()
+    Q = jnp.full((PROCESS_NOISE_DIM,), 1e-4, jnp.float32)
+    est = NudrekfEstimator(plant, Q, jnp.full((9,), 1e-3, jnp.float32), jnp.zeros(6, jnp.float32),
+                           0.01 * jnp.eye(6, dtype=jnp.float32), noise_dim=PROCESS_NOISE_DIM)
+    ub = jnp.linspace(-1.0, 2.0, N_ROLES * 4, dtype=jnp.float32).reshape(N_ROLES, 4)
+    st = jax.jit(lambda s: est.predict(s, jnp.zeros_like(ub), ub, jnp.int32(0)))(est.init(ctx))
+    g = Gaussian(jnp.zeros(6, jnp.float32), 0.01 * jnp.eye(6, dtype=jnp.float32))
+    for j in range(N_ROLES):
+        g = ekf_predict(plant.dynamics, g, ub[j], Q, PROCESS_NOISE_DIM)
+        np.testing.assert_allclose(st.means[j], g.mean, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(st.belief.cov, g.cov, rtol=1e-5, atol=1e-7)
+
+
+def test_loop_with_a_copy_keeping_controller_refuses_a_controller_trigger_or_limits():
+    from jaxnc.schemes import mecanum as mec
+    loop = mec.mecanum_loop("DRHE", 4, 0.2, horizon_s=1.0)
+    assert loop.controller.keeps_copy
+    with pytest.raises(ValueError, match="controller_trigger"):
+        dataclasses.replace(loop, controller_trigger=nc.Petc(delta=0.1))
+    with pytest.raises(ValueError, match="LimitedActuator"):
+        dataclasses.replace(loop, actuator=nc.LimitedActuator(loop.actuator, nc.Saturation(-1.0, 1.0)))

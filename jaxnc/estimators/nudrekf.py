@@ -25,8 +25,7 @@ import jax.numpy as jnp
 
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.estimators.sparsity import EKFStructure
-from jaxnc.loop.base import (AbstractFastEstimator, AbstractSenderCopyActuator, AbstractSenderCopyController, Inbox,
-                             Packet, blend)
+from jaxnc.loop.base import AbstractActuator, AbstractController, AbstractEstimator, Inbox, Packet, blend
 from jaxnc.loop.base import static_field as _static
 
 
@@ -139,8 +138,10 @@ def advance_chain(model, controller_next: Callable, chain: PacketChain, horizon:
 
 # ----------------------------------------------------------------------------- loop roles
 # The NUDREKF scheme as roles of jaxnc.loop (seed 000, section 3.3.1): a packet is a
-# prediction chain; the remote side keeps its copy of its last packet (the runner's
-# "believed" actuator state), and the actuator installs that copy when the packet arrives.
+# prediction chain. The remote controller keeps its copy of the packet it last installed
+# and advances it over each period (what the remote filter propagates along); each packet
+# carries that copy's chain at every instant of its period, so the actuator installs the
+# chain at the instant the packet arrives.
 
 
 class ChainEstimate(NamedTuple):
@@ -162,7 +163,7 @@ class NudrekfState(NamedTuple):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class NudrekfEstimator(AbstractFastEstimator):
+class NudrekfEstimator(AbstractEstimator):
     """The remote NUDREKF as a loop estimator (seed 000 eq. 11-16).
 
     At a slow instant it corrects with the delivered measurement (eq. 13, additive noise
@@ -208,13 +209,16 @@ class NudrekfEstimator(AbstractFastEstimator):
         belief = blend(w, corrected, state.belief)
         return state._replace(belief=belief), ChainEstimate(corrected.mean, w)
 
-    def predict_fast(self, state: NudrekfState, u_applied, u_believed, t, j) -> NudrekfState:
-        """One fast period of eq. (11) along the believed action (the runner calls it every
-        fast period); keeps the belief's mean for fast instant j of the period."""
-        g = ekf_predict(self.model.dynamics, state.belief, u_believed, self.Q, self.noise_dim,
-                        jacobian_grad=self.jacobian_grad, structure=self.structure)
-        return state._replace(belief=g, means=state.means.at[j].set(g.mean))
+    def predict(self, state: NudrekfState, u_applied, u_believed, k) -> NudrekfState:
+        """Eq. (11) once per fast period of period k along the believed actions
+        ``u_believed`` float[N, m]; keeps the belief's mean after each (``means``)."""
+        def one(g, u):
+            g = ekf_predict(self.model.dynamics, g, u, self.Q, self.noise_dim, jacobian_grad=self.jacobian_grad,
+                            structure=self.structure)
+            return g, g.mean
 
+        g, means = jax.lax.scan(one, state.belief, u_believed)
+        return NudrekfState(g, means)
 
 
 def belief_means(estimator: NudrekfEstimator, state: NudrekfState):
@@ -229,10 +233,12 @@ def belief_finite(estimator: NudrekfEstimator, state: NudrekfState):
 
 
 class ChainPacket(NamedTuple):
-    """The payload of a control packet: the prediction chain and its weight, the 0/1 float
-    "the remote side sent a new packet now" (with the trigger's straight-through gradient).
-    A packet of weight 0 still travels, so that this gradient reaches the actuator at the
-    instant the packet would have arrived, as in the hand-written loop."""
+    """The payload of a control packet stamped kN: ``chain``, the sender's copy of its
+    packet at each fast instant kN .. kN + N of the period (a :class:`PacketChain` with a
+    leading axis of N + 1), and ``weight``, the 0/1 float "the remote side installed a new
+    packet now" (with the trigger's straight-through gradient). A packet of weight 0 (the
+    copy continued) still travels, so that this gradient reaches the actuator at the instant
+    the packet would have arrived, as in the hand-written loop."""
 
     chain: PacketChain
     weight: jax.Array
@@ -241,24 +247,33 @@ class ChainPacket(NamedTuple):
 class ChainActuatorState(NamedTuple):
     chain: PacketChain      # the installed packet, at the current instant
     stamp: jax.Array        # int32, its time stamp (-1: the idle chain before the first packet)
-    prev: PacketChain       # the chain held before the last ``receive`` (sender side only)
-    prev_stamp: jax.Array   # int32
+    now: jax.Array          # int32, the next fast instant (the actuator's clock: the last output's t + 1)
+
+
+def _idle_chain(act: "ChainActuator", m: int) -> PacketChain:
+    """The chain before the first packet: it holds zero at ``act.mean0``."""
+    return exhausted_chain(jnp.asarray(act.mean0, jnp.float32), jnp.zeros((m,), jnp.float32), act.law.init(),
+                           act.horizon)
+
+
+def _advance(act: "ChainActuator", chain: PacketChain) -> PacketChain:
+    """``chain`` one fast period on with ``act``'s model and law (narrow path search)."""
+    nxt = lambda m, c: act.law(act.model, m, c, act.Ts, narrow=True)
+    return advance_chain(act.model, nxt, chain, act.horizon, act.hold, act.noise_dim)
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class ChainActuator(AbstractSenderCopyActuator):
+class ChainActuator(AbstractActuator):
     """The actuator of packet-based control with packets held as prediction chains (seed 000
     section 2.4 and 3.3.1).
 
     Every fast period it applies the action its chain holds for the instant and advances the
-    chain one period (:func:`advance_chain`; past h*N actions the last is held). The same
-    role is the remote side's copy of its last packet (the runner's ``u_believed`` state):
-    ``receive`` installs the controller's own packet there. At the real actuator
-    ``receive_from_sender(state, inbox, sent)`` installs, when a packet arrives, the
-    sender's *current* copy of that packet (``sent.chain``, or ``sent.prev`` for the packet
-    of the previous slow instant arriving exactly at this one, d = N), so both ends advance
-    one chain each per fast period whatever the delay.
+    chain one period (:func:`advance_chain`; past h*N actions the last is held). When a
+    packet stamped s arrives at instant t (with its weight) it installs the packet's chain
+    at position t - s (:class:`ChainPacket` carries the positions 0..N; the downlink's delays
+    must not exceed N fast periods, seed 000's tau_max <= NT), so it continues exactly as
+    if it had advanced the packet itself from s.
 
     Attributes:
       model: the kinematic model the chain is predicted with; law: the control law,
@@ -278,76 +293,72 @@ class ChainActuator(AbstractSenderCopyActuator):
     mean0: Any
     noise_dim: int = _static(0)
 
-    def _idle(self, m):
-        return exhausted_chain(jnp.asarray(self.mean0, jnp.float32), jnp.zeros((m,), jnp.float32),
-                               self.law.init(), self.horizon)
-
     def init(self, ctx) -> ChainActuatorState:
-        idle = self._idle(ctx.input_dim)
-        s = jnp.asarray(-1, jnp.int32)
-        return ChainActuatorState(idle, s, idle, s)
+        z = jnp.zeros((), jnp.int32)
+        return ChainActuatorState(_idle_chain(self, ctx.input_dim), z - 1, z)
 
     def receive(self, state: ChainActuatorState, inbox: Inbox) -> ChainActuatorState:
-        """Install the newest delivered chain (the sender's own copy) with the packet's weight;
-        remember the old one."""
-        pkt, stamp, wn = inbox.newest()
-        w = wn * pkt.weight
-        return ChainActuatorState(blend(w, pkt.chain, state.chain),
-                                  jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32),
-                                  state.chain, state.stamp)
-
-    def receive_from_sender(self, state: ChainActuatorState, inbox: Inbox, sent: ChainActuatorState):
-        """At the arrival of a packet, install the sender's current copy of it (with the
-        packet's weight): ``sent.chain``, or ``sent.prev`` for a packet older than the
-        sender's newest (the previous slow instant's, arriving exactly now)."""
-        pkt, stamp, wn = inbox.newest()
-        w = wn * pkt.weight
-        copy = jax.tree.map(lambda a, b: jnp.where(stamp >= sent.stamp, a, b), sent.chain, sent.prev)
-        return state._replace(chain=blend(w, copy, state.chain),
-                              stamp=jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32))
+        """Install the newest delivered packet's chain at the current instant, with the
+        packet's weight."""
+        # the newest packet's slot, then one gather of its chain at position d (not the whole period's)
+        i, stamp, wn = inbox._replace(data=jnp.arange(inbox.stamp.shape[0])).newest()
+        pkt = inbox.data
+        w = wn * pkt.weight[i]
+        d = jnp.clip(state.now - stamp, 0, pkt.chain.j.shape[1] - 1)
+        chain = jax.tree.map(lambda a: a[i, d], pkt.chain)
+        return ChainActuatorState(blend(w, chain, state.chain), jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32),
+                                  state.now)
 
     def output(self, state: ChainActuatorState, t):
         """(state advanced one fast period, u_t)."""
-        nxt = lambda m, c: self.law(self.model, m, c, self.Ts, narrow=True)
-        chain = advance_chain(self.model, nxt, state.chain, self.horizon, self.hold, self.noise_dim)
-        return state._replace(chain=chain), state.chain.u
+        return ChainActuatorState(_advance(self, state.chain), state.stamp, jnp.asarray(t + 1, jnp.int32)), state.chain.u
+
+
+class ChainCopy(NamedTuple):
+    """:class:`ChainController`'s state: the sender's copy of the packet it last installed."""
+
+    chain: PacketChain      # the copy at the next slow instant
+    sent: jax.Array         # float[N, m]: the actions the copy applied over the last period
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class ChainController(AbstractSenderCopyController):
-    """The remote controller of section 3.3.1: from the corrected estimate it starts a new
-    prediction chain (step 1, :func:`start_chain`) that continues the controller state its
-    last packet predicted for this instant; the packet's weight is ``ChainEstimate.weight``
-    (a new packet exactly when a measurement arrived). Every slow instant's packet is handed
-    to the link (send = 1, :class:`ChainPacket`): the runner's controller transmission
-    counts are therefore per slow instant, the scheme's are the weights.
+class ChainController(AbstractController):
+    """The remote controller of section 3.3.1, keeping its copy of what it sent
+    (``keeps_copy``).
 
-    ``step_from_sent(state, xhat, fresh, k, ctx, sent)`` (declared by
-    :class:`~jaxnc.loop.AbstractSenderCopyController`; ``sent`` a :class:`ChainActuatorState`)
-    is the scheme; ``step`` alone starts from ``law.init()``.
-    The packet is the chain, stamped kN.
+    At slow instant k, from the corrected estimate it starts a new prediction chain (step 1,
+    :func:`start_chain`) that continues the controller state its copy predicted for this
+    instant, and installs it in its copy with the weight ``ChainEstimate.weight`` (a new
+    packet exactly when a measurement arrived); it then advances the copy over the period,
+    as ``actuator`` would. The packet, stamped kN, is the copy at each instant kN .. kN + N
+    (:class:`ChainPacket`); :meth:`sent` gives the copy's N actions (what the remote filter
+    propagates along). Every slow instant's packet is handed to the link (send = 1): the
+    runner's controller transmission counts are therefore per slow instant, the scheme's
+    are the weights.
 
-    Attributes: model, law, Ts as in :class:`ChainActuator`.
+    Attributes:
+      actuator: the :class:`ChainActuator` its packets drive (model, law, Ts, horizon,
+        hold, mean0): the copy advances as it does.
     """
 
-    model: Any
-    law: Any
-    Ts: Any
+    actuator: Any
+    keeps_copy = True
 
-    def init(self, ctx):
-        return ()
+    def init(self, ctx) -> ChainCopy:
+        return ChainCopy(_idle_chain(self.actuator, ctx.input_dim), jnp.zeros((ctx.N, ctx.input_dim), jnp.float32))
 
-    def _packet(self, xhat, fresh, k, ctx, c_before):
+    def step(self, state: ChainCopy, xhat, fresh, k, ctx):
+        a = self.actuator
         mean, w = (xhat.mean, xhat.weight) if isinstance(xhat, ChainEstimate) else (xhat, fresh)
-        chain = start_chain(lambda m, c: self.law(self.model, m, c, self.Ts), mean, c_before)
-        pkt = Packet(ChainPacket(chain, jnp.asarray(w, jnp.float32)), (k * ctx.N).astype(jnp.int32))
-        return pkt, jnp.ones((), jnp.float32)
+        w = jnp.asarray(w, jnp.float32)
+        new = start_chain(lambda m, c: a.law(a.model, m, c, a.Ts), mean, state.chain.c_before)
+        copy = blend(w, new, state.chain)
+        last, chains = jax.lax.scan(lambda ch, _: (_advance(a, ch), ch), copy, None, length=ctx.N)
+        period = jax.tree.map(lambda cs, c: jnp.concatenate([cs, c[None]], axis=0), chains, last)
+        pkt = Packet(ChainPacket(period, w), (k * ctx.N).astype(jnp.int32))
+        return ChainCopy(last, chains.u), pkt, jnp.ones((), jnp.float32)
 
-    def step(self, state, xhat, fresh, k, ctx):
-        pkt, w = self._packet(xhat, fresh, k, ctx, self.law.init())
-        return state, pkt, w
-
-    def step_from_sent(self, state, xhat, fresh, k, ctx, sent: ChainActuatorState):
-        pkt, w = self._packet(xhat, fresh, k, ctx, sent.chain.c_before)
-        return state, pkt, w
+    def sent(self, state: ChainCopy):
+        """float[N, m]: the actions the copy applied over the period of the last step."""
+        return state.sent

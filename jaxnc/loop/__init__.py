@@ -9,9 +9,8 @@ from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOr
 from jaxnc.loop.cascade import Cascade, CascadeState
 from jaxnc.loop.numre import Numre, NumreState
 from jaxnc.loop.unstamped import ArrivalHold, DirtyDerivative, DirtyDerivativeState
-from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator,
-                             AbstractFastEstimator, AbstractLoss, AbstractMonitor, AbstractPlant, AbstractSenderCopyActuator,
-                             AbstractSenderCopyController, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator, AbstractLoss,
+                             AbstractMonitor, AbstractPlant, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
                              static_field)
 from jaxnc.loop.controllers import Function, Predictive, StateFeedback
 from jaxnc.loop.estimators import EKF, EKFState, Passthrough
@@ -40,7 +39,7 @@ __all__ = [
     "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
     "Quadratic", "FunctionCost", "Context", "STREAMS", "SIGNALS", "PARTS",
     "AbstractPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
-    "AbstractFastEstimator", "AbstractMonitor", "AbstractSenderCopyController", "AbstractSenderCopyActuator", "AbstractLoss",
+    "AbstractMonitor", "AbstractLoss",
     "AbstractDelay", "Packet", "Inbox", "blend", "pytree_dataclass", "static_field",
     "Discrete", "Continuous", "LTI", "rk4",
     "Link", "LinkDraws", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay", "ShiftedExponential",

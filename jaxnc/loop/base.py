@@ -25,10 +25,13 @@ period T):
    the actuator applied, and those the controller believes applied (its own packets, as
    if delivered at once), over the period.
 
-Optional behaviour is declared, never discovered: by marker base classes
-(:class:`AbstractFastEstimator`, :class:`AbstractSenderCopyController`,
-:class:`AbstractSenderCopyActuator`) or declared class attributes (``inputs``,
-``horizon``, ``in_steps``). What a run records is the loop's :class:`~jaxnc.loop.Record`.
+Optional behaviour is declared, never discovered: by class attributes (``inputs``,
+``horizon``, ``keeps_copy``, ``in_steps``, ``freeze``). A controller that declares
+``keeps_copy`` keeps the sender's copy of what it sent in its own state and says, with
+``sent(state)``, which actions that copy applies over the period (seed 000's prediction
+chains); otherwise the runner keeps that copy for it (the actuator role fed the
+controller's packets at once) when the estimator needs the believed actions. What a run
+records is the loop's :class:`~jaxnc.loop.Record`.
 
 Everything a component needs that does not depend on the loop's signals (noise, packet
 losses and delays) is drawn up front from the run's key, so loops can be compared on the
@@ -50,8 +53,7 @@ import jax.numpy as jnp
 from jaxnc._validate import checked_pytree
 
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger",
-           "AbstractEstimator", "AbstractFastEstimator", "AbstractController", "AbstractSenderCopyController",
-           "AbstractActuator", "AbstractSenderCopyActuator", "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
+           "AbstractEstimator", "AbstractController", "AbstractActuator", "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
 
 
 def static_field(default=dataclasses.MISSING):
@@ -241,19 +243,6 @@ class AbstractEstimator(abc.ABC):
         """Propagate over the period k (actions float[N, m]); returns the state."""
 
 
-class AbstractFastEstimator(AbstractEstimator):
-    """An estimator whose prediction runs inside the fast loop: the runner calls
-    :meth:`predict_fast` after every fast period's plant step, where the compiler fuses it
-    with the actuator's and the plant's work, and never calls :meth:`predict`."""
-
-    @abc.abstractmethod
-    def predict_fast(self, state, u_applied, u_believed, t, j):
-        """Propagate over fast instant t (j = t - kN; actions float[m]); returns the state."""
-
-    def predict(self, state, u_applied, u_believed, k):
-        raise NotImplementedError(f"{type(self).__name__} predicts in the fast loop (predict_fast)")
-
-
 class AbstractController(abc.ABC):
     """Computes a packet of actions from the estimate at a slow instant."""
 
@@ -267,6 +256,12 @@ class AbstractController(abc.ABC):
     #: override it)
     horizon = 1
 
+    #: bool (declared): the controller keeps the sender's copy of what it sent (the
+    #: actuator its packets drive, fed them at once) in its own state, and :meth:`sent`
+    #: gives the actions that copy applies over the period; an estimator with
+    #: ``inputs="believed"`` is told them. False: the runner keeps that copy for it.
+    keeps_copy: ClassVar[bool] = False
+
     @abc.abstractmethod
     def init(self, ctx):
         """Controller state before the first instant."""
@@ -277,16 +272,11 @@ class AbstractController(abc.ABC):
 
         ``fresh`` is 1.0 when the estimator received something at this instant."""
 
-
-class AbstractSenderCopyController(AbstractController):
-    """A controller whose packets continue the sender's own copy of its last packet (seed
-    000's prediction chains): with an estimator that takes the believed actions, the runner
-    calls :meth:`step_from_sent` instead of ``step``, with ``sent``, the actuator-role state
-    the runner keeps of the controller's own packets (what ``u_believed`` is read from)."""
-
-    @abc.abstractmethod
-    def step_from_sent(self, state, xhat, fresh, k, ctx, sent):
-        """As :meth:`step`, continuing from ``sent``."""
+    def sent(self, state):
+        """float[N, m]: the actions the sender's copy applies over the period of the last
+        :meth:`step` (``state`` its result), as if the packets were delivered at once. Only
+        for a controller that declares ``keeps_copy``."""
+        raise NotImplementedError(f"{type(self).__name__} does not keep a copy of what it sent (keeps_copy)")
 
 
 class AbstractActuator(abc.ABC):
@@ -309,17 +299,6 @@ class AbstractActuator(abc.ABC):
     @abc.abstractmethod
     def output(self, state, t):
         """(state, u_t float[m]) for fast instant t."""
-
-
-class AbstractSenderCopyActuator(AbstractActuator):
-    """An actuator that, when a packet arrives, installs the sender's *current* copy of it
-    (both ends advance one copy each per fast period, whatever the delay): with an
-    estimator that takes the believed actions the runner calls :meth:`receive_from_sender`
-    instead of ``receive`` at each fast instant, with the sender's copy as it is then."""
-
-    @abc.abstractmethod
-    def receive_from_sender(self, state, inbox: Inbox, sent):
-        """As :meth:`receive`, with ``sent`` the sender's copy (the runner's believed state)."""
 
 
 class AbstractMonitor(abc.ABC):

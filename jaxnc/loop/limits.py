@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_range, concrete
-from jaxnc.loop.base import AbstractActuator, AbstractPlant, AbstractSenderCopyActuator
+from jaxnc.loop.base import AbstractActuator, AbstractPlant
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 
 __all__ = ["AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState",
@@ -173,8 +173,9 @@ class LimitedActuator(AbstractActuator):
     """An actuator whose every output goes through ``limits`` in order.
 
     Attributes:
-      actuator: the inner :class:`~jaxnc.loop.base.AbstractActuator` (e.g. ``HoldLast()``;
-        not a sender-copy actuator).
+      actuator: the inner :class:`~jaxnc.loop.base.AbstractActuator` (e.g. ``HoldLast()``).
+        A loop whose controller keeps its own copy of what it sent (``keeps_copy``) refuses
+        a LimitedActuator: the limits would not reach that copy.
       limits: a limit or a tuple of limits (:class:`Saturation`, :class:`DeadZone`,
         :class:`Quantizer`, :class:`RateLimit`), applied first to last.
 
@@ -188,9 +189,6 @@ class LimitedActuator(AbstractActuator):
     def __post_init__(self):
         check_instance("LimitedActuator.actuator", self.actuator, AbstractActuator,
                        "an actuator (a jaxnc.loop.AbstractActuator: HoldLast, PacketActuator)")
-        if isinstance(self.actuator, AbstractSenderCopyActuator):
-            raise ValueError("LimitedActuator.actuator must not be a sender-copy actuator (its packets advance "
-                             "in lockstep with the sender's copy, which the limits would not see)")
         object.__setattr__(self, "limits", _check_limits("LimitedActuator", self.limits))
 
     @property

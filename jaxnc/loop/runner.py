@@ -27,11 +27,11 @@ import numpy as np
 from jaxnc._validate import (array_fields, check_bool, check_callable, check_finite, check_given, check_instance,
                              check_int, check_range, concrete, fields_concrete)
 from jaxnc.loop.actuators import PacketActuator
-from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractFastEstimator,
-                             AbstractMonitor, AbstractPlant, AbstractSenderCopyActuator, AbstractSenderCopyController, AbstractTrigger,
-                             Inbox)
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractMonitor, AbstractPlant,
+                             AbstractTrigger, Inbox)
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
+from jaxnc.loop.limits import LimitedActuator
 from jaxnc.loop.links import Link, LinkDraws
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
@@ -262,6 +262,13 @@ class Loop:
         if self.cost is not None and not ({"x", "u"} <= set(self.record.signals)):
             raise ValueError(f"Loop.cost needs the signals x and u recorded, but Loop.record keeps only "
                              f"{self.record.signals}: add them, or set cost=None")
+        if self.controller.keeps_copy:      # its copy of what it sent sees neither of these
+            if self.controller_trigger is not None:
+                raise ValueError(f"Loop.controller_trigger must be None: {type(self.controller).__name__} keeps its "
+                                 f"own copy of what it sent (keeps_copy), which a controller-side trigger would not gate")
+            if isinstance(self.actuator, LimitedActuator):
+                raise ValueError(f"Loop.actuator must not be a LimitedActuator: {type(self.controller).__name__} keeps "
+                                 f"its own copy of what it sent (keeps_copy), which the limits would not reach")
         H = self.controller.horizon
         if isinstance(self.actuator, PacketActuator) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
@@ -384,8 +391,6 @@ def _check_fit(loop: Loop) -> None:
     _same_structure("Loop.trigger's step", t0, t1)
     if send.shape != ():
         raise ValueError(f"Loop.trigger's send decision is {_shapes(send)}; it must be a scalar 0/1 float")
-    if isinstance(loop.controller, AbstractSenderCopyController):
-        return                      # its packets continue the runner's copy: checked when traced
     # estimator and controller
     e0 = _stage("Loop.estimator", f"cannot build its state (state_dim={n}, output_dim={p})",
                 lambda: loop.estimator.init(ctx))
@@ -406,10 +411,13 @@ def _check_fit(loop: Loop) -> None:
         raise ValueError(f"Loop.controller's packet has {u.shape[0]} actions, its horizon is {loop.controller.horizon}")
     us = f32((loop.N, m))
     e2 = _stage("Loop.estimator", f"cannot predict over a period (actions float32[{loop.N}, {m}])",
-                lambda: loop.estimator.predict(_zeros(e1), us, us, jnp.int32(0))
-                if not isinstance(loop.estimator, AbstractFastEstimator)
-                else loop.estimator.predict_fast(_zeros(e1), us[0], us[0], jnp.int32(0), jnp.int32(0)))
+                lambda: loop.estimator.predict(_zeros(e1), us, us, jnp.int32(0)))
     _same_structure("Loop.estimator's prediction", e0, e2)
+    if loop.controller.keeps_copy:
+        ub = _stage("Loop.controller", "cannot say what it sent (keeps_copy)", lambda: loop.controller.sent(_zeros(c1)))
+        if not isinstance(ub, jax.ShapeDtypeStruct) or ub.shape != (loop.N, m):
+            raise ValueError(f"Loop.controller's sent actions are {_shapes(ub)}; they must be float32[{loop.N}, {m}] "
+                             f"(N, input_dim)")
     if loop.controller_trigger is not None and isinstance(u, jax.ShapeDtypeStruct):
         cctx = ctx._replace(signal_dim=m)
         ct0 = _stage("Loop.controller_trigger", "cannot build its state", lambda: loop.controller_trigger.init(cctx))
@@ -530,12 +538,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     """One closed-loop run; a pure function of (loop, key), to vmap over keys.
 
     ``draws`` replaces :func:`draw`'s (e.g. a recorded realisation shared by loops). What
-    is kept follows ``loop.record`` (a :class:`Record`). Declared capabilities change how a role is called:
-    an :class:`~jaxnc.loop.base.AbstractFastEstimator` predicts inside the fast loop;
-    with an estimator that takes the believed actions, an
-    :class:`~jaxnc.loop.base.AbstractSenderCopyController` continues the runner's copy of
-    its own packets and an :class:`~jaxnc.loop.base.AbstractSenderCopyActuator` installs
-    the sender's current copy of a delivered packet (seed 000's prediction chains)."""
+    is kept follows ``loop.record`` (a :class:`Record`). An estimator that takes the believed
+    actions (``inputs="believed"``) is told those of the controller's copy of what it sent:
+    its own (``controller.sent``) when it declares ``keeps_copy``, else the runner's, the
+    actuator role fed the controller's packets at once."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
     d = draw(loop, key) if draws is None else draws
@@ -550,18 +556,16 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     pkt_zero = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), pkt0)
     act0 = act_role.init(ctx)
     ctrig0 = None
+    believed_needed = loop.estimator.inputs == "believed"
+    runner_copy = believed_needed and not loop.controller.keeps_copy     # the runner keeps the sender's copy
     if loop.controller_trigger is not None:
         ctrig0 = loop.controller_trigger.init(ctx._replace(signal_dim=int(np.shape(pkt_zero.data[0])[-1])))
     carry0 = _Carry(
         x=x0, trig=loop.trigger.init(ctx._replace(signal_dim=ctx.output_dim)),
         up=loop.uplink.init(z0), est=est0, ctrl=ctrl0, ctrig=ctrig0,
-        down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0, mon=loop.monitor.init(ctx),
+        down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0 if runner_copy else (), mon=loop.monitor.init(ctx),
         failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32),
         done=jnp.zeros((), bool), done_step=jnp.asarray(loop.steps, jnp.int32))
-    believed_needed = loop.estimator.inputs == "believed"
-    from_sent = believed_needed and isinstance(loop.controller, AbstractSenderCopyController)
-    from_sender = believed_needed and isinstance(act_role, AbstractSenderCopyActuator)
-    fast_predict = isinstance(loop.estimator, AbstractFastEstimator)
 
     rec = loop.record
     want = lambda name: _wanted(rec, name)
@@ -578,10 +582,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         # 4. estimator
         est, xhat = loop.estimator.correct(c.est, inbox, k)
         # 5. controller (and its trigger)
-        if from_sent:
-            ctrl, pkt, send_ca = loop.controller.step_from_sent(c.ctrl, xhat, inbox.fresh, k, ctx, c.bel)
-        else:
-            ctrl, pkt, send_ca = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
+        ctrl, pkt, send_ca = loop.controller.step(c.ctrl, xhat, inbox.fresh, k, ctx)
         ctrig = c.ctrig
         if loop.controller_trigger is not None:
             # evaluated only where the controller would send; otherwise its state stays
@@ -591,19 +592,19 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         # 6. downlink; the controller's own copy as if delivered at once
         down = loop.downlink.send(c.down, pkt.data, pkt.stamp, k, send_ca, d_down, t0)
         bel = c.bel
-        if believed_needed:
+        if runner_copy:
             own = Inbox(jax.tree.map(lambda a: a[None], pkt.data), pkt.stamp[None], send_ca[None],
                         jnp.ones((1,), bool), send_ca[None])
             bel = act_role.receive(bel, own)
 
         def fast(fc, inp_j):
-            x, down, act, bel, mon, failed, fail_step, done, done_step, est = fc
+            x, down, act, bel, mon, failed, fail_step, done, done_step = fc
             j, w_t = inp_j
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
-            act = act_role.receive_from_sender(act, box, bel) if from_sender else act_role.receive(act, box)
+            act = act_role.receive(act, box)
             act, u = act_role.output(act, t)
-            bel, ub = act_role.output(bel, t) if believed_needed else (bel, u)
+            bel, ub = act_role.output(bel, t) if runner_copy else (bel, u)
             u_ok = jnp.all(jnp.isfinite(u))
             u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
             x_new = plant.step(x, u, w_t)
@@ -615,21 +616,20 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             done = done | complete
             if loop.monitor.freeze:
                 x_new = jax.tree.map(lambda a, b: jnp.where(failed, a, b), x, x_new)
-            if fast_predict:
-                est = loop.estimator.predict_fast(est, u, ub, t, j)
-            out = (plant.state_vector(x) if want("x") else (), u, ub if believed_needed else (),
+            out = (plant.state_vector(x) if want("x") else (), u, ub if runner_copy else (),
                    jnp.sum(box.new) if want("recv_ca") else (),
                    rec.actuator(act_role, act, t) if rec.actuator is not None else (),
                    rec.plant(plant, x_new) if rec.plant is not None else (),
                    rec.monitor(loop.monitor, mon) if rec.monitor is not None else ())
-            return (x_new, down, act, bel, mon, failed, fail_step, done, done_step, est), out
+            return (x_new, down, act, bel, mon, failed, fail_step, done, done_step), out
 
-        fc0 = (c.x, down, c.act, bel, c.mon, c.failed, c.fail_step, c.done, c.done_step, est)
+        fc0 = (c.x, down, c.act, bel, c.mon, c.failed, c.fail_step, c.done, c.done_step)
         fc, (xs, us, ubs, rca, arec, prec, mrec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
-        x, down, act, bel, mon, failed, fail_step, done, done_step, est = fc
-        # 7. estimator prediction over the period (or, a fast estimator, fast period by fast period above)
-        if not fast_predict:
-            est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
+        x, down, act, bel, mon, failed, fail_step, done, done_step = fc
+        # 7. estimator prediction over the period
+        if believed_needed and not runner_copy:
+            ubs = loop.controller.sent(ctrl)
+        est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
         c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, mon, failed, fail_step, done, done_step)
         outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
                     sent_sc=send_sc, recv_sc=inbox.fresh if want("recv_sc") else (), sent_ca=send_ca,

@@ -163,8 +163,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         model=plant, Q=filter_noise.process_std() ** 2, R=filter_noise.measurement_std() ** 2, mean0=x0,
         cov0=jnp.diag(jnp.asarray(P0_STD, jnp.float32) ** 2), noise_dim=PROCESS_NOISE_DIM,
         jacobian_grad=bool(jacobian_grad), structure=ekf_structure(plant) if sparse else None)
-    controller = ChainController(plant, follower, Ts)
     actuator = ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
+    controller = ChainController(actuator)               # keeps its copy of the packets it sent
     return nc.Loop(
         plant=robot,
         trigger=nc.Petc(sigma=thresholds["sigma"], delta=thresholds["delta"], temperature=trigger_temperature,
@@ -233,10 +233,10 @@ def metrics(loop: nc.Loop, traj: nc.Trajectory) -> Metrics:
 
 def with_follower(loop: nc.Loop, **changes) -> nc.Loop:
     """``loop`` with fields of its :class:`PathFollower` replaced (e.g. ``Kp=``) where the law
-    lives: the controller's and the actuator's prediction chains."""
-    law = dataclasses.replace(loop.controller.law, **changes)
-    return dataclasses.replace(loop, controller=dataclasses.replace(loop.controller, law=law),
-                               actuator=dataclasses.replace(loop.actuator, law=law))
+    lives: the actuator's and the controller's (its copy of the actuator) prediction chains."""
+    actuator = dataclasses.replace(loop.actuator, law=dataclasses.replace(loop.actuator.law, **changes))
+    return dataclasses.replace(loop, controller=dataclasses.replace(loop.controller, actuator=actuator),
+                               actuator=actuator)
 
 
 def run(loop: nc.Loop, key) -> Metrics:
