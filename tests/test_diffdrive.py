@@ -101,7 +101,7 @@ def test_table1_prediction_pattern(e_runs):
     f = jax.jit(jax.vmap(lambda x, u: integrated(loop.plant, x, jnp.repeat(u, sub, axis=0), jnp.zeros(5))))
     K = int(m.l[s]) // 2 - 1
     np.testing.assert_allclose(np.asarray(f(est[:K, 0], U[:K])), est[:K, 1], rtol=1e-5, atol=1e-5)
-    std = np.asarray(loop.plant.measurement_std())
+    std = np.asarray(loop.plant.v_std)
     assert np.all(np.abs(est[0, 0] - np.asarray(loop.plant.x0)) < 4 * std)
     x = tr.x[s][:: 2 * sub]
     assert np.median(np.linalg.norm(est[:K, 0, 2:4] - x[:K, 2:4], axis=1)) < 3 * 0.002

@@ -31,7 +31,7 @@ from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Function
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
 from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF, PeriodEKFState
-from jaxnc.loop.vehicles import DiffDrive, DiffDriveState, lifted_wheel_var
+from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
 from jaxnc.loop.pursuit import PursuitPI, PursuitState
 from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
 
@@ -57,7 +57,7 @@ __all__ = [
     "Numre", "NumreState",
     "Cascade", "CascadeState",
     "AbstractLiftedPlant", "PeriodEKF", "PeriodEKFState",
-    "DiffDrive", "DiffDriveState", "lifted_wheel_var",
+    "DiffDrive", "lifted_wheel_var",
     "PursuitPI", "PursuitState",
     "ArrivalActuator", "ArrivalState",
     "DirtyDerivative", "DirtyDerivativeState",

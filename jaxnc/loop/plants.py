@@ -119,12 +119,6 @@ class Discrete(AbstractPlant):
     def measure(self, x, v):
         return self.h(x, v)
 
-    def process_std(self):
-        return jnp.asarray(self.w_std, jnp.float32)
-
-    def measurement_std(self):
-        return jnp.asarray(self.v_std, jnp.float32)
-
 
 def rk4(f, x, u, w, dt, n: int):
     """``n`` classical Runge-Kutta steps of length dt / n of dx/dt = f(x, u, w)."""
@@ -265,12 +259,6 @@ class LTI(AbstractPlant):
     def measure(self, x, v):
         # D u is not known at sampling time in a networked loop: z = C x + v (D must be 0)
         return self.C @ x + v
-
-    def process_std(self):
-        return jnp.asarray(self.w_std, jnp.float32)
-
-    def measurement_std(self):
-        return jnp.asarray(self.v_std, jnp.float32)
 
     @classmethod
     def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":

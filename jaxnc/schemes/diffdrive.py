@@ -106,7 +106,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
         # the true measurement noise (floored so that F = 0 stays well-conditioned) and wheel noise
         # lifted to NT (eq. 7), plus a margin for the model's error (3 mm, 0.01 rad per NT: ours)
         Ff = max(F, 0.02)
-        std = np.asarray(nc.DiffDrive(F=Ff).measurement_std())
+        std = np.asarray(nc.DiffDrive(F=Ff).v_std)
         wv = float(nc.lifted_wheel_var(plant, Ff * float(plant.wheel), N))
         Q = np.diag([wv, wv, 0.003 ** 2, 0.003 ** 2, 0.01 ** 2])
         P0 = np.diag(np.asarray([0.1, 0.1, 0.005, 0.005, 0.01]) ** 2)
