@@ -11,6 +11,7 @@ import scipy.linalg
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo
+from jaxnc.loop.actuators import install
 from jaxnc.loop.links import LinkDraws
 
 A2 = np.array([[1.0, 0.1], [0.0, 0.95]])
@@ -158,8 +159,8 @@ def test_packet_actuator_indexes_by_stamp_holds_and_waits_for_future_packets():
     for mode, after in (("hold", 3.0), ("zero", 0.0)):
         act = nc.PacketActuator(horizon=3, capacity=2, on_exhausted=mode)
         st = act.init(ctx)
-        st = act.install(st, jnp.array([[1.0], [2.0], [3.0]]), jnp.int32(2), 1.0)
-        st = act.install(st, jnp.array([[9.0], [9.0], [9.0]]), jnp.int32(8), 1.0)   # for later
+        st = install(st, jnp.array([[1.0], [2.0], [3.0]]), jnp.int32(2), 1.0)
+        st = install(st, jnp.array([[9.0], [9.0], [9.0]]), jnp.int32(8), 1.0)   # for later
         us = []
         for t in range(10):
             st, u = act.output(st, t)

@@ -23,7 +23,7 @@ from jaxnc.loop.costs import Tracking, TrackingMetrics, run_tracking
 from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
                                RateLimitState, Saturation)
 from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState,
-                                  slow_system)
+                                  slow_system, stationary_gain)
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.roundtrip import RoundTrip
@@ -52,7 +52,7 @@ __all__ = [
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",
     "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF",
-    "slow_system",
+    "slow_system", "stationary_gain",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",
     "Cascade", "CascadeState",
