@@ -118,7 +118,7 @@ def test_metrics_against_numpy(e_runs):
     loop, tr, m = e_runs[0.1]
     s, sub = 1, loop.plant.sub
     pts = np.asarray(loop.controller.path.points, np.float64)
-    xT = np.concatenate([tr.x[s][sub::sub], tr.final_plant.x[s][None]])[:, 2:4]
+    xT = np.concatenate([tr.x[s][sub::sub], tr.final_plant[s][None]])[:, 2:4]
     l = int(np.argmax(np.linalg.norm(xT - pts[-1], axis=1) < dd.END_TOL)) + 1
     assert int(m.l[s]) == l
     a, b = np.asarray(dd.STAIRS[:-1]), np.asarray(dd.STAIRS[1:])

@@ -141,7 +141,7 @@ def completion(loop: nc.Loop, traj: nc.Trajectory, *, end_tol: float = END_TOL, 
     tenth within ``end_tol`` of the end; failed when, before that, the distance exceeds
     ``max_dev``, the state is non-finite, or the runner saw a non-finite action."""
     ctrl, sub = loop.controller, loop.plant.sub
-    xs = jnp.concatenate([traj.x[sub::sub], traj.final_plant.x[None]])            # [K/sub, 5]
+    xs = jnp.concatenate([traj.x[sub::sub], traj.final_plant[None]])            # [K/sub, 5]
     path, M = ctrl.path, ctrl.path.M
 
     def body(c, x):
