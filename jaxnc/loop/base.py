@@ -140,8 +140,8 @@ class AbstractPlant(abc.ABC):
     Subclasses are frozen dataclasses (registered pytrees) and define ``dynamics`` and
     ``measure`` (the protocol's two required methods), the dimensions and the noise
     scales ``w_std`` / ``v_std`` (declared data: fields or properties); the runner draws
-    standard normal noises and multiplies them by those scales. ``init`` and
-    ``state_vector`` are optional (defaults below). The same object serves as the model
+    standard normal noises and multiplies them by those scales. ``init`` (or the
+    declared ``x0`` and ``x0_std``) and ``state_vector`` are optional (defaults below). The same object serves as the model
     of an estimator (``jax.jacfwd(plant.dynamics)``).
     """
 
@@ -181,9 +181,17 @@ class AbstractPlant(abc.ABC):
     def measure(self, x, v):
         """z = h(x, v); v float[output_dim] -> float[output_dim]."""
 
+    #: float[n] or None: the std of a random initial state, x_0 = x0 + x0_std * N(0, I) drawn
+    #: from the run's key (declared data; None: x_0 = x0 exactly)
+    x0_std = None
+
     def init(self, key):
-        """Initial state x_0 (``key`` for plants with a random start; default: ``self.x0``)."""
-        return jnp.asarray(self.x0, jnp.float32)
+        """Initial state x_0: ``x0``, plus ``x0_std`` times standard normals drawn from ``key``
+        when the plant declares ``x0_std``."""
+        x0 = jnp.asarray(self.x0, jnp.float32)
+        if self.x0_std is None:
+            return x0
+        return x0 + jnp.asarray(self.x0_std, jnp.float32) * jax.random.normal(key, x0.shape, jnp.float32)
 
     def state_vector(self, x):
         """The state as float[n] for recording and failure checks (default: x itself; a

@@ -164,12 +164,18 @@ class Balancing(AbstractPlant):
         q = self.encoder_step
         return jnp.stack([q * jnp.round(x[0] / q), x[1] + x[4] + v[1]])
 
-    def init(self, key):
-        """float[5]: at rest, tilt ``theta0``, the sensor's error drawn from its stationary law."""
+    @property
+    def x0(self):
+        """float[5]: at rest, tilt ``theta0``, no sensor error (its random part: :attr:`x0_std`)."""
         th = jnp.asarray(self.theta0, jnp.float32)
-        e = tilt_error_std(self) * jax.random.normal(key, (), jnp.float32) if self.tilt_sensor == "complementary" \
-            else jnp.float32(0.0)
-        return jnp.stack([0.0 * th, th, 0.0 * th, 0.0 * th, e])
+        return jnp.stack([0.0 * th, th, 0.0 * th, 0.0 * th, 0.0 * th])
+
+    @property
+    def x0_std(self):
+        """float[5]: the sensor's error starts in its stationary law (std :func:`tilt_error_std`)."""
+        e = tilt_error_std(self) if self.tilt_sensor == "complementary" else jnp.float32(0.0)
+        z = jnp.float32(0.0)
+        return jnp.stack([z, z, z, z, jnp.asarray(e, jnp.float32)])
 
     def state_vector(self, x):
         """float[4]: the rigid body ``(delta, theta, delta', theta')``."""
