@@ -20,7 +20,7 @@ run: install
 	$(BIN)/jaxnc run mecanum --seeds 256 --set case=all --out results/mecanum
 
 test: install
-	$(BIN)/python -m pytest -q -n 2 -m "not slow"
+	$(BIN)/python -m pytest -q -n 2 -m "not slow" --durations=25
 
 bench: install
 	$(BIN)/python benchmarks/bench_mecanum.py

@@ -190,7 +190,7 @@ def checked_pytree(cls):
 def unchecked(cls, **fields):
     """An instance of the dataclass ``cls`` built without ``__init__`` (no validation):
     the fields given, the others their defaults. For ``vmap`` ``in_axes`` prefixes, e.g.
-    ``unchecked(Channel, p_loss=0, eta=None, phi=None)``."""
+    ``unchecked(Bernoulli, p=0)``."""
     obj = object.__new__(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(fields) - names

@@ -14,7 +14,6 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo, wifi
 from jaxnc.cli import run_cli
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
-from jaxnc.network import Channel, sample_channel
 from jaxnc.schemes import diffdrive, mecanum
 
 
@@ -88,9 +87,9 @@ PYTHON_API = [
     (lambda: montecarlo.run_batched(lambda k: k, jnp.arange(4)), "keys must be raw uint32"),
     (lambda: montecarlo.run_batched(3, montecarlo.seed_keys(0, 2)), "run_batched: fn must be a function"),
     (lambda: montecarlo.run_batched(lambda k, a: k, montecarlo.seed_keys(0, 2), args=3), "run_batched: args must be a tuple"),
-    (lambda: Channel(p_loss=[0.1, 1.2]), "Channel.p_loss must be in [0, 1)"),
-    (lambda: Channel(p_loss="0.3"), "Channel.p_loss must be a number"),
-    (lambda: Channel(eta=[0.1, "a"]), "Channel.eta must be a number"),
+    (lambda: nc.Bernoulli(p=[0.1, 1.2]), "Bernoulli.p must be in [0, 1)"),
+    (lambda: nc.Bernoulli(p="0.3"), "Bernoulli.p must be a number"),
+    (lambda: nc.ShiftedExponential(eta=[0.1, "a"]), "ShiftedExponential.eta must be a number"),
     (lambda: nc.Bernoulli(p=[0.2, 1.5]), "Bernoulli.p must be in [0, 1)"),
     (lambda: nc.ShiftedExponential(eta=-0.1), "ShiftedExponential.eta must be in [0, inf)"),
     (lambda: nc.TruncatedExponential(eta=0.2, phi=0.1, tau_max=0.1), "tau_max must be >= eta"),
@@ -118,10 +117,8 @@ PYTHON_API = [
     (lambda: nc.StateFeedback(K=[[1.0]], u_min=1.0, u_max=0.0), "StateFeedback.u_min must be <= u_max"),
     (lambda: nc.Monitor(bounds=["a"]), "Monitor.bounds must be a number"),
     # network and Wi-Fi
-    (lambda: Channel(p_loss=None), "Channel.p_loss must be a number"),
-    (lambda: Channel(phi=float("nan")), "Channel.phi must be in [0, inf)"),
-    (lambda: sample_channel(_KEY, Channel(), 2.7), "sample_channel: n must be an integer in [0, inf)"),
-    (lambda: sample_channel(_KEY, Channel(), -1), "sample_channel: n must be an integer in [0, inf)"),
+    (lambda: nc.Bernoulli(p=None), "Bernoulli.p must be a number"),
+    (lambda: nc.ShiftedExponential(phi=float("nan")), "ShiftedExponential.phi must be in [0, inf)"),
     (lambda: wifi.sample_trace(_KEY, wifi.NOMINAL, -1), "sample_trace: n must be an integer in [0, inf)"),
     (lambda: wifi.WifiChannel(p_gb="0.1"), "WifiChannel.p_gb must be a number"),
     (lambda: wifi.WifiChannel(gap_min=2.5), "WifiChannel.gap_min must be an integer"),

@@ -101,7 +101,7 @@ def test_table1_prediction_pattern(e_runs):
     f = jax.jit(jax.vmap(lambda x, u: integrated(loop.plant, x, jnp.repeat(u, sub, axis=0), jnp.zeros(5))))
     K = int(m.l[s]) // 2 - 1
     np.testing.assert_allclose(np.asarray(f(est[:K, 0], U[:K])), est[:K, 1], rtol=1e-5, atol=1e-5)
-    std = np.asarray(loop.plant.measurement_std())
+    std = np.asarray(loop.plant.v_std)
     assert np.all(np.abs(est[0, 0] - np.asarray(loop.plant.x0)) < 4 * std)
     x = tr.x[s][:: 2 * sub]
     assert np.median(np.linalg.norm(est[:K, 0, 2:4] - x[:K, 2:4], axis=1)) < 3 * 0.002
@@ -118,7 +118,7 @@ def test_metrics_against_numpy(e_runs):
     loop, tr, m = e_runs[0.1]
     s, sub = 1, loop.plant.sub
     pts = np.asarray(loop.controller.path.points, np.float64)
-    xT = np.concatenate([tr.x[s][sub::sub], tr.final_plant.x[s][None]])[:, 2:4]
+    xT = np.concatenate([tr.x[s][sub::sub], tr.final_plant[s][None]])[:, 2:4]
     l = int(np.argmax(np.linalg.norm(xT - pts[-1], axis=1) < dd.END_TOL)) + 1
     assert int(m.l[s]) == l
     a, b = np.asarray(dd.STAIRS[:-1]), np.asarray(dd.STAIRS[1:])

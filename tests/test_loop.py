@@ -11,6 +11,7 @@ import scipy.linalg
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo
+from jaxnc.loop.actuators import install
 from jaxnc.loop.links import LinkDraws
 
 A2 = np.array([[1.0, 0.1], [0.0, 0.95]])
@@ -158,8 +159,8 @@ def test_packet_actuator_indexes_by_stamp_holds_and_waits_for_future_packets():
     for mode, after in (("hold", 3.0), ("zero", 0.0)):
         act = nc.PacketActuator(horizon=3, capacity=2, on_exhausted=mode)
         st = act.init(ctx)
-        st = act.install(st, jnp.array([[1.0], [2.0], [3.0]]), jnp.int32(2), 1.0)
-        st = act.install(st, jnp.array([[9.0], [9.0], [9.0]]), jnp.int32(8), 1.0)   # for later
+        st = install(st, jnp.array([[1.0], [2.0], [3.0]]), jnp.int32(2), 1.0)
+        st = install(st, jnp.array([[9.0], [9.0], [9.0]]), jnp.int32(8), 1.0)   # for later
         us = []
         for t in range(10):
             st, u = act.output(st, t)
@@ -392,3 +393,21 @@ def test_a_monitor_with_state_reports_completion_and_is_recorded():
     assert bool(tr.done) == (first.size > 0) and first.size > 0
     assert int(tr.done_step) == first[0] + 1
     assert not bool(tr.failed) and int(tr.fail_step) == 60
+
+
+def test_a_random_initial_state_is_drawn_from_x0_std_per_seed():
+    """LTI(x0_std=...): x_0 = x0 + x0_std * N(0, I) from the run's key; the first recorded state
+    has that mean and std over 4000 seeds (4 standard errors), and x0_std=None is x0 exactly."""
+    plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], x0_std=[0.5, 0.0], T=0.1)
+    x0 = np.asarray(jax.jit(jax.vmap(plant.init))(jax.random.split(jax.random.PRNGKey(1), 4000)))
+    n = x0.shape[0]
+    assert abs(x0[:, 0].mean() - 1.0) < 4 * 0.5 / np.sqrt(n)
+    assert abs(x0[:, 0].std() / 0.5 - 1.0) < 4 / np.sqrt(2 * n)
+    np.testing.assert_array_equal(x0[:, 1], 0.0)
+    loop = dataclasses.replace(_lti_loop(), plant=plant)
+    tr = montecarlo.run_batched(lambda k: nc.simulate(loop, k).x[0], jax.random.split(jax.random.PRNGKey(2), 3))
+    assert len(set(np.asarray(tr)[:, 0].tolist())) == 3           # each seed its own start
+    fixed = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], T=0.1)
+    np.testing.assert_array_equal(np.asarray(fixed.init(jax.random.PRNGKey(3))), [1.0, 0.0])
+    with pytest.raises(ValueError, match="LTI.x0_std must be a scalar or have 2 entries"):
+        nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], x0_std=[0.1, 0.1, 0.1], T=0.1)

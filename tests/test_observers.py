@@ -37,7 +37,7 @@ def _xhat(loop, seed=0):
 @pytest.mark.parametrize("N", [1, 2])
 def test_steady_state_kf_equals_the_time_varying_filter_started_at_its_covariance(N):
     sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
-    _, P = sskf.stationary(N)
+    _, P = nc.stationary_gain(sskf, N)
     ekf = nc.EKF(_plant(), Q=Q, R=R, mean0=np.zeros(2), cov0=np.asarray(P))      # P: a fixed point of the Riccati map
     a, _, _ = _xhat(_loop(sskf, N), seed=3)
     b, _, _ = _xhat(_loop(ekf, N), seed=3)
@@ -57,7 +57,7 @@ def test_steady_state_kf_gain_is_dlqe_filter_gain():
     sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
     with jax.enable_x64(True):
         L, P, _ = dlqe(A, np.eye(2), C, np.diag(Q), R)
-    M, P1 = sskf.stationary(1)
+    M, P1 = nc.stationary_gain(sskf, 1)
     np.testing.assert_allclose(P1, P, rtol=1e-4)
     np.testing.assert_allclose(A @ np.asarray(M), L, rtol=1e-4)        # predictor gain L = A M
 

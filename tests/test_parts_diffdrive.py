@@ -82,17 +82,23 @@ def test_straight_line_and_noise_once_per_T():
     d = p.r * w * 2 * p.T
     np.testing.assert_allclose(np.asarray(x1), [w, w, d * math.cos(0.3), d * math.sin(0.3), 0.3], rtol=1e-5, atol=1e-6)
 
-    def run(s, w):
-        return jax.lax.scan(lambda s, wi: (p.step(s, jnp.zeros(2), wi), s.x[0]), s, w)
-    s0 = nc.DiffDriveState(jnp.zeros(5), jnp.zeros((), jnp.int32))
-    noise = jnp.full((2 * p.sub, 2), 0.7)                  # 0.7 at every fine step; counts at t = 0, sub only
-    s, w_r = jax.jit(run)(s0, noise)
+    # the runner draws the wheel noise only at fine steps t = 0, sub, 2 sub, ... (noise_period)
+    from jaxnc.schemes.diffdrive import diffdrive_loop
+    loop = diffdrive_loop("e", F=0.1)
+    assert loop.plant.noise_period == loop.plant.sub
+    wd = np.asarray(nc.draw(loop, jax.random.PRNGKey(3)).w).reshape(-1, 2)
+    t_fine = np.arange(wd.shape[0])
+    assert np.all(wd[t_fine % p.sub != 0] == 0.0) and np.all(wd[t_fine % p.sub == 0] != 0.0)
+    np.testing.assert_allclose(wd[t_fine % p.sub == 0].std(), 0.1 * float(p.wheel), rtol=0.15)
+    # a noise w0 at t = 0 and at t = sub, none between: with u = 0 it decays as exp(-t/tau) (ZOH)
+    noise = jnp.zeros((2 * p.sub, 2)).at[0].set(0.7).at[p.sub].set(0.7)
+    x_end, w_r = jax.jit(lambda x, ws: jax.lax.scan(lambda x, wi: (p.dynamics(x, jnp.zeros(2), wi), x[0]), x, ws))(
+        jnp.zeros(5), noise)
     a = math.exp(-p.dt / p.tau)
     t = np.arange(1, 2 * p.sub + 1)
     ref = 0.7 * a ** t + np.where(t > p.sub, 0.7 * a ** (t - p.sub), 0.0)
-    np.testing.assert_allclose(np.append(np.asarray(w_r)[1:], float(s.x[0])), ref, rtol=1e-5)
-    assert int(s.t) == 2 * p.sub
-    np.testing.assert_allclose(np.asarray(nc.DiffDrive(F=0.1).measurement_std()), [0.1, 0.1, 0.002, 0.002, 0.005],
+    np.testing.assert_allclose(np.append(np.asarray(w_r)[1:], float(x_end[0])), ref, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(nc.DiffDrive(F=0.1).v_std), [0.1, 0.1, 0.002, 0.002, 0.005],
                                rtol=1e-6)
 
 

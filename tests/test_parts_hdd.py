@@ -138,7 +138,7 @@ def test_hdd_model_is_the_augmented_lti_of_eq4():
     np.testing.assert_allclose(p.dynamics(f32(x), f32(u), f32(w)), A @ x + B * u + Bw * w, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(p.measure(f32(x), f32(v)), C @ x + v, rtol=1e-5)
     np.testing.assert_array_equal(hdd_plant.DISTURBANCE_OUTPUT, Cbar)
-    np.testing.assert_allclose(p.process_std(), [2e-5])
-    np.testing.assert_allclose(p.measurement_std(), [1e-3])
+    np.testing.assert_allclose(p.w_std, [2e-5])
+    np.testing.assert_allclose(p.v_std, [1e-3])
     with pytest.raises(ValueError, match="v_std"):
         hdd_plant.hdd_model(v_std=-1.0)

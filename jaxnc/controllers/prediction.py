@@ -1,7 +1,9 @@
-"""Open-loop prediction cascade over slow periods (seed 004, section 3.2, eq. 14).
+"""Open-loop prediction: a control law and a noise-free model iterated together (seed 004,
+section 3.2, eq. 14; the one kernel behind every predicting part: ``Predictive``,
+``LeadFeedback``, ``PursuitPI``).
 
-From a corrected state xi_{k|k} the controller and a noise-free model at the slow period
-are iterated in open loop,
+From a corrected state xi_{k|k} the controller and a noise-free model (one step of it: a
+fast period, or a slow period for a lifted model) are iterated in open loop,
 
     (U_{k+j}, c_{j+1}) = law(c_j, xi_{k+j|k}),   xi_{k+j+1|k} = f(xi_{k+j|k}, U_{k+j}, 0),
 
@@ -33,7 +35,8 @@ def predict_periods(law: Callable, model: Callable, x0, c0: Any, length: int, no
 
     Returns:
       (states float[length, n] = xi_{k|k} .. xi_{k+length-1|k}, actions [length, ...],
-      law states after each period, pytree with leading axis ``length``).
+      law states after each period, pytree with leading axis ``length``, and the state
+      xi_{k+length|k} after the last period).
     """
     w0 = jnp.zeros((noise_dim,), jnp.float32)
 
@@ -42,5 +45,5 @@ def predict_periods(law: Callable, model: Callable, x0, c0: Any, length: int, no
         U, c = law(c, x)
         return (model(x, U, w0), c), (x, U, c)
 
-    _, (states, Us, cs) = jax.lax.scan(body, (x0, c0), None, length=length)
-    return states, Us, cs
+    (x_end, _), (states, Us, cs) = jax.lax.scan(body, (x0, c0), None, length=length)
+    return states, Us, cs, x_end

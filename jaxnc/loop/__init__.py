@@ -22,7 +22,7 @@ from jaxnc.loop.costs import Tracking, TrackingMetrics, run_tracking
 from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
                                RateLimitState, Saturation)
 from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState,
-                                  slow_system)
+                                  slow_system, stationary_gain)
 from jaxnc.loop.pid import PID, PIDState
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.roundtrip import RoundTrip
@@ -31,7 +31,7 @@ from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, Function
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
 from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF, PeriodEKFState
-from jaxnc.loop.vehicles import DiffDrive, DiffDriveState, lifted_wheel_var
+from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
 from jaxnc.loop.pursuit import PursuitPI, PursuitState
 from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
 
@@ -52,12 +52,12 @@ __all__ = [
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",
     "Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF",
-    "slow_system",
+    "slow_system", "stationary_gain",
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",
     "Cascade", "CascadeState",
     "AbstractLiftedPlant", "PeriodEKF", "PeriodEKFState",
-    "DiffDrive", "DiffDriveState", "lifted_wheel_var",
+    "DiffDrive", "lifted_wheel_var",
     "PursuitPI", "PursuitState",
     "ArrivalActuator", "ArrivalState",
     "DirtyDerivative", "DirtyDerivativeState",

@@ -34,6 +34,16 @@ class ActuatorState(NamedTuple):
     last: jax.Array      # float[m] the last action applied
 
 
+def install(state: ActuatorState, actions, stamp, w) -> ActuatorState:
+    """A :class:`PacketActuator`'s buffer with one more packet (actions float[H, m], stamp)
+    of weight ``w`` (0/1 float): in the slot of the oldest stamp, if it is newer than that one."""
+    j = jnp.argmin(state.stamp)
+    take = (w > 0.5) & (stamp > state.stamp[j])
+    wt = jnp.where(take, jnp.asarray(w, jnp.float32), 0.0)
+    u = state.u.at[j].set(blend(wt, jnp.asarray(actions, jnp.float32), state.u[j]))
+    return state._replace(u=u, stamp=state.stamp.at[j].set(jnp.where(take, stamp, state.stamp[j])))
+
+
 @_dataclass
 class PacketActuator(AbstractActuator):
     """Packet buffer by time stamp (module docstring).
@@ -59,19 +69,10 @@ class PacketActuator(AbstractActuator):
         return ActuatorState(jnp.zeros((self.capacity, self.horizon, m), jnp.float32),
                              jnp.full((self.capacity,), _EMPTY, jnp.int32), jnp.zeros((m,), jnp.float32))
 
-    def install(self, state: ActuatorState, actions, stamp, w) -> ActuatorState:
-        """Put one packet (actions float[H, m], stamp) with weight ``w`` (0/1 float) in the
-        slot of the oldest stamp, if it is newer than that one."""
-        j = jnp.argmin(state.stamp)
-        take = (w > 0.5) & (stamp > state.stamp[j])
-        wt = jnp.where(take, jnp.asarray(w, jnp.float32), 0.0)
-        u = state.u.at[j].set(blend(wt, jnp.asarray(actions, jnp.float32), state.u[j]))
-        return state._replace(u=u, stamp=state.stamp.at[j].set(jnp.where(take, stamp, state.stamp[j])))
-
     def receive(self, state: ActuatorState, inbox: Inbox) -> ActuatorState:
         C = inbox.stamp.shape[0]
         for c in range(C):                       # C is static and small
-            state = self.install(state, inbox.data[c], inbox.stamp[c], inbox.new[c])
+            state = install(state, inbox.data[c], inbox.stamp[c], inbox.new[c])
         return state
 
     def output(self, state: ActuatorState, t):

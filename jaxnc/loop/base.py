@@ -20,7 +20,7 @@ period T):
 6. the controller-to-actuator link stores the packet; then for each fast instant t the
    actuator receives what arrives at t (``actuator.receive(state, inbox)`` -> state),
    ``actuator.output(state, t)`` -> (state, u_t), and the plant moves,
-   ``plant.step(x, u_t, w_t)``;
+   ``plant.dynamics(x, u_t, w_t)``;
 7. ``estimator.predict(state, u_applied[N, m], u_believed[N, m], k)`` -> state: the actions
    the actuator applied, and those the controller believes applied (its own packets, as
    if delivered at once), over the period.
@@ -139,10 +139,12 @@ def blend(w, new, old):
 class AbstractPlant(abc.ABC):
     """A plant in discrete time at the fast period T.
 
-    Subclasses are frozen dataclasses (registered pytrees) and define ``dynamics``,
-    ``measure`` and the noise dimensions; the runner draws standard normal noises and
-    scales them by ``process_std`` / ``measurement_std``. The same object serves as the
-    model of an estimator (``jax.jacfwd(plant.dynamics)``).
+    Subclasses are frozen dataclasses (registered pytrees) and define ``dynamics`` and
+    ``measure`` (the protocol's two required methods), the dimensions and the noise
+    scales ``w_std`` / ``v_std`` (declared data: fields or properties); the runner draws
+    standard normal noises and multiplies them by those scales. ``init`` (or the
+    declared ``x0`` and ``x0_std``) and ``state_vector`` are optional (defaults below). The same object serves as the model
+    of an estimator (``jax.jacfwd(plant.dynamics)``).
     """
 
     #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
@@ -155,38 +157,47 @@ class AbstractPlant(abc.ABC):
     #: fast period T equals it; e.g. a sampled LTI's T); None: the plant takes the loop's
     step_period = None
 
+    #: int: the process noise enters every ``noise_period`` fast periods (at fast instants
+    #: t = 0, P, 2P, ...; zero in between), e.g. a disturbance once per actuation period of a
+    #: plant simulated on a finer grid (static; a field or property may override it)
+    noise_period = 1
+
     #: int: state, input, process-noise and output/measurement-noise dimensions
     state_dim: int
     input_dim: int
     noise_dim: int
     output_dim: int
 
+    #: float[noise_dim]: std of the process noise w (the runner multiplies standard normals
+    #: by it); float[output_dim]: std of the measurement noise v. Declared data: a field or
+    #: a property of every plant.
+    w_std: Any
+    v_std: Any
+
     @abc.abstractmethod
     def dynamics(self, x, u, w):
-        """x_{t+1} = f(x_t, u_t, w_t); x float[n], u float[m], w float[noise_dim] -> float[n]."""
+        """x_{t+1} = f(x_t, u_t, w_t): one fast period of the plant; x its state (float[n], or
+        the plant's own state pytree), u float[m], w float[noise_dim]."""
 
     @abc.abstractmethod
     def measure(self, x, v):
         """z = h(x, v); v float[output_dim] -> float[output_dim]."""
 
-    def process_std(self):
-        """float[noise_dim]: std of w (the runner multiplies standard normals by it)."""
-        return jnp.zeros((self.noise_dim,), jnp.float32)
-
-    def measurement_std(self):
-        """float[output_dim]: std of v."""
-        return jnp.zeros((self.output_dim,), jnp.float32)
+    #: float[n] or None: the std of a random initial state, x_0 = x0 + x0_std * N(0, I) drawn
+    #: from the run's key (declared data; None: x_0 = x0 exactly)
+    x0_std = None
 
     def init(self, key):
-        """Initial true state x_0 (``key`` for plants with a random start)."""
-        return jnp.asarray(self.x0, jnp.float32)
-
-    def step(self, x, u, w):
-        """One fast period of the true plant (default: ``dynamics``)."""
-        return self.dynamics(x, u, w)
+        """Initial state x_0: ``x0``, plus ``x0_std`` times standard normals drawn from ``key``
+        when the plant declares ``x0_std``."""
+        x0 = jnp.asarray(self.x0, jnp.float32)
+        if self.x0_std is None:
+            return x0
+        return x0 + jnp.asarray(self.x0_std, jnp.float32) * jax.random.normal(key, x0.shape, jnp.float32)
 
     def state_vector(self, x):
-        """The state as float[n] for recording and failure checks (default: x itself)."""
+        """The state as float[n] for recording and failure checks (default: x itself; a
+        plant whose state is not a vector, e.g. a multibody simulator's, overrides it)."""
         return x
 
 

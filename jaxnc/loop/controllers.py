@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxnc.controllers.prediction import predict_periods
 from jaxnc._validate import (array_fields, check_callable, check_finite, check_given, check_instance, check_int,
                              check_range, fields_concrete)
 from jaxnc.loop.base import AbstractController, AbstractPlant, Packet
@@ -118,11 +119,6 @@ class Predictive(AbstractController):
         return ()
 
     def step(self, state, xhat, fresh, k, ctx):
-        w0 = jnp.zeros((self.model.noise_dim,), jnp.float32)
-
-        def body(x, _):
-            u = self.law.action(x)
-            return self.model.dynamics(x, u, w0), u
-
-        _, us = jax.lax.scan(body, xhat, None, length=self.horizon)
+        _, us, _, _ = predict_periods(lambda c, x: (self.law.action(x), c), self.model.dynamics, xhat, (),
+                                   self.horizon, self.model.noise_dim)
         return state, Packet(us, (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32)

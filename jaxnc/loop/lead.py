@@ -12,6 +12,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
+from jaxnc.controllers.prediction import predict_periods
 from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, check_range
 from jaxnc.loop.base import AbstractController, AbstractPlant, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
@@ -74,9 +75,9 @@ class LeadFeedback(AbstractController):
 
     def step(self, plan, xhat, fresh, k, ctx):
         x = xhat
-        w0 = jnp.zeros((self.model.noise_dim,), jnp.float32)
-        for i in range(self.lead):
-            x = self.model.dynamics(x, plan[i], w0)
+        if self.lead:       # the state after the planned actions: the open-loop prediction along them
+            x = predict_periods(lambda i, x: (plan[i], i + 1), self.model.dynamics, xhat, jnp.zeros((), jnp.int32),
+                                self.lead, self.model.noise_dim)[3]
         r = 0.0 if self.reference is None else self.reference.at(k + self.lead, ctx.T)
         u = -(jnp.asarray(self.K, jnp.float32) @ (x - r))
         if self.u_max is not None:

@@ -233,6 +233,10 @@ class LimitedSensor(AbstractPlant):
     input_dim = property(lambda self: self.plant.input_dim)
     noise_dim = property(lambda self: self.plant.noise_dim)
     output_dim = property(lambda self: self.plant.output_dim)
+    w_std = property(lambda self: self.plant.w_std)
+    v_std = property(lambda self: self.plant.v_std)
+    step_period = property(lambda self: self.plant.step_period)
+    noise_period = property(lambda self: self.plant.noise_period)
 
     def dynamics(self, x, u, w):
         return self.plant.dynamics(x, u, w)
@@ -240,17 +244,8 @@ class LimitedSensor(AbstractPlant):
     def measure(self, x, v):
         return _apply(self.limits, tuple(() for _ in self.limits), self.plant.measure(x, v))[1]
 
-    def process_std(self):
-        return self.plant.process_std()
-
-    def measurement_std(self):
-        return self.plant.measurement_std()
-
     def init(self, key):
         return self.plant.init(key)
-
-    def step(self, x, u, w):
-        return self.plant.step(x, u, w)
 
     def state_vector(self, x):
         return self.plant.state_vector(x)

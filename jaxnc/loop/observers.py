@@ -47,7 +47,7 @@ from jaxnc.loop.estimators import EKF
 from jaxnc.loop.plants import LTI
 
 __all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState", "UKF",
-           "slow_system"]
+           "slow_system", "stationary_gain"]
 
 
 def slow_system(A, B, N: int):
@@ -206,22 +206,12 @@ class SteadyStateKF(AbstractEstimator):
         _check_vector("SteadyStateKF", "mean0", self.mean0, n)
         if fields_concrete(self):
             try:
-                self.stationary(1)
+                stationary_gain(self, 1)
             except ValueError as e:
                 raise ValueError(f"SteadyStateKF: {e}") from None
 
-    def stationary(self, N: int = 1):
-        """(M float[n, p], P float[n, n]): the filter gain and the prior covariance of the
-        slow-period system with N fast periods per slow period."""
-        A, C, G = jnp.asarray(self.model.A), jnp.asarray(self.model.C), jnp.asarray(self.model.G)
-        A_N, _ = slow_system(A, jnp.asarray(self.model.B), N)
-        Q_N = _slow_noise(A, G, self.Q, N)
-        _, P, _ = dlqe(A_N, jnp.eye(A.shape[0], dtype=A.dtype), C, Q_N, jnp.asarray(self.R, A.dtype))
-        S = C @ P @ C.T + jnp.asarray(self.R, A.dtype)
-        return jnp.linalg.solve(S, C @ P).T, P             # P C' S^-1 (P, S symmetric)
-
     def init(self, ctx) -> SteadyStateKFState:
-        M, _ = self.stationary(ctx.N)
+        M, _ = stationary_gain(self, ctx.N)
         return SteadyStateKFState(jnp.asarray(self.mean0, jnp.float32), M.astype(jnp.float32),
                                   jnp.zeros((), jnp.int32))
 
@@ -235,6 +225,18 @@ class SteadyStateKF(AbstractEstimator):
         us = u_believed if self.inputs == "believed" else u_applied
         A_N, B_N = slow_system(self.model.A, self.model.B, us.shape[0])
         return state._replace(mean=A_N @ state.mean + B_N @ us.reshape(-1), t=state.t + us.shape[0])
+
+
+def stationary_gain(kf: SteadyStateKF, N: int = 1):
+    """(M float[n, p], P float[n, n]): the filter gain and the prior covariance of the
+    slow-period system with N fast periods per slow period."""
+    A, C, G = jnp.asarray(kf.model.A), jnp.asarray(kf.model.C), jnp.asarray(kf.model.G)
+    A_N, _ = slow_system(A, jnp.asarray(kf.model.B), N)
+    Q_N = _slow_noise(A, G, kf.Q, N)
+    _, P, _ = dlqe(A_N, jnp.eye(A.shape[0], dtype=A.dtype), C, Q_N, jnp.asarray(kf.R, A.dtype))
+    S = C @ P @ C.T + jnp.asarray(kf.R, A.dtype)
+    return jnp.linalg.solve(S, C @ P).T, P             # P C' S^-1 (P, S symmetric)
+
 
 
 def UKF(model, Q, R, mean0, cov0, alpha=1.0, beta=2.0, kappa=0.0, *, buffer: int = 0,

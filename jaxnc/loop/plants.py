@@ -65,7 +65,8 @@ class Discrete(AbstractPlant):
     """x_{t+1} = f(x_t, u_t, w_t), z = h(x, v) (additive noise is the usual h(x, v) = g(x) + v).
 
     Attributes:
-      x0: float[n], the initial state.
+      x0: float[n], the initial state; x0_std: float[n] (or scalar) or None, the std of a
+        random initial state x0 + x0_std * N(0, I) (None: x0 exactly).
       w_std: float[noise_dim] (or scalar), std of w; v_std: float[output_dim], std of v.
       f, h: static functions (module docstring).
       input_dim, noise_dim, output_dim: static dimensions.
@@ -79,6 +80,7 @@ class Discrete(AbstractPlant):
     input_dim: int = _static(1)
     noise_dim: int = _static(1)
     output_dim: int = _static(1)
+    x0_std: Any = None
 
     def __post_init__(self):
         cls = type(self).__name__
@@ -87,7 +89,7 @@ class Discrete(AbstractPlant):
         for n in ("x0", "w_std", "v_std"):
             check_given(f"{cls}.{n}", getattr(self, n))
         check_finite(f"{cls}.x0", self.x0)
-        array_fields(self, "x0", "w_std", "v_std")
+        array_fields(self, "x0", "w_std", "v_std", "x0_std")
         check_int("Discrete.input_dim", self.input_dim, 1, 10_000)
         check_int("Discrete.noise_dim", self.noise_dim, 1, 10_000)
         check_int("Discrete.output_dim", self.output_dim, 1, 10_000)
@@ -108,6 +110,8 @@ class Discrete(AbstractPlant):
                 raise ValueError(f"h(x, v) must return float32 values, got {z.dtype}")
             object.__setattr__(self, "w_std", _vec("w_std", self.w_std, self.noise_dim))
             object.__setattr__(self, "v_std", _vec("v_std", self.v_std, self.output_dim))
+            if self.x0_std is not None:
+                object.__setattr__(self, "x0_std", _vec(f"{cls}.x0_std", self.x0_std, self.x0.shape[0]))
 
     @property
     def state_dim(self) -> int:
@@ -118,12 +122,6 @@ class Discrete(AbstractPlant):
 
     def measure(self, x, v):
         return self.h(x, v)
-
-    def process_std(self):
-        return jnp.asarray(self.w_std, jnp.float32)
-
-    def measurement_std(self):
-        return jnp.asarray(self.v_std, jnp.float32)
 
 
 def rk4(f, x, u, w, dt, n: int):
@@ -173,7 +171,8 @@ class LTI(AbstractPlant):
 
     Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m] (must be 0 or
     None: z is sampled before u is applied), G float[n, q] (default identity: w is
-    additive state noise), x0 float[n], w_std float[q], v_std float[p], T seconds (the
+    additive state noise), x0 float[n], w_std float[q], v_std float[p], x0_std float[n] or
+    None (a random initial state x0 + x0_std * N(0, I)), T seconds (the
     period it was sampled at, checked against the loop's; None: the loop's), state_names (static, optional): a tuple of n distinct names of the
     states, e.g. carried from a python-control model (:meth:`from_control`). Raises
     ValueError (naming the field) for shapes that do not match, a non-finite entry, a
@@ -190,6 +189,7 @@ class LTI(AbstractPlant):
     v_std: Any = 0.0
     T: Any = None
     state_names: Any = _static(None)
+    x0_std: Any = None
 
     @property
     def step_period(self):
@@ -207,7 +207,7 @@ class LTI(AbstractPlant):
             check_finite(f"LTI.{n}", getattr(self, n))
         for n in ("w_std", "v_std"):
             check_given(f"LTI.{n}", getattr(self, n))
-        array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std")
+        array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std", "x0_std")
         if not fields_concrete(self):
             return
         A = np.atleast_2d(np.asarray(self.A, np.float32))
@@ -242,6 +242,8 @@ class LTI(AbstractPlant):
         object.__setattr__(self, "x0", x0)
         object.__setattr__(self, "w_std", _vec("LTI.w_std", self.w_std, G.shape[1]))
         object.__setattr__(self, "v_std", _vec("LTI.v_std", self.v_std, p))
+        if self.x0_std is not None:
+            object.__setattr__(self, "x0_std", _vec("LTI.x0_std", self.x0_std, n))
 
     @property
     def state_dim(self) -> int:
@@ -265,12 +267,6 @@ class LTI(AbstractPlant):
     def measure(self, x, v):
         # D u is not known at sampling time in a networked loop: z = C x + v (D must be 0)
         return self.C @ x + v
-
-    def process_std(self):
-        return jnp.asarray(self.w_std, jnp.float32)
-
-    def measurement_std(self):
-        return jnp.asarray(self.v_std, jnp.float32)
 
     @classmethod
     def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":

@@ -147,7 +147,7 @@ class PursuitPI(AbstractController):
                 return (U, jnp.where(first & early, prev, uf), w_com), (pi, idx, jnp.zeros((), bool))
 
             model = lambda x, Uw, w: self.model.period(x, Uw[1], w)
-            states, (Us, _, w_coms), (pis, idxs, _) = predict_periods(
+            states, (Us, _, w_coms), (pis, idxs, _), _ = predict_periods(
                 law, model, est, (state.pi, state.idx, jnp.ones((), bool)), self.h + 1, 5)
             U, w_com, u_next, acts = Us[0], w_coms[0], Us[1], Us.reshape(-1, 2)
             pi, idx = jax.tree.map(lambda a: a[0], (pis, idxs))

@@ -373,8 +373,14 @@ def _check_fit(loop: Loop) -> None:
         raise ValueError(f"Loop.plant's state vector is {_shapes(xv)}, its state_dim is {n}: the initial state "
                          f"(e.g. x0) must be a vector of {n} numbers")
     x1 = _stage("Loop.plant", f"cannot step (u float32[{m}], w float32[{plant.noise_dim}])",
-                lambda: plant.step(_zeros(x0), f32((m,)), f32((plant.noise_dim,))))
+                lambda: plant.dynamics(_zeros(x0), f32((m,)), f32((plant.noise_dim,))))
     _same_structure("Loop.plant's step", x0, x1)
+    for name, size, what, read in (("w_std", plant.noise_dim, "noise_dim", lambda: plant.w_std),
+                                   ("v_std", p, "output_dim", lambda: plant.v_std)):
+        std = _stage("Loop.plant", f"has no {name} (the std of its noise, declared data)",
+                     lambda read=read: jnp.asarray(read(), jnp.float32))
+        if std.shape != (size,):
+            raise ValueError(f"Loop.plant.{name} has shape {std.shape}, its {what} is {size}: one std per entry")
     z = _stage("Loop.plant", f"cannot measure (v float32[{p}])", lambda: plant.measure(_zeros(x0), f32((p,))))
     if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (p,) or z.dtype != jnp.float32:
         raise ValueError(f"Loop.plant's measurement is {_shapes(z)}; it must be float32[{p}] (output_dim={p})")
@@ -485,8 +491,12 @@ def draw(loop: Loop, key) -> Draws:
     """All of a run's random draws, one stream per purpose (:data:`STREAMS`)."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     k = {name: jax.random.fold_in(key, i) for i, name in enumerate(STREAMS)}
-    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * p.process_std()[None, None, :]
-    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * p.measurement_std()[None, :]
+    w_std, v_std = jnp.asarray(p.w_std, jnp.float32), jnp.asarray(p.v_std, jnp.float32)
+    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
+    if p.noise_period != 1:
+        t = np.arange(S * N).reshape(S, N)
+        w = jnp.where(jnp.asarray(t % p.noise_period == 0)[:, :, None], w, 0.0)
+    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * v_std[None, :]
     return Draws(w, v, loop.uplink.draw(k["uplink"], S, loop.T), loop.downlink.draw(k["downlink"], S, loop.T),
                  k["plant_init"])
 
@@ -607,7 +617,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             bel, ub = act_role.output(bel, t) if runner_copy else (bel, u)
             u_ok = jnp.all(jnp.isfinite(u))
             u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
-            x_new = plant.step(x, u, w_t)
+            x_new = plant.dynamics(x, u, w_t)
             mon, bad, complete = loop.monitor.step(mon, plant.state_vector(x_new), u, t)
             bad = bad | ~u_ok
             fail_step = jnp.where(bad & ~failed, t + 1, fail_step)

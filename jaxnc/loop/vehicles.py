@@ -22,7 +22,7 @@ the noise at F = 1).
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -32,20 +32,13 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.multirate import AbstractLiftedPlant
 
-__all__ = ["DiffDrive", "DiffDriveState", "lifted_wheel_var", "motor", "body_velocity", "wheel_command", "substep",
+__all__ = ["DiffDrive", "lifted_wheel_var", "motor", "body_velocity", "wheel_command", "substep",
            "eq1", "integrated", "K_MOTOR", "TAU_MOTOR", "LIFTED_MODELS"]
 
 K_MOTOR = 0.1276    # eq. (26), static gain
 TAU_MOTOR = 0.1235  # eq. (26), time constant, s
 #: the slow-period models :meth:`DiffDrive.period` implements
 LIFTED_MODELS = ("integrated", "eq1")
-
-
-class DiffDriveState(NamedTuple):
-    """The state of a :class:`DiffDrive` plant: wheel speeds and pose, and the fine-step counter."""
-
-    x: jax.Array        # float[5] (w_r, w_l, x, y, psi)
-    t: jax.Array        # int32 fine steps taken
 
 
 @_dataclass
@@ -104,35 +97,32 @@ class DiffDrive(AbstractLiftedPlant):
         """One ``dynamics`` step is the fine period dt = T / sub."""
         return self.dt
 
-    # -- the plant protocol
-    def init(self, key) -> DiffDriveState:
-        return DiffDriveState(jnp.asarray(self.x0, jnp.float32), jnp.zeros((), jnp.int32))
+    @property
+    def noise_period(self) -> int:
+        """The wheel noise n1 enters once per period T = sub fine periods (eq. 4)."""
+        return self.sub
 
-    def dynamics(self, x, u, w):
-        """One fine period: the wheel noise w float[2] added to the wheel speeds, then :func:`substep`."""
-        return substep(self, x.at[:2].add(w), u)
-
-    def step(self, s: DiffDriveState, u, w) -> DiffDriveState:
-        """The true robot: w (float[2]) enters only at the first fine step of each period T (eq. 4)."""
-        w = jnp.where(jnp.mod(s.t, self.sub) == 0, w, jnp.zeros_like(w))
-        return DiffDriveState(self.dynamics(s.x, u, w), s.t + 1)
-
-    def measure(self, s, v):
-        """z = xi + n2 (eq. 8), for a :class:`DiffDriveState` or a state vector float[5]."""
-        return self.state_vector(s) + v
-
-    def state_vector(self, s):
-        return s.x if isinstance(s, DiffDriveState) else s
-
-    def process_std(self):
+    @property
+    def w_std(self):
         """float[2]: std of n1 on each wheel speed, added once per T."""
         s = jnp.asarray(self.F * self.wheel, jnp.float32)
         return jnp.stack([s, s])
 
-    def measurement_std(self):
+    @property
+    def v_std(self):
         """float[5]: std of n2 for (w_r, w_l, x, y, psi)."""
         e, c, i = (jnp.asarray(self.F * v, jnp.float32) for v in (self.enc, self.cam, self.imu))
         return jnp.stack([e, e, c, c, i])
+
+    # -- the plant protocol
+    def dynamics(self, x, u, w):
+        """One fine period: the wheel noise w float[2] added to the wheel speeds (the runner
+        draws it at the first fine step of each period T, ``noise_period``), then :func:`substep`."""
+        return substep(self, x.at[:2].add(w), u)
+
+    def measure(self, x, v):
+        """z = xi + n2 (eq. 8)."""
+        return x + v
 
     def period(self, x, us, w):
         """The slow-period model selected by ``lifted``: ``us`` float[M, 2] the fine commands

@@ -34,14 +34,14 @@ chooses its error model:
   with the gyro integrated exactly and the accelerometer's error from the robot's own
   acceleration neglected (ours), has the error ``e_k = a e_{k-1} + a Ts sigma_gyro n_k +
   (1 - a) sigma_accel m_k``: a first-order Gauss-Markov sequence independent of the
-  state, of stationary std ~0.016 deg with the numbers below (:meth:`Balancing.tilt_error_std`),
+  state, of stationary std ~0.016 deg with the numbers below (:func:`tilt_error_std`),
   changing only ~1e-3 deg from one sample to the next. The error is the sensor's own state:
   it is the fifth entry of the plant's state, driven by the third process noise;
 * ``"white"``: ``th_k + sigma_theta v_k`` with white ``v`` (0.1 deg).
 
 The paper publishes no sensor numbers; ours are of the order of a consumer MEMS IMU at
 1 kHz: gyro 0.11 deg/s and accelerometer tilt 0.5 deg per sample (std), ``tau_cf = 0.5 s``.
-``sigma_theta`` is also the tilt noise the Kalman filter designs for (:meth:`kalman_QR`),
+``sigma_theta`` is also the tilt noise the Kalman filter designs for (:func:`kalman_QR`),
 with either sensor.
 """
 from __future__ import annotations
@@ -115,47 +115,18 @@ class Balancing(AbstractPlant):
             check_nonneg(f"Balancing.{name}", getattr(self, name))
         check_range("Balancing.theta0", self.theta0, -np.pi / 2, np.pi / 2, low_open=True, high_open=True)
 
-    # -- eq. (20) coefficients ---------------------------------------------------------
-    def coefficients(self) -> dict:
-        """alpha2, alpha1, alpha0, beta1, beta0 of eq. (20) (floats, numpy)."""
-        M, l, r = float(self.M), float(self.l), float(self.r)
-        a = (M + float(self.m_w)) * r**2 + float(self.J_w)
-        inertia = M * l**2 + float(self.J_b)
-        return dict(alpha2=a + 2 * M * r * l + inertia, alpha1=float(self.b), alpha0=-M * G * l,
-                    beta1=-(a + M * r * l), beta0=-float(self.b))
+    @property
+    def w_std(self):
+        """float[3]: servo error, tilt acceleration, sensor drive (0 for the white sensor)."""
+        drive = _cf(self)[1] if self.tilt_sensor == "complementary" else 0.0
+        return jnp.stack([jnp.asarray(self.w_servo, jnp.float32), jnp.asarray(self.w_theta, jnp.float32),
+                          jnp.asarray(drive, jnp.float32)])
 
-    def continuous(self) -> tuple[np.ndarray, np.ndarray]:
-        """(Ac, Bc) of eq. (20) in the state (delta, theta, delta', theta')."""
-        c = self.coefficients()
-        a2 = c["alpha2"]
-        Ac = np.array([[0, 0, 1, 0],
-                       [0, 0, 0, 1],
-                       [0, 0, 0, 0],
-                       [0, -c["alpha0"] / a2, c["beta0"] / a2, -c["alpha1"] / a2]], float)
-        Bc = np.array([[0], [0], [1], [c["beta1"] / a2]], float)
-        return Ac, Bc
-
-    def discrete(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Exact ZOH discretisation at ``Ts``: (A, B, C), float64 (matrix exponential)."""
-        Ac, Bc = self.continuous()
-        n, m = Bc.shape
-        Mx = np.zeros((n + m, n + m))
-        Mx[:n, :n], Mx[:n, n:] = Ac, Bc
-        E = scipy.linalg.expm(Mx * float(self.Ts))
-        C = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
-        return E[:n, :n], E[:n, n:], C
-
-    # -- nonlinear model ---------------------------------------------------------------
-    def derivative(self, x, u):
-        """Continuous-time nonlinear dynamics x' = f(x, u) (module docstring)."""
-        delta_d, th, th_d = x[2], x[1], x[3]
-        M, l, r = self.M, self.l, self.r
-        a = (M + self.m_w) * r**2 + self.J_w
-        inertia = M * l**2 + self.J_b
-        s, c = jnp.sin(th), jnp.cos(th)
-        num = M * G * l * s + M * r * l * s * th_d**2 - (a + M * r * l * c) * u - self.b * (th_d + delta_d)
-        th_dd = num / (a + 2 * M * r * l * c + inertia)
-        return jnp.stack([delta_d, th_d, u + 0.0 * th, th_dd])
+    @property
+    def v_std(self):
+        """float[2]: 0 and, for the white sensor, ``sigma_theta``."""
+        s = self.sigma_theta if self.tilt_sensor == "white" else 0.0
+        return jnp.stack([jnp.float32(0.0), jnp.asarray(s, jnp.float32)])
 
     def dynamics(self, x, u, w):
         """One period ``Ts``: the rigid body by RK4 (2 substeps), input held (ZOH), and the
@@ -173,7 +144,7 @@ class Balancing(AbstractPlant):
         h = self.Ts / 2
 
         def f(x):
-            return self.derivative(x, ua) + jnp.stack([0.0 * w[1], 0.0 * w[1], 0.0 * w[1], w[1]])
+            return derivative(self, x, ua) + jnp.stack([0.0 * w[1], 0.0 * w[1], 0.0 * w[1], w[1]])
 
         body = x[:4]
         for _ in range(2):
@@ -184,7 +155,7 @@ class Balancing(AbstractPlant):
             body = body + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
         if x.shape[0] == 4:
             return body
-        a, _ = self._cf()
+        a, _ = _cf(self)
         return jnp.concatenate([body, (a * x[4] + w[2])[None]])
 
     def measure(self, x, v):
@@ -193,57 +164,97 @@ class Balancing(AbstractPlant):
         q = self.encoder_step
         return jnp.stack([q * jnp.round(x[0] / q), x[1] + x[4] + v[1]])
 
-    def process_std(self):
-        """float[3]: servo error, tilt acceleration, sensor drive (0 for the white sensor)."""
-        drive = self._cf()[1] if self.tilt_sensor == "complementary" else 0.0
-        return jnp.stack([jnp.asarray(self.w_servo, jnp.float32), jnp.asarray(self.w_theta, jnp.float32),
-                          jnp.asarray(drive, jnp.float32)])
-
-    def measurement_std(self):
-        """float[2]: 0 and, for the white sensor, ``sigma_theta``."""
-        s = self.sigma_theta if self.tilt_sensor == "white" else 0.0
-        return jnp.stack([jnp.float32(0.0), jnp.asarray(s, jnp.float32)])
-
-    def init(self, key):
-        """float[5]: at rest, tilt ``theta0``, the sensor's error drawn from its stationary law."""
+    @property
+    def x0(self):
+        """float[5]: at rest, tilt ``theta0``, no sensor error (its random part: :attr:`x0_std`)."""
         th = jnp.asarray(self.theta0, jnp.float32)
-        e = self.tilt_error_std() * jax.random.normal(key, (), jnp.float32) if self.tilt_sensor == "complementary" \
-            else jnp.float32(0.0)
-        return jnp.stack([0.0 * th, th, 0.0 * th, 0.0 * th, e])
+        return jnp.stack([0.0 * th, th, 0.0 * th, 0.0 * th, 0.0 * th])
+
+    @property
+    def x0_std(self):
+        """float[5]: the sensor's error starts in its stationary law (std :func:`tilt_error_std`)."""
+        e = tilt_error_std(self) if self.tilt_sensor == "complementary" else jnp.float32(0.0)
+        z = jnp.float32(0.0)
+        return jnp.stack([z, z, z, z, jnp.asarray(e, jnp.float32)])
 
     def state_vector(self, x):
         """float[4]: the rigid body ``(delta, theta, delta', theta')``."""
         return x[:4]
 
-    def _cf(self):
-        a = jnp.asarray(self.tau_cf, jnp.float32) / (self.tau_cf + self.Ts)
-        drive = jnp.hypot(a * self.Ts * self.sigma_gyro, (1.0 - a) * self.sigma_accel)
-        return a, drive
 
-    def tilt_error_std(self) -> jax.Array:
-        """Stationary std (rad) of the ``"complementary"`` sensor's error, float32 (traceable)."""
-        a, drive = self._cf()
-        return drive / jnp.sqrt(1.0 - a * a)
+# ----------------------------------------------------------------------------- the model (functions of a Balancing)
 
-    def noise_std(self) -> np.ndarray:
-        """float64[2]: std of the servo error and tilt acceleration (rad/s^2), the filter's Q."""
-        return np.array([float(self.w_servo), float(self.w_theta)])
+def coefficients(p: Balancing) -> dict:
+    """alpha2, alpha1, alpha0, beta1, beta0 of eq. (20) (floats, numpy)."""
+    M, l, r = float(p.M), float(p.l), float(p.r)
+    a = (M + float(p.m_w)) * r**2 + float(p.J_w)
+    inertia = M * l**2 + float(p.J_b)
+    return dict(alpha2=a + 2 * M * r * l + inertia, alpha1=float(p.b), alpha0=-M * G * l,
+                beta1=-(a + M * r * l), beta0=-float(p.b))
 
-    def noise_input(self) -> np.ndarray:
-        """float64[4, 2]: how ``w[:2]``, held over ``Ts``, enters the discrete rigid body
-        (exact ZOH of the servo error through ``Bc`` and the tilt acceleration through ``e_4``)."""
-        Ac, Bc = self.continuous()
-        n = 4
-        Mx = np.zeros((n + 2, n + 2))
-        Mx[:n, :n] = Ac
-        Mx[:n, n:] = np.column_stack([Bc[:, 0], np.eye(n)[:, 3]])
-        return scipy.linalg.expm(Mx * float(self.Ts))[:n, n:]
+def continuous(p: Balancing) -> tuple[np.ndarray, np.ndarray]:
+    """(Ac, Bc) of eq. (20) in the state (delta, theta, delta', theta')."""
+    c = coefficients(p)
+    a2 = c["alpha2"]
+    Ac = np.array([[0, 0, 1, 0],
+                   [0, 0, 0, 1],
+                   [0, 0, 0, 0],
+                   [0, -c["alpha0"] / a2, c["beta0"] / a2, -c["alpha1"] / a2]], float)
+    Bc = np.array([[0], [0], [1], [c["beta1"] / a2]], float)
+    return Ac, Bc
 
-    def kalman_QR(self) -> tuple[np.ndarray, np.ndarray]:
-        """Discrete Q float[4, 4] (``G diag(noise_std^2) G'``, G = :meth:`noise_input`) and R
-        float[2, 2]: the encoder quantisation as uniform noise of variance q^2/12, the tilt
-        as white noise of std ``sigma_theta``."""
-        Gw = self.noise_input()
-        Q = Gw @ np.diag(self.noise_std() ** 2) @ Gw.T
-        R = np.diag([float(self.encoder_step) ** 2 / 12.0, float(self.sigma_theta) ** 2])
-        return Q, R
+def discrete(p: Balancing) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact ZOH discretisation at ``Ts``: (A, B, C), float64 (matrix exponential)."""
+    Ac, Bc = continuous(p)
+    n, m = Bc.shape
+    Mx = np.zeros((n + m, n + m))
+    Mx[:n, :n], Mx[:n, n:] = Ac, Bc
+    E = scipy.linalg.expm(Mx * float(p.Ts))
+    C = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    return E[:n, :n], E[:n, n:], C
+
+
+def derivative(p: Balancing, x, u):
+    """Continuous-time nonlinear dynamics x' = f(x, u) (module docstring)."""
+    delta_d, th, th_d = x[2], x[1], x[3]
+    M, l, r = p.M, p.l, p.r
+    a = (M + p.m_w) * r**2 + p.J_w
+    inertia = M * l**2 + p.J_b
+    s, c = jnp.sin(th), jnp.cos(th)
+    num = M * G * l * s + M * r * l * s * th_d**2 - (a + M * r * l * c) * u - p.b * (th_d + delta_d)
+    th_dd = num / (a + 2 * M * r * l * c + inertia)
+    return jnp.stack([delta_d, th_d, u + 0.0 * th, th_dd])
+
+
+def _cf(p: Balancing):
+    a = jnp.asarray(p.tau_cf, jnp.float32) / (p.tau_cf + p.Ts)
+    drive = jnp.hypot(a * p.Ts * p.sigma_gyro, (1.0 - a) * p.sigma_accel)
+    return a, drive
+
+def tilt_error_std(p: Balancing) -> jax.Array:
+    """Stationary std (rad) of the ``"complementary"`` sensor's error, float32 (traceable)."""
+    a, drive = _cf(p)
+    return drive / jnp.sqrt(1.0 - a * a)
+
+def filter_noise_std(p: Balancing) -> np.ndarray:
+    """float64[2]: std of the servo error and tilt acceleration (rad/s^2), the filter's Q."""
+    return np.array([float(p.w_servo), float(p.w_theta)])
+
+def noise_input(p: Balancing) -> np.ndarray:
+    """float64[4, 2]: how ``w[:2]``, held over ``Ts``, enters the discrete rigid body
+    (exact ZOH of the servo error through ``Bc`` and the tilt acceleration through ``e_4``)."""
+    Ac, Bc = continuous(p)
+    n = 4
+    Mx = np.zeros((n + 2, n + 2))
+    Mx[:n, :n] = Ac
+    Mx[:n, n:] = np.column_stack([Bc[:, 0], np.eye(n)[:, 3]])
+    return scipy.linalg.expm(Mx * float(p.Ts))[:n, n:]
+
+def kalman_QR(p: Balancing) -> tuple[np.ndarray, np.ndarray]:
+    """Discrete Q float[4, 4] (``G diag(filter_noise_std^2) G'``, G = :func:`noise_input`) and R
+    float[2, 2]: the encoder quantisation as uniform noise of variance q^2/12, the tilt
+    as white noise of std ``sigma_theta``."""
+    Gw = noise_input(p)
+    Q = Gw @ np.diag(filter_noise_std(p) ** 2) @ Gw.T
+    R = np.diag([float(p.encoder_step) ** 2 / 12.0, float(p.sigma_theta) ** 2])
+    return Q, R

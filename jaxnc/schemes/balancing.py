@@ -35,6 +35,7 @@ from jaxnc import loop as nc
 from jaxnc import references, wifi
 from jaxnc._validate import check_bool, check_choice, check_instance, check_int, check_positive, check_range
 from jaxnc.controllers.hold_lq import dlqr, hold_lq_gain
+from jaxnc.plants import balancing as bmodel
 from jaxnc.plants.balancing import Balancing
 
 __all__ = ["DESIGNS", "DERIVATIVES", "KF_TILT_NOISES", "W_LQ", "U_LQ", "SEVERITIES", "NOISE_LEVELS",
@@ -112,13 +113,13 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
     steps = int(round(horizon_s / Ts))
     check_int("steps (horizon_s / Ts)", steps, 1)
     robot = dataclasses.replace(plant, theta0=np.float32(np.deg2rad(theta0_deg)))
-    A, B, C = plant.discrete()
+    A, B, C = bmodel.discrete(plant)
     K = dlqr(A, B, W_LQ, U_LQ)[0]
     ref = references.Step(amplitude=np.array([step_m / float(plant.r), 0, 0, 0], np.float32), time=t_step)
     bounds = np.array([np.inf, np.deg2rad(tilt_limit_deg), np.inf, np.inf], np.float32)
     common = dict(plant=robot, trigger=nc.Periodic(), monitor=nc.Monitor(bounds=bounds), N=1, steps=steps, T=Ts,
                   record=record)
-    model = nc.LTI(A=A, B=B, C=C, G=plant.noise_input(), T=Ts)
+    model = nc.LTI(A=A, B=B, C=C, G=bmodel.noise_input(plant), T=Ts)
     u_max = np.float32(plant.u_max)
     if design == "emulation":
         return nc.Loop(**common, uplink=nc.Link(delay=nc.WifiModel(sc), order="arrival", capacity=ring),
@@ -128,10 +129,10 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
                        actuator=nc.ArrivalHold())
     if gain == "hold":                                           # u = L x, so K = -L
         K = -hold_lq_gain(A, B, W_LQ, U_LQ, wifi.delivery_probability(ca, lead) if theta is None else theta)[0]
-    _, R = plant.kalman_QR()
+    _, R = bmodel.kalman_QR(plant)
     if kf_tilt == "sensor" and plant.tilt_sensor == "complementary":
-        R[1, 1] = float(plant.tilt_error_std()) ** 2
-    ekf = nc.EKF(model, Q=plant.noise_std() ** 2, R=R, mean0=np.zeros(4), cov0=P0, buffer=N_buf)
+        R[1, 1] = float(bmodel.tilt_error_std(plant)) ** 2
+    ekf = nc.EKF(model, Q=bmodel.filter_noise_std(plant) ** 2, R=R, mean0=np.zeros(4), cov0=P0, buffer=N_buf)
     # tau_max half a period above the last useful delay (the link compares whole periods)
     return nc.Loop(
         **common,

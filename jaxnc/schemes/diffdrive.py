@@ -106,7 +106,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
         # the true measurement noise (floored so that F = 0 stays well-conditioned) and wheel noise
         # lifted to NT (eq. 7), plus a margin for the model's error (3 mm, 0.01 rad per NT: ours)
         Ff = max(F, 0.02)
-        std = np.asarray(nc.DiffDrive(F=Ff).measurement_std())
+        std = np.asarray(nc.DiffDrive(F=Ff).v_std)
         wv = float(nc.lifted_wheel_var(plant, Ff * float(plant.wheel), N))
         Q = np.diag([wv, wv, 0.003 ** 2, 0.003 ** 2, 0.01 ** 2])
         P0 = np.diag(np.asarray([0.1, 0.1, 0.005, 0.005, 0.01]) ** 2)
@@ -141,7 +141,7 @@ def completion(loop: nc.Loop, traj: nc.Trajectory, *, end_tol: float = END_TOL, 
     tenth within ``end_tol`` of the end; failed when, before that, the distance exceeds
     ``max_dev``, the state is non-finite, or the runner saw a non-finite action."""
     ctrl, sub = loop.controller, loop.plant.sub
-    xs = jnp.concatenate([traj.x[sub::sub], traj.final_plant.x[None]])            # [K/sub, 5]
+    xs = jnp.concatenate([traj.x[sub::sub], traj.final_plant[None]])            # [K/sub, 5]
     path, M = ctrl.path, ctrl.path.M
 
     def body(c, x):
