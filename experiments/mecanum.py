@@ -32,8 +32,9 @@ UNSTABLE_CELL = 0.5   # a cell is shown as inf when more than half of its runs a
 def loop_config(loop: nc.Loop) -> dict:
     """JSON-friendly description of a loop (the path by name, functions by name)."""
     def conv(obj):
-        if hasattr(obj, "describe"):          # e.g. the MJX plant: its parameters, not its arrays
-            return obj.describe()
+        if type(obj).__name__ == "MjxMecanum":   # the MJX plant: its parameters, not its arrays
+            from jaxnc.plants.mecanum_mjx import describe
+            return describe(obj)
         if dataclasses.is_dataclass(obj):
             if isinstance(obj, RefPath):
                 return {"name": obj.name, "length_m": float(obj.length)}

@@ -177,7 +177,7 @@ def mecanum_pass(loop, traj, key, *, N, dp, trigger=None):
     est = loop.estimator
     Qf, Rf = jnp.diag(jnp.asarray(est.Q)), jnp.diag(jnp.asarray(est.R))
     xs, us, moving = trajectory_inputs(traj)
-    rec = estimator_pass(est.model, xs, us, key, N=N, dp=dp, Q=Qf, R=Rf, v_std=loop.plant.measurement_std(),
+    rec = estimator_pass(est.model, xs, us, key, N=N, dp=dp, Q=Qf, R=Rf, v_std=loop.plant.v_std,
                          P0=jnp.asarray(est.cov0), trigger=trigger)
     return measure_bounds(rec, Qf, Rf, moving), jnp.sum(rec.err_pred ** 2, axis=-1), moving
 

@@ -26,6 +26,7 @@ from jaxnc._validate import check_int, check_nonneg, check_positive
 from jaxnc.controllers.pi import pi_step, wrap_angle
 from jaxnc.controllers.pure_pursuit import pure_pursuit_velocity
 from jaxnc.paths import Path
+from jaxnc.plants.mecanum import inverse_kinematics
 
 
 class FollowerState(NamedTuple):
@@ -81,4 +82,4 @@ class PathFollower:
                          -s * v_w[0] + c * v_w[1],
                          -self.K_psi * wrap_angle(mean[5])])
         v_u, integ = pi_step(self.Kp, self.Ki, state.integ, ref - mean[:3], Ts)
-        return model.inverse_kinematics(v_u), FollowerState(idx, integ)
+        return inverse_kinematics(model, v_u), FollowerState(idx, integ)

@@ -184,6 +184,7 @@ class Balancing(AbstractPlant):
 
 # ----------------------------------------------------------------------------- the model (functions of a Balancing)
 
+
 def coefficients(p: Balancing) -> dict:
     """alpha2, alpha1, alpha0, beta1, beta0 of eq. (20) (floats, numpy)."""
     M, l, r = float(p.M), float(p.l), float(p.r)
@@ -191,6 +192,7 @@ def coefficients(p: Balancing) -> dict:
     inertia = M * l**2 + float(p.J_b)
     return dict(alpha2=a + 2 * M * r * l + inertia, alpha1=float(p.b), alpha0=-M * G * l,
                 beta1=-(a + M * r * l), beta0=-float(p.b))
+
 
 def continuous(p: Balancing) -> tuple[np.ndarray, np.ndarray]:
     """(Ac, Bc) of eq. (20) in the state (delta, theta, delta', theta')."""
@@ -202,6 +204,7 @@ def continuous(p: Balancing) -> tuple[np.ndarray, np.ndarray]:
                    [0, -c["alpha0"] / a2, c["beta0"] / a2, -c["alpha1"] / a2]], float)
     Bc = np.array([[0], [0], [1], [c["beta1"] / a2]], float)
     return Ac, Bc
+
 
 def discrete(p: Balancing) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact ZOH discretisation at ``Ts``: (A, B, C), float64 (matrix exponential)."""
@@ -231,14 +234,17 @@ def _cf(p: Balancing):
     drive = jnp.hypot(a * p.Ts * p.sigma_gyro, (1.0 - a) * p.sigma_accel)
     return a, drive
 
+
 def tilt_error_std(p: Balancing) -> jax.Array:
     """Stationary std (rad) of the ``"complementary"`` sensor's error, float32 (traceable)."""
     a, drive = _cf(p)
     return drive / jnp.sqrt(1.0 - a * a)
 
+
 def filter_noise_std(p: Balancing) -> np.ndarray:
     """float64[2]: std of the servo error and tilt acceleration (rad/s^2), the filter's Q."""
     return np.array([float(p.w_servo), float(p.w_theta)])
+
 
 def noise_input(p: Balancing) -> np.ndarray:
     """float64[4, 2]: how ``w[:2]``, held over ``Ts``, enters the discrete rigid body
@@ -249,6 +255,7 @@ def noise_input(p: Balancing) -> np.ndarray:
     Mx[:n, :n] = Ac
     Mx[:n, n:] = np.column_stack([Bc[:, 0], np.eye(n)[:, 3]])
     return scipy.linalg.expm(Mx * float(p.Ts))[:n, n:]
+
 
 def kalman_QR(p: Balancing) -> tuple[np.ndarray, np.ndarray]:
     """Discrete Q float[4, 4] (``G diag(filter_noise_std^2) G'``, G = :func:`noise_input`) and R

@@ -117,47 +117,24 @@ class Mecanum(AbstractPlant):
     def step_period(self) -> float:
         return self.T
 
-    def process_std(self):
+    @property
+    def w_std(self):
+        """float[7]: std of the true process noise n1 (``noise``)."""
         return self.noise.process_std()
 
-    def measurement_std(self):
+    @property
+    def v_std(self):
+        """float[9]: std of the true measurement noise n2 (``noise``)."""
         return self.noise.measurement_std()
-
-    # -- eq. (1), first three lines ------------------------------------------------
-    def body_velocity(self, omega):
-        """Wheel speeds -> (Vx, Vy, W), eq. (1)."""
-        w1, w2, w3, w4 = omega[0], omega[1], omega[2], omega[3]
-        q = self.R / 4.0
-        return jnp.stack([
-            (w1 + w2 + w3 + w4) * q,
-            (-w1 + w2 + w3 - w4) * q,
-            (-w1 + w2 - w3 + w4) * q / (self.Lx + self.Ly),
-        ])
-
-    # -- eq. (9) ---------------------------------------------------------------------
-    def inverse_kinematics(self, v):
-        """(Vx, Vy, W) -> wheel speeds, eq. (9)."""
-        vx, vy, w = v[0], v[1], v[2]
-        L = self.Lx + self.Ly
-        return jnp.stack([vx - vy - L * w, vx + vy + L * w, vx + vy - L * w, vx - vy + L * w]) / self.R
-
-    def commanded(self, u):
-        """The saturated wheel-speed command and the process-noise scale it implies.
-
-        Noise scales with motion (full at the cruise wheel speed 4 rad/s): a robot at
-        rest neither slips nor jitters.
-        """
-        u = jnp.clip(u, -self.omega_max, self.omega_max)
-        return u, jnp.minimum(1.0, jnp.mean(jnp.abs(u), axis=0) / 4.0)
 
     def dynamics(self, x, u, w):
         """xi_k = f(xi_{k-1}, n1_{k-1}, u_{k-1}), eq. (1) and (10).
 
         ``w`` is the process noise n1 = (4 wheel-speed errors, X, Y, psi slip).
         """
-        u, m = self.commanded(u)
+        u, m = commanded(self, u)
         omega = u + m[None] * w[:4]
-        v = self.body_velocity(omega)
+        v = body_velocity(self, omega)
         T = self.T
         a = x[5] + v[2] * T
         c, s = jnp.cos(a), jnp.sin(a)
@@ -166,14 +143,47 @@ class Mecanum(AbstractPlant):
         psi = x[5] + v[2] * T + m * w[6]
         return jnp.concatenate([v, jnp.stack([X, Y, psi])])
 
-    def distances(self, xy):
-        """Beacon distances d_i, eq. (2). ``xy`` is (2,) or (2, *batch)."""
-        dz2 = (self.z_fb - self.z_mb) ** 2
-        b = jnp.reshape(self.beacons, self.beacons.shape + (1,) * (jnp.ndim(xy) - 1))
-        diff = b - xy[None]                      # (4, 2, *batch); per seed exactly the old (4, 2)
-        return jnp.sqrt(jnp.sum(diff * diff, axis=1) + dz2)
-
     def measure(self, x, v):
         """z = h(xi, n2): encoders (eq. 9 of the state velocities), yaw, eq. (2)."""
-        omega = self.inverse_kinematics(x[:3])
-        return jnp.concatenate([omega, x[5:6], self.distances(x[3:5])]) + v
+        omega = inverse_kinematics(self, x[:3])
+        return jnp.concatenate([omega, x[5:6], distances(self, x[3:5])]) + v
+
+
+# ----------------------------------------------------------------------------- the model (functions of a Mecanum)
+
+
+def body_velocity(p: Mecanum, omega):
+    """Wheel speeds -> (Vx, Vy, W), eq. (1)."""
+    w1, w2, w3, w4 = omega[0], omega[1], omega[2], omega[3]
+    q = p.R / 4.0
+    return jnp.stack([
+        (w1 + w2 + w3 + w4) * q,
+        (-w1 + w2 + w3 - w4) * q,
+        (-w1 + w2 - w3 + w4) * q / (p.Lx + p.Ly),
+    ])
+
+
+def inverse_kinematics(p: Mecanum, v):
+    """(Vx, Vy, W) -> wheel speeds, eq. (9)."""
+    vx, vy, w = v[0], v[1], v[2]
+    L = p.Lx + p.Ly
+    return jnp.stack([vx - vy - L * w, vx + vy + L * w, vx + vy - L * w, vx - vy + L * w]) / p.R
+
+
+def commanded(p: Mecanum, u):
+    """The saturated wheel-speed command and the process-noise scale it implies.
+
+    Noise scales with motion (full at the cruise wheel speed 4 rad/s): a robot at
+    rest neither slips nor jitters.
+    """
+    u = jnp.clip(u, -p.omega_max, p.omega_max)
+    return u, jnp.minimum(1.0, jnp.mean(jnp.abs(u), axis=0) / 4.0)
+
+
+def distances(p: Mecanum, xy):
+    """Beacon distances d_i, eq. (2). ``xy`` is (2,) or (2, *batch)."""
+    dz2 = (p.z_fb - p.z_mb) ** 2
+    b = jnp.reshape(p.beacons, p.beacons.shape + (1,) * (jnp.ndim(xy) - 1))
+    diff = b - xy[None]                      # (4, 2, *batch); per seed exactly the old (4, 2)
+    return jnp.sqrt(jnp.sum(diff * diff, axis=1) + dz2)
+

@@ -58,7 +58,7 @@ import numpy as np
 
 from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
 from jaxnc.loop.base import AbstractPlant
-from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum
+from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, commanded, distances
 
 try:   # optional extra
     import mujoco
@@ -183,10 +183,14 @@ class MjxMecanum(AbstractPlant):
     def step_period(self) -> float:
         return self.kin.T
 
-    def process_std(self):
+    @property
+    def w_std(self):
+        """float[7]: the true process noise n1 (``kin.noise``)."""
         return self.kin.noise.process_std()
 
-    def measurement_std(self):
+    @property
+    def v_std(self):
+        """float[9]: the true measurement noise n2 (``kin.noise``)."""
         return self.kin.noise.measurement_std()
 
     def init(self, key) -> MjxState:
@@ -197,7 +201,7 @@ class MjxMecanum(AbstractPlant):
         mr = jnp.asarray(self.mass_range, jnp.float32)
         mu = jax.random.uniform(kf, (), jnp.float32, fr[0], fr[1])
         ms = jax.random.uniform(km, (), jnp.float32, mr[0], mr[1])
-        m = self._seed_model(mu, ms)
+        m = seed_model(self, mu, ms)
         psi = x0[5]
         qpos = jnp.zeros(m.nq, jnp.float32)
         qpos = qpos.at[0:3].set(jnp.stack([x0[3], x0[4], jnp.asarray(self.kin.R, jnp.float32)]))
@@ -213,10 +217,10 @@ class MjxMecanum(AbstractPlant):
 
     def dynamics(self, s: MjxState, u, w) -> MjxState:
         """One fast period T: ``substeps`` physics steps with the wheel-speed loop."""
-        u, motion = self.kin.commanded(u)                # saturation and noise scale of eq. (1)'s plant
+        u, motion = commanded(self.kin, u)                # saturation and noise scale of eq. (1)'s plant
         ref = u + motion * w[:4]
         data = s.data.replace(ctrl=ref.astype(s.data.ctrl.dtype))   # the motors' speed references
-        data = _physics(self._seed_model(s.friction, s.mass_scale), data, self.substeps)
+        data = _physics(seed_model(self, s.friction, s.mass_scale), data, self.substeps)
         yaw = _yaw(data.qpos[3:7])
         psi = s.psi + _wrap(yaw - s.psi)
         return MjxState(data, psi, s.friction, s.mass_scale)
@@ -229,33 +233,38 @@ class MjxMecanum(AbstractPlant):
         vy = -sn * q[0] + c * q[1]
         return jnp.stack([vx, vy, q[5], s.data.qpos[0], s.data.qpos[1], s.psi])
 
-    def wheel_speeds(self, s: MjxState):
-        return SQRT2 * s.data.qvel[jnp.asarray(WHEEL_DOFS)]
-
     def measure(self, s: MjxState, v):
         """Encoders (quantised count differences), yaw and beacon distances, plus noise n2."""
         res = 2.0 * jnp.pi / (self.cpr * self.kin.T)
-        enc = jnp.round(self.wheel_speeds(s) / res) * res
+        enc = jnp.round(wheel_speeds(s) / res) * res
         xy = s.data.qpos[0:2]
-        return jnp.concatenate([enc, s.psi[None], self.kin.distances(xy)]) + v
+        return jnp.concatenate([enc, s.psi[None], distances(self.kin, xy)]) + v
 
-    def _seed_model(self, mu, mass_scale):
-        m = self.model
-        friction = m.pair_friction.at[:, 1].set(mu)
-        mass = m.body_mass.at[1].multiply(mass_scale)
-        inertia = m.body_inertia.at[1].multiply(mass_scale)
-        return m.replace(pair_friction=friction, body_mass=mass, body_inertia=inertia)
 
-    def describe(self) -> dict:
-        """JSON-friendly parameters (the MJCF is regenerated from them)."""
-        return {"plant": "mjx", "R": float(self.kin.R), "Lx": float(self.kin.Lx), "Ly": float(self.kin.Ly),
-                "T": self.kin.T, "timestep": float(self.model.opt.timestep), "substeps": self.substeps,
-                "kv": float(self.model.actuator_gainprm[0, 0]), "tau_max": float(self.model.actuator_forcerange[0, 1]),
-                "dead_zone": float(self.model.dof_frictionloss[WHEEL_DOFS[0]]) / SQRT2,
-                "armature": float(self.model.dof_armature[WHEEL_DOFS[0]]) / 2,
-                "cpr": float(self.cpr), "friction_range": [float(a) for a in np.asarray(self.friction_range)],
-                "mass_range": [float(a) for a in np.asarray(self.mass_range)],
-                "chassis_mass": float(self.model.body_mass[1])}
+def wheel_speeds(s: MjxState):
+    """float[4]: the wheel speeds of an :class:`MjxMecanum` state (rad/s)."""
+    return SQRT2 * s.data.qvel[jnp.asarray(WHEEL_DOFS)]
+
+
+def seed_model(plant: MjxMecanum, mu, mass_scale):
+    """The MJX model of one seed: grip friction ``mu`` and chassis mass factor ``mass_scale``."""
+    m = plant.model
+    friction = m.pair_friction.at[:, 1].set(mu)
+    mass = m.body_mass.at[1].multiply(mass_scale)
+    inertia = m.body_inertia.at[1].multiply(mass_scale)
+    return m.replace(pair_friction=friction, body_mass=mass, body_inertia=inertia)
+
+
+def describe(plant: MjxMecanum) -> dict:
+    """JSON-friendly parameters of an :class:`MjxMecanum` (the MJCF is regenerated from them)."""
+    return {"plant": "mjx", "R": float(plant.kin.R), "Lx": float(plant.kin.Lx), "Ly": float(plant.kin.Ly),
+            "T": plant.kin.T, "timestep": float(plant.model.opt.timestep), "substeps": plant.substeps,
+            "kv": float(plant.model.actuator_gainprm[0, 0]), "tau_max": float(plant.model.actuator_forcerange[0, 1]),
+            "dead_zone": float(plant.model.dof_frictionloss[WHEEL_DOFS[0]]) / SQRT2,
+            "armature": float(plant.model.dof_armature[WHEEL_DOFS[0]]) / 2,
+            "cpr": float(plant.cpr), "friction_range": [float(a) for a in np.asarray(plant.friction_range)],
+            "mass_range": [float(a) for a in np.asarray(plant.mass_range)],
+            "chassis_mass": float(plant.model.body_mass[1])}
 
 
 def _physics(m, data, n: int):
