@@ -122,6 +122,44 @@ def _mm(a, b):
     return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
+#: largest innovation dimension whose gain is solved elementwise by :func:`spd_solve`
+SMALL_SOLVE = 4
+
+
+def spd_solve(S, B):
+    """X with S X = B, for S float[p, p] symmetric positive definite and B float[p, r].
+
+    For p <= :data:`SMALL_SOLVE` the Cholesky factor and the two triangular solves are
+    written out entry by entry (Golub & Van Loan, Algorithm 4.2.1), so under ``vmap`` they
+    are elementwise vector operations that fuse with the filter's other arithmetic, where
+    ``jax.scipy.linalg.cho_solve`` is a batched LAPACK call per use (docs/design_notes.md).
+    Larger p: ``cho_solve(cho_factor(S))``. Same maths; results agree up to float rounding.
+    """
+    p = S.shape[0]
+    if p > SMALL_SOLVE:
+        return jsl.cho_solve(jsl.cho_factor(S, lower=True), B)
+    L = [[None] * p for _ in range(p)]
+    for i in range(p):
+        for j in range(i + 1):
+            s = S[i, j]
+            for k in range(j):
+                s = s - L[i][k] * L[j][k]
+            L[i][j] = jnp.sqrt(s) if i == j else s / L[j][j]
+    Y = []
+    for i in range(p):                                   # L Y = B
+        y = B[i]
+        for k in range(i):
+            y = y - L[i][k] * Y[k]
+        Y.append(y / L[i][i])
+    X = [None] * p
+    for i in reversed(range(p)):                         # L' X = Y
+        x = Y[i]
+        for k in range(i + 1, p):
+            x = x - L[k][i] * X[k]
+        X[i] = x / L[i][i]
+    return jnp.stack(X)
+
+
 def _at(x, jacobian_grad: bool):
     """The point a Jacobian is evaluated at: ``x`` itself, or ``x`` with its derivative cut
     (``jacobian_grad=False``: the Jacobian's value is the same, but gradients treat it as a
@@ -194,7 +232,7 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     Rm = _mm(_mm(M, R), M.T)
     PHt = _mm(belief.cov, H.T)
     S = _mm(H, PHt) + Rm
-    K = jsl.cho_solve(jsl.cho_factor(S, lower=True), PHt.T).T     # eq. (15)
+    K = spd_solve(S, PHt.T).T                                     # eq. (15)
     mean = belief.mean + jnp.sum(K * (z - zhat)[None, :], axis=1)
     IKH = jnp.eye(belief.mean.shape[0], dtype=belief.cov.dtype) - _mm(K, H)
     cov = _mm(_mm(IKH, belief.cov), IKH.T) + _mm(_mm(K, Rm), K.T)
