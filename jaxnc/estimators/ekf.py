@@ -112,14 +112,44 @@ def _symmetrize(P):
     return 0.5 * (P + P.T)
 
 
-def _mm(a, b):
-    """a @ b for the small matrices of a filter, as a broadcast multiply-sum.
+#: the longest inner dimension :func:`_mm` and :func:`matvec` write out term by term
+SMALL_MATVEC = 16
 
-    Under ``vmap`` the multiply-sum fuses into one vectorised loop where a batched
-    ``dot_general`` of small matrices does not (docs/design_notes.md). Results equal
-    ``a @ b`` up to summation order.
+
+def _mm(a, b):
+    """a @ b for the small matrices of a filter, as elementwise multiplies and adds.
+
+    Up to :data:`SMALL_MATVEC` terms the sum over the inner dimension is written out
+    (``a[:, 0] b[0] + a[:, 1] b[1] + ...``): under ``vmap`` it fuses into one vectorised
+    loop with the arithmetic around it, where a ``dot_general`` of small matrices, or a
+    multiply-``sum`` that XLA:CPU recognises as one, becomes a matrix-product library
+    call per use, slow for a handful of entries (docs/design_notes.md). Longer inner
+    dimensions: a broadcast multiply-sum. Results equal ``a @ b`` up to summation order.
     """
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+    k = a.shape[1]
+    if k > SMALL_MATVEC:
+        return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+    acc = a[:, 0, None] * b[None, 0, :]
+    for i in range(1, k):
+        acc = acc + a[:, i, None] * b[None, i, :]
+    return acc
+
+
+def matvec(a, x):
+    """a @ x for a small matrix a float[r, c] and a vector x float[c].
+
+    For c <= :data:`SMALL_MATVEC`, written out as :func:`_mm` does (elementwise multiplies
+    and adds, fused under ``vmap`` where ``a @ x`` becomes a library call per use); larger
+    c: ``a @ x``. Results equal ``a @ x`` up to summation order.
+    """
+    a = jnp.asarray(a)
+    if a.ndim != 2 or a.shape[1] > SMALL_MATVEC:
+        return a @ x
+    x = jnp.asarray(x)
+    acc = a[:, 0] * x[0]
+    for i in range(1, a.shape[1]):
+        acc = acc + a[:, i] * x[i]
+    return acc
 
 
 def spd_solve(S, B):
