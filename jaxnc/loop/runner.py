@@ -32,7 +32,7 @@ from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstim
                              Inbox)
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.loop.links import Link, LinkDraws
+from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
            "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
@@ -561,6 +561,14 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     believed_needed = loop.estimator.inputs == "believed"
     from_sent = believed_needed and isinstance(loop.controller, AbstractSenderCopyController)
     from_sender = believed_needed and isinstance(act_role, AbstractSenderCopyActuator)
+    # the controller side's copy of the actuator, for an estimator fed the believed actions;
+    # through a downlink that neither loses nor delays into a one-packet actuator the
+    # actuator receives exactly the copy's packets at the same instants, so its actions are
+    # the copy's and the copy is not run
+    keep_copy = believed_needed and not (
+        not from_sent and not from_sender and isinstance(loop.downlink.loss, NoLoss)
+        and isinstance(loop.downlink.delay, NoDelay) and loop.downlink.tau_max is None
+        and isinstance(act_role, PacketActuator) and act_role.capacity == 1)
     fast_predict = isinstance(loop.estimator, AbstractFastEstimator)
 
     rec = loop.record
@@ -591,7 +599,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         # 6. downlink; the controller's own copy as if delivered at once
         down = loop.downlink.send(c.down, pkt.data, pkt.stamp, k, send_ca, d_down, t0)
         bel = c.bel
-        if believed_needed:
+        if keep_copy:
             own = Inbox(jax.tree.map(lambda a: a[None], pkt.data), pkt.stamp[None], send_ca[None],
                         jnp.ones((1,), bool), send_ca[None])
             bel = act_role.receive(bel, own)
@@ -603,7 +611,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             box, down = loop.downlink.inbox(down, t)
             act = act_role.receive_from_sender(act, box, bel) if from_sender else act_role.receive(act, box)
             act, u = act_role.output(act, t)
-            bel, ub = act_role.output(bel, t) if believed_needed else (bel, u)
+            bel, ub = act_role.output(bel, t) if keep_copy else (bel, u)
             u_ok = jnp.all(jnp.isfinite(u))
             u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
             x_new = plant.step(x, u, w_t)
