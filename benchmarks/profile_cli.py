@@ -16,6 +16,7 @@ import logging
 import re
 import sys
 import time
+import traceback
 
 t_start = time.perf_counter()
 import jax  # noqa: E402
@@ -25,6 +26,7 @@ t_jax = time.perf_counter()
 
 EVENTS = collections.defaultdict(list)
 NAMES = []
+SOURCES = collections.Counter()
 
 
 def _listener(event, duration, **kw):
@@ -36,6 +38,10 @@ class _Names(logging.Handler):
         m = re.search(r"Finished XLA compilation of (.+?) in ([0-9.e\-]+) s", record.getMessage())
         if m:
             NAMES.append((float(m.group(2)), m.group(1)))
+            here = [f for f in traceback.extract_stack()[:-1]
+                    if ("/jaxnc/" in f.filename or "/experiments/" in f.filename) and "profile_cli" not in f.filename]
+            SOURCES[f"{here[-1].filename.split('/')[-2]}/{here[-1].filename.split('/')[-1]}:{here[-1].lineno} "
+                    f"({here[-1].name})" if here else "?"] += 1
 
 
 def main():
@@ -71,6 +77,9 @@ def main():
     counts = collections.Counter(small)
     print(f"  {len(small)} compilations under 0.5 s; most frequent: " +
           ", ".join(f"{n} x{c}" for n, c in counts.most_common(12)))
+    print("  where the compilations are requested (innermost jaxnc/experiments frame):")
+    for src, c in SOURCES.most_common(a.top):
+        print(f"    {c:4d}  {src}")
     return rc
 
 

@@ -131,13 +131,19 @@ def detect_structure(f: Callable, h: Callable, state_dim: int, input_dim: int, n
         return (jax.jacfwd(f, argnums=0)(x, u, w0), jax.jacfwd(f, argnums=2)(x, u, w0),
                 jax.jacfwd(h, argnums=0)(x, v0))
 
+    def at_random_points(key):
+        kx, ku = jax.random.split(key)
+        xs = scale * jax.random.normal(kx, (points, state_dim), dtype)
+        us = scale * jax.random.normal(ku, (points, input_dim), dtype)
+        return jax.vmap(jacs)(xs, us)
+
     try:
-        with jax.ensure_compile_time_eval():     # concrete even when called while tracing
-            kx, ku = jax.random.split(jax.random.key(seed))
-            xs = scale * jax.random.normal(kx, (points, state_dim), dtype)
-            us = scale * jax.random.normal(ku, (points, input_dim), dtype)
-            A, L, H = (np.asarray(J) for J in jax.vmap(jacs)(xs, us))
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError) as e:
+        # one compiled program (run eagerly, the model's every operation compiled one of its own);
+        # concrete even when called while tracing
+        with jax.ensure_compile_time_eval():
+            A, L, H = (np.asarray(J) for J in jax.jit(at_random_points)(jax.random.key(seed)))
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            jax.errors.UnexpectedTracerError) as e:
         raise ValueError("detect_structure: the model holds traced values; detect the structure when the "
                          "configuration is built, outside jit/vmap, or use structure=None") from e
     except (TypeError, ValueError, IndexError) as e:
