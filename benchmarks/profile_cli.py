@@ -18,6 +18,9 @@ import sys
 import time
 import traceback
 
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))    # this checkout's jaxnc
 t_start = time.perf_counter()
 import jax  # noqa: E402
 import jax.monitoring  # noqa: E402
@@ -58,8 +61,10 @@ def main():
         lg.addHandler(h)
         lg.propagate = False
     t0 = time.perf_counter()
+    import jaxnc
     from jaxnc.cli import run_cli
     t1 = time.perf_counter()
+    print(f"jaxnc from {Path(jaxnc.__file__).parent}", file=sys.stderr)
     rc = run_cli(args)
     t2 = time.perf_counter()
     comp = EVENTS.get("/jax/compilation_cache/compile_time_saved_sec", [])
