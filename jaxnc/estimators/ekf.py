@@ -127,7 +127,7 @@ def _mm(a, b):
     dimensions: a broadcast multiply-sum. Results equal ``a @ b`` up to summation order.
     """
     k = a.shape[1]
-    if k > SMALL_MATVEC:
+    if k == 0 or k > SMALL_MATVEC:
         return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
     acc = a[:, 0, None] * b[None, 0, :]
     for i in range(1, k):
@@ -143,7 +143,7 @@ def matvec(a, x):
     c: ``a @ x``. Results equal ``a @ x`` up to summation order.
     """
     a = jnp.asarray(a)
-    if a.ndim != 2 or a.shape[1] > SMALL_MATVEC:
+    if a.ndim != 2 or a.shape[1] == 0 or a.shape[1] > SMALL_MATVEC:
         return a @ x
     x = jnp.asarray(x)
     acc = a[:, 0] * x[0]

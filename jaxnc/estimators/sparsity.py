@@ -125,6 +125,7 @@ def detect_structure(f: Callable, h: Callable, state_dim: int, input_dim: int, n
         if not isinstance(v, (int, np.integer)) or v < lo:
             raise ValueError(f"detect_structure: {name} must be an integer >= {lo}, got {v!r}")
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+
     def jacs(x, u):
         w0, v0 = jnp.zeros((noise_dim,), dtype), jnp.zeros((meas_dim,), dtype)
         return (jax.jacfwd(f, argnums=0)(x, u, w0), jax.jacfwd(f, argnums=2)(x, u, w0),
