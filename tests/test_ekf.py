@@ -216,3 +216,31 @@ def test_jacobian_grad_false_holds_the_jacobians_constant():
                 assert np.max(np.abs(g)) > 1e-6
             else:
                 np.testing.assert_array_equal(g, 0.0)
+
+
+def test_spd_solve_equals_cho_solve_bit_for_bit_on_scalar_innovations():
+    """The closed-form scalar gain of ekf_update (spd_solve, p = 1) is LAPACK's Cholesky
+    solve exactly, under vmap, on random positive numbers of many magnitudes."""
+    import jax.scipy.linalg as jsl
+    from jaxnc.estimators.ekf import spd_solve
+    rng = np.random.default_rng(0)
+    S = (10.0 ** rng.uniform(-6, 6, (4000, 1, 1))).astype(np.float32)
+    B = (rng.standard_normal((4000, 1, 3)) * 10.0 ** rng.uniform(-3, 3, (4000, 1, 1))).astype(np.float32)
+    ref = jax.jit(jax.vmap(lambda s, b: jsl.cho_solve(jsl.cho_factor(s, lower=True), b)))(S, B)
+    got = jax.jit(jax.vmap(spd_solve))(S, B)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))
+    S2 = np.array([[2.0, 0.5], [0.5, 1.0]], np.float32)
+    np.testing.assert_allclose(np.asarray(spd_solve(S2, np.eye(2, dtype=np.float32))), np.linalg.inv(S2), rtol=1e-5)
+
+
+def test_small_products_equal_matmul():
+    """_mm and matvec (written-out sums, no dot) equal @ to float32 rounding, for inner
+    sizes 0 (zeros), within the written-out range and beyond it."""
+    from jaxnc.estimators.ekf import SMALL_MATVEC, _mm, matvec
+    rng = np.random.default_rng(1)
+    for k in (0, 1, 3, SMALL_MATVEC, SMALL_MATVEC + 5):
+        a = rng.standard_normal((4, k)).astype(np.float32)
+        b = rng.standard_normal((k, 3)).astype(np.float32)
+        x = rng.standard_normal(k).astype(np.float32)
+        np.testing.assert_allclose(np.asarray(jax.jit(_mm)(a, b)), a @ b, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(jax.jit(matvec)(a, x)), a @ x, atol=1e-5)

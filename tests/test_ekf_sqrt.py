@@ -64,7 +64,10 @@ def test_joseph_and_scalar_downdate_lose_definiteness_in_the_degenerate_case():
     assert np.nanmin(rel[:5]) < -1e-3                     # indefinite in the first steps
     assert np.isnan(rel[10:]).all()                       # then NaN
     rel = _relative_min_eig(_filter("diag", 1e-8, 2000))
-    assert np.mean(rel < -1e-6) > 0.9 and rel.min() < -0.1
+    # indefinite at almost every step, and badly at some: with the prediction's products
+    # written out term by term (ekf._mm) 99 % of the steps have a negative eigenvalue and 68 %
+    # one below -1e-6 of the largest (98 % with the former multiply-sum); the minimum is -1.0
+    assert np.mean(rel < 0) > 0.9 and np.mean(rel < -1e-6) > 0.5 and rel.min() < -0.1
 
 
 @pytest.mark.parametrize("r", [1.0, 1e-8])

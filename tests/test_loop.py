@@ -411,3 +411,23 @@ def test_a_random_initial_state_is_drawn_from_x0_std_per_seed():
     np.testing.assert_array_equal(np.asarray(fixed.init(jax.random.PRNGKey(3))), [1.0, 0.0])
     with pytest.raises(ValueError, match="LTI.x0_std must be a scalar or have 2 entries"):
         nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], x0_std=[0.1, 0.1, 0.1], T=0.1)
+
+
+def test_ideal_downlink_skips_the_believed_copy_bit_for_bit():
+    """Through a downlink without loss or delay into a one-packet actuator the runner does
+    not run the controller side's copy of the actuator (the applied actions are the
+    believed ones): every signal equals the run where the same ideal link is declared as
+    a one-point delay law (PmfDelay([1.0])), which keeps the copy."""
+    import pathlib
+    import sys
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent))
+    from benchmarks.direct_servo import servo
+    from examples.cartpole import cartpole
+    for loop in (dataclasses.replace(servo(steps=200), record=True), cartpole()):
+        kept = dataclasses.replace(loop, downlink=nc.Link(delay=nc.PmfDelay([1.0])))
+        keys = jax.random.split(jax.random.PRNGKey(7), 8)
+        a = jax.jit(jax.vmap(lambda k: nc.simulate(loop, k)))(keys)
+        b = jax.jit(jax.vmap(lambda k: nc.simulate(kept, k)))(keys)
+        for name in ("x", "u", "xhat", "sent_sc", "recv_ca", "failed"):
+            np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
+        assert np.asarray(a.x).size and np.ptp(np.asarray(a.u)) > 0

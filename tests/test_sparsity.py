@@ -170,3 +170,4 @@ def test_a_structure_of_the_wrong_shape_is_refused():
     with pytest.raises(ValueError, match="structure.H"):
         ekf_update_diag(Mecanum().measure, b, jnp.zeros(9), jnp.ones(9), 9,
                         structure=EKFStructure(st.A, st.L, Pattern.dense(8, 6)))
+

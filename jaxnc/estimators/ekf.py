@@ -112,14 +112,59 @@ def _symmetrize(P):
     return 0.5 * (P + P.T)
 
 
-def _mm(a, b):
-    """a @ b for the small matrices of a filter, as a broadcast multiply-sum.
+#: the longest inner dimension :func:`_mm` and :func:`matvec` write out term by term
+SMALL_MATVEC = 16
 
-    Under ``vmap`` the multiply-sum fuses into one vectorised loop where a batched
-    ``dot_general`` of small matrices does not (docs/design_notes.md). Results equal
-    ``a @ b`` up to summation order.
+
+def _mm(a, b):
+    """a @ b for the small matrices of a filter, as elementwise multiplies and adds.
+
+    Up to :data:`SMALL_MATVEC` terms the sum over the inner dimension is written out
+    (``a[:, 0] b[0] + a[:, 1] b[1] + ...``): under ``vmap`` it fuses into one vectorised
+    loop with the arithmetic around it, where a ``dot_general`` of small matrices, or a
+    multiply-``sum`` that XLA:CPU recognises as one, becomes a matrix-product library
+    call per use, slow for a handful of entries (docs/design_notes.md). Longer inner
+    dimensions: a broadcast multiply-sum. Results equal ``a @ b`` up to summation order.
     """
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+    k = a.shape[1]
+    if k == 0 or k > SMALL_MATVEC:
+        return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+    acc = a[:, 0, None] * b[None, 0, :]
+    for i in range(1, k):
+        acc = acc + a[:, i, None] * b[None, i, :]
+    return acc
+
+
+def matvec(a, x):
+    """a @ x for a small matrix a float[r, c] and a vector x float[c].
+
+    For c <= :data:`SMALL_MATVEC`, written out as :func:`_mm` does (elementwise multiplies
+    and adds, fused under ``vmap`` where ``a @ x`` becomes a library call per use); larger
+    c: ``a @ x``. Results equal ``a @ x`` up to summation order.
+    """
+    a = jnp.asarray(a)
+    if a.ndim != 2 or a.shape[1] == 0 or a.shape[1] > SMALL_MATVEC:
+        return a @ x
+    x = jnp.asarray(x)
+    acc = a[:, 0] * x[0]
+    for i in range(1, a.shape[1]):
+        acc = acc + a[:, i] * x[i]
+    return acc
+
+
+def spd_solve(S, B):
+    """X with S X = B, for S float[p, p] symmetric positive definite and B float[p, r]:
+    ``cho_solve(cho_factor(S))``.
+
+    A scalar innovation (p = 1) is solved in closed form, X = (B / sqrt(S)) / sqrt(S), the
+    same operations as LAPACK's Cholesky factor and two triangular solves (equal bit for
+    bit, tested), but elementwise, so under ``vmap`` it fuses with the filter's other
+    arithmetic where ``cho_solve`` is a batched LAPACK call per use (docs/design_notes.md).
+    """
+    if S.shape[0] == 1:
+        L = jnp.sqrt(S[0, 0])
+        return (B / L) / L
+    return jsl.cho_solve(jsl.cho_factor(S, lower=True), B)
 
 
 def _at(x, jacobian_grad: bool):
@@ -194,7 +239,7 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     Rm = _mm(_mm(M, R), M.T)
     PHt = _mm(belief.cov, H.T)
     S = _mm(H, PHt) + Rm
-    K = jsl.cho_solve(jsl.cho_factor(S, lower=True), PHt.T).T     # eq. (15)
+    K = spd_solve(S, PHt.T).T                                     # eq. (15)
     mean = belief.mean + jnp.sum(K * (z - zhat)[None, :], axis=1)
     IKH = jnp.eye(belief.mean.shape[0], dtype=belief.cov.dtype) - _mm(K, H)
     cov = _mm(_mm(IKH, belief.cov), IKH.T) + _mm(_mm(K, Rm), K.T)

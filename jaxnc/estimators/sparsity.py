@@ -125,19 +125,24 @@ def detect_structure(f: Callable, h: Callable, state_dim: int, input_dim: int, n
         if not isinstance(v, (int, np.integer)) or v < lo:
             raise ValueError(f"detect_structure: {name} must be an integer >= {lo}, got {v!r}")
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    w0, v0 = jnp.zeros((noise_dim,), dtype), jnp.zeros((meas_dim,), dtype)
 
     def jacs(x, u):
+        w0, v0 = jnp.zeros((noise_dim,), dtype), jnp.zeros((meas_dim,), dtype)
         return (jax.jacfwd(f, argnums=0)(x, u, w0), jax.jacfwd(f, argnums=2)(x, u, w0),
                 jax.jacfwd(h, argnums=0)(x, v0))
 
+    def at_random_points(key):
+        kx, ku = jax.random.split(key)
+        xs = scale * jax.random.normal(kx, (points, state_dim), dtype)
+        us = scale * jax.random.normal(ku, (points, input_dim), dtype)
+        return jax.vmap(jacs)(xs, us)
+
     try:
-        with jax.ensure_compile_time_eval():     # concrete even when called while tracing
-            kx, ku = jax.random.split(jax.random.key(seed))
-            xs = scale * jax.random.normal(kx, (points, state_dim), dtype)
-            us = scale * jax.random.normal(ku, (points, input_dim), dtype)
-            A, L, H = (np.asarray(J) for J in jax.vmap(jacs)(xs, us))
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError) as e:
+        # one compiled program (run eagerly, each of the model's operations compiled its own)
+        jacobians = jax.jit(at_random_points)(jax.random.key(seed))
+        A, L, H = (np.asarray(J) for J in jacobians)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            jax.errors.UnexpectedTracerError) as e:
         raise ValueError("detect_structure: the model holds traced values; detect the structure when the "
                          "configuration is built, outside jit/vmap, or use structure=None") from e
     except (TypeError, ValueError, IndexError) as e:

@@ -25,6 +25,7 @@ import scipy.linalg
 
 from jaxnc._validate import (array_fields, check_callable, check_finite, check_given, check_int, check_nonneg,
                              check_positive, fields_concrete)
+from jaxnc.estimators.ekf import matvec
 from jaxnc.loop.base import AbstractPlant
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -262,11 +263,11 @@ class LTI(AbstractPlant):
         return int(self.G.shape[1])
 
     def dynamics(self, x, u, w):
-        return self.A @ x + self.B @ u + self.G @ w
+        return matvec(self.A, x) + matvec(self.B, u) + matvec(self.G, w)
 
     def measure(self, x, v):
         # D u is not known at sampling time in a networked loop: z = C x + v (D must be 0)
-        return self.C @ x + v
+        return matvec(self.C, x) + v
 
     @classmethod
     def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":

@@ -32,7 +32,7 @@ from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstim
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
-from jaxnc.loop.links import Link, LinkDraws
+from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
            "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
@@ -567,7 +567,13 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     act0 = act_role.init(ctx)
     ctrig0 = None
     believed_needed = loop.estimator.inputs == "believed"
-    runner_copy = believed_needed and not loop.controller.keeps_copy     # the runner keeps the sender's copy
+    controller_copy = believed_needed and loop.controller.keeps_copy    # the controller keeps its own copy
+    # through a downlink that neither loses nor delays into a one-packet actuator the actuator
+    # receives exactly the copy's packets at the same instants: its actions are the copy's
+    ideal_downlink = (isinstance(loop.downlink.loss, NoLoss) and isinstance(loop.downlink.delay, NoDelay)
+                      and loop.downlink.tau_max is None and isinstance(act_role, PacketActuator)
+                      and act_role.capacity == 1)
+    runner_copy = believed_needed and not controller_copy and not ideal_downlink   # the runner keeps the copy
     if loop.controller_trigger is not None:
         ctrig0 = loop.controller_trigger.init(ctx._replace(signal_dim=int(np.shape(pkt_zero.data[0])[-1])))
     carry0 = _Carry(
@@ -637,8 +643,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         fc, (xs, us, ubs, rca, arec, prec, mrec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
         x, down, act, bel, mon, failed, fail_step, done, done_step = fc
         # 7. estimator prediction over the period
-        if believed_needed and not runner_copy:
+        if controller_copy:
             ubs = loop.controller.sent(ctrl)
+        elif believed_needed and not runner_copy:
+            ubs = us
         est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
         c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, mon, failed, fail_step, done, done_step)
         outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
