@@ -228,9 +228,10 @@ def halving_timed(per_seed: Callable, bounds: dict, start: dict, *, budget_s: fl
     A timed probe (the start point on ``seeds`` seeds, run twice: the first compiles) gives
     the time u of one candidate-round of ``seeds`` seeds. Round r runs n / 2^r candidates on
     ``seeds`` x 2^r new seeds each (common to all candidates; every round costs about n u),
-    the better half by the mean over all seeds run goes on, so ceil(log2 n) rounds cost
-    about n log2(n) u: n is the largest power of two that fits in the time left (at least
-    2). A round is not started once the budget is spent; the leader then is the result.
+    the better half (rounded up) by the mean over all seeds run goes on, so ceil(log2 n)
+    rounds cost about n ceil(log2 n) u: n is the largest number of candidates that fits in
+    the time left (at least 2). A round is not started once the budget is spent; the
+    leader then is the result.
     Every call uses one chunk size (``seeds``), so one compiled program serves all rounds
     and the probe.
 
@@ -244,9 +245,9 @@ def halving_timed(per_seed: Callable, bounds: dict, start: dict, *, budget_s: fl
     unit = max(time.perf_counter() - t1, 1e-6)
     left = budget_s - (time.perf_counter() - t0)
     n = 2
-    while (2 * n) * math.log2(2 * n) * unit <= left:
-        n *= 2
-    rounds = int(math.log2(n))
+    while (n + 1) * math.ceil(math.log2(n + 1)) * unit <= left:
+        n += 1
+    rounds = math.ceil(math.log2(n))
     pts = random_points(seed, n, **bounds)
     need = seeds * (2 ** rounds - 1)
     keys = montecarlo.seed_keys(seed, need)
@@ -263,7 +264,7 @@ def halving_timed(per_seed: Callable, bounds: dict, start: dict, *, budget_s: fl
         order = np.argsort(mean, kind="stable")
         trace.append({"t": time.perf_counter() - t0, "point": pts[alive[order[0]]], "mean": float(mean[order[0]]),
                       "n_points": len(alive), "seeds": used})
-        alive = [alive[j] for j in order[:max(1, len(alive) // 2)]]
+        alive = [alive[j] for j in order[:max(1, math.ceil(len(alive) / 2))]]
     best = trace[-1]["point"]
     return {"best": best, "best_mean": trace[-1]["mean"], "n_points": n, "n_candidates": n, "rounds": rounds,
             "rounds_done": done, "simulations": sims, "probe_s": unit, "wall_time_s": time.perf_counter() - t0,
