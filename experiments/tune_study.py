@@ -159,11 +159,12 @@ BUILDERS = {"hdd": _hdd, "cartpole": _cartpole, "hdd-grid": _hdd_grid}
 
 
 class _CompileClock:
-    """Seconds spent tracing, lowering and compiling (``jax.monitoring`` events), summed
+    """Seconds spent lowering and compiling (``jax.monitoring`` events), summed
     since this process registered it; :meth:`since` reads the part after a mark."""
 
-    EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
-              "/jax/core/compile/backend_compile_duration")
+    # lowering and XLA's compilation (tracing is left out: a jit traced inside another's
+    # trace reports its own duration too, so trace durations overlap)
+    EVENTS = ("/jax/core/compile/jaxpr_to_mlir_module_duration", "/jax/core/compile/backend_compile_duration")
     _total = [0.0]
     _registered = [False]
 
@@ -196,17 +197,26 @@ def _finite_mean(v) -> float:
     return m if math.isfinite(m) else math.inf
 
 
-def random_search_timed(per_seed: Callable, bounds: dict, *, budget_s: float, seeds: int, seed: int,
-                        max_points: int = 10_000) -> dict:
-    """Random search (uniform in log for ``(low, high, "log")`` bounds) until ``budget_s``
-    seconds have passed since its start: every point on the same ``seeds`` seeds (one
-    compiled program), the incumbent the lowest mean. At least one point is run.
+def random_stream(seed: int, bounds: dict, block: int = 1000):
+    """Random points in ``bounds`` without end: blocks of ``block`` points from
+    :func:`jaxnc.tune.random_points` with seeds ``seed * 10_000 + b``, b = 0, 1, ..."""
+    b = 0
+    while True:
+        yield from random_points(seed * 10_000 + b, block, **bounds)
+        b += 1
+
+
+def random_search_timed(per_seed: Callable, bounds: dict, *, budget_s: float, seeds: int, seed: int) -> dict:
+    """Random search (:func:`random_stream`: uniform in log for ``(low, high, "log")``
+    bounds) until ``budget_s`` seconds have passed since its start: every point on the same
+    ``seeds`` seeds (one compiled program), the incumbent the lowest mean. At least one
+    point is run.
 
     Returns a dict: best (point), best_mean, n_points, simulations, wall_time_s and trace
     (the incumbent each time it changed: t, point, mean, n_points)."""
     t0 = time.perf_counter()
     c0 = _CompileClock.start()
-    pts = random_points(seed, max_points, **bounds)
+    pts = random_stream(seed, bounds)
     keys = montecarlo.seed_keys(seed, seeds)
     best, best_mean, trace, n = None, math.inf, [], 0
     for pt in pts:
@@ -419,7 +429,7 @@ def tables(results: list[dict]) -> str:
                 rows.append([res["loop"], k, _ci(d), _verdict(d)])
     t2 = markdown_table(["problem", "difference", "paired mean (95 %)", "first is"], rows)
     text = ("Each method's final point, hard triggers, the same fresh seeds (wall time: the method's own, "
-            "compilations included; compile: the part of it spent tracing, lowering and compiling):\n\n" + t1
+            "compilations included; compile: the part of it spent lowering and compiling):\n\n" + t1
             + "\n\nPaired differences between methods (same fresh seeds):\n\n" + t2 + "\n")
     for res in results:
         if "grid_check" in res:

@@ -24,6 +24,7 @@ def _per_seed(p, key):
 
 
 def test_random_search_spends_its_time_and_finds_the_minimum_region():
+    ts.evaluate(_per_seed, {"a": 0.1, "b": 1.0}, montecarlo.seed_keys(0, 4), chunk_size=4)   # compiled before
     r = ts.random_search_timed(_per_seed, BOUNDS, budget_s=0.5, seeds=4, seed=1)
     assert r["wall_time_s"] >= 0.5                          # runs until the budget is spent
     assert r["n_points"] >= 2 and r["simulations"] == 4 * r["n_points"]
@@ -32,7 +33,8 @@ def test_random_search_spends_its_time_and_finds_the_minimum_region():
                                                                                  reverse=True)
     assert r["best"] == r["trace"][-1]["point"]
     # the incumbent is the best of the points run: no other point of the stream does better
-    pts = ts.random_points(1, 10_000, **BOUNDS)[:r["n_points"]]      # the stream random_search_timed draws
+    stream = ts.random_stream(1, BOUNDS)                               # the points random_search_timed draws
+    pts = [next(stream) for _ in range(r["n_points"])]
     f = lambda p: (math.log10(p["a"]) + 2) ** 2 + math.log2(p["b"]) ** 2
     assert f(r["best"]) <= min(f(p) for p in pts) + 0.05
 
