@@ -197,12 +197,13 @@ def _finite_mean(v) -> float:
     return m if math.isfinite(m) else math.inf
 
 
-def random_stream(seed: int, bounds: dict, block: int = 1000):
+def random_stream(seed: int, bounds: dict, block: int = 10_000):
     """Random points in ``bounds`` without end: blocks of ``block`` points from
-    :func:`jaxnc.tune.random_points` with seeds ``seed * 10_000 + b``, b = 0, 1, ..."""
+    :func:`jaxnc.tune.random_points` with seeds ``seed + 1_000_003 b``, b = 0, 1, ... (the
+    first block is ``random_points(seed, block)``)."""
     b = 0
     while True:
-        yield from random_points(seed * 10_000 + b, block, **bounds)
+        yield from random_points(seed + 1_000_003 * b, block, **bounds)
         b += 1
 
 
