@@ -178,7 +178,7 @@ def crossing_weights(gaps_of: Callable, theta):
     return dens[..., None] * dg, xi, v, std
 
 
-def corrected_grad(loop_of: Callable, cost: Callable, theta, key):
+def corrected_grad(loop_of: Callable, cost: Callable, theta, key, *, alternatives: int = 1):
     """One seed's corrected pathwise gradient of ``cost`` (module docstring).
 
     Args:
@@ -187,6 +187,9 @@ def corrected_grad(loop_of: Callable, cost: Callable, theta, key):
       cost: ``cost(loop, key) -> scalar``, one run of the loop (it must simulate ``loop``
         with ``key``, as :func:`jaxnc.loop.run` and the schemes' ``run`` do).
       theta: float[d]; key: the seed's key.
+      alternatives: static, alternative pairs drawn per seed (independently, with
+        replacement; the jump term is their mean), >= 1; 0: every candidate crossing
+        (the exact conditional sum, 2 runs per instant, output and root: for reference).
 
     Returns:
       (value, grad float[d]): the hard objective and its estimated gradient.
@@ -205,22 +208,30 @@ def corrected_grad(loop_of: Callable, cost: Callable, theta, key):
 
     w, xi, v, std = crossing_weights(gaps_of, theta)
     S, p = xi.shape[:2]
-    a = jnp.sum(jnp.abs(w), axis=-1).reshape(-1)                        # [S p 2]
+    wf = w.reshape(-1, w.shape[-1])
+    a = jnp.sum(jnp.abs(wf), axis=-1)                                   # [S p 2]
     total = jnp.sum(a)
+
+    def jump_of(c):
+        """w_c (J^1 - J^0) at candidate c = (instant, output, root), flat index."""
+        k_c, rest = c // (p * 2), c % (p * 2)
+        i_c, r_c = rest // 2, rest % 2
+        shift = (std[i_c] * xi[k_c, i_c, r_c] - v[k_c, i_c]) * (jnp.arange(p) == i_c).astype(v.dtype)
+
+        def alt(b):
+            lp = dataclasses.replace(lp0, trigger=_Pinned(lp0.trigger, k_c, b, shift),
+                                     uplink=_shifted(lp0.uplink, k_c, shift))
+            return cost(lp, key)
+        F = jax.lax.stop_gradient(jax.vmap(alt)(jnp.asarray([1.0, 0.0], jnp.float32)))
+        return wf[c] * (F[0] - F[1])
+
+    if alternatives == 0:
+        cands = jnp.arange(a.shape[0])
+        jump = jnp.sum(jax.vmap(lambda c: jnp.where(a[c] > 0, jump_of(c), 0.0))(cands), axis=0)
+        return value, g_path + jump
     logits = jnp.where(a > 0, jnp.log(jnp.where(a > 0, a, 1.0)), -jnp.inf)
     logits = jnp.where(total > 0, logits, jnp.zeros_like(logits))
-    c = jax.random.categorical(jax.random.fold_in(key, _ALT_STREAM), logits)
-    k_c, rest = c // (p * 2), c % (p * 2)
-    i_c, r_c = rest // 2, rest % 2
-    shift = (std[i_c] * xi[k_c, i_c, r_c] - v[k_c, i_c]) * (jnp.arange(p) == i_c).astype(v.dtype)
-
-    def alt(b):
-        lp = dataclasses.replace(lp0, trigger=_Pinned(lp0.trigger, k_c, b, shift),
-                                 uplink=_shifted(lp0.uplink, k_c, shift))
-        return cost(lp, key)
-
-    F = jax.lax.stop_gradient(jax.vmap(alt)(jnp.asarray([1.0, 0.0], jnp.float32)))
-    a_c = a[c]
-    jump = jnp.where((total > 0) & (a_c > 0), w.reshape(-1, w.shape[-1])[c] * (total / jnp.where(a_c > 0, a_c, 1.0))
-                     * (F[0] - F[1]), 0.0)
+    cs = jax.random.categorical(jax.random.fold_in(key, _ALT_STREAM), logits, shape=(alternatives,))
+    per = jax.vmap(lambda c: jump_of(c) * (total / jnp.where(a[c] > 0, a[c], 1.0)))(cs)
+    jump = jnp.where(total > 0, jnp.mean(per, axis=0), 0.0)
     return value, g_path + jump
