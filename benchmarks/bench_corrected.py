@@ -116,11 +116,13 @@ def estimators(loop_of, cost, theta0, h):
             "pathwise (decisions held)": pathwise}
 
 
-def measure(name, seeds, chunk, seed=0):
+def measure(name, seeds, chunk, seed=0, skip=()):
     loop_of, cost, theta0, h = problem(name)
     keys = montecarlo.seed_keys(seed, seeds)
     vals, secs = {}, {}
     for est, fn in estimators(loop_of, cost, theta0, h).items():
+        if est in skip:
+            continue
         f = lambda k, fn=fn: jnp.ravel(fn(k))[0]
         montecarlo.run_batched(f, keys[:chunk], chunk_size=chunk, progress=False)       # compile
         t0 = time.perf_counter()
@@ -164,11 +166,12 @@ def main():
     ap.add_argument("--seeds", type=int, default=4096)
     ap.add_argument("--chunk", type=int, default=256)
     ap.add_argument("--out", default="docs/results/jump")
+    ap.add_argument("--skip", default="", help="estimators left out, separated by ';'")
     a = ap.parse_args()
     rows = []
     for name in a.loops.split(","):
         t0 = time.perf_counter()
-        rows += measure(name, a.seeds, min(a.chunk, a.seeds))
+        rows += measure(name, a.seeds, min(a.chunk, a.seeds), skip=tuple(x for x in a.skip.split(";") if x))
         print(f"{name}: {time.perf_counter() - t0:.0f} s", flush=True)
     print(table(rows))
     out = Path(a.out)
@@ -176,7 +179,8 @@ def main():
     tag = "_".join(a.loops.split(","))
     (out / f"gains_{tag}.json").write_text(json.dumps(dict(command=" ".join(["python benchmarks/bench_corrected.py",
                                                                              f"--loops {a.loops}",
-                                                                             f"--seeds {a.seeds}"]),
+                                                                             f"--seeds {a.seeds}", f"--chunk {a.chunk}"]
+                                                                            + ([f"--skip '{a.skip}'"] if a.skip else [])),
                                                       rows=rows), indent=1, default=float))
     (out / f"gains_{tag}.md").write_text(table(rows) + "\n")
 

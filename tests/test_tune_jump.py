@@ -163,3 +163,55 @@ def test_tune_loop_with_the_corrected_estimator_improves_a_sluggish_gain():
                   learning_rate=0.1, eval_seeds=256, progress=False)
     assert r.estimator == "corrected"
     assert r.paired_diff[0] + r.paired_diff[1] < 0, r.summary()
+
+
+# ---------------------------------------------------------------------------- a 2-state servo
+
+
+def _servo(kp):
+    """A 2-state servo (position, damped velocity) with an EKF, PETC on the noisy position
+    (noise 0.05, delta 0.01) and state feedback u = -(kp, 1.5) xhat from x0 = (1, 0), 40
+    periods (benchmarks/bench_corrected.py's ``servo``)."""
+    plant = nc.LTI(A=[[1.0, 0.1], [0.0, 0.95]], B=[[0.005], [0.1]], C=[[1.0, 0.0]], x0=[1.0, 0.0],
+                   w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
+    ekf = nc.EKF(plant, Q=np.diag([0.01, 0.02]) ** 2, R=np.eye(1) * 0.05 ** 2, mean0=[0.0, 0.0], cov0=np.eye(2))
+    K = jnp.stack([jnp.asarray(kp, jnp.float32), jnp.float32(1.5)])[None, :]
+    return nc.Loop(plant=plant, trigger=nc.Petc(delta=1e-2), uplink=nc.Link(), estimator=ekf,
+                   controller=nc.StateFeedback(K), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   cost=nc.Quadratic(Q=[1.0, 0.1], R=[0.01]), N=1, steps=40, T=0.1)
+
+
+def _servo_check(n, seed):
+    """(corrected, reference) per seed at kp = 3: the reference is the Richardson
+    extrapolation of central differences at h = 0.1 and 0.05 on the same seeds (its O(h^2)
+    bias removed)."""
+    cost = lambda lp, k: nc.run(lp, k).cost_raw
+    loop_of = lambda t: _servo(t[0])
+    th = jnp.asarray([3.0], jnp.float32)
+
+    def per(key):
+        J = lambda kp: cost(_servo(kp), key)
+        fd = lambda h: (J(3.0 + h) - J(3.0 - h)) / (2 * h)
+        return corrected_grad(loop_of, cost, th, key)[1][0], (4 * fd(0.05) - fd(0.1)) / 3
+    g, ref = (np.asarray(a, float) for a in jax.jit(jax.vmap(per))(montecarlo.seed_keys(seed, n)))
+    return g, ref
+
+
+def _paired_z(g, ref):
+    d = g - ref
+    return d.mean() / (d.std(ddof=1) / np.sqrt(d.size))
+
+
+def test_servo_gain_corrected_agrees_with_central_differences():
+    """On the servo's Kp, the corrected gradient agrees with the extrapolated central
+    differences on the same 1024 seeds (paired |z| < 3) and resolves the gain."""
+    g, ref = _servo_check(1024, 3)
+    assert abs(_paired_z(g, ref)) < 3.0
+    assert 1.96 * g.std(ddof=1) / np.sqrt(g.size) < abs(g.mean())
+
+
+@pytest.mark.slow
+def test_servo_gain_corrected_agrees_with_central_differences_many_seeds():
+    """The same on 16384 seeds (resolution about 2 % of the gradient)."""
+    g, ref = _servo_check(16384, 4)
+    assert abs(_paired_z(g, ref)) < 3.0
