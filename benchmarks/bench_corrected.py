@@ -13,8 +13,8 @@ variance of a mean bought with one run's budget), the seeds a check needs to res
 gain (n (1.96 SE_diff / |gradient|)^2, the rule of jaxnc.tune.check), and the wall time per
 seed (compiled; on a shared, busy 2-core machine: ratios within one run only).
 
-Loops: ``servo`` (:func:`servo`, theta = Kp, the position gain), ``cartpole`` (examples/cartpole.py, theta = a multiplier of the LQR
-gain), ``hdd`` (seed 003, Case 4, its paper thresholds; theta = a multiplier of the MRCI
+Loops: ``servo`` (:func:`servo`, theta = Kp, the position gain), ``cartpole``
+(examples/cartpole.py, theta = a multiplier of the LQR gain), ``hdd`` (seed 003, Case 4, its paper thresholds; theta = a multiplier of the MRCI
 controller's output matrices, i.e. of its gain).
 """
 from __future__ import annotations
@@ -33,7 +33,8 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo
 from jaxnc.tune.jump import corrected_grad
 
-RUNS = {"finite difference": 2, "score (s = h/sqrt 3)": 2, "score (s = 0.1 theta)": 2, "corrected": 4, "corrected, 4 alternatives": 10,
+RUNS = {"finite difference": 2, "score (s = h/sqrt 3)": 2, "score (s = 0.1 theta)": 2, "corrected": 4,
+        "corrected, 4 alternatives": 10,
         "pathwise (decisions held)": 1}
 
 
@@ -177,11 +178,9 @@ def main():
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     tag = "_".join(a.loops.split(","))
-    (out / f"gains_{tag}.json").write_text(json.dumps(dict(command=" ".join(["python benchmarks/bench_corrected.py",
-                                                                             f"--loops {a.loops}",
-                                                                             f"--seeds {a.seeds}", f"--chunk {a.chunk}"]
-                                                                            + ([f"--skip '{a.skip}'"] if a.skip else [])),
-                                                      rows=rows), indent=1, default=float))
+    command = " ".join(["python benchmarks/bench_corrected.py", f"--loops {a.loops}", f"--seeds {a.seeds}",
+                        f"--chunk {a.chunk}"] + ([f"--skip '{a.skip}'"] if a.skip else []))
+    (out / f"gains_{tag}.json").write_text(json.dumps(dict(command=command, rows=rows), indent=1, default=float))
     (out / f"gains_{tag}.md").write_text(table(rows) + "\n")
 
 
