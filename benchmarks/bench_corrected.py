@@ -14,8 +14,9 @@ gain (n (1.96 SE_diff / |gradient|)^2, the rule of jaxnc.tune.check), and the wa
 seed (compiled; on a shared, busy 2-core machine: ratios within one run only).
 
 Loops: ``servo`` (:func:`servo`, theta = Kp, the position gain), ``cartpole``
-(examples/cartpole.py, theta = a multiplier of the LQR gain), ``hdd`` (seed 003, Case 4, its paper thresholds; theta = a multiplier of the MRCI
-controller's output matrices, i.e. of its gain).
+(examples/cartpole.py, theta = a multiplier of the LQR gain), ``hdd`` (seed 003, Case 4,
+its paper thresholds; theta = a multiplier of the MRCI controller's output matrices, i.e.
+of its gain).
 """
 from __future__ import annotations
 
