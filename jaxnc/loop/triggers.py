@@ -32,7 +32,7 @@ from jaxnc.loop.base import AbstractTrigger, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
-__all__ = ["Periodic", "Petc", "PetcState", "petc_gap", "soft_decision", "fires_straight_through"]
+__all__ = ["Periodic", "Petc", "PetcState", "petc_gap", "petc_crossings", "soft_decision", "fires_straight_through"]
 
 
 def soft_decision(gap, temperature):
@@ -56,6 +56,52 @@ def petc_gap(last, s, sigma, delta, reading: str = "sum"):
     if reading == "each":
         return jnp.max(per)
     return jnp.sum((last - s) ** 2) - jnp.sum(sigma * s * s + delta * jnp.ones_like(s))
+
+
+def petc_crossings(last, z, v, std, sigma, delta, reading: str = "sum"):
+    """Where the PETC gap crosses zero as one output's measurement noise moves.
+
+    The measurement is z = hx + v with v_i = std_i xi_i, xi_i ~ N(0, 1). For output i,
+    with every other output at its measured value, the gap of :func:`petc_gap` as a
+    function of xi_i alone is the quadratic A xi^2 + B xi + C with (a = zbar_i - hx_i,
+    b = hx_i, s = std_i) A = (1 - sigma_i) s^2, B = -2 s (a + sigma_i b) and
+    C = a^2 - sigma_i b^2 - delta_i plus, for ``reading="sum"``, the other outputs' terms
+    (for ``"each"`` a crossing exists only where every other output's own gap is < 0).
+
+    Args:
+      last: float[p], zbar (the last value sent); z, v: float[p], the measurement and its
+        noise; std: float[p], the noise's standard deviation (0: no crossing);
+      sigma, delta: float or float[p]; reading: ``"sum"`` or ``"each"``.
+
+    Returns:
+      (xi float[p, 2], slope float[p, 2], valid bool[p, 2]): the standardised noise of each
+      crossing (two roots of the quadratic; one for a linear gap), |d gap / d xi| there
+      (sqrt(B^2 - 4 A C) at both roots) and whether the root exists.
+    """
+    p = z.shape[-1]
+    sig = jnp.broadcast_to(jnp.asarray(sigma, z.dtype), (p,))
+    dl = jnp.broadcast_to(jnp.asarray(delta, z.dtype), (p,))
+    s = jnp.asarray(std, z.dtype)
+    hx = z - v
+    per = (last - z) ** 2 - (sig * z * z + dl)           # each output's own gap, at the measured z
+    a, b = last - hx, hx
+    A = (1.0 - sig) * s * s
+    B = -2.0 * s * (a + sig * b)
+    C = a * a - sig * b * b - dl
+    others_ok = jnp.ones((p,), bool)
+    if reading == "each":
+        masked = jnp.where(jnp.eye(p, dtype=bool), -jnp.inf, per[None, :])
+        others_ok = jnp.max(masked, axis=1) < 0
+    else:
+        C = C + jnp.sum(per) - per
+    disc = B * B - 4.0 * A * C
+    sq = jnp.sqrt(jnp.maximum(disc, 0.0))
+    q = -0.5 * (B + jnp.where(B >= 0, sq, -sq))
+    ok = (disc > 0) & (s > 0) & others_ok
+    safe = lambda d: jnp.where(d != 0, d, 1.0)
+    xi = jnp.stack([q / safe(A), C / safe(q)], axis=-1)
+    valid = jnp.stack([ok & (A != 0), ok & (q != 0)], axis=-1) & jnp.isfinite(xi)
+    return jnp.where(valid, xi, 0.0), jnp.broadcast_to(sq[:, None], (p, 2)), valid
 
 
 class PetcState(NamedTuple):
@@ -136,12 +182,25 @@ class Petc(AbstractTrigger):
     def init(self, ctx):
         return PetcState(jnp.zeros((ctx.signal_dim,), jnp.float32), jnp.zeros((), jnp.int32))
 
-    def step(self, state, s, k):
+    def forced(self, state, k):
+        """bool: instant ``k`` sends whatever the gap (the first instant, or the safety
+        condition's ``max_silence``), so its decision does not depend on the thresholds."""
+        ms = jnp.asarray(self.max_silence)
+        return (k == 0) | ((ms > 0) & (state.silent + 1 >= ms))
+
+    def decide(self, state, s, k):
+        """The decision (0/1 float, straight-through or soft as configured) on signal ``s``
+        at instant ``k``, forced instants included."""
         g = self.gap(state.last, s)
         beta = soft_decision(g, self.temperature) if self.relaxed else fires_straight_through(g, self.temperature)
-        ms = jnp.asarray(self.max_silence)
-        forced = (k == 0) | ((ms > 0) & (state.silent + 1 >= ms))
-        beta = jnp.where(forced, jnp.ones((), s.dtype), beta)
+        return jnp.where(self.forced(state, k), jnp.ones((), s.dtype), beta)
+
+    def update(self, state, s, beta):
+        """The state after decision ``beta`` on signal ``s``: zbar = beta s + (1 - beta) zbar."""
         last = blend(beta, s, state.last)
         silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
-        return PetcState(last, silent), beta
+        return PetcState(last, silent)
+
+    def step(self, state, s, k):
+        beta = self.decide(state, s, k)
+        return self.update(state, s, beta), beta

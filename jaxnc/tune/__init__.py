@@ -9,6 +9,8 @@
 * :mod:`jaxnc.tune.check` -- :func:`gradient_check`: which estimator agrees with finite
   differences on *your* loop, on every coordinate (each resolved, or the report says how
   many seeds it would need; optional doubling of the seeds), and which to use;
+* :mod:`jaxnc.tune.jump` -- the corrected pathwise gradient with hard PETC triggers
+  (pathwise with the decisions held, plus the jump term of the decisions theta moves);
 * :mod:`jaxnc.tune.loop_tune` -- :func:`tune_loop`: tune any :class:`jaxnc.loop.Loop` by
   naming its leaves (search for static integers, gradient for the rest, hard-trigger
   evaluation on fresh seeds); :func:`mc_mean`, a differentiable chunked Monte-Carlo mean.
@@ -23,6 +25,7 @@ from jaxnc.tune.estimators import (ESTIMATORS, annealed_temperature, bernoulli_f
 from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unconstrained, constrain, \
     simulations_per_step, tune, unconstrain
 from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
+from jaxnc.tune.jump import corrected_grad, corrected_supported
 from jaxnc.tune.loop_tune import (LoopTuneResult, check_loop, get_path, has_temperature, mc_mean, param_paths,
                                   set_paths, tune_loop, with_temperature)
 from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, mean_ci, paired_ci, random_points,
@@ -35,7 +38,7 @@ __all__ = [
     "unconstrain",
     "SearchResult", "evaluate", "grid", "halving_schedule", "mean_ci", "paired_ci", "random_points", "search",
     "successive_halving",
-    "GradientCheck", "gradient_check", "objective_total",
+    "GradientCheck", "gradient_check", "objective_total", "corrected_grad", "corrected_supported",
     "LoopTuneResult", "get_path", "mc_mean", "set_paths", "tune_loop",
     "check_loop", "with_temperature", "has_temperature", "param_paths",
 ]

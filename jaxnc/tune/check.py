@@ -14,7 +14,11 @@ computes, *on the same seeds* (common random numbers):
   e.g. a cost whose failures are charged a constant): the straight-through gradient of J
   plus the score function of ``jump`` alone, on the same perturbations as ``"score"``
   (the pathwise gradient cannot see how the failure probability moves; the score term
-  can). It costs no simulation beyond the other two.
+  can). It costs no simulation beyond the other two;
+* ``"corrected"`` (when the check is given ``corrected``, a per-seed function: e.g.
+  :func:`jaxnc.tune.jump.corrected_grad`, which :func:`jaxnc.tune.check_loop` supplies for
+  a loop whose sensor trigger is a PETC with additive measurement noise): the pathwise
+  gradient with the hard decisions held plus the jump term of the decisions theta moves.
 
 Each estimate is a mean over seeds with its standard error. An estimator is *consistent*
 with the finite differences when
@@ -65,7 +69,7 @@ from jaxnc._validate import check_int, check_positive
 
 __all__ = ["GradientCheck", "gradient_check", "objective_total"]
 
-ESTIMATORS = ("straight_through", "score", "hybrid")
+ESTIMATORS = ("straight_through", "score", "hybrid", "corrected")
 
 
 def objective_total(value):
@@ -189,7 +193,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
                    score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
                    estimators=None, chunk_size: int = 256, progress: bool = False, names=None,
                    max_seeds: int | None = None, more_keys: Callable | None = None, values=None,
-                   dvalue_dtheta=None) -> GradientCheck:
+                   dvalue_dtheta=None, corrected: Callable | None = None) -> GradientCheck:
     """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
 
     Args:
@@ -208,8 +212,9 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         differences' for it to count as consistent.
       rel_tol: differences below this fraction of max_j |finite-difference mean_j| agree
         whatever their z (>= 0).
-      estimators: which of ``"straight_through"``, ``"score"``, ``"hybrid"`` to check;
-        default all that apply (``"hybrid"`` only for a pair objective).
+      estimators: which of ``"straight_through"``, ``"score"``, ``"hybrid"``,
+        ``"corrected"`` to check; default all that apply (``"hybrid"`` only for a pair
+        objective, ``"corrected"`` only with ``corrected``).
       chunk_size: seeds per compiled batch (:func:`jaxnc.montecarlo.run_batched`; at
         most n, kept for every doubling), which bounds memory; a seed's values do not
         depend on the other seeds.
@@ -225,6 +230,9 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         user's units) and its slope d value / d theta (non-zero), e.g. value = exp(theta)
         for a log coordinate: the table and the reasons then give gradients and
         resolutions as d E[objective] / d value (:func:`jaxnc.tune.check_loop` sets them).
+      corrected: ``corrected(theta float[d], key) -> (value, float[d])``, one seed's
+        corrected gradient of the hard objective (:mod:`jaxnc.tune.jump`); adds
+        ``"corrected"``.
 
     Returns:
       :class:`GradientCheck` (``seeds``: the seeds it ran).
@@ -232,7 +240,8 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     Raises:
       ValueError: theta not a non-empty 1-D vector, fewer than 2 keys, a non-positive
         step/scale/temperature, a chunk_size below 1, an unknown estimator, ``"hybrid"``
-        for an objective that is not a pair, an objective that returns neither a scalar
+        for an objective that is not a pair, ``"corrected"`` without ``corrected``, an
+        objective that returns neither a scalar
         nor a pair of scalars, names not d strings, max_seeds below n, or max_seeds > n
         without more_keys.
     """
@@ -273,13 +282,16 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         raise ValueError(f"gradient_check: the objective must return a scalar or a pair (smooth, jump) of scalars "
                          f"per seed, got {out_shape}")
     if estimators is None:
-        estimators = ESTIMATORS if pair else ("straight_through", "score")
+        estimators = ("straight_through", "score", "hybrid") if pair else ("straight_through", "score")
+        estimators = estimators + (("corrected",) if corrected is not None else ())
     estimators = tuple(estimators)
     unknown = [e for e in estimators if e not in ESTIMATORS]
     if unknown:
         raise ValueError(f"gradient_check: estimators must be among {', '.join(ESTIMATORS)}, got {unknown}")
     if "hybrid" in estimators and not pair:
         raise ValueError("gradient_check: the hybrid estimator needs an objective that returns (smooth, jump)")
+    if "corrected" in estimators and not callable(corrected):
+        raise ValueError("gradient_check: the corrected estimator needs corrected(theta, key) -> (value, grad)")
     if z is None:
         from scipy.stats import norm
         z = float(norm.ppf(1.0 - 0.025 / d))
@@ -308,6 +320,8 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
                 out["score"] = (tp - tm) / (2 * score_scale) * e
             if "hybrid" in estimators:
                 out["hybrid"] = st + (jp - jm) / (2 * score_scale) * e
+        if "corrected" in estimators:
+            out["corrected"] = jnp.asarray(corrected(th, key)[1], jnp.float32)
         return out
 
     # one chunk size for every block (no chunk larger than the first block's seeds:

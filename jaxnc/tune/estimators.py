@@ -30,6 +30,13 @@ tune`)                                             gradient of jump alone       
                                                    (antithetic pairs)               unbiased for its
                                                                                     smoothing, variance
                                                                                     ~ dim / pairs
+``"corrected"``        hard                        pathwise gradient with the       unbiased for the hard
+(:mod:`jaxnc.tune.                                 decisions held, plus the jump    objective as far as its
+jump`)                                             term of the sensor decisions     jumps are the sensor's
+                                                   theta moves, one alternative     decisions; needs
+                                                   pair per run at the crossing     Gaussian additive
+                                                   (smoothed perturbation           measurement noise;
+                                                   analysis)                        4 runs a seed
 =====================  =========================  ===============================  ==================
 
 How to pick.  Start with ``straight_through``: it simulates the exact hard loop, costs
@@ -63,7 +70,7 @@ from jaxnc.loop.triggers import Petc, fires_straight_through
 __all__ = ["ESTIMATORS", "relax_trigger", "sigmoid_relaxation", "straight_through",
            "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
 
-ESTIMATORS = ("straight_through", "sigmoid", "score", "hybrid")
+ESTIMATORS = ("straight_through", "sigmoid", "score", "hybrid", "corrected")
 
 
 def sigmoid_relaxation(gap, temperature):
@@ -90,8 +97,8 @@ def relax_trigger(trigger, estimator: str, temperature):
     """The :class:`jaxnc.loop.Petc` a loop should use for ``estimator``: ``"sigmoid"``
     the relaxed trigger (soft forward and backward, ``relaxed=True``), ``"straight_through"``
     (and ``"hybrid"``, whose pathwise part is straight-through) the hard trigger with a
-    straight-through gradient at ``temperature`` > 0, ``"score"`` (and ``"hard"``) the
-    hard trigger (temperature 0). A trigger with no temperature (e.g. ``Periodic``) is
+    straight-through gradient at ``temperature`` > 0, ``"score"`` (and ``"hard"``,
+    ``"corrected"``) the hard trigger (temperature 0). A trigger with no temperature (e.g. ``Periodic``) is
     returned unchanged for ``"score"``/``"hard"``.
 
     Raises:
@@ -103,7 +110,7 @@ def relax_trigger(trigger, estimator: str, temperature):
             raise ValueError(f"relax_trigger: estimator {estimator!r} needs a jaxnc.loop.Petc trigger, "
                              f"got {type(trigger).__name__}")
         return dataclasses.replace(trigger, temperature=temperature, relaxed=estimator == "sigmoid")
-    if estimator in ("score", "hard"):
+    if estimator in ("score", "hard", "corrected"):
         return dataclasses.replace(trigger, temperature=0.0, relaxed=False) if isinstance(trigger, Petc) else trigger
     raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)} or hard, got {estimator!r}")
 

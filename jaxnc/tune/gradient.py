@@ -162,6 +162,8 @@ def _score_pairs(estimator: str, batch: int, score_pairs: int | None) -> int:
 def simulations_per_step(estimator: str, batch: int, score_pairs: int | None = None) -> int:
     """Closed-loop runs one step of :func:`tune` costs (for equal-budget comparisons)."""
     pairs = _score_pairs(estimator, batch, score_pairs)
+    if estimator == "corrected":
+        return 4 * batch        # the run, the sensor's replay, two alternatives (jaxnc.tune.jump)
     return 2 * pairs if estimator == "score" else batch + 2 * pairs
 
 
@@ -169,7 +171,7 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
          optimizer: optax.GradientTransformation | None = None, estimator: str = "straight_through",
          temperature: tuple[float, float] = (1.0, 0.1), seed: int = 0, resample: bool = True,
          score_scale: float = 0.1, score_pairs: int | None = None, average_tail: float = 0.25,
-         progress: bool = True, desc: str = "tune") -> TuneResult:
+         progress: bool = True, desc: str = "tune", corrected: Callable | None = None) -> TuneResult:
     """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
 
     ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
@@ -177,7 +179,10 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     ``score_pairs`` antithetic pairs, default batch // 2, i.e. 2 x batch simulations).
     Seeds come from :func:`jaxnc.montecarlo.seed_keys` with base ``seed``: step k uses
     seeds ``k*batch ... (k+1)*batch - 1`` (``resample``) or always ``0 ... batch - 1``.
-    Evaluate the result on a different base seed.
+    Evaluate the result on a different base seed. ``estimator="corrected"`` needs
+    ``corrected(raw float[d], key) -> (value, grad float[d])``, one seed's corrected
+    gradient in the flat raw coordinates (:mod:`jaxnc.tune.jump`; ``loss`` is then unused
+    for gradients, and :func:`jaxnc.tune.tune_loop` builds it).
     """
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
@@ -186,6 +191,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     check_range("average_tail", average_tail, 0.0, 1.0)
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
+    if estimator == "corrected" and not callable(corrected):
+        raise ValueError("estimator='corrected' needs corrected(raw, key) -> (value, grad)")
     constraints = dict(constraints or {})
     optimizer = optimizer or optax.adam(0.05)
     raw0 = unconstrain({k: np.asarray(v, np.float32) for k, v in init.items()}, constraints)
@@ -216,6 +223,11 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
             # the pairs' seeds are drawn from the step's first key: independent of the batch
             _, g_jump = score_grad(jump_fn, flat, jax.random.fold_in(keys[0], 7), n_pairs, score_scale)
             return value, jax.tree.map(jnp.add, g_path, unravel(g_jump))
+    elif estimator == "corrected":
+        def value_and_grad(raw, keys, temp):
+            flat, unravel = ravel_pytree(raw)
+            v, g = jax.vmap(lambda k: corrected(flat, k))(keys)
+            return jnp.mean(v), unravel(jnp.mean(g, axis=0))
     else:
         value_and_grad = jax.value_and_grad(mean_loss)
 

@@ -315,17 +315,36 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
-def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, **kw) -> GradientCheck:
+def _corrected(loop, spec: _Spec, unravel):
+    """``corrected(theta, key) -> (value, grad)`` in the flat raw coordinates
+    (:func:`jaxnc.tune.jump.corrected_grad` on the hard loop), or None when ``loop`` does not
+    support it (:func:`jaxnc.tune.jump.corrected_supported`)."""
+    from jaxnc.tune.jump import corrected_grad, corrected_supported
+    if corrected_supported(loop):
+        return None
+
+    def loop_of(t):
+        return with_temperature(_set(loop, spec, constrain(unravel(t), spec.constraints)), jnp.float32(0.0))
+
+    cost = lambda lp, key: spec.objective(spec.run(lp, key))
+    return lambda t, key: corrected_grad(loop_of, cost, t, key)
+
+
+def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, loop=None,
+           corrected: bool = False, **kw) -> GradientCheck:
     """:func:`gradient_check` of the flat objective on seeds ``seed_keys(seed, seeds)``
     (doubling up to ``max_seeds``), labelled, with each coordinate's value and slope
-    d value / d theta so that its table is in the user's units."""
+    d value / d theta so that its table is in the user's units; with the corrected
+    estimator where asked (``corrected``) and ``loop`` supports it."""
     def values(theta):
         return ravel_pytree(constrain(unravel(theta), spec.constraints))[0]
     th = jnp.asarray(flat0)
     vals, slope = jax.jvp(values, (th,), (jnp.ones_like(th),))   # constraints act elementwise: the diagonal
     return gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
                           max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
-                          values=np.asarray(vals), dvalue_dtheta=np.asarray(slope), **kw)
+                          values=np.asarray(vals), dvalue_dtheta=np.asarray(slope),
+                          corrected=_corrected(loop, spec, unravel) if corrected and loop is not None else None,
+                          **kw)
 
 
 def _labels(unravel, size: int) -> tuple:
@@ -366,11 +385,15 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
                run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
                temperature: float = 1e-3, score_scale: float = 0.1, chunk_size: int = 256,
-               max_seeds: int | None = None, progress: bool = False) -> GradientCheck:
+               max_seeds: int | None = None, progress: bool = False, corrected: bool = False) -> GradientCheck:
     """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
     loop's values of ``params`` (or at ``at``, ``{name: value}`` in natural units), the
-    straight-through and score-function estimates of d E[objective] / d theta beside
-    central finite differences on the same ``seeds`` seeds (base ``seed``).
+    straight-through and score-function estimates of d E[objective] / d theta (and, with
+    ``corrected=True`` on a :class:`jaxnc.loop.Loop` whose sensor trigger is a hard PETC
+    with additive measurement noise, the corrected pathwise gradient of
+    :mod:`jaxnc.tune.jump`; off by default: a larger program to compile, and on the loops
+    of docs/tuning_loops.md noisier per run than the score function except on a servo)
+    beside central finite differences on the same ``seeds`` seeds (base ``seed``).
 
     theta is the *unconstrained* coordinate the tuner moves (log of a ``Positive``
     parameter, logit of an ``Interval``), so ``fd_step`` and ``score_scale`` are relative
@@ -398,8 +421,8 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     check_int("max_seeds", seeds if max_seeds is None else max_seeds, seeds)
     flat0, unravel, fobj = _flat(loop, spec, at)
     return _check(spec, flat0, unravel, fobj, seeds=seeds, max_seeds=seeds if max_seeds is None else max_seeds,
-                  seed=seed, fd_step=fd_step, temperature=temperature, score_scale=score_scale,
-                  chunk_size=chunk_size, progress=progress)
+                  seed=seed, loop=loop, corrected=corrected, fd_step=fd_step, temperature=temperature,
+                  score_scale=score_scale, chunk_size=chunk_size, progress=progress)
 
 
 def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None = None, *,
@@ -407,7 +430,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
               steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
               learning_rate: float = 0.05, score_scale: float = 0.1, fd_step: float = 0.05, seed: int = 0,
               check_seeds: int = 32, check_max_seeds: int | None = None,
-              eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True) -> LoopTuneResult:
+              eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True,
+              check_corrected: bool = False) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
     Args:
@@ -431,7 +455,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
       estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``,
-        ``"hybrid"`` (a pair objective)
+        ``"hybrid"`` (a pair objective), ``"corrected"`` (a Loop whose sensor trigger is a
+        hard PETC with additive measurement noise: :mod:`jaxnc.tune.jump`)
         or ``"none"`` (no gradient stage: needs ``search``). Without a gradient stage
         (``"none"``, or no estimator passing the check after a search) its budget,
         ``steps * batch`` simulations, goes to the search's four best candidates.
@@ -447,6 +472,9 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         default 16 x check_seeds, four doublings; ``check_seeds`` turns the increase off).
         A check still inconclusive there says which coordinate and how many seeds it
         would need (``LoopTuneResult.estimator_reason``).
+      check_corrected: the check also tests the corrected estimator (``check_loop``'s
+        ``corrected``), so that ``"auto"`` may pick it where it is consistent, resolved
+        and the least noisy.
 
     Returns:
       :class:`LoopTuneResult`.
@@ -502,9 +530,14 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_positive("learning_rate", learning_rate)
     check_positive("score_scale", score_scale)
     check_positive("fd_step", fd_step)
-    if estimator not in ("auto", "straight_through", "score", "hybrid", "none"):
-        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score, hybrid or none, "
+    if estimator not in ("auto", "straight_through", "score", "hybrid", "corrected", "none"):
+        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score, hybrid, corrected or none, "
                          f"got {estimator!r}")
+    if estimator == "corrected":
+        from jaxnc.tune.jump import corrected_supported
+        why = corrected_supported(loop)
+        if why:
+            raise ValueError(f"tune_loop: estimator='corrected' cannot run on this loop: {why}")
     if estimator == "hybrid" and spec.parts is None:
         raise ValueError("tune_loop: estimator='hybrid' needs an objective that returns (smooth, jump)")
     if estimator == "none" and not search:
@@ -560,9 +593,9 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         flat0, unravel, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
             chk = _check(spec, flat0, unravel, flat_objective, seeds=check_seeds, max_seeds=check_max_seeds,
-                         seed=seed + 2, temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
-                         progress=progress)
-            sims += chk.seeds * (2 * flat0.size + 3)
+                         seed=seed + 2, loop=loop1, corrected=check_corrected, temperature=float(temperature[0]),
+                         score_scale=score_scale, fd_step=fd_step, progress=progress)
+            sims += chk.seeds * (2 * flat0.size + 3 + (4 if "corrected" in chk.estimates else 0))
             if chk.recommended is None and result_search is not None:
                 used, reason = "none", (f"no estimator passed the gradient check at the search's winner on "
                                         f"{chk.seeds} seeds ("
@@ -591,9 +624,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     elif spec.paths and used != "none":
         import optax
         loss_of = spec.parts if used == "hybrid" else objective
+        corr = _corrected(loop1, spec, _flat(loop1, spec)[1]) if used == "corrected" else None
         tres = tune(lambda p, k, temp: loss_of(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
                     spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate), estimator=used,
-                    temperature=temperature, seed=seed, score_scale=score_scale, progress=progress, desc="tune_loop")
+                    temperature=temperature, seed=seed, score_scale=score_scale, progress=progress, desc="tune_loop",
+                    corrected=corr)
         sims += tres.n_simulations
         tuned = tres.params
     final_loop = _set(loop1, spec, tuned)
