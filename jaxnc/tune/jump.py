@@ -107,7 +107,7 @@ def corrected_supported(loop) -> str:
     if loop.trigger.relaxed:
         return "the sensor's trigger is relaxed (a soft forward pass has no decisions to correct)"
     try:
-        std = np.asarray(loop.plant.measurement_std(), float)
+        std = np.asarray(loop.plant.v_std, float)
     except Exception as e:                                            # noqa: BLE001 (reported)
         return f"the plant's measurement noise could not be read ({type(e).__name__})"
     if not np.any(std > 0):
@@ -203,7 +203,7 @@ def corrected_grad(loop_of: Callable, cost: Callable, theta, key, *, alternative
     def gaps_of(t):
         lp = loop_of(t)
         z, v, last, forced = sensor_signal(lp, key)
-        std = jax.lax.stop_gradient(lp.plant.measurement_std())
+        std = jax.lax.stop_gradient(jnp.asarray(lp.plant.v_std, jnp.float32))
         return last, z, jax.lax.stop_gradient(v), std, lp.trigger.sigma, lp.trigger.delta, lp.trigger.reading, forced
 
     w, xi, v, std = crossing_weights(gaps_of, theta)
