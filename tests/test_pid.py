@@ -22,7 +22,7 @@ def _closed_loop(pid, r, x0=0.0):
     """y_k of x+ = a x + b u with u_k = PID(y_k, r_k), every step computed (float64)."""
     def body(c, rk):
         x, s = c
-        s, u = pid.update(s, x[None], rk[None], H)
+        s, u = nc.pid_update(pid, s, x[None], rk[None], H)
         return (A_P * x + B_P * u[0], s), x
     z = jnp.zeros((1,), r.dtype)
     s0 = nc.PIDState(z, z, z, z, jnp.zeros((), r.dtype), jnp.zeros((), jnp.int32))
@@ -105,8 +105,8 @@ def test_no_measurement_holds_the_output_and_the_state():
     ys = [0.0, 5.0, -5.0, 0.5, 9.0]                # stale values must not be used
     u, integral, send = _drive(pid, ys, fresh)
     # by the equations: a computation at k = 0 (h_0 = h = 1), the next at k = 3 over h_3 = 3
-    s1, u0 = pid.update(pid.init(_ctx(T=1.0)), jnp.zeros(1), jnp.ones(1), 1.0)
-    s2, u3 = pid.update(s1, jnp.full(1, 0.5), jnp.ones(1), 3.0)
+    s1, u0 = nc.pid_update(pid, pid.init(_ctx(T=1.0)), jnp.zeros(1), jnp.ones(1), 1.0)
+    s2, u3 = nc.pid_update(pid, s1, jnp.full(1, 0.5), jnp.ones(1), 3.0)
     # u0 = Kp e = 1, I = 0.5; then D = 0.2 (-0.5) / 3.5, u3 = 0.5 + 0.5 + D, I = 0.5 + 3 * 0.5 * 0.5
     np.testing.assert_allclose([u0[0], u3[0], s2.integral[0]], [1.0, 1.0 - 0.1 / 3.5, 1.25], rtol=1e-6)
     np.testing.assert_array_equal(send, fresh)

@@ -66,7 +66,7 @@ def test_relaxed_trigger_approaches_hard_trigger_and_straight_through_is_exact_f
     z_last, z = jnp.asarray([0.0, 1.0]), jnp.asarray([0.5, 1.1])
     hard = jl.Petc(sigma=jnp.asarray([0.1, 0.1]), delta=jnp.asarray([0.01, 0.01]))
     fires = lambda trig: trig.step(jl.PetcState(z_last, jnp.int32(0)), z, 1)[1]
-    gap = float(hard.gap(z_last, z))
+    gap = float(jl.petc_gap(z_last, z, hard.sigma, hard.delta, hard.reading))
     assert gap > 0 and float(fires(hard)) == 1.0
     soft = [float(fires(relax_trigger(hard, "sigmoid", t))) for t in (1.0, 0.1, 0.01)]
     assert soft[0] < soft[1] < soft[2] and soft[2] > 0.99 and abs(soft[0] - 1 / (1 + math.exp(-gap))) < 1e-6

@@ -23,7 +23,7 @@ from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, Limited
                                RateLimitState, Saturation)
 from jaxnc.loop.observers import (UKF, Luenberger, LuenbergerState, SteadyStateKF, SteadyStateKFState,
                                   slow_system, stationary_gain)
-from jaxnc.loop.pid import PID, PIDState
+from jaxnc.loop.pid import PID, PIDState, pid_update
 from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.roundtrip import RoundTrip
 from jaxnc.loop.monitors import PathMonitor, PathMonitorState, path_distance
@@ -47,7 +47,7 @@ __all__ = [
     "Periodic", "Petc", "PetcState", "petc_gap",
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
-    "PID", "PIDState",
+    "PID", "PIDState", "pid_update",
     "Tracking", "TrackingMetrics", "run_tracking",
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",

@@ -54,7 +54,7 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.references import AbstractReference
 
-__all__ = ["PID", "PIDState"]
+__all__ = ["PID", "PIDState", "pid_update"]
 
 _ANTI_WINDUP = ("none", "clamping", "back_calculation")
 
@@ -160,37 +160,12 @@ class PID(AbstractController):
     def _limited(self) -> bool:
         return self.u_min is not None or self.u_max is not None
 
-    def _r(self, k, ctx):
-        if self.reference is None:
-            return jnp.zeros((self.channels,), jnp.float32)
-        r = self.reference.at(k * ctx.N, ctx.T)
-        return jnp.broadcast_to(r, (self.channels,))
-
-    def update(self, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]:
-        """One computation (module docstring) from the measurements y float[c] and the
-        reference r float[c], h the time since the previous computation (h_k): (the new
-        state, u float[c]); ``last`` is left to the caller."""
-        e, ep, ed = r - y, self.b * r - y, self.c * r - y
-        ed_prev = jnp.where(state.started > 0.5, state.e_d, ed)
-        D = (self.Tf * state.deriv + self.Kd * (ed - ed_prev)) / (self.Tf + h)
-        v = self.Kp * ep + state.integral + D
-        u = jnp.clip(v, self.u_min, self.u_max) if self._limited else v
-        gain = self.Ki * e
-        if self.anti_windup == "clamping" and self._limited:
-            hi = jnp.inf if self.u_max is None else self.u_max
-            lo = -jnp.inf if self.u_min is None else self.u_min
-            gain = jnp.where(((v > hi) & (gain > 0)) | ((v < lo) & (gain < 0)), 0.0, gain)
-        elif self.anti_windup == "back_calculation":
-            gain = gain + self.Kb * (u - v)
-        integral = state.integral + h * gain
-        return state._replace(integral=integral, deriv=D, e_d=ed, u=u, started=jnp.ones_like(state.started)), u
-
     def step(self, state: PIDState, xhat, fresh, k, ctx):
         y = jnp.asarray(xhat)[jnp.asarray(self.index)]
         h = ctx.N * ctx.T
         if self.hold:
             h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(jnp.float32)
-        new, u = self.update(state, y, self._r(k, ctx), h)
+        new, u = pid_update(self, state, y, _reference(self, k, ctx), h)
         new = new._replace(last=jnp.asarray(k, jnp.int32))
         if self.hold:
             w = jnp.asarray(fresh, jnp.float32)
@@ -198,3 +173,30 @@ class PID(AbstractController):
         else:
             send = jnp.ones((), jnp.float32)
         return new, Packet(new.u[None, :], (k * ctx.N).astype(jnp.int32)), send
+
+
+def _reference(pid: PID, k, ctx):
+    if pid.reference is None:
+        return jnp.zeros((pid.channels,), jnp.float32)
+    r = pid.reference.at(k * ctx.N, ctx.T)
+    return jnp.broadcast_to(r, (pid.channels,))
+
+
+def pid_update(pid: PID, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]:
+    """One computation of ``pid`` (module docstring) from the measurements y float[c] and the
+    reference r float[c], h the time since the previous computation (h_k): (the new
+    state, u float[c]); ``last`` is left to the caller."""
+    e, ep, ed = r - y, pid.b * r - y, pid.c * r - y
+    ed_prev = jnp.where(state.started > 0.5, state.e_d, ed)
+    D = (pid.Tf * state.deriv + pid.Kd * (ed - ed_prev)) / (pid.Tf + h)
+    v = pid.Kp * ep + state.integral + D
+    u = jnp.clip(v, pid.u_min, pid.u_max) if pid._limited else v
+    gain = pid.Ki * e
+    if pid.anti_windup == "clamping" and pid._limited:
+        hi = jnp.inf if pid.u_max is None else pid.u_max
+        lo = -jnp.inf if pid.u_min is None else pid.u_min
+        gain = jnp.where(((v > hi) & (gain > 0)) | ((v < lo) & (gain < 0)), 0.0, gain)
+    elif pid.anti_windup == "back_calculation":
+        gain = gain + pid.Kb * (u - v)
+    integral = state.integral + h * gain
+    return state._replace(integral=integral, deriv=D, e_d=ed, u=u, started=jnp.ones_like(state.started)), u

@@ -32,7 +32,8 @@ from jaxnc.loop.base import AbstractTrigger, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
-__all__ = ["Periodic", "Petc", "PetcState", "petc_gap", "petc_crossings", "soft_decision", "fires_straight_through"]
+__all__ = ["Periodic", "Petc", "PetcState", "petc_gap", "petc_crossings", "petc_forced", "petc_decide", "petc_update",
+           "soft_decision", "fires_straight_through"]
 
 
 def soft_decision(gap, temperature):
@@ -174,33 +175,32 @@ class Petc(AbstractTrigger):
             except TypeError:
                 pass
 
-    def gap(self, last, s):
-        """Left minus right side of the condition (fires when > 0); for ``"each"`` the
-        largest of the per-output gaps."""
-        return petc_gap(last, s, self.sigma, self.delta, self.reading)
-
     def init(self, ctx):
         return PetcState(jnp.zeros((ctx.signal_dim,), jnp.float32), jnp.zeros((), jnp.int32))
 
-    def forced(self, state, k):
-        """bool: instant ``k`` sends whatever the gap (the first instant, or the safety
-        condition's ``max_silence``), so its decision does not depend on the thresholds."""
-        ms = jnp.asarray(self.max_silence)
-        return (k == 0) | ((ms > 0) & (state.silent + 1 >= ms))
-
-    def decide(self, state, s, k):
-        """The decision (0/1 float, straight-through or soft as configured) on signal ``s``
-        at instant ``k``, forced instants included."""
-        g = self.gap(state.last, s)
-        beta = soft_decision(g, self.temperature) if self.relaxed else fires_straight_through(g, self.temperature)
-        return jnp.where(self.forced(state, k), jnp.ones((), s.dtype), beta)
-
-    def update(self, state, s, beta):
-        """The state after decision ``beta`` on signal ``s``: zbar = beta s + (1 - beta) zbar."""
-        last = blend(beta, s, state.last)
-        silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
-        return PetcState(last, silent)
-
     def step(self, state, s, k):
-        beta = self.decide(state, s, k)
-        return self.update(state, s, beta), beta
+        beta = petc_decide(self, state, s, k)
+        return petc_update(state, s, beta), beta
+
+
+def petc_forced(trig: Petc, state: PetcState, k):
+    """bool: instant ``k`` sends whatever the gap (the first instant, or the safety
+    condition's ``max_silence``), so its decision does not depend on the thresholds."""
+    ms = jnp.asarray(trig.max_silence)
+    return (k == 0) | ((ms > 0) & (state.silent + 1 >= ms))
+
+
+def petc_decide(trig: Petc, state: PetcState, s, k):
+    """The decision of ``trig`` (0/1 float, straight-through or soft as configured) on
+    signal ``s`` at instant ``k``, forced instants included (:func:`petc_forced`)."""
+    g = petc_gap(state.last, s, trig.sigma, trig.delta, trig.reading)
+    beta = soft_decision(g, trig.temperature) if trig.relaxed else fires_straight_through(g, trig.temperature)
+    return jnp.where(petc_forced(trig, state, k), jnp.ones((), s.dtype), beta)
+
+
+def petc_update(state: PetcState, s, beta):
+    """A :class:`Petc`'s state after decision ``beta`` on signal ``s``: zbar = beta s +
+    (1 - beta) zbar, and the silence counter."""
+    last = blend(beta, s, state.last)
+    silent = jnp.where(beta > 0.5, 0, state.silent + 1).astype(jnp.int32)
+    return PetcState(last, silent)

@@ -48,7 +48,7 @@ import numpy as np
 from jaxnc.loop.base import AbstractTrigger
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.links import Link
-from jaxnc.loop.triggers import Periodic, Petc, petc_crossings, petc_gap
+from jaxnc.loop.triggers import Periodic, Petc, petc_crossings, petc_decide, petc_forced, petc_gap, petc_update
 
 __all__ = ["corrected_grad", "corrected_supported", "sensor_signal", "crossing_weights"]
 
@@ -72,8 +72,8 @@ class _Pinned(AbstractTrigger):
     def step(self, state, s, k):
         here = k == self.at
         s = s + jnp.where(here, jnp.asarray(self.shift, s.dtype), jnp.zeros_like(s))
-        beta = jnp.where(here, jnp.asarray(self.value, s.dtype), self.inner.decide(state, s, k))
-        return self.inner.update(state, s, beta), beta
+        beta = jnp.where(here, jnp.asarray(self.value, s.dtype), petc_decide(self.inner, state, s, k))
+        return petc_update(state, s, beta), beta
 
 
 @_dataclass
@@ -136,7 +136,7 @@ def sensor_signal(loop, key):
 
     def replay(st, inp):
         z, sent, k = inp
-        return trig.update(st, z, sent), (st.last, trig.forced(st, k))
+        return petc_update(st, z, sent), (st.last, petc_forced(trig, st, k))
 
     _, (last, forced) = jax.lax.scan(replay, st0, (tr.z, tr.sent_sc, jnp.arange(S, dtype=jnp.int32)))
     return tr.z, d.v, last, forced
