@@ -20,6 +20,7 @@ import numpy as np
 from jaxnc import loop as nc
 from jaxnc import montecarlo, results as per_seed
 from jaxnc.controllers.path_following import LOOKAHEAD
+from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS, Path as RefPath
 from jaxnc.report import fmt, markdown_table
@@ -32,6 +33,8 @@ UNSTABLE_CELL = 0.5   # a cell is shown as inf when more than half of its runs a
 def loop_config(loop: nc.Loop) -> dict:
     """JSON-friendly description of a loop (the path by name, functions by name)."""
     def conv(obj):
+        if isinstance(obj, EKFStructure):        # the Jacobians' sparsity patterns, drawn
+            return obj.describe()
         if type(obj).__name__ == "MjxMecanum":   # the MJX plant: its parameters, not its arrays
             from jaxnc.plants.mecanum_mjx import describe
             return describe(obj)
