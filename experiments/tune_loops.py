@@ -26,7 +26,6 @@ re-run with the same settings, so an interrupted study loses at most one loop.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from pathlib import Path
@@ -330,23 +329,13 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     cfg = _config(settings, seeds)
     results = []
     for name in loops:
-        f = out / f"{name}.json"
-        if f.exists():
-            try:
-                doc = montecarlo.load_results(f)
-            except ValueError:
-                doc = None
-            if doc and doc["config"] == json.loads(json.dumps(cfg)):
-                if progress:
-                    print(f"[{name}] reusing {f}")
-                results.append(doc["results"])
-                continue
-        problem = BUILDERS[name](settings)
-        res = study(problem, check_seeds=settings["check_seeds"], steps=settings["steps"], batch=settings["batch"],
-                    eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
-                    study_check_seeds=settings["study_check_seeds"], progress=progress)
-        montecarlo.save_results(f, experiment="tune-loops", config=cfg, results=res, wall_time_s=res["wall_time_s"])
-        results.append(montecarlo.load_results(f)["results"])
+        results.append(montecarlo.stored_or_run(
+            out / f"{name}.json", experiment="tune-loops", config=cfg, progress=progress,
+            compute=lambda name=name: study(
+                BUILDERS[name](settings), check_seeds=settings["check_seeds"], steps=settings["steps"],
+                batch=settings["batch"], eval_seeds=seeds, seed=settings["seed"],
+                search_budget=settings["search_budget"], study_check_seeds=settings["study_check_seeds"],
+                progress=progress)))
     text = tables(results)
     print("\n" + text)
     (out / "tables.md").write_text(text, encoding="utf-8")

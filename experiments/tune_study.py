@@ -488,20 +488,9 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     cfg = _config(settings, seeds)
     results = []
     for name in names:
-        f = out / f"{name}.json"
-        if f.exists():
-            try:
-                doc = montecarlo.load_results(f)
-            except ValueError:
-                doc = None
-            if doc and doc["config"] == json.loads(json.dumps(cfg)):
-                if progress:
-                    print(f"[{name}] reusing {f}")
-                results.append(doc["results"])
-                continue
-        res = study(BUILDERS[name](settings), settings, eval_seeds=seeds, progress=progress)
-        montecarlo.save_results(f, experiment="tune-study", config=cfg, results=res, wall_time_s=res["wall_time_s"])
-        results.append(montecarlo.load_results(f)["results"])
+        results.append(montecarlo.stored_or_run(
+            out / f"{name}.json", experiment="tune-study", config=cfg, progress=progress,
+            compute=lambda name=name: study(BUILDERS[name](settings), settings, eval_seeds=seeds, progress=progress)))
     text = tables(results)
     print("\n" + text)
     (out / "tables.md").write_text(text, encoding="utf-8")

@@ -509,6 +509,26 @@ def _restore(obj):
     return obj
 
 
+def stored_or_run(path, *, experiment: str, config: dict, compute, progress: bool = True) -> dict:
+    """The results stored at ``path`` when it was written by :func:`save_results` with this
+    very ``config`` (a resumed study reuses each finished part); otherwise ``compute()``, a
+    dict of results with a ``"wall_time_s"`` entry, saved there first. Returns the results as
+    :func:`load_results` reads them back (the same either way)."""
+    path = pathlib.Path(path)
+    if path.exists():
+        try:
+            doc = load_results(path)
+        except ValueError:
+            doc = None
+        if doc and doc["config"] == json.loads(json.dumps(config)):
+            if progress:
+                print(f"[{path.stem}] reusing {path}")
+            return doc["results"]
+    res = compute()
+    save_results(path, experiment=experiment, config=config, results=res, wall_time_s=res["wall_time_s"])
+    return load_results(path)["results"]
+
+
 def load_results(path) -> dict:
     """Read a file written by :func:`save_results`; the strings "inf"/"-inf"/"nan" become floats.
 
