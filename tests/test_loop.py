@@ -114,10 +114,10 @@ def test_time_stamped_ekf_equals_the_on_time_filter_with_the_arrived_measurement
 
 def test_bernoulli_link_loss_rate_and_common_random_numbers():
     n, p = 20_000, 0.3
-    d = nc.Link(nc.Bernoulli(p)).draw(jax.random.PRNGKey(0), n, 0.1).delay
+    d = nc.draw_link(nc.Link(nc.Bernoulli(p)), jax.random.PRNGKey(0), n, 0.1).delay
     rate = float(np.mean(np.asarray(d) < 0))
     assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / n)
-    d2 = nc.Link(nc.Bernoulli(0.1)).draw(jax.random.PRNGKey(0), n, 0.1).delay
+    d2 = nc.draw_link(nc.Link(nc.Bernoulli(0.1)), jax.random.PRNGKey(0), n, 0.1).delay
     assert np.all(np.asarray(d)[np.asarray(d2) < 0] < 0)      # losses at 0.1 are a subset of those at 0.3
 
 
@@ -125,11 +125,11 @@ def test_delays_quantised_up_and_late_packets_discarded():
     T = 0.01
     link = nc.Link(delay=nc.ShiftedExponential(eta=0.005, phi=0.02), tau_max=0.03)
     key = jax.random.PRNGKey(1)
-    d = np.asarray(link.draw(key, 5000, T).delay)
+    d = np.asarray(nc.draw_link(link, key, 5000, T).delay)
     tau = 0.005 + 0.02 * np.asarray(jax.random.exponential(jax.random.split(key)[1], (5000,)))
     expect = np.where(tau > 0.03, -1, np.ceil(tau / T - 1e-5))
     np.testing.assert_array_equal(d, expect)
-    first = nc.Link(nc.Bernoulli(0.9), reliable_first=True).draw(key, 50, T).delay
+    first = nc.draw_link(nc.Link(nc.Bernoulli(0.9), reliable_first=True), key, 50, T).delay
     assert int(first[0]) == 0 and np.mean(np.asarray(first[1:]) < 0) > 0.7
 
 
@@ -254,9 +254,9 @@ def test_controller_trigger_gates_the_packets():
 def test_tau_max_of_whole_periods_keeps_a_delay_of_exactly_that_many_periods():
     T, N = 0.001, 10
     link = nc.Link(delay=nc.PmfDelay([0.0] * 10 + [1.0]), tau_max=N * T)       # always 10 periods
-    assert np.all(np.asarray(link.draw(jax.random.PRNGKey(0), 50, T).delay) == 10)
+    assert np.all(np.asarray(nc.draw_link(link, jax.random.PRNGKey(0), 50, T).delay) == 10)
     link = nc.Link(delay=nc.PmfDelay([0.0] * 11 + [1.0]), tau_max=N * T)       # always 11: late
-    assert np.all(np.asarray(link.draw(jax.random.PRNGKey(0), 50, T).delay) == -1)
+    assert np.all(np.asarray(nc.draw_link(link, jax.random.PRNGKey(0), 50, T).delay) == -1)
 
 
 def test_selective_recording_keeps_the_values_and_drops_the_rest():

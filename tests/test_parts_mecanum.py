@@ -66,7 +66,7 @@ def test_link_with_round_trip_discards_late_packets_at_the_closed_form_rate():
     link = nc.Link(loss=nc.Bernoulli(p), delay=nc.RoundTrip(nc.ShiftedExponential(eta, phi),
                                                             nc.ShiftedExponential(eta, phi)),
                    tau_max=tau_max, reliable_first=True, capacity=2)
-    d = np.asarray(jax.jit(lambda k: link.draw(k, n, T))(jax.random.PRNGKey(2)).delay)
+    d = np.asarray(jax.jit(lambda k: nc.draw_link(link, k, n, T))(jax.random.PRNGKey(2)).delay)
     q = tau_max - 2 * eta
     ok = (1 - p) * (1.0 - math.exp(-q / phi) * (1 + q / phi))
     assert d[0] >= 0

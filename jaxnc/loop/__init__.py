@@ -9,15 +9,15 @@ from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOr
 from jaxnc.loop.cascade import Cascade, CascadeState
 from jaxnc.loop.numre import Numre, NumreState
 from jaxnc.loop.unstamped import ArrivalHold, DirtyDerivative, DirtyDerivativeState
-from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator, AbstractLoss,
-                             AbstractMonitor, AbstractPlant, AbstractTrigger, Inbox, Packet, blend, pytree_dataclass,
-                             static_field)
+from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator, AbstractInitial,
+                             AbstractLoss, AbstractMonitor, AbstractPlant, AbstractTrigger, AbstractWrappedPlant, Inbox,
+                             Packet, blend, pytree_dataclass, static_field)
 from jaxnc.loop.controllers import Function, Predictive, StateFeedback
 from jaxnc.loop.estimators import EKF, EKFState, Passthrough
 from jaxnc.loop.lead import LeadFeedback
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
-                              truncated_exponential)
+                              draw_link, link_delay_bounds, truncated_exponential)
 from jaxnc.loop.costs import Tracking, TrackingMetrics, run_tracking
 from jaxnc.loop.limits import (AbstractLimit, DeadZone, LimitedActuator, LimitedSensor, Quantizer, RateLimit,
                                RateLimitState, Saturation)
@@ -38,12 +38,13 @@ from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
 __all__ = [
     "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
     "Quadratic", "FunctionCost", "Context", "STREAMS", "SIGNALS", "PARTS",
-    "AbstractPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
+    "AbstractPlant", "AbstractInitial", "AbstractWrappedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
     "AbstractMonitor", "AbstractLoss",
     "AbstractDelay", "Packet", "Inbox", "blend", "pytree_dataclass", "static_field",
     "Discrete", "Continuous", "LTI", "rk4",
     "Link", "LinkDraws", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay", "ShiftedExponential",
     "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel", "truncated_exponential",
+    "draw_link", "link_delay_bounds",
     "Periodic", "Petc", "PetcState", "petc_gap",
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",

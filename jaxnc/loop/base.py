@@ -52,8 +52,9 @@ import jax.numpy as jnp
 
 from jaxnc._validate import checked_pytree
 
-__all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractTrigger",
-           "AbstractEstimator", "AbstractController", "AbstractActuator", "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
+__all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractInitial",
+           "AbstractWrappedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
+           "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
 
 
 def static_field(default=dataclasses.MISSING):
@@ -189,7 +190,10 @@ class AbstractPlant(abc.ABC):
 
     def init(self, key):
         """Initial state x_0: ``x0``, plus ``x0_std`` times standard normals drawn from ``key``
-        when the plant declares ``x0_std``."""
+        when the plant declares ``x0_std``; ``x0.sample(key)`` when the declared ``x0`` is
+        an :class:`AbstractInitial` (a distribution of a state of any pytree)."""
+        if isinstance(self.x0, AbstractInitial):
+            return self.x0.sample(key)
         x0 = jnp.asarray(self.x0, jnp.float32)
         if self.x0_std is None:
             return x0
@@ -199,6 +203,56 @@ class AbstractPlant(abc.ABC):
         """The state as float[n] for recording and failure checks (default: x itself; a
         plant whose state is not a vector, e.g. a multibody simulator's, overrides it)."""
         return x
+
+
+class AbstractInitial(abc.ABC):
+    """The distribution of a plant's initial state, declared as the plant's ``x0`` where
+    ``x0 + x0_std * N(0, I)`` cannot say it: a state that is not a vector, or a start that
+    draws more than Gaussian offsets (e.g. a multibody robot settled on a model whose
+    friction and mass are drawn per seed, :class:`jaxnc.plants.mecanum_mjx.MjxStart`).
+    :meth:`AbstractPlant.init` samples it; the plant then declares no ``x0_std``."""
+
+    @abc.abstractmethod
+    def sample(self, key):
+        """x_0 drawn from the PRNG ``key``: any pytree the plant's ``dynamics`` takes."""
+
+
+class AbstractWrappedPlant(AbstractPlant):
+    """A plant that wraps another, ``plant`` (a field of the subclass), as diffrax's
+    ``AbstractWrappedSolver`` wraps a solver: everything the wrapper does not override is
+    the inner plant's, its methods (``dynamics``, ``measure``, ``init``, ``state_vector``)
+    and its declared data (dimensions, ``w_std``, ``v_std``, ``x0``, ``x0_std``,
+    ``step_period``, ``noise_period``). A wrapper overrides only what it changes, e.g.
+    :class:`jaxnc.loop.LimitedSensor` the measurement."""
+
+    plant: AbstractPlant
+
+    state_dim = property(lambda self: self.plant.state_dim)
+    input_dim = property(lambda self: self.plant.input_dim)
+    noise_dim = property(lambda self: self.plant.noise_dim)
+    output_dim = property(lambda self: self.plant.output_dim)
+    w_std = property(lambda self: self.plant.w_std)
+    v_std = property(lambda self: self.plant.v_std)
+    x0 = property(lambda self: self.plant.x0)
+    x0_std = property(lambda self: self.plant.x0_std)
+    step_period = property(lambda self: self.plant.step_period)
+    noise_period = property(lambda self: self.plant.noise_period)
+
+    def dynamics(self, x, u, w):
+        """The inner plant's ``dynamics``."""
+        return self.plant.dynamics(x, u, w)
+
+    def measure(self, x, v):
+        """The inner plant's ``measure``."""
+        return self.plant.measure(x, v)
+
+    def init(self, key):
+        """The inner plant's ``init``."""
+        return self.plant.init(key)
+
+    def state_vector(self, x):
+        """The inner plant's ``state_vector``."""
+        return self.plant.state_vector(x)
 
 
 class AbstractTrigger(abc.ABC):

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_range, concrete
-from jaxnc.loop.base import AbstractActuator, AbstractPlant
+from jaxnc.loop.base import AbstractActuator, AbstractPlant, AbstractWrappedPlant
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 
 __all__ = ["AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState",
@@ -209,9 +209,10 @@ class LimitedActuator(AbstractActuator):
 
 
 @_dataclass
-class LimitedSensor(AbstractPlant):
+class LimitedSensor(AbstractWrappedPlant):
     """A plant whose measurement goes through stateless ``limits`` in order:
-    z = limits(h(x, v)); dynamics, noise and initial state are the inner plant's.
+    z = limits(h(x, v)); everything else (dynamics, noise, initial state, declared data)
+    is the inner plant's (:class:`~jaxnc.loop.base.AbstractWrappedPlant`).
 
     Attributes:
       plant: the inner :class:`~jaxnc.loop.base.AbstractPlant`.
@@ -229,23 +230,5 @@ class LimitedSensor(AbstractPlant):
                        "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, Continuous)")
         object.__setattr__(self, "limits", _check_limits("LimitedSensor", self.limits, stateless=True))
 
-    state_dim = property(lambda self: self.plant.state_dim)
-    input_dim = property(lambda self: self.plant.input_dim)
-    noise_dim = property(lambda self: self.plant.noise_dim)
-    output_dim = property(lambda self: self.plant.output_dim)
-    w_std = property(lambda self: self.plant.w_std)
-    v_std = property(lambda self: self.plant.v_std)
-    step_period = property(lambda self: self.plant.step_period)
-    noise_period = property(lambda self: self.plant.noise_period)
-
-    def dynamics(self, x, u, w):
-        return self.plant.dynamics(x, u, w)
-
     def measure(self, x, v):
         return _apply(self.limits, tuple(() for _ in self.limits), self.plant.measure(x, v))[1]
-
-    def init(self, key):
-        return self.plant.init(key)
-
-    def state_vector(self, x):
-        return self.plant.state_vector(x)

@@ -1,7 +1,7 @@
 """One direction of the network: loss model x delay model, time stamps, a ring of packets.
 
 A :class:`Link` carries one packet per slow instant k (when the sender sends). Its
-randomness is exogenous: :meth:`Link.draw` draws, before the run, whether the packet of
+randomness is exogenous: :func:`draw_link` draws, before the run, whether the packet of
 each slow instant would be lost and its delay in whole fast periods (delays are
 quantised *up* to the fast period T, :func:`jaxnc.network.quantise_delay`; a packet
 later than ``tau_max`` is discarded). Inside the run the link keeps the last
@@ -48,7 +48,7 @@ from jaxnc.network import late, quantise_delay
 
 __all__ = ["Link", "LinkDraws", "LinkState", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay",
            "ShiftedExponential", "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel",
-           "truncated_exponential", "NEVER"]
+           "truncated_exponential", "draw_link", "link_delay_bounds", "NEVER"]
 
 NEVER = 2**30          # arrival instant of a packet that never arrives
 _F32 = jnp.float32
@@ -387,36 +387,6 @@ class Link:
             check_range("Link.tau_max", self.tau_max, 0.0, None)
             _scalars(self, "tau_max")
 
-    # -- before the run
-    def delay_bounds(self, T: float):
-        """(lo, hi): the delay of a delivered packet in fast periods, from the delay model's
-        declared :meth:`~jaxnc.loop.AbstractDelay.bounds` and ``tau_max`` (hi None: no
-        known bound)."""
-        lo, hi = self.delay.bounds(T)
-        if self.tau_max is not None:
-            cap = _periods(self.tau_max, T)
-            if cap is not None:
-                hi = cap if hi is None else min(hi, cap)
-        return lo, hi
-
-    def draw(self, key, n: int, T) -> LinkDraws:
-        """Delays (fast periods) of the packets of ``n`` slow instants; -1 when lost or late."""
-        kl, kd = jax.random.split(key)
-        lost = self.loss.sample(kl, n)
-        steps, seconds = self.delay.sample(kd, n, T)
-        bad = lost | (steps < 0)
-        if self.tau_max is not None:
-            if self.delay.in_steps:
-                # delays drawn in whole fast periods: compare periods, not float32 seconds
-                # (d * T can round above tau_max = d * T)
-                limit = jnp.floor(jnp.asarray(self.tau_max, _F32) / jnp.asarray(T, _F32) * (1 + 2.0**-21))
-                bad = bad | (steps > limit)
-            else:
-                bad = bad | late(seconds, self.tau_max)
-        if self.reliable_first:
-            bad = bad & (jnp.arange(n) > 0)
-        return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))
-
     # -- inside the run
     def init(self, example) -> LinkState:
         """An empty ring for payloads shaped like ``example``."""
@@ -432,7 +402,7 @@ class Link:
         Args:
           data: payload; stamp: int32 time stamp; k: int32 slow instant (the slot).
           send: 0/1 float, whether the sender transmits (may carry a gradient).
-          delay: int32 delay in fast periods from :meth:`draw` (-1: lost).
+          delay: int32 delay in fast periods from :func:`draw_link` (-1: lost).
           t_send: int32 fast instant of sending.
         """
         i = jnp.mod(k, self.capacity)
@@ -466,3 +436,34 @@ class Link:
         inbox = Inbox(state.data, state.stamp, state.weight, arrived & (state.weight > 0), new)
         return inbox, state._replace(delivered=state.delivered | now, last=last)
 
+
+def link_delay_bounds(link: Link, T: float):
+    """(lo, hi): the delay of a packet ``link`` delivers, in fast periods of T seconds, from
+    its delay model's declared :meth:`~jaxnc.loop.AbstractDelay.bounds` and ``tau_max``
+    (hi None: no known bound)."""
+    lo, hi = link.delay.bounds(T)
+    if link.tau_max is not None:
+        cap = _periods(link.tau_max, T)
+        if cap is not None:
+            hi = cap if hi is None else min(hi, cap)
+    return lo, hi
+
+
+def draw_link(link: Link, key, n: int, T) -> LinkDraws:
+    """Before the run: the delays (fast periods of T seconds) of the packets of ``n`` slow
+    instants over ``link``; -1 when lost or later than ``tau_max`` (n static)."""
+    kl, kd = jax.random.split(key)
+    lost = link.loss.sample(kl, n)
+    steps, seconds = link.delay.sample(kd, n, T)
+    bad = lost | (steps < 0)
+    if link.tau_max is not None:
+        if link.delay.in_steps:
+            # delays drawn in whole fast periods: compare periods, not float32 seconds
+            # (d * T can round above tau_max = d * T)
+            limit = jnp.floor(jnp.asarray(link.tau_max, _F32) / jnp.asarray(T, _F32) * (1 + 2.0**-21))
+            bad = bad | (steps > limit)
+        else:
+            bad = bad | late(seconds, link.tau_max)
+    if link.reliable_first:
+        bad = bad & (jnp.arange(n) > 0)
+    return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))

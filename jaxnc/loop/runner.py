@@ -32,7 +32,7 @@ from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstim
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
-from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss
+from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_delay_bounds
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
            "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
@@ -275,7 +275,7 @@ class Loop:
                              f"horizon ({H})")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
-            lo, hi = link.delay_bounds(self.T)
+            lo, hi = link_delay_bounds(link, self.T)
             ring = lambda d: -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
             # the downlink at every fast instant (it needs C N > d)
@@ -497,7 +497,7 @@ def draw(loop: Loop, key) -> Draws:
         t = np.arange(S * N).reshape(S, N)
         w = jnp.where(jnp.asarray(t % p.noise_period == 0)[:, :, None], w, 0.0)
     v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * v_std[None, :]
-    return Draws(w, v, loop.uplink.draw(k["uplink"], S, loop.T), loop.downlink.draw(k["downlink"], S, loop.T),
+    return Draws(w, v, draw_link(loop.uplink, k["uplink"], S, loop.T), draw_link(loop.downlink, k["downlink"], S, loop.T),
                  k["plant_init"])
 
 

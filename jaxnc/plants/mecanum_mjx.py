@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
-from jaxnc.loop.base import AbstractPlant
+from jaxnc.loop.base import AbstractInitial, AbstractPlant, pytree_dataclass
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, commanded, distances
 
 try:   # optional extra
@@ -160,7 +160,9 @@ class MjxMecanum(AbstractPlant):
     Build it with :func:`mjx_mecanum`. ``kin`` is the kinematic model it is built from
     (geometry, beacons, sampling period T, start pose ``kin.x0`` and noise ``kin.noise``);
     the loop's estimator keeps using the kinematic model. Its state is an
-    :class:`MjxState`; :meth:`state_vector` is the kinematic state of eq. (1).
+    :class:`MjxState`, drawn per seed from its declared ``x0`` (an :class:`MjxStart`,
+    :class:`jaxnc.loop.AbstractInitial`); :meth:`state_vector` is the kinematic state of
+    eq. (1). Methods: ``dynamics``, ``measure``, ``state_vector``.
     """
 
     state_dim = STATE_DIM
@@ -193,27 +195,11 @@ class MjxMecanum(AbstractPlant):
         """float[9]: the true measurement noise n2 (``kin.noise``)."""
         return self.kin.noise.measurement_std()
 
-    def init(self, key) -> MjxState:
-        """A robot at rest at pose ``kin.x0[3:6]`` with this seed's friction and mass."""
-        x0 = jnp.asarray(self.kin.x0, jnp.float32)
-        kf, km = jax.random.split(key)
-        fr = jnp.asarray(self.friction_range, jnp.float32)
-        mr = jnp.asarray(self.mass_range, jnp.float32)
-        mu = jax.random.uniform(kf, (), jnp.float32, fr[0], fr[1])
-        ms = jax.random.uniform(km, (), jnp.float32, mr[0], mr[1])
-        m = seed_model(self, mu, ms)
-        psi = x0[5]
-        qpos = jnp.zeros(m.nq, jnp.float32)
-        qpos = qpos.at[0:3].set(jnp.stack([x0[3], x0[4], jnp.asarray(self.kin.R, jnp.float32)]))
-        qpos = qpos.at[3:7].set(jnp.stack([jnp.cos(psi / 2), 0.0 * psi, 0.0 * psi, jnp.sin(psi / 2)]))
-        # let it settle onto its wheels (no bounce from the contact at t = 0), then put it
-        # back at rest exactly at the requested pose
-        data = _physics(m, mjx.make_data(m).replace(qpos=qpos), SETTLE_STEPS)
-        qpos = data.qpos.at[0:2].set(qpos[0:2]).at[3:7].set(qpos[3:7]).at[7:].set(0.0)
-        with jax.numpy_rank_promotion("allow"):     # MJX relies on implicit rank promotion
-            data = mjx.forward(m, data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel),
-                                               time=jnp.zeros_like(data.time)))
-        return MjxState(data, psi, mu, ms)
+    @property
+    def x0(self) -> "MjxStart":
+        """The random start (declared data): a robot at rest at pose ``kin.x0[3:6]`` on a
+        model with this seed's friction and mass (:class:`MjxStart`)."""
+        return MjxStart(self)
 
     def dynamics(self, s: MjxState, u, w) -> MjxState:
         """One fast period T: ``substeps`` physics steps with the wheel-speed loop."""
@@ -239,6 +225,38 @@ class MjxMecanum(AbstractPlant):
         enc = jnp.round(wheel_speeds(s) / res) * res
         xy = s.data.qpos[0:2]
         return jnp.concatenate([enc, s.psi[None], distances(self.kin, xy)]) + v
+
+
+@pytree_dataclass
+class MjxStart(AbstractInitial):
+    """The initial state of an :class:`MjxMecanum` (its declared ``x0``): per seed, the grip
+    friction uniform in ``plant.friction_range`` and the chassis mass factor uniform in
+    ``plant.mass_range``; the robot settles onto its wheels on that seed's model for
+    ``SETTLE_STEPS`` physics steps and is put back at rest exactly at pose
+    ``plant.kin.x0[3:6]`` (no bounce from the contact at t = 0)."""
+
+    plant: MjxMecanum
+
+    def sample(self, key) -> MjxState:
+        """An :class:`MjxState` drawn from ``key`` (split into friction and mass draws)."""
+        plant = self.plant
+        x0 = jnp.asarray(plant.kin.x0, jnp.float32)
+        kf, km = jax.random.split(key)
+        fr = jnp.asarray(plant.friction_range, jnp.float32)
+        mr = jnp.asarray(plant.mass_range, jnp.float32)
+        mu = jax.random.uniform(kf, (), jnp.float32, fr[0], fr[1])
+        ms = jax.random.uniform(km, (), jnp.float32, mr[0], mr[1])
+        m = seed_model(plant, mu, ms)
+        psi = x0[5]
+        qpos = jnp.zeros(m.nq, jnp.float32)
+        qpos = qpos.at[0:3].set(jnp.stack([x0[3], x0[4], jnp.asarray(plant.kin.R, jnp.float32)]))
+        qpos = qpos.at[3:7].set(jnp.stack([jnp.cos(psi / 2), 0.0 * psi, 0.0 * psi, jnp.sin(psi / 2)]))
+        data = _physics(m, mjx.make_data(m).replace(qpos=qpos), SETTLE_STEPS)
+        qpos = data.qpos.at[0:2].set(qpos[0:2]).at[3:7].set(qpos[3:7]).at[7:].set(0.0)
+        with jax.numpy_rank_promotion("allow"):     # MJX relies on implicit rank promotion
+            data = mjx.forward(m, data.replace(qpos=qpos, qvel=jnp.zeros_like(data.qvel),
+                                               time=jnp.zeros_like(data.time)))
+        return MjxState(data, psi, mu, ms)
 
 
 def wheel_speeds(s: MjxState):

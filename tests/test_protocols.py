@@ -1,0 +1,113 @@
+"""Every part implements at most three methods of its own (issue 30, docs/build_your_own_loop.md).
+
+A *part* is a concrete class of the package that fills a role: a subclass of one of the role
+bases of :mod:`jaxnc.loop.base` (``AbstractPlant``, ``AbstractTrigger``, ``AbstractEstimator``,
+``AbstractController``, ``AbstractActuator``, ``AbstractMonitor``, ``AbstractLoss``,
+``AbstractDelay``, ``AbstractInitial``, and the declared capabilities there such as
+``AbstractWrappedPlant``), a limit (:class:`jaxnc.loop.AbstractLimit`) or a link
+(:class:`jaxnc.loop.Link`).
+
+A part *implements* a method when a public plain function (not a property, classmethod,
+staticmethod, dunder or ``__post_init__``) is defined in the ``__dict__`` of the class or
+of one of its bases outside :mod:`jaxnc.loop.base` (what the role bases give, defaults
+included, is not the part's). Every module of the package is imported first, so parts
+that a scheme or a tuning module defines are walked too.
+"""
+import importlib
+import inspect
+import pkgutil
+
+import pytest
+
+import jaxnc
+from jaxnc.loop import AbstractLimit, Link
+from jaxnc.loop import base
+
+MAX_METHODS = 3
+ROLE_BASES = tuple(c for c in vars(base).values()
+                   if inspect.isclass(c) and c.__module__ == base.__name__ and c.__name__.startswith("Abstract"))
+
+
+def _import_all():
+    for info in pkgutil.walk_packages(jaxnc.__path__, "jaxnc."):
+        try:
+            importlib.import_module(info.name)
+        except ImportError:        # an optional extra (MuJoCo) is missing: its parts are not walked
+            continue
+
+
+def _subclasses(cls):
+    for sub in cls.__subclasses__():
+        yield sub
+        yield from _subclasses(sub)
+
+
+def _parts():
+    _import_all()
+    found = {Link}
+    for root in (*ROLE_BASES, AbstractLimit):
+        found.update(c for c in _subclasses(root) if c.__module__.startswith("jaxnc.") and not inspect.isabstract(c))
+    return sorted(found, key=lambda c: f"{c.__module__}.{c.__qualname__}")
+
+
+def implemented(cls) -> set[str]:
+    """The public methods ``cls`` or a base outside :mod:`jaxnc.loop.base` defines."""
+    names = set()
+    for k in cls.__mro__:
+        if k is object or k.__module__ in (base.__name__, "abc") or k in ROLE_BASES:
+            continue
+        for name, v in vars(k).items():
+            if name.startswith("_") or isinstance(v, (property, classmethod, staticmethod)):
+                continue
+            if inspect.isfunction(v):
+                names.add(name)
+    return names
+
+
+PARTS = _parts()
+
+
+def test_the_walk_finds_the_parts():
+    """The walk reaches parts of every role, the wrappers and the package's own schemes'."""
+    names = {c.__name__ for c in PARTS}
+    assert {"LTI", "LimitedSensor", "Petc", "EKF", "StateFeedback", "PacketActuator", "Monitor", "Bernoulli",
+            "ShiftedExponential", "Quantizer", "Link", "Balancing", "DiffDrive", "ChainController"} <= names
+    assert len(PARTS) >= 50
+
+
+def test_the_definition_counts_what_a_class_writes():
+    """``implemented`` counts a part's own methods and an intermediate base's, not the role
+    base's defaults, nor properties, static methods or dunders."""
+    @base.pytree_dataclass
+    class Mid(base.AbstractTrigger):
+        def init(self, ctx):
+            return ()
+
+    @base.pytree_dataclass
+    class Part(Mid):
+        def step(self, state, s, k):
+            return state, 1.0
+
+        def extra(self):
+            return 0
+
+        @property
+        def prop(self):
+            return 0
+
+        @staticmethod
+        def helper():
+            return 0
+
+        def __post_init__(self):
+            pass
+
+    assert implemented(Part) == {"init", "step", "extra"}
+    wrapped = implemented(jaxnc.loop.LimitedSensor)
+    assert wrapped == {"measure"}, wrapped        # dynamics, init, state_vector and data: the wrapper base's
+
+
+@pytest.mark.parametrize("part", PARTS, ids=lambda c: f"{c.__module__}.{c.__qualname__}")
+def test_a_part_implements_at_most_three_methods(part):
+    methods = implemented(part)
+    assert len(methods) <= MAX_METHODS, f"{part.__qualname__} implements {sorted(methods)}"
