@@ -13,13 +13,32 @@ from jaxnc import loop as nc
 from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
 from jaxnc.estimators.nudrekf import (ChainActuator, ChainController, ChainEstimate, NudrekfEstimator, advance_chain,
-                                      exhausted_chain, predict_horizon, start_chain)
+                                      exhausted_chain, start_chain)
 from jaxnc.paths import get_path
 from jaxnc.plants.mecanum import PROCESS_NOISE_DIM, Mecanum
 
 
+def materialised_packet(model, controller, controller_next, mean, ctrl_state, steps, hold, noise_dim):
+    """Reference: the prediction stage of section 3.3.1 (steps 1-5, eq. 17) written out as
+    a Python loop, the packet materialised. The controller (``controller`` at position 0,
+    from the corrected estimate; ``controller_next`` after) runs every ``hold`` fast
+    periods and its action is held in between; the noise-free model moves one fast period
+    per action. Returns (actions[steps], controller states[steps + 1]) as lists, entry j of
+    the states being the one before position j's computation."""
+    w0 = jnp.zeros((noise_dim,), mean.dtype)
+    x, c, u = mean, ctrl_state, None
+    us, cs = [], [ctrl_state]
+    for j in range(steps):
+        if j % hold == 0:
+            u, c = (controller if j == 0 else controller_next)(x, c)
+        us.append(u)
+        cs.append(c)
+        x = model.dynamics(x, u, w0)
+    return jnp.stack(us), jax.tree.map(lambda *a: jnp.stack(a), *cs)
+
+
 @pytest.mark.parametrize("hold", [1, 3])
-def test_chain_reproduces_predict_horizon(hold):
+def test_chain_reproduces_the_materialised_packet(hold):
     plant, fol = Mecanum(), PathFollower(get_path("lissajous"))
     Ts = plant.T * hold
     ctrl = lambda m, c: fol(plant, m, c, Ts)
@@ -30,7 +49,7 @@ def test_chain_reproduces_predict_horizon(hold):
 
     @jax.jit
     def both():
-        _, us, cs = predict_horizon(plant, ctrl, mean, c0, H, hold, PROCESS_NOISE_DIM, nxt)
+        us, cs = materialised_packet(plant, ctrl, nxt, mean, c0, H, hold, PROCESS_NOISE_DIM)
 
         def body(ch, _):
             return advance_chain(plant, nxt, ch, H, hold, PROCESS_NOISE_DIM), (ch.u, ch.c_before)

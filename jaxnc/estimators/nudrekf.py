@@ -45,42 +45,6 @@ def nudrekf_correct(model, belief: Gaussian, z, R, *, jacobian_grad: bool = True
     return ekf_update(model.measure, belief, z, R, z.shape[0])
 
 
-def predict_horizon(model, controller: Callable, mean, ctrl_state, steps: int, hold: int = 1, noise_dim: int = 0,
-                    controller_next: Callable | None = None):
-    """Prediction stage of section 3.3.1 (steps 1-5), eq. (17).
-
-    Starting from the corrected estimate, evaluate ``controller(mean, ctrl_state) ->
-    (u, ctrl_state)`` and iterate the noise-free model ``steps`` times. The controller
-    runs every ``hold`` fast periods and its action is held in between (``hold = N``
-    gives a single-rate controller at period NT; ``hold = 1`` the dual-rate one).
-
-    ``controller_next``, if given, replaces ``controller`` after the first step: along
-    the noise-free prediction the controller can use cheaper searches (e.g. a narrow
-    path window), while the first step starts from a corrected estimate.
-
-    Returns ``(means[steps + 1], actions[steps], ctrl_states)`` where ``ctrl_states``
-    has a leading axis of ``steps + 1``: entry j is the controller state at time k + j.
-    """
-    w0 = jnp.zeros((noise_dim,), mean.dtype)
-    nxt = controller if controller_next is None else controller_next
-    u_spec = jax.eval_shape(controller, mean, ctrl_state)[0]
-
-    def body(carry, j):
-        x, c, u_prev = carry
-        u_new, c_new = jax.lax.cond(j == 0, controller, nxt, x, c) if nxt is not controller else controller(x, c)
-        run = (j % hold) == 0
-        u = jnp.where(run, u_new, u_prev)
-        c = jax.tree.map(lambda a, b: jnp.where(run, a, b), c_new, c)
-        x_next = model.dynamics(x, u, w0)
-        return (x_next, c, u), (x_next, u, c)
-
-    u_init = jnp.zeros(u_spec.shape, u_spec.dtype)
-    _, (xs, us, cs) = jax.lax.scan(body, (mean, ctrl_state, u_init), jnp.arange(steps))
-    means = jnp.concatenate([mean[None], xs], axis=0)
-    ctrl_states = jax.tree.map(lambda a0, a: jnp.concatenate([a0[None], a], axis=0), ctrl_state, cs)
-    return means, us, ctrl_states
-
-
 class PacketChain(NamedTuple):
     """A control packet of section 3.3.1, represented by its prediction chain.
 
@@ -93,8 +57,7 @@ class PacketChain(NamedTuple):
 
     ``j`` is the position (fast instant minus the packet's time stamp); ``x`` the
     predicted state and ``u`` the packet's action at that position; ``c_before`` the
-    controller state at the instant (before computing ``u``, entry j of
-    ``predict_horizon``'s ``ctrl_states``) and ``c_after`` after it.
+    controller state at the instant (before computing ``u``) and ``c_after`` after it.
     """
 
     x: jax.Array
@@ -122,7 +85,9 @@ def advance_chain(model, controller_next: Callable, chain: PacketChain, horizon:
     The model is iterated noise-free along the packet's action; the controller runs when
     the new position is a multiple of ``hold`` and below ``horizon`` (= h*N); past the
     horizon the packet's last action is held (section 2.4). Advancing ``start_chain``
-    j times gives entry j of :func:`predict_horizon` (a test checks this).
+    j times gives the packet's action and controller state at position j of the
+    prediction stage, eq. (17) (``tests/test_nudrekf.py`` checks it against a
+    materialised packet written there as a reference).
     """
     w0 = jnp.zeros((noise_dim,), chain.x.dtype)
     x = model.dynamics(chain.x, chain.u, w0)
