@@ -92,27 +92,3 @@ def test_tables_validation():
         numre.numre_tables(np.eye(2), np.ones(2), np.ones(2), 1.0, 1.0, 0)
     with pytest.raises(ValueError, match="we_form"):
         numre.numre_tables(np.eye(2), np.ones(2), np.ones(2), 1.0, 1.0, 2, we_form="x")
-
-
-def test_cascade_is_eq14_15():
-    """The cascade iterates x <- A x + B u with u from a stateful law, and returns the law's
-    state *before* each action (closed form by a Python loop)."""
-    A = np.array([[1.0, 0.1], [0.0, 0.9]])
-    B = np.array([0.0, 0.5])
-    K = np.array([0.4, -0.3])
-    x0 = np.array([0.3, -0.1])
-
-    def law(s, k, x):
-        u = -(jnp.asarray(K) @ x) + s
-        return u, s + 0.5 * k, 10.0 * k
-
-    with jax.enable_x64(True):
-        us, ss, aux = jax.jit(lambda x0, s0, k: numre.cascade(law, jnp.asarray(A), jnp.asarray(B), x0, s0, k, 5))(
-            jnp.asarray(x0), jnp.asarray(0.2), jnp.asarray(3))
-    x, s = x0.copy(), 0.2
-    for l in range(5):
-        assert float(ss[l]) == pytest.approx(s, abs=1e-15)
-        assert float(aux[l]) == 10.0 * (3 + l)
-        u = -(K @ x) + s
-        assert float(us[l]) == pytest.approx(u, abs=1e-14)
-        x, s = A @ x + B * u, s + 0.5 * (3 + l)

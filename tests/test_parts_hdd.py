@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import jaxnc.loop as jl
+from jaxnc.loop.cascade import cascade
 from jaxnc.plants import hdd as hdd_plant
 
 A2 = np.array([[1.0, 0.1], [0.0, 0.95]])
@@ -70,6 +71,30 @@ class _Feedback:
 
     def step(self, s, k, x):
         return -(self.K @ x) + s, s + self.g * (1.0 - x[0]), k
+
+
+def test_cascade_is_eq14_15():
+    """The cascade iterates x <- A x + B u with u from a stateful law, and returns the law's
+    state *before* each action (closed form by a Python loop)."""
+    A = np.array([[1.0, 0.1], [0.0, 0.9]])
+    B = np.array([0.0, 0.5])
+    K = np.array([0.4, -0.3])
+    x0 = np.array([0.3, -0.1])
+
+    def law(s, k, x):
+        u = -(jnp.asarray(K) @ x) + s
+        return u, s + 0.5 * k, 10.0 * k
+
+    with jax.enable_x64(True):
+        us, ss, aux = jax.jit(lambda x0, s0, k: cascade(law, jnp.asarray(A), jnp.asarray(B), x0, s0, k, 5))(
+            jnp.asarray(x0), jnp.asarray(0.2), jnp.asarray(3))
+    x, s = x0.copy(), 0.2
+    for l in range(5):
+        assert float(ss[l]) == pytest.approx(s, abs=1e-15)
+        assert float(aux[l]) == 10.0 * (3 + l)
+        u = -(K @ x) + s
+        assert float(us[l]) == pytest.approx(u, abs=1e-14)
+        x, s = A @ x + B * u, s + 0.5 * (3 + l)
 
 
 def test_cascade_packet_is_the_closed_loop_prediction():

@@ -13,7 +13,8 @@ sum_c A^c Bw W Bw^T (A^c)^T (``we_form="white"``, default); eq. (13) as printed,
 periods (``we_form="eq13"``). Both agree for N = 1.
 
 Tables of A^N and We(N) for N = 1..n_max are built once (numpy, float64) so that a
-traced N just indexes them. :func:`cascade` is the h-step prediction of eq. (14)-(15).
+traced N just indexes them. The h-step prediction of eq. (14)-(15) is the controller
+:class:`jaxnc.loop.Cascade` (on :func:`jaxnc.controllers.prediction.predict_periods`).
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ import numpy as np
 from jaxnc._validate import check_int
 
 __all__ = ["NumreTables", "numre_tables", "numre_gain", "numre_correct", "numre_steady_gain",
-           "NumreBelief", "predict", "cascade"]
+           "NumreBelief", "predict"]
 
 WE_FORMS = ("white", "eq13")
 
@@ -115,28 +116,3 @@ def predict(A, B, x, us):
         return xn, xn
     _, xs = jax.lax.scan(step, x, us)
     return jnp.concatenate([x[None], xs], axis=0)
-
-
-def cascade(law, A, B, x0, s0, k, length: int):
-    """Eq. (14)-(15): the prediction cascade x(k+l+1|k) = A x(k+l|k) + B u_{k+l}, with
-    u_{k+l} from a stateful law, for l = 0..length-1.
-
-    Args:
-      law: ``law(s, k_l, x) -> (u, s_next, aux)``: the control law at instant k_l from the
-        predicted state x float[n] and its own state s (a pytree); u a scalar.
-      A: float[n, n]; B: float[n], the (single-input) prediction model.
-      x0: float[n], x(k|k); s0: the law's state at k; k: int32 instant of x0.
-      length: static, the number of actions (h + 1 for the horizon h of eq. 14).
-
-    Returns:
-      (us float[length], ss, aux): the actions u_k..u_{k+length-1}, the law's states at
-      k..k+length-1 (leading axis length; ``ss[l]`` is the state *before* the action at
-      k + l), and the law's ``aux`` outputs (leading axis length).
-    """
-    def body(c, l):
-        x, s = c
-        u, s_next, aux = law(s, k + l, x)
-        return (A @ x + B * u, s_next), (u, s, aux)
-
-    _, (us, ss, aux) = jax.lax.scan(body, (x0, s0), jnp.arange(length))
-    return us, ss, aux

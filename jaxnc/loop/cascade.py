@@ -28,12 +28,12 @@ import jax
 import jax.numpy as jnp
 
 from jaxnc._validate import check_int
-from jaxnc.estimators.numre import cascade
+from jaxnc.controllers.prediction import predict_periods
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
-__all__ = ["Cascade", "CascadeState"]
+__all__ = ["Cascade", "CascadeState", "cascade"]
 
 
 class CascadeState(NamedTuple):
@@ -94,3 +94,30 @@ class Cascade(AbstractController):
         kept = state._replace(gap=jnp.zeros((), jnp.int32))
         return (blend(fresh, new, kept), Packet(us[:H, None], (k * ctx.N).astype(jnp.int32)),
                 jnp.asarray(fresh, jnp.float32))
+
+
+def cascade(law, A, B, x0, s0, k, length: int):
+    """Eq. (14)-(15): the prediction cascade x(k+l+1|k) = A x(k+l|k) + B u_{k+l}, with
+    u_{k+l} from the stateful ``law``, for l = 0..length-1 (one open-loop prediction,
+    :func:`jaxnc.controllers.prediction.predict_periods`).
+
+    Args:
+      law: ``law(s, k_l, x) -> (u, s_next, aux)``: the control law at instant k_l from the
+        predicted state x float[n] and its own state s (a pytree); u a scalar.
+      A: float[n, n]; B: float[n], the (single-input) prediction model.
+      x0: float[n], x(k|k); s0: the law's state at k; k: int32 instant of x0.
+      length: static, the number of actions (H + 1 for a packet of H actions).
+
+    Returns:
+      (us float[length], ss, aux): the actions u_k..u_{k+length-1}, the law's states at
+      k..k+length-1 (leading axis length; ``ss[l]`` is the state *before* the action at
+      k + l), and the law's ``aux`` outputs (leading axis length).
+    """
+    def step(c, x):
+        s, kl = c
+        u, s_next, aux = law(s, kl, x)
+        return (u, s, aux), (s_next, kl + 1)
+
+    _, (us, ss, aux), _, _ = predict_periods(step, lambda x, U, w: A @ x + B * U[0], x0,
+                                             (s0, jnp.asarray(k, jnp.int32)), length, 0)
+    return us, ss, aux
