@@ -38,11 +38,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import jax.scipy.linalg as jsl
 
 from jaxnc._validate import check_nonneg, check_positive, check_range
-from jaxnc.estimators.ekf import Gaussian, ekf_predict
-from jaxnc.loop.triggers import petc_gap
+from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update_terms
+from jaxnc.loop.triggers import PetcState, petc_decide
 
 __all__ = [
     "FilterRecord", "estimator_pass", "trajectory_inputs", "mecanum_pass", "Bounds", "measure_bounds", "worst_case",
@@ -91,23 +90,6 @@ def trajectory_inputs(traj):
     return xs, us, moving
 
 
-def _correction(model, belief: Gaussian, z, R):
-    """Eq. (13)-(16), Joseph form; also returns H, M and the gain K."""
-    n, m = belief.mean.shape[0], z.shape[0]
-    v0 = jnp.zeros((m,), belief.mean.dtype)
-    zhat = model.measure(belief.mean, v0)
-    H = jax.jacfwd(model.measure, argnums=0)(belief.mean, v0)
-    M = jax.jacfwd(model.measure, argnums=1)(belief.mean, v0)
-    Rm = M @ R @ M.T
-    PHt = belief.cov @ H.T
-    S = H @ PHt + Rm
-    K = jsl.cho_solve(jsl.cho_factor(S, lower=True), PHt.T).T      # eq. (15)
-    mean = belief.mean + K @ (z - zhat)
-    IKH = jnp.eye(n, dtype=belief.cov.dtype) - K @ H
-    cov = IKH @ belief.cov @ IKH.T + K @ Rm @ K.T
-    return Gaussian(mean, 0.5 * (cov + cov.T)), H, M, K
-
-
 def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) -> FilterRecord:
     """EKF/NUDREKF along a given true trajectory, recording Theorem 1's quantities.
 
@@ -115,8 +97,10 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
     states with ``xs[k+1] = f(xs[k], us[k], w_k)``; ``us`` [K, p] the applied inputs
     (known to the filter, as in eq. 11). Every N fast steps the sensor samples
     z_k = h(xs[k]) + v_k with ``v_k ~ N(0, diag(v_std^2))``; the packet is lost with
-    probability ``dp`` (eq. 5) and, with a PETC trigger, only sent when eq. (4) holds
-    (the first sample is always sent). The filter corrects (eq. 13) when the sample is
+    probability ``dp`` (eq. 5) and, with a PETC ``trigger`` (a :class:`jaxnc.loop.Petc`), only
+    sent when its decision on eq. (4) fires (:func:`jaxnc.loop.triggers.petc_decide` against
+    the last sample sent, evaluated every fast step and recorded as ``gamma``; the first
+    sample is always sent; no silence counter is kept, so ``max_silence`` > 1 is not applied). The filter corrects (eq. 13) when the sample is
     sent and arrives, and predicts (eq. 11) every fast step with ``Q`` and ``R`` (the
     covariances it assumes). The initial estimate is xs[0] + e0 with e0 ~ N(0, P0).
 
@@ -146,10 +130,11 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
         if trigger is None:
             g = jnp.ones((), bool)
         else:
-            g = (k == 0) | (petc_gap(z_last, z, trigger.sigma, trigger.delta, trigger.reading) > 0)
+            # the Petc's own decision against the last sample sent (k = 0 always sends)
+            g = petc_decide(trigger, PetcState(z_last, jnp.zeros((), jnp.int32)), z, k) > 0.5
         sent = slow_k & g
         z_last = jnp.where(sent, z, z_last)
-        corrected, H, M, K = _correction(model, belief, z, R)
+        corrected, H, M, K = ekf_update_terms(model.measure, belief, z, R, m)
         upd = sent & arr_k
         post = jax.tree.map(lambda a, b: jnp.where(upd, a, b), corrected, belief)
         w0 = jnp.zeros((wdim,), dtype)

@@ -10,7 +10,7 @@ import pytest
 from scipy.linalg import solve_discrete_are
 
 from jaxnc import stability as st
-from jaxnc.estimators.ekf import Gaussian, ekf_update
+from jaxnc.estimators.ekf import Gaussian, ekf_update, ekf_update_terms
 from jaxnc.plants.mecanum import Mecanum, MecanumNoise
 
 SINOPOLI_A = np.array([[1.25, 1.0, 0.0], [0.0, 0.9, 7.0], [0.0, 0.0, 0.6]])   # Sinopoli et al. 2004, example
@@ -34,15 +34,20 @@ class Scalar:
         return self.c * x + self.m * v
 
 
-def test_correction_matches_ekf_update():
+def test_update_terms_are_the_update_and_its_jacobians():
+    """ekf_update_terms (the correction estimator_pass records): its posterior is
+    ekf_update's, H and M are the measurement's Jacobians at the prior mean, and K solves
+    eq. (15), K (H P H' + M R M') = P H'."""
     plant, noise = Mecanum(), MecanumNoise()
     x = jnp.array([0.1, -0.05, 0.2, 0.7, -0.4, 0.3])
     P = jnp.diag(jnp.array([1e-2, 2e-2, 1e-2, 3e-2, 2e-2, 1e-2]))
     z = plant.measure(x + 0.01, jnp.zeros(9))
-    b, H, M, K = jax.jit(lambda b, z: st._correction(plant, b, z, noise.R()))(Gaussian(x, P), z)
-    ref = ekf_update(plant.measure, Gaussian(x, P), z, noise.R(), 9)
-    np.testing.assert_allclose(b.mean, ref.mean, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(b.cov, ref.cov, rtol=1e-4, atol=1e-8)
+    b, H, M, K = jax.jit(lambda b, z: ekf_update_terms(plant.measure, b, z, noise.R(), 9))(Gaussian(x, P), z)
+    ref = jax.jit(lambda b, z: ekf_update(plant.measure, b, z, noise.R(), 9))(Gaussian(x, P), z)
+    np.testing.assert_array_equal(b.mean, ref.mean)
+    np.testing.assert_array_equal(b.cov, ref.cov)
+    np.testing.assert_allclose(H, jax.jacfwd(plant.measure, argnums=0)(x, jnp.zeros(9)), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(M, jax.jacfwd(plant.measure, argnums=1)(x, jnp.zeros(9)), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(K @ (H @ P @ H.T + M @ noise.R() @ M.T), P @ H.T, rtol=1e-3, atol=1e-6)
 
 
@@ -88,6 +93,31 @@ def test_scalar_pass_bounds_by_hand():
         assert float(b.p_lo) == pytest.approx(min(post), rel=1e-10)
         assert float(b.p_hi) == pytest.approx(max(pred), rel=1e-10)
         assert float(b.p_order) >= 0.0
+
+
+def test_pass_with_petc_sends_when_eq4_holds():
+    """With a Petc trigger the pass sends a sample (slow instant k, k mod N = 0) when the
+    PETC condition (eq. 4) against the last sample sent holds, and always at k = 0: gamma
+    equals a Python loop over the noise-free measurements."""
+    from jaxnc.loop import Petc
+    mod, N, Kn, sigma, delta = Scalar(), 2, 400, 0.3, 0.5
+    rng = np.random.default_rng(1)
+    us = rng.normal(size=(Kn, 1)).astype(np.float32)
+    xs = np.zeros((Kn + 1, 1), np.float32)
+    for k in range(Kn):
+        xs[k + 1] = 0.5 * xs[k] + us[k]
+    trig = Petc(sigma=sigma, delta=delta)
+    rec = jax.jit(lambda key: st.estimator_pass(mod, xs, us, key, N=N, dp=0.0, Q=[[0.3]], R=[[0.2]], v_std=[0.0],
+                                                P0=[[0.5]], trigger=trig))(jax.random.PRNGKey(0))
+    z = mod.c * xs[:-1, 0]
+    last, ref = z[0], []
+    for k in range(Kn):
+        g = k == 0 or (last - z[k]) ** 2 - (sigma * z[k] ** 2 + delta) > 0
+        sent = g and k % N == 0
+        last = z[k] if sent else last
+        ref.append(sent)
+    np.testing.assert_array_equal(np.asarray(rec.gamma), ref)
+    assert 0.2 < np.mean(ref[::N]) < 0.9                   # the condition does decide
 
 
 def _bounds(**kw):

@@ -229,6 +229,18 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     ``R`` is the covariance of the measurement noise v, (noise_dim, noise_dim); ValueError
     (at trace time) for another shape, a ``noise_dim`` that is not an integer >= 1, a ``z``
     not shaped like h(x, v), or a concrete R that is not positive definite."""
+    return ekf_update_terms(h, belief, z, R, noise_dim)[0]
+
+
+def ekf_update_terms(h: Callable, belief: Gaussian, z, R, noise_dim: int):
+    """:func:`ekf_update` and the terms of its eq. (13)-(16) (e.g. for Theorem 1's bounds,
+    :func:`jaxnc.stability.estimator_pass`).
+
+    Returns:
+      (posterior :class:`Gaussian`, H float[p, n] = dh/dx, M float[p, noise_dim] = dh/dv,
+      K float[n, p] the gain of eq. (15)), all at the prior mean.
+    Raises: as :func:`ekf_update`.
+    """
     noise_dim = _noise_dim("ekf_update", noise_dim)
     _check_cov("ekf_update", "R", R, noise_dim, form="matrix", definite=True)
     _check_z("ekf_update", h, belief.mean, z, noise_dim)
@@ -243,7 +255,7 @@ def ekf_update(h: Callable, belief: Gaussian, z, R, noise_dim: int) -> Gaussian:
     mean = belief.mean + jnp.sum(K * (z - zhat)[None, :], axis=1)
     IKH = jnp.eye(belief.mean.shape[0], dtype=belief.cov.dtype) - _mm(K, H)
     cov = _mm(_mm(IKH, belief.cov), IKH.T) + _mm(_mm(K, Rm), K.T)
-    return Gaussian(mean, _symmetrize(cov))
+    return Gaussian(mean, _symmetrize(cov)), H, M, K
 
 
 def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jacobian_grad: bool = True,
