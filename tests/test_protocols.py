@@ -111,3 +111,73 @@ def test_the_definition_counts_what_a_class_writes():
 def test_a_part_implements_at_most_three_methods(part):
     methods = implemented(part)
     assert len(methods) <= MAX_METHODS, f"{part.__qualname__} implements {sorted(methods)}"
+
+
+def test_a_wrapped_plant_is_its_inner_plant_except_where_it_overrides():
+    """LimitedSensor writes only ``measure``: its dynamics, random start, state vector and
+    declared data are the inner plant's (AbstractWrappedPlant), its measurement is limited."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jaxnc import loop as nc
+
+    inner = nc.LTI(A=[[0.9, 0.1], [0.0, 0.8]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[1.0, -1.0],
+                   x0_std=[0.3, 0.2], w_std=[0.1, 0.2], v_std=[0.05])
+    wrapped = nc.LimitedSensor(inner, nc.Quantizer(0.25))
+    key = jax.random.PRNGKey(7)
+    x0 = wrapped.init(key)
+    np.testing.assert_array_equal(x0, inner.init(key))
+    assert not np.allclose(x0, inner.x0)                       # x0_std is the inner plant's: a random start
+    x, u, w = jnp.asarray([0.3, -0.2]), jnp.asarray([0.5]), jnp.asarray([0.1, -0.1])
+    np.testing.assert_array_equal(wrapped.dynamics(x, u, w), inner.dynamics(x, u, w))
+    np.testing.assert_array_equal(wrapped.state_vector(x), inner.state_vector(x))
+    for name in ("state_dim", "input_dim", "noise_dim", "output_dim", "w_std", "v_std", "x0", "x0_std",
+                 "step_period", "noise_period"):
+        np.testing.assert_array_equal(np.asarray(getattr(wrapped, name)), np.asarray(getattr(inner, name)), name)
+    z = wrapped.measure(jnp.asarray([0.37, 0.0]), jnp.zeros(1))
+    assert float(z[0]) == 0.25 and float(inner.measure(jnp.asarray([0.37, 0.0]), jnp.zeros(1))[0]) != 0.25
+
+
+def test_a_declared_initial_distribution_is_sampled_by_the_default_init():
+    """A plant whose declared ``x0`` is an AbstractInitial starts from ``x0.sample(key)``
+    (any pytree), through the plant protocol's default ``init``."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from typing import NamedTuple
+
+    class Start(NamedTuple):
+        pos: jax.Array
+        mass: jax.Array
+
+    @base.pytree_dataclass
+    class Uniform(base.AbstractInitial):
+        low: float = 1.0
+        high: float = 2.0
+
+        def sample(self, key):
+            return Start(jnp.zeros(2), jax.random.uniform(key, (), jnp.float32, self.low, self.high))
+
+    @base.pytree_dataclass
+    class Cart(base.AbstractPlant):
+        state_dim, input_dim, noise_dim, output_dim = 2, 1, 1, 1
+        w_std, v_std = np.zeros(1, np.float32), np.zeros(1, np.float32)
+
+        @property
+        def x0(self):
+            return Uniform()
+
+        def dynamics(self, x, u, w):
+            return x._replace(pos=x.pos + u / x.mass)
+
+        def measure(self, x, v):
+            return x.pos[:1] + v
+
+        def state_vector(self, x):
+            return x.pos
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 32)
+    s = jax.vmap(Cart().init)(keys)
+    m = np.asarray(s.mass)
+    assert isinstance(s, Start) and m.min() >= 1.0 and m.max() <= 2.0 and m.std() > 0.1
+    np.testing.assert_array_equal(np.asarray(s.pos), 0.0)
