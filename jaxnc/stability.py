@@ -41,6 +41,7 @@ import numpy as np
 
 from jaxnc._validate import check_nonneg, check_positive, check_range
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update_terms
+from jaxnc.loop.links import Bernoulli
 from jaxnc.loop.triggers import PetcState, petc_decide
 
 __all__ = [
@@ -97,17 +98,19 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
     states with ``xs[k+1] = f(xs[k], us[k], w_k)``; ``us`` [K, p] the applied inputs
     (known to the filter, as in eq. 11). Every N fast steps the sensor samples
     z_k = h(xs[k]) + v_k with ``v_k ~ N(0, diag(v_std^2))``; the packet is lost with
-    probability ``dp`` (eq. 5) and, with a PETC ``trigger`` (a :class:`jaxnc.loop.Petc`), only
-    sent when its decision on eq. (4) fires (:func:`jaxnc.loop.triggers.petc_decide` against
-    the last sample sent, evaluated every fast step and recorded as ``gamma``; the first
-    sample is always sent; no silence counter is kept, so ``max_silence`` > 1 is not applied). The filter corrects (eq. 13) when the sample is
-    sent and arrives, and predicts (eq. 11) every fast step with ``Q`` and ``R`` (the
-    covariances it assumes). The initial estimate is xs[0] + e0 with e0 ~ N(0, P0).
+    probability ``dp`` in [0, 1) (eq. 5, :class:`jaxnc.loop.Bernoulli`) and, with a PETC
+    ``trigger`` (a :class:`jaxnc.loop.Petc`), only sent when its decision on eq. (4) fires
+    (:func:`jaxnc.loop.triggers.petc_decide` against the last sample sent, evaluated every
+    fast step and recorded as ``gamma``; the first sample is always sent; no silence
+    counter is kept, so a ``max_silence`` > 1 is not applied). The filter corrects (eq. 13)
+    when the sample is sent and arrives, and predicts (eq. 11) every fast step with ``Q``
+    and ``R`` (the covariances it assumes). The initial estimate is xs[0] + e0 with
+    e0 ~ N(0, P0).
 
     N and dp may be traced (one compilation serves a whole grid). Randomness: key is
     split into (initial error, measurement noise, losses).
     """
-    check_range("estimator_pass.dp", dp, 0.0, 1.0)
+    check_range("estimator_pass.dp", dp, 0.0, 1.0, high_open=True)
     check_range("estimator_pass.N", N, 1, None)
     xs, us = jnp.asarray(xs), jnp.asarray(us)
     dtype = xs.dtype
@@ -118,7 +121,7 @@ def estimator_pass(model, xs, us, key, *, N, dp, Q, R, v_std, P0, trigger=None) 
     k0, kv, kl = jax.random.split(key, 3)
     e0 = jnp.linalg.cholesky(P0) @ jax.random.normal(k0, (n,), dtype)
     v = jax.random.normal(kv, (Kn, m), dtype) * v_std[None, :]
-    lost = jax.random.uniform(kl, (Kn,)) < dp
+    lost = Bernoulli(dp).sample(kl, Kn)              # the links' loss model, seed 000 eq. (5)
     ks = jnp.arange(Kn)
     slow = (ks % N) == 0
     arrived = slow & ~lost
