@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -174,6 +176,16 @@ def run_seed_positions(key, loop):
     return mec.metrics(loop, traj), traj.parts["plant"]
 
 
+def structures(args: dict) -> dict:
+    """Names of ``args`` (name -> pytree of NumPy arrays) grouped by compiled-program
+    structure: equal tree structure, leaf shapes and dtypes; groups and names in order."""
+    groups = {}
+    for name, tree in args.items():
+        leaves, treedef = jax.tree.flatten(tree)
+        groups.setdefault((treedef, tuple((np.shape(x), np.asarray(x).dtype) for x in leaves)), []).append(name)
+    return groups
+
+
 def path_drawn(loop: nc.Loop, after, l) -> np.ndarray:
     """float[l, 2]: the robot's positions at the start of fast periods 0 .. l-1 (the figure's
     path up to completion), from ``after`` [K, 2], its positions after each fast period; the
@@ -228,13 +240,31 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     # the figure's seed-0 paths come from the main run while every seed's fit the budget
     record_paths = seeds * max(l.steps for l in loops.values()) * 2 * 4 <= POSITION_BUDGET
+    fn = run_seed_positions if record_paths else run_seed
+    args = {name: uniform_dtypes(with_positions(loop) if record_paths else loop) for name, loop in loops.items()}
+
+    def run_group(names):
+        # the configuration is a runtime argument: the loops of one structure share a compilation
+        out_ = {}
+        for name in names:
+            loop = loops[name]
+            out_[name] = montecarlo.run_batched(
+                fn, keys, args=(args[name],), progress=progress, chunk_size=min(256, seeds),
+                desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
+        return out_
+
+    # loops of different structures (nominal SR at N = 1, the cases at N) run in threads:
+    # their programs compile at the same time, each on a core (one thread with several
+    # processes, whose gathers must come in the same order on every process)
+    groups = list(structures(args).values())
+    workers = 1 if jax.process_count() > 1 else max(1, min(len(groups), os.cpu_count() or 1))
+    done = {}
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for part in pool.map(run_group, groups):
+            done.update(part)
     results, paths = {}, {}
     for name, loop in loops.items():
-        # the configuration is a runtime argument: the cases of one N share a compilation
-        fn, arg = (run_seed_positions, with_positions(loop)) if record_paths else (run_seed, loop)
-        out_ = montecarlo.run_batched(
-            fn, keys, args=(uniform_dtypes(arg),), progress=progress, chunk_size=min(256, seeds),
-            desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
+        out_ = done[name]
         if record_paths:
             out_, after = out_
             paths[name] = (path_drawn(loop, after[0], out_.l[0]), bool(out_.unstable[0]))

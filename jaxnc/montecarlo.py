@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import functools
 import io
 import json
 import math
@@ -25,6 +26,7 @@ import pathlib
 import platform as _platform
 import sys
 import tempfile
+import threading
 import weakref
 from typing import Any, Callable
 
@@ -112,8 +114,14 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
     if start + n > 2**32:
         raise ValueError(f"seed_keys: seed indices must fit in uint32, got start+n={start + n}")
     check_seed_memory(n, KEY_BYTES, what="seed_keys: the keys of")
+    return _seed_keys(np.uint32(seed), np.uint32(start), n)
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _seed_keys(seed, start, n: int):
+    """seed_keys' keys as one compiled program per ``n`` (seed and start are arguments)."""
     base = jax.random.PRNGKey(seed)
-    idx = jnp.arange(start, start + n, dtype=jnp.uint32)
+    idx = start + jnp.arange(n, dtype=jnp.uint32)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
 
 
@@ -150,9 +158,17 @@ def chunk_lanes(chunk_size: int, n: int, out_bytes: int, devices: int = 1) -> in
 # and everything it closes over can be freed; the compiled wrapper reaches fn only through
 # a weak reference, otherwise the value would keep its own key alive.
 _COMPILED: "weakref.WeakKeyDictionary[Callable, Callable]" = weakref.WeakKeyDictionary()
+# run_batched may be called from several threads (e.g. configurations of different
+# structures compiled at once): one wrapper per fn, so no structure is compiled twice
+_COMPILED_LOCK = threading.Lock()
 
 
 def _compiled(fn: Callable) -> Callable:
+    with _COMPILED_LOCK:
+        return _compiled_locked(fn)
+
+
+def _compiled_locked(fn: Callable) -> Callable:
     try:
         ref = weakref.ref(fn)
         return _COMPILED[fn]

@@ -160,8 +160,9 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     hold = np.int32(N if single else 1)                  # fast periods each action of a packet is held
     # the remote side and the actuator, built as one block (the sender's packet copy lives here)
     estimator = NudrekfEstimator(
-        model=plant, Q=filter_noise.process_std() ** 2, R=filter_noise.measurement_std() ** 2, mean0=x0,
-        cov0=jnp.diag(jnp.asarray(P0_STD, jnp.float32) ** 2), noise_dim=PROCESS_NOISE_DIM,
+        model=plant, Q=np.square(np.asarray(filter_noise.process_std())),
+        R=np.square(np.asarray(filter_noise.measurement_std())), mean0=x0,
+        cov0=np.diag(np.square(np.asarray(P0_STD, np.float32))), noise_dim=PROCESS_NOISE_DIM,
         jacobian_grad=bool(jacobian_grad), structure=ekf_structure(plant) if sparse else None)
     actuator = ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
     controller = ChainController(actuator)               # keeps its copy of the packets it sent
