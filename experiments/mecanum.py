@@ -276,7 +276,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
     per_seed.save_per_seed(out, results, dims=("case",), experiment="mecanum")
-    fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)",
+    fig = plot_paths(loops, None if paths else keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)",
                      paths=paths or None)
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,

@@ -131,9 +131,10 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     filter_noise = MecanumNoise(omega=FILTER_OMEGA_STD) if filter_noise is None else filter_noise
     p = path if isinstance(path, Path) else get_path(path)
     follower = PathFollower(path=p, **(follower_kw or {}))
+    length = float(np.asarray(p.s)[-1])                  # p.length, read on the host
     T = float(plant.T)
     if h is None:
-        h = default_h(case, N, float(dp), math.ceil(float(p.length) / float(follower.V_ref) / (N * T)))
+        h = default_h(case, N, float(dp), math.ceil(length / float(follower.V_ref) / (N * T)))
     check_int("h", h, 1, 1000)
     check_int("max_silence", max_silence, 0, 100_000)
     for name, v in (("sigma", sigma), ("delta", delta)):
@@ -148,9 +149,9 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         check_range("tau_max", tau_max, 0.0, N * T * (1 + 1e-6), low_open=True)
     if truth is not None and abs(float(truth.T) - T) > 1e-9:
         raise ValueError(f"truth must have the model's period T={T}, got {truth.T}")
-    horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0 if horizon_s is None else horizon_s
+    horizon_s = 1.6 * length / float(follower.V_ref) + 10.0 if horizon_s is None else horizon_s
     steps = N * math.ceil(horizon_s / (N * T))
-    x0 = np.concatenate([np.zeros(3), np.asarray(p.points[0]), np.zeros(1)]).astype(np.float32)   # at rest
+    x0 = np.concatenate([np.zeros(3), np.asarray(p.points)[0], np.zeros(1)]).astype(np.float32)   # at rest
     if truth is None:
         robot = dataclasses.replace(plant, x0=x0, noise=noise)
     else:
