@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -176,16 +174,6 @@ def run_seed_positions(key, loop):
     return mec.metrics(loop, traj), traj.parts["plant"]
 
 
-def structures(args: dict) -> dict:
-    """Names of ``args`` (name -> pytree of NumPy arrays) grouped by compiled-program
-    structure: equal tree structure, leaf shapes and dtypes; groups and names in order."""
-    groups = {}
-    for name, tree in args.items():
-        leaves, treedef = jax.tree.flatten(tree)
-        groups.setdefault((treedef, tuple((np.shape(x), np.asarray(x).dtype) for x in leaves)), []).append(name)
-    return groups
-
-
 def path_drawn(loop: nc.Loop, after, l) -> np.ndarray:
     """float[l, 2]: the robot's positions at the start of fast periods 0 .. l-1 (the figure's
     path up to completion), from ``after`` [K, 2], its positions after each fast period; the
@@ -241,30 +229,13 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     # the figure's seed-0 paths come from the main run while every seed's fit the budget
     record_paths = seeds * max(l.steps for l in loops.values()) * 2 * 4 <= POSITION_BUDGET
     fn = run_seed_positions if record_paths else run_seed
-    args = {name: uniform_dtypes(with_positions(loop) if record_paths else loop) for name, loop in loops.items()}
-
-    def run_group(names):
-        # the configuration is a runtime argument: the loops of one structure share a compilation
-        out_ = {}
-        for name in names:
-            loop = loops[name]
-            out_[name] = montecarlo.run_batched(
-                fn, keys, args=(args[name],), progress=progress, chunk_size=min(256, seeds),
-                desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
-        return out_
-
-    # loops of different structures (nominal SR at N = 1, the cases at N) run in threads:
-    # their programs compile at the same time, each on a core (one thread with several
-    # processes, whose gathers must come in the same order on every process)
-    groups = list(structures(args).values())
-    workers = 1 if jax.process_count() > 1 else max(1, min(len(groups), os.cpu_count() or 1))
-    done = {}
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for part in pool.map(run_group, groups):
-            done.update(part)
     results, paths = {}, {}
     for name, loop in loops.items():
-        out_ = done[name]
+        # the configuration is a runtime argument: the loops of one structure share a compilation
+        arg = uniform_dtypes(with_positions(loop) if record_paths else loop)
+        out_ = montecarlo.run_batched(
+            fn, keys, args=(arg,), progress=progress, chunk_size=min(256, seeds),
+            desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
         if record_paths:
             out_, after = out_
             paths[name] = (path_drawn(loop, after[0], out_.l[0]), bool(out_.unstable[0]))
@@ -276,8 +247,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
     per_seed.save_per_seed(out, results, dims=("case",), experiment="mecanum")
-    fig = plot_paths(loops, None if paths else keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)",
-                     paths=paths or None)
+    title = f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)"
+    fig = plot_paths(loops, None if paths else keys[0], out, title, paths=paths or None)
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,
               "loops": {n: {"case": n.split()[0], "N": l.N, "h": horizon(l), "steps": l.steps,

@@ -26,7 +26,6 @@ import pathlib
 import platform as _platform
 import sys
 import tempfile
-import threading
 import weakref
 from typing import Any, Callable
 
@@ -158,17 +157,9 @@ def chunk_lanes(chunk_size: int, n: int, out_bytes: int, devices: int = 1) -> in
 # and everything it closes over can be freed; the compiled wrapper reaches fn only through
 # a weak reference, otherwise the value would keep its own key alive.
 _COMPILED: "weakref.WeakKeyDictionary[Callable, Callable]" = weakref.WeakKeyDictionary()
-# run_batched may be called from several threads (e.g. configurations of different
-# structures compiled at once): one wrapper per fn, so no structure is compiled twice
-_COMPILED_LOCK = threading.Lock()
 
 
 def _compiled(fn: Callable) -> Callable:
-    with _COMPILED_LOCK:
-        return _compiled_locked(fn)
-
-
-def _compiled_locked(fn: Callable) -> Callable:
     try:
         ref = weakref.ref(fn)
         return _COMPILED[fn]
