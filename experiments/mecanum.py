@@ -143,26 +143,68 @@ def table(summary: dict) -> str:
 
 _simulate = jax.jit(nc.simulate)   # one compilation per loop structure (N, true plant)
 
+#: bytes of recorded positions (every seed's, float32 (X, Y) per fast period) up to which
+#: :func:`run`'s main Monte-Carlo run also records them, so that the seed-0 figure needs no
+#: second compiled program; beyond it (about 48 000 seeds of the default path) the figure
+#: runs seed 0 again (:func:`plot_paths`), a compilation small against such a run
+POSITION_BUDGET = 1 << 28
+
 
 def horizon(loop: nc.Loop) -> int:
     """h, the prediction horizon in slow periods, of a :func:`~jaxnc.schemes.mecanum.mecanum_loop` loop."""
     return int(loop.actuator.horizon) // loop.N
 
 
-def plot_paths(loops: dict, key, out: Path, title: str) -> Path:
+def position(plant, x):
+    """float[2]: the robot's position (X, Y) in a state of ``plant`` (a :class:`jaxnc.loop.Record`
+    function of the plant: recorded after each fast period)."""
+    return plant.state_vector(x)[3:5]
+
+
+def with_positions(loop: nc.Loop) -> nc.Loop:
+    """``loop`` recording also the robot's position after each fast period
+    (``Trajectory.parts["plant"]`` [K, 2]); the simulation itself is unchanged."""
+    return dataclasses.replace(loop, record=dataclasses.replace(nc.Record.of(loop.record), plant=position))
+
+
+def run_seed_positions(key, loop):
+    """(per-seed metrics, float[K, 2] positions after each fast period) of a loop from
+    :func:`with_positions`: the main run's function when the figure's path comes from it."""
+    traj = nc.simulate(loop, key)
+    return mec.metrics(loop, traj), traj.parts["plant"]
+
+
+def path_drawn(loop: nc.Loop, after, l) -> np.ndarray:
+    """float[l, 2]: the robot's positions at the start of fast periods 0 .. l-1 (the figure's
+    path up to completion), from ``after`` [K, 2], its positions after each fast period; the
+    first is the loop's start, the path's first point (:func:`~jaxnc.schemes.mecanum.mecanum_loop`)."""
+    start = np.asarray(loop.monitor.path.points, np.float32)[:1]
+    return np.concatenate([start, np.asarray(after)[: max(int(l) - 1, 0)]])
+
+
+def plot_paths(loops: dict, key, out: Path, title: str, paths: dict | None = None) -> Path:
+    """Fig. 4-like figure of one seed: the reference and each loop's path up to completion
+    (dotted when unstable), written to ``out/paths.png``.
+
+    ``paths``: per loop name, ``(positions float[l, 2], unstable)`` of that seed (from the
+    Monte-Carlo run, :func:`path_drawn`); None: seed ``key`` of each loop is simulated here
+    (one more compiled program per loop structure)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if paths is None:
+        paths = {}
+        for name, loop in loops.items():
+            full = dataclasses.replace(loop, record=mec.FULL_RECORD)
+            traj = _simulate(uniform_dtypes(full), key)
+            paths[name] = (np.asarray(traj.x[:, 3:5])[: int(traj.done_step)], bool(mec.metrics(full, traj).unstable))
     fig, ax = plt.subplots(figsize=(7, 5))
     path = next(iter(loops.values())).monitor.path
     ref = np.asarray(path.points)
     ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.5, label="reference")
-    for name, loop in loops.items():
-        full = dataclasses.replace(loop, record=mec.FULL_RECORD)
-        traj = _simulate(uniform_dtypes(full), key)
-        xy = np.asarray(traj.x[:, 3:5])[: int(traj.done_step)]
-        unstable = bool(mec.metrics(full, traj).unstable)
+    for name in loops:
+        xy, unstable = paths[name]
         ax.plot(xy[:, 0], xy[:, 1], ls=":" if unstable else "-", lw=1.2,
                 label=name + (" (unstable)" if unstable else ""))
     lo, hi = ref.min(axis=0) - 0.6, ref.max(axis=0) + 0.6   # unstable runs leave the frame
@@ -184,12 +226,20 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     t_start = time.perf_counter()
     loops = build_loops(settings)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
-    results = {}
+    # the figure's seed-0 paths come from the main run while every seed's fit the budget
+    record_paths = seeds * max(l.steps for l in loops.values()) * 2 * 4 <= POSITION_BUDGET
+    fn = run_seed_positions if record_paths else run_seed
+    results, paths = {}, {}
     for name, loop in loops.items():
-        # the configuration is a runtime argument: the cases of one N share a compilation
-        results[name] = montecarlo.run_batched(
-            run_seed, keys, args=(uniform_dtypes(loop),), progress=progress, chunk_size=min(256, seeds),
+        # the configuration is a runtime argument: the loops of one structure share a compilation
+        arg = uniform_dtypes(with_positions(loop) if record_paths else loop)
+        out_ = montecarlo.run_batched(
+            fn, keys, args=(arg,), progress=progress, chunk_size=min(256, seeds),
             desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
+        if record_paths:
+            out_, after = out_
+            paths[name] = (path_drawn(loop, after[0], out_.l[0]), bool(out_.unstable[0]))
+        results[name] = out_
     summary = summarise(results)
     print(f"\nseed 000 Mecanum, path={settings['path']}, N={settings['N']}, DP={settings['dp']}, seeds={seeds}, "
           f"plant={settings.get('plant', 'kinematic')}")
@@ -197,7 +247,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
     per_seed.save_per_seed(out, results, dims=("case",), experiment="mecanum")
-    fig = plot_paths(loops, keys[0], out, f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)")
+    title = f"{settings['path']}: N={settings['N']}, DP={settings['dp']} (seed 0)"
+    fig = plot_paths(loops, None if paths else keys[0], out, title, paths=paths or None)
     wall = time.perf_counter() - t_start
     config = {"settings": settings, "seeds": seeds,
               "loops": {n: {"case": n.split()[0], "N": l.N, "h": horizon(l), "steps": l.steps,

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import functools
 import io
 import json
 import math
@@ -112,8 +113,14 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
     if start + n > 2**32:
         raise ValueError(f"seed_keys: seed indices must fit in uint32, got start+n={start + n}")
     check_seed_memory(n, KEY_BYTES, what="seed_keys: the keys of")
+    return _seed_keys(np.uint32(seed), np.uint32(start), n)
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _seed_keys(seed, start, n: int):
+    """seed_keys' keys as one compiled program per ``n`` (seed and start are arguments)."""
     base = jax.random.PRNGKey(seed)
-    idx = jnp.arange(start, start + n, dtype=jnp.uint32)
+    idx = start + jnp.arange(n, dtype=jnp.uint32)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
 
 

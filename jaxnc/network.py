@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = ["quantise_delay", "late"]
 
@@ -24,12 +25,15 @@ def quantise_delay(delay, T) -> jax.Array:
 
     A packet is usable at the first fast instant at or after its arrival.
     A relative guard of a few float32 ulps absorbs division round-off, so a
-    delay of exactly ``m*T`` gives ``m`` (not ``m + 1``).
+    delay of exactly ``m*T`` gives ``m`` (not ``m + 1``). When both are Python or NumPy
+    numbers (a configuration's bound) it is computed in NumPy, the same float32
+    operations, and returns a NumPy int32 array (no program is compiled).
     """
-    delay = jnp.asarray(delay, _DTYPE)
-    T = jnp.asarray(T, _DTYPE)
-    steps = jnp.ceil((delay / T) * (1.0 - _QUANT_RTOL))
-    return jnp.maximum(steps, 0.0).astype(jnp.int32)
+    xp = np if all(isinstance(a, (int, float, np.ndarray, np.generic)) for a in (delay, T)) else jnp
+    delay = xp.asarray(delay, np.float32)
+    T = xp.asarray(T, np.float32)
+    steps = xp.ceil((delay / T) * np.float32(1.0 - _QUANT_RTOL))
+    return xp.maximum(steps, np.float32(0.0)).astype(np.int32)
 
 
 def late(delay, tau_max) -> jax.Array:

@@ -105,7 +105,8 @@ def from_waypoints(xy, name: str, ds: float = 0.01) -> Path:
     s = np.linspace(0.0, length, n + 1)
     pts = np.stack([np.interp(s, s_in, xy[:, 0]), np.interp(s, s_in, xy[:, 1])], axis=1)
     pts[0], pts[-1] = xy[0], xy[-1]
-    return Path(points=jnp.asarray(pts, _DTYPE), s=jnp.asarray(s, _DTYPE), name=name)
+    # device_put: jnp.asarray would compile a copy program per shape
+    return Path(points=jax.device_put(pts.astype(_DTYPE)), s=jax.device_put(s.astype(_DTYPE)), name=name)
 
 
 # Dense sampling of the analytic curves before resampling (chord error ~1e-8 m).

@@ -139,7 +139,7 @@ def detect_structure(f: Callable, h: Callable, state_dim: int, input_dim: int, n
 
     try:
         # one compiled program (run eagerly, each of the model's operations compiled its own)
-        jacobians = jax.jit(at_random_points)(jax.random.key(seed))
+        jacobians = jax.jit(lambda s: at_random_points(jax.random.key(s)))(np.uint32(seed))
         A, L, H = (np.asarray(J) for J in jacobians)
     except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
             jax.errors.UnexpectedTracerError) as e:

@@ -131,9 +131,10 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     filter_noise = MecanumNoise(omega=FILTER_OMEGA_STD) if filter_noise is None else filter_noise
     p = path if isinstance(path, Path) else get_path(path)
     follower = PathFollower(path=p, **(follower_kw or {}))
+    length = float(np.asarray(p.s)[-1])                  # p.length, read on the host
     T = float(plant.T)
     if h is None:
-        h = default_h(case, N, float(dp), math.ceil(float(p.length) / float(follower.V_ref) / (N * T)))
+        h = default_h(case, N, float(dp), math.ceil(length / float(follower.V_ref) / (N * T)))
     check_int("h", h, 1, 1000)
     check_int("max_silence", max_silence, 0, 100_000)
     for name, v in (("sigma", sigma), ("delta", delta)):
@@ -148,9 +149,9 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         check_range("tau_max", tau_max, 0.0, N * T * (1 + 1e-6), low_open=True)
     if truth is not None and abs(float(truth.T) - T) > 1e-9:
         raise ValueError(f"truth must have the model's period T={T}, got {truth.T}")
-    horizon_s = 1.6 * float(p.length) / float(follower.V_ref) + 10.0 if horizon_s is None else horizon_s
+    horizon_s = 1.6 * length / float(follower.V_ref) + 10.0 if horizon_s is None else horizon_s
     steps = N * math.ceil(horizon_s / (N * T))
-    x0 = np.concatenate([np.zeros(3), np.asarray(p.points[0]), np.zeros(1)]).astype(np.float32)   # at rest
+    x0 = np.concatenate([np.zeros(3), np.asarray(p.points)[0], np.zeros(1)]).astype(np.float32)   # at rest
     if truth is None:
         robot = dataclasses.replace(plant, x0=x0, noise=noise)
     else:
@@ -160,8 +161,9 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     hold = np.int32(N if single else 1)                  # fast periods each action of a packet is held
     # the remote side and the actuator, built as one block (the sender's packet copy lives here)
     estimator = NudrekfEstimator(
-        model=plant, Q=filter_noise.process_std() ** 2, R=filter_noise.measurement_std() ** 2, mean0=x0,
-        cov0=jnp.diag(jnp.asarray(P0_STD, jnp.float32) ** 2), noise_dim=PROCESS_NOISE_DIM,
+        model=plant, Q=np.square(np.asarray(filter_noise.process_std())),
+        R=np.square(np.asarray(filter_noise.measurement_std())), mean0=x0,
+        cov0=np.diag(np.square(np.asarray(P0_STD, np.float32))), noise_dim=PROCESS_NOISE_DIM,
         jacobian_grad=bool(jacobian_grad), structure=ekf_structure(plant) if sparse else None)
     actuator = ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
     controller = ChainController(actuator)               # keeps its copy of the packets it sent
