@@ -107,22 +107,17 @@ def test_paper_qualitative_stability_at_N6_DP02():
     assert res["DRH"].mean() == 0.0
 
 
-@pytest.mark.parametrize("objective", ["J1", "tracking_cost"])
-def test_gradients_of_mean_J1_are_finite(objective):
-    """d(mean J1)/d(Kp) and d/d(delta) through the straight-through trigger (completed runs),
-    and the same for the fixed-horizon smooth objective."""
-    if objective == "J1":
-        base = mec.mecanum_loop("DRHE", 2, 0.2, path="turn180", sigma=0.0, trigger_temperature=0.05)
-        per_seed = lambda loop, k: mec.run(loop, k).J1
-    else:
-        base = mec.mecanum_loop("DRHE", 2, 0.2, horizon_s=6.0, sigma=0.0, trigger_temperature=0.05)
-        per_seed = mec.tracking_cost
+def test_gradients_of_mean_J1_are_finite():
+    """d(mean J1)/d(Kp) and d/d(delta) through the straight-through trigger (completed runs);
+    the fixed-horizon smooth objective's gradient is checked the same way in
+    test_jacobian_grad_false_same_run_close_gradient."""
+    base = mec.mecanum_loop("DRHE", 2, 0.2, path="turn180", sigma=0.0, trigger_temperature=0.05)
     keys = montecarlo.seed_keys(0, 4)
 
     def cost(kp, delta):
         loop = mec.with_follower(dataclasses.replace(base, trigger=dataclasses.replace(base.trigger, delta=delta)),
                                  Kp=kp)
-        return jnp.mean(jax.vmap(lambda k: per_seed(loop, k))(keys))
+        return jnp.mean(jax.vmap(lambda k: mec.run(loop, k).J1)(keys))
 
     assert np.isfinite(float(jax.jit(cost)(jnp.full(3, 0.2), jnp.full(9, 0.1))))   # all runs completed
 
@@ -191,7 +186,9 @@ def test_jacobian_grad_false_same_run_close_gradient():
             loop = mec.with_follower(dataclasses.replace(base, trigger=dataclasses.replace(base.trigger, delta=delta)),
                                      Kp=kp)
             return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(loop, k))(keys))
-        g = jax.jit(jax.grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
-        grads[exact] = np.concatenate([np.ravel(x) for x in g])
+        g_kp, g_delta = jax.jit(jax.grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
+        assert np.any(g_kp != 0) and np.any(g_delta != 0)           # both leaves reach the smooth objective
+        grads[exact] = np.concatenate([np.ravel(g_kp), np.ravel(g_delta)])
+    assert np.all(np.isfinite(grads[True])) and np.all(np.isfinite(grads[False]))
     diff = np.linalg.norm(grads[True] - grads[False]) / np.linalg.norm(grads[True])
     assert 0 < diff < 0.05, diff
