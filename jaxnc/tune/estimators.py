@@ -1,4 +1,4 @@
-"""Gradients through event triggers: four estimators and how to pick one.
+"""Gradients through event triggers: the estimators and how to pick one.
 
 A trigger fires when a gap g(theta) > 0 (seed 000 eq. 4: g = ||zbar - z||^2 -
 sum_i sigma(i) z(i)^2 + delta(i)); beta = 1[g > 0] is a step function, so its exact
@@ -24,6 +24,16 @@ re=tau)``)                                                                      
 res`)                                               (REINFORCE with a baseline)      variance ~ dim / n;
                                                                                     needs no gradient of
                                                                                     the simulation
+``"richardson"``       hard, as ``"score"``,       (4 g(s) - g(2 s)) / 3, g(s) the  smoothing bias
+(:func:`score_grad`    each pair also at 2 s        score estimate at scale s:       O(s^4) instead of
+``richardson=True``)                               Richardson extrapolation over    O(s^2); variance up
+                                                   the smoothing scale              to ~2x the score's;
+                                                                                    4 runs a pair; the
+                                                                                    check picks it only
+                                                                                    where the score's
+                                                                                    bias is measured
+                                                                                    (:mod:`jaxnc.tune.
+                                                                                    check`)
 ``"hybrid"``           hard; the loss returns      straight-through gradient of     straight-through's
 (:func:`jaxnc.tune.    (smooth, jump)              smooth + jump, plus the score    bias on the smooth
 tune`)                                             gradient of jump alone           part; the jump part
@@ -47,7 +57,10 @@ difference checks, line searches, second-order methods) and anneal tau towards 0
 the relaxed objective approaches the hard one.  Use ``score`` when the simulation is
 not differentiable (integer leaves, hard selects, a black box) or when the biased
 estimators stall on a plateau; it needs many more seeds per step for the same noise,
-since its variance grows with the number of tuned parameters.  Use ``hybrid`` when the
+since its variance grows with the number of tuned parameters.  Its scale s is a
+bias-variance trade-off (bias O(s^2), variance O(1 / s) on a step); ``richardson`` removes
+the O(s^2) term, and :func:`jaxnc.tune.gradient_check` uses it only where it measures the
+plain score's bias (:mod:`jaxnc.tune.check`).  Use ``hybrid`` when the
 objective charges a constant for discrete failures (a run that leaves the tube): the
 pathwise gradient cannot see how the failure probability moves, the score term can,
 and the smooth part keeps its low-variance pathwise gradient.
