@@ -74,7 +74,8 @@ def main(argv=None) -> None:
                 "command": command, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                 "load (1, 5, 15 min) before / after": [load0, _load()], "summary": row,
                 "estimates": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.estimates.items()},
-                "smoothing_bias": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.smoothing_bias.items()},
+                "smoothing_bias": {k: {"mean": m.tolist(), "se": s.tolist()}
+                                   for k, (m, s) in chk.smoothing_bias.items()},
                 "paired_z": {k: np.asarray(v).tolist() for k, v in chk.paired_z.items()},
                 "reason": chk.reason, "names": list(chk.names), "values": np.asarray(chk.values).tolist(),
                 "table": chk.table()}, indent=1, default=str))

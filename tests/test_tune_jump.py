@@ -145,7 +145,8 @@ def test_check_loop_adds_the_corrected_estimator_and_finds_it_consistent():
     checked beside the others, agrees with the central differences and is resolved; the
     refusals name why."""
     from jaxnc.tune import Unconstrained, check_loop, gradient_check, tune_loop
-    assert "corrected" not in check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=8, max_seeds=8).estimates
+    assert "corrected" not in check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=8,
+                                         max_seeds=8).estimates
     chk = check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=2048, max_seeds=2048, fd_step=0.05,
                      corrected=True)
     assert "corrected" in chk.estimates

@@ -402,7 +402,8 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
     with a progress bar if ``progress``. Every coordinate must be resolved for an
     estimator to be recommended; the check doubles its seeds from ``seeds`` until it is
-    conclusive or reaches ``max_seeds`` (``max_seeds=seeds``: no increase).
+    conclusive or reaches ``max_seeds`` (default 16384, or ``seeds`` if larger;
+    ``max_seeds=seeds``: no increase).
 
     The defaults are those the loops of docs/tuning_loops.md need to be conclusive: the
     check starts at 256 seeds and doubles up to 16384 (DRHE needed 4096 seeds and the
@@ -470,6 +471,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
       estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``,
+        ``"richardson"`` (the score extrapolated over its scale, :mod:`jaxnc.tune.check`),
         ``"hybrid"`` (a pair objective), ``"corrected"`` (a Loop whose sensor trigger is a
         hard PETC with additive measurement noise: :mod:`jaxnc.tune.jump`)
         or ``"none"`` (no gradient stage: needs ``search``). Without a gradient stage
