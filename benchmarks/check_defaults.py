@@ -1,6 +1,7 @@
 """``check_loop`` with its defaults at the ``tune-loops`` points (issue 31, acceptance 1).
 
     python benchmarks/check_defaults.py [--loops hdd,drhe,cartpole] [--out docs/results/tune_check]
+                                        [--points start,second] [--max-seeds N]
 
 For each loop of ``experiments/tune_loops.py`` (built by its own problem builders, with the
 experiment's default settings) and each of its two check points (the start, and the
@@ -10,7 +11,8 @@ result is written as soon as it finishes (``<loop>_<point>.json``: the check's t
 estimates, verdicts, the measured smoothing bias, seeds used, wall time and the machine
 load); ``tables.md`` collects the summary rows (per loop and point: seeds used, the
 recommended estimator, conclusive or not, max |z| of the recommended estimator against its
-finite-difference reference, wall time).
+finite-difference reference, wall time). ``--max-seeds`` (default: check_loop's own) is
+the one override, for a run beyond the defaults' budget (written to another ``--out``).
 """
 from __future__ import annotations
 
@@ -53,6 +55,8 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--loops", default="hdd,drhe,cartpole")
     ap.add_argument("--out", default="docs/results/tune_check")
+    ap.add_argument("--points", default="start,second")
+    ap.add_argument("--max-seeds", type=int, default=None)
     args = ap.parse_args(argv)
     from jaxnc.cache import enable_cache
     from jaxnc.experiments.tune_loops import BUILDERS
@@ -65,8 +69,12 @@ def main(argv=None) -> None:
         names = param_paths(problem.params)
         start = {n: float(np.asarray(get_path(problem.loop, p[0]))) for n, p in names.items()}
         for point, at in (("start", None), ("second", problem.second)):
+            if point not in args.points.split(","):
+                continue
             load0, t0 = _load(), time.perf_counter()
-            chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, progress=True)
+            extra = {} if args.max_seeds is None else {"max_seeds": args.max_seeds}
+            chk = check_loop(problem.loop, problem.params, problem.objective, run=problem.run, at=at, progress=True,
+                             **extra)
             wall = time.perf_counter() - t0
             row = _row(chk, name, point, at or start, wall)
             print(f"[{name} {point}] {row}\n{chk.table()}\n", flush=True)
