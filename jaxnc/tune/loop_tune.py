@@ -50,7 +50,7 @@ __all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "t
            "with_temperature", "has_temperature"]
 
 _CONSTRAINTS = (Positive, Interval, Unconstrained)
-CHECK_MAX_SEEDS = 16384   # check_loop's default budget of seeds (docs/tuning_loops.md, issue 31)
+CHECK_MAX_SEEDS = 32768   # check_loop's default budget of seeds (docs/tuning_loops.md, issue 31)
 
 
 def _split(path: str) -> list[str]:
@@ -402,12 +402,13 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
     with a progress bar if ``progress``. Every coordinate must be resolved for an
     estimator to be recommended; the check doubles its seeds from ``seeds`` until it is
-    conclusive or reaches ``max_seeds`` (default 16384, or ``seeds`` if larger;
+    conclusive or reaches ``max_seeds`` (default 32768, or ``seeds`` if larger;
     ``max_seeds=seeds``: no increase).
 
     The defaults are those the loops of docs/tuning_loops.md need to be conclusive: the
-    check starts at 256 seeds and doubles up to 16384 (DRHE needed 4096 seeds and the
-    cart-pole 8192 with the former estimators); ``fd_step`` 0.2 (on objectives with rare
+    check starts at 256 seeds and doubles up to 32768 (HDD was conclusive at 256, the
+    cart-pole at 512-1024, DRHE at 16384 and 32768: docs/tuning_loops.md; on a slow loop,
+    ``progress=True`` shows the seeds, and a smaller ``max_seeds`` bounds the wait); ``fd_step`` 0.2 (on objectives with rare
     failures a central difference's variance grows like 1/h, and 0.05 left DRHE
     inconclusive at 512 seeds); ``score_scale`` default ``fd_step / sqrt(3)``, the
     Gaussian with the variance of the central difference's uniform kernel on [-h, h], so
