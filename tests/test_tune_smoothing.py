@@ -1,5 +1,7 @@
 """The thresholds' smoothed estimator: the score function's smoothing bias, measured and
 removed by Richardson extrapolation (jaxnc.tune.check, issue 31 item 1), on closed forms."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -123,3 +125,25 @@ def test_score_grad_richardson_and_the_tuner():
     r = tune(lambda p, k, temp: (p["x"] - 2.0) ** 2 + 0.1 * jax.random.normal(k), {"x": 1.0}, steps=60, batch=8,
              estimator="richardson", progress=False, score_scale=0.2)
     assert r.n_simulations == 60 * 8 and abs(float(r.params["x"]) - 2.0) < 0.2
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Flat:
+    a: float = 1.0
+
+
+def _flat_run(cfg, key):
+    """A gradient of 1e-6 under unit noise per seed: no feasible number of seeds resolves it
+    (no pathwise gradient either, so that no estimator is exact on every seed)."""
+    a = jax.lax.stop_gradient(cfg.a)
+    return 1e-6 * a + a * jax.random.normal(key)
+
+
+def test_check_loops_default_budget_doubles_from_256_to_32768():
+    from jaxnc.tune import Positive, check_loop
+    from jaxnc.tune.loop_tune import CHECK_MAX_SEEDS
+    c = check_loop(_Flat(), {"a": Positive()}, lambda j: j, run=_flat_run)
+    assert CHECK_MAX_SEEDS == 32768 and c.seeds == CHECK_MAX_SEEDS and c.recommended is None, c.table()
+    assert c.reason["score"].startswith("inconclusive on a"), c.table()
+    assert check_loop(_Flat(), {"a": Positive()}, lambda j: j, run=_flat_run, max_seeds=256).seeds == 256
