@@ -133,7 +133,7 @@ def test_check_loop_on_a_gain_agrees_with_finite_differences_at_two_points():
     from jaxnc.tune import check_loop
     lp = dataclasses.replace(_loop(K=(1.0, 0.6)), trigger=nc.Periodic())
     for at in (None, {"controller.K": [[2.0, 1.0]]}):
-        c = check_loop(lp, {"controller.K": Positive()}, at=at, seeds=16, max_seeds=16, fd_step=0.01)
+        c = check_loop(lp, {"controller.K": Positive()}, at=at, seeds=16, fd_step=0.01)
         assert c.names == ("controller.K[0]", "controller.K[1]")
         assert c.consistent["straight_through"], c.table()
         assert c.recommended == "straight_through", c.table()
@@ -238,7 +238,7 @@ def test_pair_objective_reaches_the_check_and_the_hybrid_tuner():
     from jaxnc.tune import check_loop
     lp = _loop(delta=1e-2)
     obj = lambda m: (m.cost_raw, 0.5 * m.rate_sc)      # smooth, "jump"
-    chk = check_loop(lp, {"trigger.delta": Positive()}, obj, seeds=8, max_seeds=8, chunk_size=8)
+    chk = check_loop(lp, {"trigger.delta": Positive()}, obj, seeds=8, chunk_size=8)
     assert "hybrid" in chk.estimates and chk.names == ("trigger.delta",)
     r = tune_loop(lp, {"trigger.delta": Positive()}, obj, estimator="hybrid", steps=2, batch=4, eval_seeds=4,
                   progress=False)
@@ -281,7 +281,7 @@ def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
     """``params`` lists b before a; the gradient vector is flattened in sorted-name order.
     Each label must sit on its own coordinate: b's gradient is 10x a's."""
     from jaxnc.tune import check_loop
-    c = check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=8)
+    c = check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8)
     g = dict(zip(c.names, c.estimates["finite_difference"][0]))
     assert set(g) == {"a", "b"}
     assert g["b"] / g["a"] == pytest.approx(10.0, rel=0.02), c.table()     # both at 1: the same chain factor

@@ -145,10 +145,8 @@ def test_check_loop_adds_the_corrected_estimator_and_finds_it_consistent():
     checked beside the others, agrees with the central differences and is resolved; the
     refusals name why."""
     from jaxnc.tune import Unconstrained, check_loop, gradient_check, tune_loop
-    assert "corrected" not in check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=8,
-                                         max_seeds=8).estimates
-    chk = check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=2048, max_seeds=2048, fd_step=0.05,
-                     corrected=True)
+    assert "corrected" not in check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=8).estimates
+    chk = check_loop(_scalar_loop(), {"controller.K": Unconstrained()}, seeds=2048, fd_step=0.05, corrected=True)
     assert "corrected" in chk.estimates
     assert chk.consistent["corrected"], chk.table()
     assert chk.resolved["corrected"].all()
@@ -157,8 +155,7 @@ def test_check_loop_adds_the_corrected_estimator_and_finds_it_consistent():
     quiet = dataclasses.replace(_scalar_loop(), plant=dataclasses.replace(_scalar_loop().plant, v_std=[0.0]))
     with pytest.raises(ValueError, match="corrected.*no output has measurement noise"):
         tune_loop(quiet, {"controller.K": Unconstrained()}, estimator="corrected", progress=False)
-    assert "corrected" not in check_loop(quiet, {"controller.K": Unconstrained()}, seeds=8, max_seeds=8,
-                                       corrected=True).estimates
+    assert "corrected" not in check_loop(quiet, {"controller.K": Unconstrained()}, seeds=8, corrected=True).estimates
 
 
 def test_tune_loop_with_the_corrected_estimator_improves_a_sluggish_gain():

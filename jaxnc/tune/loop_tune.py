@@ -50,7 +50,7 @@ __all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "t
            "with_temperature", "has_temperature"]
 
 _CONSTRAINTS = (Positive, Interval, Unconstrained)
-CHECK_MAX_SEEDS = 32768   # check_loop's default budget of seeds (docs/tuning_loops.md, issue 31)
+CHECK_SEEDS, CHECK_MAX_SEEDS = 256, 32768   # check_loop's default seeds and budget (docs/tuning_loops.md, issue 31)
 
 
 def _split(path: str) -> list[str]:
@@ -384,7 +384,7 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
 
 
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
-               run: Callable | None = None, seeds: int = 256, seed: int = 0, fd_step: float = 0.2,
+               run: Callable | None = None, seeds: int | None = None, seed: int = 0, fd_step: float = 0.2,
                temperature: float = 1e-3, score_scale: float | None = None, chunk_size: int = 256,
                max_seeds: int | None = None, progress: bool = False, corrected: bool = False) -> GradientCheck:
     """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
@@ -402,15 +402,16 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
     with a progress bar if ``progress``. Every coordinate must be resolved for an
     estimator to be recommended; the check doubles its seeds from ``seeds`` until it is
-    conclusive or reaches ``max_seeds`` (default 32768, or ``seeds`` if larger;
-    ``max_seeds=seeds``: no increase).
+    conclusive or reaches ``max_seeds``. By default (``seeds=None``) it starts at 256 and
+    doubles up to ``max_seeds`` = 32768; an explicit ``seeds`` runs that many, doubled
+    only up to a ``max_seeds`` given with it.
 
-    The defaults are those the loops of docs/tuning_loops.md need to be conclusive: the
-    check starts at 256 seeds and doubles up to 32768 (HDD was conclusive at 256, the
-    cart-pole at 512-1024, DRHE at 16384 and 32768: docs/tuning_loops.md; on a slow loop,
-    ``progress=True`` shows the seeds, and a smaller ``max_seeds`` bounds the wait); ``fd_step`` 0.2 (on objectives with rare
-    failures a central difference's variance grows like 1/h, and 0.05 left DRHE
-    inconclusive at 512 seeds); ``score_scale`` default ``fd_step / sqrt(3)``, the
+    The defaults are those the loops of docs/tuning_loops.md need to be conclusive: 256
+    seeds doubled up to 32768 (HDD was conclusive at 256, the cart-pole at 512-1024, DRHE
+    at 16384 and 32768; on a slow loop ``progress=True`` shows the seeds, and a smaller
+    ``max_seeds`` bounds the wait); ``fd_step`` 0.2 (on objectives with rare failures a
+    central difference's variance grows like 1/h, and 0.05 left DRHE inconclusive at 512
+    seeds); ``score_scale`` default ``fd_step / sqrt(3)``, the
     Gaussian with the variance of the central difference's uniform kernel on [-h, h], so
     that the score function and the finite differences estimate the gradient of the same
     smoothed objective to second order. Their common smoothing bias is measured and, where
@@ -430,9 +431,11 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     spec = _prepare("check_loop", loop, params, objective, run)
     if not spec.paths:
         raise ValueError("check_loop: name at least one parameter")
+    if seeds is None:
+        seeds, max_seeds = CHECK_SEEDS, CHECK_MAX_SEEDS if max_seeds is None else max_seeds
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
-    max_seeds = max(seeds, CHECK_MAX_SEEDS) if max_seeds is None else max_seeds
+    max_seeds = seeds if max_seeds is None else max_seeds
     check_int("max_seeds", max_seeds, seeds)
     check_positive("fd_step", fd_step)
     score_scale = fd_step / np.sqrt(3.0) if score_scale is None else score_scale
