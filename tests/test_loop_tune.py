@@ -354,7 +354,9 @@ def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     assert r.estimator == "score" and r.check.recommended == "score", r.check.table()
     assert r.check.reason["straight_through"].startswith("differs"), r.check.table()
     assert 8 < r.check.seeds <= 1024
-    assert r.tuning_simulations == r.check.seeds * (2 * 2 + 3) + 2      # score: batch 2 = one antithetic pair
+    # a check seed: the value, 2 x 2 x 2 central differences (h, 2h), a pathwise pass, pairs at s and 2s
+    assert r.check.runs_per_seed == 1 + 8 + 1 + 2 + 2
+    assert r.tuning_simulations == r.check.seeds * r.check.runs_per_seed + 2   # score: batch 2 = one antithetic pair
     # in the user's units: dE/da = 1, dE/db = 0.3; theta is the logit, d value / d theta = 0.5
     assert r.check.names == ("a", "b")
     np.testing.assert_allclose(r.check.values, [1.0, 1.0], rtol=1e-6)
