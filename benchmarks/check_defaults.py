@@ -81,7 +81,8 @@ def main(argv=None) -> None:
             (out / f"{name}_{point}.json").write_text(json.dumps({
                 "command": command, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                 "load (1, 5, 15 min) before / after": [load0, _load()], "summary": row,
-                "estimates": {k: {"mean": m.tolist(), "se": s.tolist()} for k, (m, s) in chk.estimates.items()},
+                "estimates": {k: {"mean": m.tolist(), "se": s.tolist()}
+                              for k, (m, s) in {**chk.estimates, **chk.references}.items()},
                 "smoothing_bias": {k: {"mean": m.tolist(), "se": s.tolist()}
                                    for k, (m, s) in chk.smoothing_bias.items()},
                 "paired_z": {k: np.asarray(v).tolist() for k, v in chk.paired_z.items()},

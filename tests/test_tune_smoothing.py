@@ -44,7 +44,7 @@ def test_richardson_removes_the_score_functions_smoothing_bias_on_a_cubic():
     assert _within(b, b_se, 3 * s ** 2), c.table()                  # the reported bias is the closed form's
     assert np.all(3 * s ** 2 > 8 * b_se)                             # and resolved (paired on the seed)
     np.testing.assert_allclose(c.smoothing_bias["finite_difference"][0], h ** 2, rtol=2e-3)
-    np.testing.assert_allclose(c.estimates["finite_difference_richardson"][0], true, rtol=1e-2)
+    np.testing.assert_allclose(c.references["finite_difference_richardson"][0], true, rtol=1e-2)
     # the choice: the bias is resolved, so the plain score is refused with the bias quoted
     assert c.bias_resolved is True
     assert c.reason["score"].startswith("biased by its smoothing"), c.table()
@@ -109,7 +109,7 @@ def test_the_plain_score_is_kept_where_its_bias_is_not_resolved():
     # without richardson nothing is measured and the choice is not made
     c1 = gradient_check(_step(sigma), np.full(1, theta, np.float32), montecarlo.seed_keys(2, 64),
                         fd_step=s * np.sqrt(3.0), score_scale=s, estimators=("score",))
-    assert c1.bias_resolved is None and c1.smoothing_bias == {} and "finite_difference_richardson" not in c1.estimates
+    assert c1.bias_resolved is None and c1.smoothing_bias == {} and c1.references == {}
 
 
 def test_score_grad_richardson_and_the_tuner():

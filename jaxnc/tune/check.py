@@ -18,7 +18,8 @@ computes, *on the same seeds* (common random numbers):
   (Richardson extrapolation) and (g(2 s) - g(s)) / 3, per seed, estimates the plain
   score's bias c s^2 (its mean and standard error are reported: ``smoothing_bias``).
   With it the check also computes the finite differences extrapolated the same way,
-  (4 FD(h) - FD(2 h)) / 3 (``"finite_difference_richardson"``, bias O(h^4); FD(h)'s own
+  (4 FD(h) - FD(2 h)) / 3 (``GradientCheck.references["finite_difference_richardson"]``,
+  bias O(h^4); FD(h)'s own
   measured bias, (FD(2 h) - FD(h)) / 3, is reported too), and compares with them the
   estimators of the unsmoothed gradient (straight-through, richardson, corrected); the
   score function and the hybrid, smoothed like FD(h), are compared with FD(h). It costs
@@ -133,13 +134,14 @@ class GradientCheck(NamedTuple):
     smoothing_bias: dict = {}       # "score" / "finite_difference" -> (mean, SE) float[d] each: the measured bias
     bias_resolved: bool | None = None        # the score's smoothing bias resolved (None: not measured)
     runs_per_seed: int = 0          # simulations one seed of the check costs (a forward-backward pass counts one)
+    references: dict = {}           # "finite_difference_richardson" -> (mean, SE): the extrapolated reference
 
     def in_units(self, name: str, bias: bool = False) -> tuple:
         """(mean, standard error) of estimator ``name`` (or a finite-difference reference)
         as d E[objective] / d value in the user's units (theta's own units when the check
         was given no ``dvalue_dtheta``); with ``bias``, of the measured smoothing bias of
         ``"score"`` or ``"finite_difference"`` (``smoothing_bias``) instead."""
-        m, s = (self.smoothing_bias if bias else self.estimates)[name]
+        m, s = (self.smoothing_bias if bias else {**self.estimates, **self.references})[name]
         slope = np.ones_like(m) if self.dvalue_dtheta is None else np.asarray(self.dvalue_dtheta, float)
         return m / slope, s / np.abs(slope)
 
@@ -160,7 +162,7 @@ class GradientCheck(NamedTuple):
             if name.startswith("finite_difference"):
                 continue
             m, s = self.in_units(name)
-            fd_m, fd_s = self.in_units(_reference(name, self.estimates))
+            fd_m, fd_s = self.in_units(_reference(name, self.references))
             for j in range(d):
                 val = "-" if self.values is None else f"{float(self.values[j]):.4g}"
                 res = self.resolution.get(name)
@@ -209,7 +211,7 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
     n = len(res["value"])
     se = lambda a: np.std(a, axis=0, ddof=1) / np.sqrt(n)
     refs = {k: np.asarray(res[k], float) for k in res if k.startswith("finite_difference")}
-    estimates = {k: (v.mean(0), se(v)) for k, v in refs.items()}
+    estimates = {k: (v.mean(0), se(v)) for k, v in refs.items()}     # the references first, then the estimators
     bias = {k: (np.asarray(res[f"bias_{k}"], float).mean(0), se(np.asarray(res[f"bias_{k}"], float)))
             for k in ("score", "finite_difference") if f"bias_{k}" in res}
     out = {k: {} for k in ("paired", "consistent", "reason", "diff_se", "resolution", "resolved", "needed")}
@@ -262,7 +264,8 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
             out["consistent"][name] = out["reason"][name] == ""
     ok = [nm for nm in estimators if out["consistent"][nm]]
     rec = min(ok, key=lambda nm: (float(np.max(estimates[nm][1])), nm != "straight_through")) if ok else None
-    return estimates, out, rec, bias, bias_resolved
+    references = {k: estimates.pop(k) for k in list(estimates) if k != "finite_difference" and k in refs}
+    return estimates, out, rec, bias, bias_resolved, references
 
 
 def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
@@ -418,7 +421,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     run = lambda ks: montecarlo.run_batched(per_seed, ks, chunk_size=chunk, progress=progress, desc="gradient check")
     res = {k: np.asarray(v) for k, v in run(keys).items()}
     while True:
-        estimates, out, rec, bias, bias_resolved = _verdicts(res, estimators, z, max_noise, rel_tol, names, slope)
+        estimates, out, rec, bias, bias_resolved, references = _verdicts(res, estimators, z, max_noise, rel_tol, names, slope)
         unresolved_only = any(out["reason"][nm].startswith("inconclusive") for nm in estimators)
         if rec is not None or not unresolved_only or n >= max_seeds:
             break
@@ -432,4 +435,4 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         n += m
     return GradientCheck(theta, float(np.mean(res["value"])), estimates, out["paired"], out["consistent"],
                          out["reason"], rec, names, out["diff_se"], out["resolution"], out["resolved"], out["needed"],
-                         n, values, dvalue_dtheta, bias, bias_resolved, _runs_per_seed(estimators, d))
+                         n, values, dvalue_dtheta, bias, bias_resolved, _runs_per_seed(estimators, d), references)
