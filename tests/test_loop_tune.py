@@ -203,7 +203,8 @@ def test_check_hybrid_sees_the_jump_that_straight_through_misses():
     from jaxnc.tune import gradient_check
     c = gradient_check(_jump_objective(), np.full(1, 0.5, np.float32), montecarlo.seed_keys(3, 4096),
                        fd_step=0.05, score_scale=0.05 / np.sqrt(3), chunk_size=1024)
-    assert set(c.estimates) == {"finite_difference", "straight_through", "score", "hybrid"}
+    assert set(c.estimates) == {"finite_difference", "straight_through", "score", "richardson", "hybrid"}
+    assert set(c.references) == {"finite_difference_richardson"}
     m, s = c.estimates["hybrid"]
     assert abs(m[0] - 4.0) < 4 * s[0], c.table()                     # the closed form 1 + c
     assert c.estimates["straight_through"][0][0] == pytest.approx(1.0, abs=1e-5)   # only the smooth part
@@ -353,7 +354,9 @@ def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     assert r.estimator == "score" and r.check.recommended == "score", r.check.table()
     assert r.check.reason["straight_through"].startswith("differs"), r.check.table()
     assert 8 < r.check.seeds <= 1024
-    assert r.tuning_simulations == r.check.seeds * (2 * 2 + 3) + 2      # score: batch 2 = one antithetic pair
+    # a check seed: the value, 2 x 2 x 2 central differences (h, 2h), a pathwise pass, pairs at s and 2s
+    assert r.check.runs_per_seed == 1 + 8 + 1 + 2 + 2
+    assert r.tuning_simulations == r.check.seeds * r.check.runs_per_seed + 2   # score: batch 2 = one antithetic pair
     # in the user's units: dE/da = 1, dE/db = 0.3; theta is the logit, d value / d theta = 0.5
     assert r.check.names == ("a", "b")
     np.testing.assert_allclose(r.check.values, [1.0, 1.0], rtol=1e-6)

@@ -17,7 +17,7 @@ def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
                     w_cartpole=2.0, seed=0,
                     search_budget=0)
     res = tl.run(settings, seeds=8, out=tmp_path, progress=False)["cartpole"]
-    assert len(res["checks"]) == 2 and {c["recommended"] for c in res["checks"]} <= {"straight_through", "score", None}
+    assert len(res["checks"]) == 2 and {c["recommended"] for c in res["checks"]} <= {"straight_through", "score", "richardson", None}
     assert res["checks"][1]["at"] == {"trigger.delta": 1e-2} and res["checks"][0]["seeds"] == 4
     e = res["eval"]
     # the paired difference is the difference of the means (same seeds)

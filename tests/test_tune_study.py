@@ -67,7 +67,7 @@ def test_tune_study_tiny_end_to_end_writes_and_resumes(tmp_path, capsys):
         assert all(np.isfinite(row["eval"][0]) for row in d["trace"]), name
     # equal wall time: random search runs until the tuner's time is spent
     assert m["random"]["wall_time_s"] >= m["tuner"]["wall_time_s"]
-    assert m["tuner"]["estimator"] in ("straight_through", "score", "hybrid")
+    assert m["tuner"]["estimator"] in ("straight_through", "score", "richardson", "hybrid")
     e = res["eval"]
     assert e["seeds"] == 8 and set(e["mean"]) == {"start", "tuner", "random", "halving", "grid"}
     # a paired difference is the difference of the means (same fresh seeds)

@@ -1,4 +1,4 @@
-"""Gradients through event triggers: four estimators and how to pick one.
+"""Gradients through event triggers: the estimators and how to pick one.
 
 A trigger fires when a gap g(theta) > 0 (seed 000 eq. 4: g = ||zbar - z||^2 -
 sum_i sigma(i) z(i)^2 + delta(i)); beta = 1[g > 0] is a step function, so its exact
@@ -24,6 +24,16 @@ re=tau)``)                                                                      
 res`)                                               (REINFORCE with a baseline)      variance ~ dim / n;
                                                                                     needs no gradient of
                                                                                     the simulation
+``"richardson"``       hard, as ``"score"``,       (4 g(s) - g(2 s)) / 3, g(s) the  smoothing bias
+(:func:`score_grad`    each pair also at 2 s        score estimate at scale s:       O(s^4) instead of
+``richardson=True``)                               Richardson extrapolation over    O(s^2); variance up
+                                                   the smoothing scale              to ~2x the score's;
+                                                                                    4 runs a pair; the
+                                                                                    check picks it only
+                                                                                    where the score's
+                                                                                    bias is measured
+                                                                                    (:mod:`jaxnc.tune.
+                                                                                    check`)
 ``"hybrid"``           hard; the loss returns      straight-through gradient of     straight-through's
 (:func:`jaxnc.tune.    (smooth, jump)              smooth + jump, plus the score    bias on the smooth
 tune`)                                             gradient of jump alone           part; the jump part
@@ -47,7 +57,10 @@ difference checks, line searches, second-order methods) and anneal tau towards 0
 the relaxed objective approaches the hard one.  Use ``score`` when the simulation is
 not differentiable (integer leaves, hard selects, a black box) or when the biased
 estimators stall on a plateau; it needs many more seeds per step for the same noise,
-since its variance grows with the number of tuned parameters.  Use ``hybrid`` when the
+since its variance grows with the number of tuned parameters.  Its scale s is a
+bias-variance trade-off (bias O(s^2), variance O(1 / s) on a step); ``richardson`` removes
+the O(s^2) term, and :func:`jaxnc.tune.gradient_check` uses it only where it measures the
+plain score's bias (:mod:`jaxnc.tune.check`).  Use ``hybrid`` when the
 objective charges a constant for discrete failures (a run that leaves the tube): the
 pathwise gradient cannot see how the failure probability moves, the score term can,
 and the smooth part keeps its low-variance pathwise gradient.
@@ -70,7 +83,7 @@ from jaxnc.loop.triggers import Petc, fires_straight_through
 __all__ = ["ESTIMATORS", "relax_trigger", "sigmoid_relaxation", "straight_through",
            "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
 
-ESTIMATORS = ("straight_through", "sigmoid", "score", "hybrid", "corrected")
+ESTIMATORS = ("straight_through", "sigmoid", "score", "richardson", "hybrid", "corrected")
 
 
 def sigmoid_relaxation(gap, temperature):
@@ -97,8 +110,8 @@ def relax_trigger(trigger, estimator: str, temperature):
     """The :class:`jaxnc.loop.Petc` a loop should use for ``estimator``: ``"sigmoid"``
     the relaxed trigger (soft forward and backward, ``relaxed=True``), ``"straight_through"``
     (and ``"hybrid"``, whose pathwise part is straight-through) the hard trigger with a
-    straight-through gradient at ``temperature`` > 0, ``"score"`` (and ``"hard"``,
-    ``"corrected"``) the hard trigger (temperature 0). A trigger with no temperature (e.g. ``Periodic``) is
+    straight-through gradient at ``temperature`` > 0, ``"score"`` (and ``"richardson"``,
+    ``"hard"``, ``"corrected"``) the hard trigger (temperature 0). A trigger with no temperature (e.g. ``Periodic``) is
     returned unchanged for ``"score"``/``"hard"``.
 
     Raises:
@@ -110,7 +123,7 @@ def relax_trigger(trigger, estimator: str, temperature):
             raise ValueError(f"relax_trigger: estimator {estimator!r} needs a jaxnc.loop.Petc trigger, "
                              f"got {type(trigger).__name__}")
         return dataclasses.replace(trigger, temperature=temperature, relaxed=estimator == "sigmoid")
-    if estimator in ("score", "hard", "corrected"):
+    if estimator in ("score", "richardson", "hard", "corrected"):
         return dataclasses.replace(trigger, temperature=0.0, relaxed=False) if isinstance(trigger, Petc) else trigger
     raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)} or hard, got {estimator!r}")
 
@@ -141,7 +154,7 @@ def score_surrogate(cost, logp, baseline=0.0):
     return cost + adv * (logp - jax.lax.stop_gradient(logp))
 
 
-def score_grad(fn, mean, key, n_pairs: int, scale):
+def score_grad(fn, mean, key, n_pairs: int, scale, richardson: bool = False):
     """Antithetic Gaussian score-function estimate of d/d mean E_e[fn(mean + scale e, k)].
 
     ``fn(params, key) -> scalar`` is evaluated with hard triggers (no gradient of the
@@ -152,11 +165,21 @@ def score_grad(fn, mean, key, n_pairs: int, scale):
 
     i.e. REINFORCE with the antithetic partner as baseline: unbiased for the gradient of
     the smoothed objective, variance O(dim / n).  Returns (mean of all 2n values, g).
+
+    With ``richardson``, each pair is also run at 2 s (the same e_i and k_i) and the
+    estimate is (4 g(s) - g(2 s)) / 3: the smoothing bias c s^2 + O(s^4) of g(s) for the
+    gradient of E fn(mean, k) becomes O(s^4) (Richardson extrapolation,
+    :mod:`jaxnc.tune.check`); 4n simulations, the value the mean of the 2n at scale s.
     """
     ke, kk = jax.random.split(key)
     eps = jax.random.normal(ke, (n_pairs, mean.shape[0]), mean.dtype)
     keys = jax.random.split(kk, n_pairs)
-    plus = jax.vmap(lambda e, k: fn(mean + scale * e, k))(eps, keys)
-    minus = jax.vmap(lambda e, k: fn(mean - scale * e, k))(eps, keys)
-    g = jnp.mean(((plus - minus) / (2.0 * scale))[:, None] * eps, axis=0)
-    return 0.5 * (jnp.mean(plus) + jnp.mean(minus)), g
+
+    def at(sc):
+        plus = jax.vmap(lambda e, k: fn(mean + sc * e, k))(eps, keys)
+        minus = jax.vmap(lambda e, k: fn(mean - sc * e, k))(eps, keys)
+        return 0.5 * (jnp.mean(plus) + jnp.mean(minus)), jnp.mean(((plus - minus) / (2.0 * sc))[:, None] * eps, axis=0)
+    v, g = at(scale)
+    if richardson:
+        g = (4.0 * g - at(2.0 * scale)[1]) / 3.0
+    return v, g

@@ -17,7 +17,9 @@ leaves).  :func:`tune` minimises E_seeds[loss] by stochastic gradient steps:
 * ``estimator`` picks how gradients cross the events (see :mod:`jaxnc.tune.estimators`):
   ``"straight_through"`` and ``"sigmoid"`` differentiate the loss (the loss decides which
   trigger to build from the temperature), ``"score"`` uses the antithetic Gaussian
-  score function on the raw parameters and never differentiates the simulation;
+  score function on the raw parameters and never differentiates the simulation,
+  ``"richardson"`` the same extrapolated over its scale (s and 2 s: the smoothing bias
+  O(s^2) becomes O(s^4), :mod:`jaxnc.tune.check`);
   ``"hybrid"`` takes a loss that returns ``(smooth, jump)``: the pathwise
   (straight-through) gradient of ``smooth + jump`` plus the antithetic score-function
   gradient of ``jump`` alone, for objectives whose discrete part (a run that fails and
@@ -154,6 +156,8 @@ def _score_pairs(estimator: str, batch: int, score_pairs: int | None) -> int:
     batch // 2, at least 1) for ``"hybrid"``, none for the pathwise estimators."""
     if estimator == "score":
         return batch // 2
+    if estimator == "richardson":
+        return max(1, batch // 4)
     if estimator == "hybrid":
         return score_pairs or max(1, batch // 2)
     return 0
@@ -164,6 +168,8 @@ def simulations_per_step(estimator: str, batch: int, score_pairs: int | None = N
     pairs = _score_pairs(estimator, batch, score_pairs)
     if estimator == "corrected":
         return 4 * batch        # the run, the sensor's replay, two alternatives (jaxnc.tune.jump)
+    if estimator == "richardson":
+        return 4 * pairs        # each pair at s and at 2 s
     return 2 * pairs if estimator == "score" else batch + 2 * pairs
 
 
@@ -175,7 +181,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
 
     ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
-    number of simulations; for ``"hybrid"``: ``batch`` pathwise seeds plus
+    number of simulations; for ``"richardson"``: max(1, batch // 4) pairs, each at s and
+    2 s; for ``"hybrid"``: ``batch`` pathwise seeds plus
     ``score_pairs`` antithetic pairs, default batch // 2, i.e. 2 x batch simulations).
     Seeds come from :func:`jaxnc.montecarlo.seed_keys` with base ``seed``: step k uses
     seeds ``k*batch ... (k+1)*batch - 1`` (``resample``) or always ``0 ... batch - 1``.
@@ -204,12 +211,13 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
 
     n_pairs = _score_pairs(estimator, batch, score_pairs)
     sims_per_step = simulations_per_step(estimator, batch, score_pairs)
-    if estimator == "score":
+    if estimator in ("score", "richardson"):
         flat0, unravel = ravel_pytree(raw0)
 
         def value_and_grad(raw, keys, temp):
             fn = lambda flat, k: loss(constrain(unravel(flat), constraints), k, temp)
-            v, g = score_grad(fn, ravel_pytree(raw)[0], keys[0], n_pairs, score_scale)
+            v, g = score_grad(fn, ravel_pytree(raw)[0], keys[0], n_pairs, score_scale,
+                              richardson=estimator == "richardson")
             return v, unravel(g)
     elif estimator == "hybrid":
         def value_and_grad(raw, keys, temp):
@@ -247,7 +255,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     with tqdm(total=steps, desc=desc, disable=not progress, dynamic_ncols=True) as bar:
         for k in range(steps):
             keys = montecarlo.seed_keys(seed, batch, start=k * batch if resample else 0)
-            temp = float(annealed_temperature(k, steps, *temperature)) if estimator != "score" else 0.0
+            temp = (float(annealed_temperature(k, steps, *temperature))
+                    if estimator not in ("score", "richardson") else 0.0)
             p_now = constrain(raw, constraints)
             for name in hist:
                 hist[name].append(np.asarray(p_now[name]))

@@ -50,6 +50,7 @@ __all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "t
            "with_temperature", "has_temperature"]
 
 _CONSTRAINTS = (Positive, Interval, Unconstrained)
+CHECK_SEEDS, CHECK_MAX_SEEDS = 256, 32768   # check_loop's default seeds and budget (docs/tuning_loops.md, issue 31)
 
 
 def _split(path: str) -> list[str]:
@@ -383,8 +384,8 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
 
 
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
-               run: Callable | None = None, seeds: int = 32, seed: int = 0, fd_step: float = 0.05,
-               temperature: float = 1e-3, score_scale: float = 0.1, chunk_size: int = 256,
+               run: Callable | None = None, seeds: int | None = None, seed: int = 0, fd_step: float = 0.2,
+               temperature: float = 1e-3, score_scale: float | None = None, chunk_size: int = 256,
                max_seeds: int | None = None, progress: bool = False, corrected: bool = False) -> GradientCheck:
     """The gradient check of :func:`jaxnc.tune.check.gradient_check` on ``loop``: at the
     loop's values of ``params`` (or at ``at``, ``{name: value}`` in natural units), the
@@ -400,8 +401,22 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     steps. ``params``, ``objective`` and ``run`` as in :func:`tune_loop`. The seeds run in
     compiled batches of ``chunk_size`` (bounded memory, so thousands of seeds are fine),
     with a progress bar if ``progress``. Every coordinate must be resolved for an
-    estimator to be recommended; with ``max_seeds`` (> ``seeds``) the check doubles its
-    seeds until it is conclusive or reaches ``max_seeds`` (default: no increase).
+    estimator to be recommended; the check doubles its seeds from ``seeds`` until it is
+    conclusive or reaches ``max_seeds``. By default (``seeds=None``) it starts at 256 and
+    doubles up to ``max_seeds`` = 32768; an explicit ``seeds`` runs that many, doubled
+    only up to a ``max_seeds`` given with it.
+
+    The defaults are those the loops of docs/tuning_loops.md need to be conclusive: 256
+    seeds doubled up to 32768 (HDD was conclusive at 256, the cart-pole at 512-1024, DRHE
+    at 16384 and 32768; on a slow loop ``progress=True`` shows the seeds, and a smaller
+    ``max_seeds`` bounds the wait); ``fd_step`` 0.2 (on objectives with rare failures a
+    central difference's variance grows like 1/h, and 0.05 left DRHE inconclusive at 512
+    seeds); ``score_scale`` default ``fd_step / sqrt(3)``, the
+    Gaussian with the variance of the central difference's uniform kernel on [-h, h], so
+    that the score function and the finite differences estimate the gradient of the same
+    smoothed objective to second order. Their common smoothing bias is measured and, where
+    resolved, removed by the extrapolated estimators (``"richardson"``,
+    :mod:`jaxnc.tune.check`).
 
     Returns:
       :class:`jaxnc.tune.check.GradientCheck`: ``names`` the coordinates' labels (in the
@@ -416,11 +431,16 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     spec = _prepare("check_loop", loop, params, objective, run)
     if not spec.paths:
         raise ValueError("check_loop: name at least one parameter")
+    if seeds is None:
+        seeds, max_seeds = CHECK_SEEDS, CHECK_MAX_SEEDS if max_seeds is None else max_seeds
     check_int("seeds", seeds, 2)
     check_int("seed", seed, 0, 2**32 - 1)
-    check_int("max_seeds", seeds if max_seeds is None else max_seeds, seeds)
+    max_seeds = seeds if max_seeds is None else max_seeds
+    check_int("max_seeds", max_seeds, seeds)
+    check_positive("fd_step", fd_step)
+    score_scale = fd_step / np.sqrt(3.0) if score_scale is None else score_scale
     flat0, unravel, fobj = _flat(loop, spec, at)
-    return _check(spec, flat0, unravel, fobj, seeds=seeds, max_seeds=seeds if max_seeds is None else max_seeds,
+    return _check(spec, flat0, unravel, fobj, seeds=seeds, max_seeds=max_seeds,
                   seed=seed, loop=loop, corrected=corrected, fd_step=fd_step, temperature=temperature,
                   score_scale=score_scale, chunk_size=chunk_size, progress=progress)
 
@@ -455,6 +475,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
       steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
       estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``,
+        ``"richardson"`` (the score extrapolated over its scale, :mod:`jaxnc.tune.check`),
         ``"hybrid"`` (a pair objective), ``"corrected"`` (a Loop whose sensor trigger is a
         hard PETC with additive measurement noise: :mod:`jaxnc.tune.jump`)
         or ``"none"`` (no gradient stage: needs ``search``). Without a gradient stage
@@ -530,9 +551,9 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_positive("learning_rate", learning_rate)
     check_positive("score_scale", score_scale)
     check_positive("fd_step", fd_step)
-    if estimator not in ("auto", "straight_through", "score", "hybrid", "corrected", "none"):
-        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score, hybrid, corrected or none, "
-                         f"got {estimator!r}")
+    if estimator not in ("auto", "straight_through", "score", "richardson", "hybrid", "corrected", "none"):
+        raise ValueError(f"tune_loop: estimator must be auto, straight_through, score, richardson, hybrid, corrected "
+                         f"or none, got {estimator!r}")
     if estimator == "corrected":
         from jaxnc.tune.jump import corrected_supported
         why = corrected_supported(loop)
@@ -595,7 +616,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             chk = _check(spec, flat0, unravel, flat_objective, seeds=check_seeds, max_seeds=check_max_seeds,
                          seed=seed + 2, loop=loop1, corrected=check_corrected, temperature=float(temperature[0]),
                          score_scale=score_scale, fd_step=fd_step, progress=progress)
-            sims += chk.seeds * (2 * flat0.size + 3 + (4 if "corrected" in chk.estimates else 0))
+            sims += chk.seeds * chk.runs_per_seed
             if chk.recommended is None and result_search is not None:
                 used, reason = "none", (f"no estimator passed the gradient check at the search's winner on "
                                         f"{chk.seeds} seeds ("
