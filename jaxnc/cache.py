@@ -28,9 +28,9 @@ _CLOCK = {"seconds": 0.0, "compilations": 0, "registered": False}
 
 class CompileClock(NamedTuple):
     """This process's running totals since :func:`compile_clock` was first called:
-    seconds spent lowering and compiling, and the number of XLA compilations (a program
-    loaded from the persistent cache is not one). Subtract two readings for the part
-    between them."""
+    seconds spent lowering and compiling, and the number of programs compiled by XLA (a
+    program loaded from the persistent cache counts too, with its load time). Subtract two
+    readings for the part between them."""
     seconds: float
     compilations: int
 

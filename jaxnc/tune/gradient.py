@@ -275,7 +275,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
             gnorms.append(float(gnorm))
             bar.set_postfix(objective=f"{value:.4g}", T=f"{temp:.3g}")
             bar.update(1)
-    raw_final = jax.tree.map(lambda *xs: jnp.mean(jnp.stack(xs), axis=0), *tail)
+    # averaged on the host: a device mean over a stack of len(tail) would compile one program per tail length
+    raw_final = jax.tree.map(lambda *xs: np.mean(np.stack([np.asarray(x) for x in xs]), axis=0), *tail)
     params = {k: np.asarray(v) for k, v in constrain(raw_final, constraints).items()}
     history = TuneHistory(np.asarray(objs), np.asarray(temps), np.asarray(gnorms),
                           {k: np.stack(v) for k, v in hist.items()})
