@@ -5,7 +5,7 @@ Run:  PYTHONPATH=. .venv/bin/python benchmarks/profile_tune_loop.py [--problem h
 
 Builds one ``tune-study`` problem (experiments/tune_study.py, its default settings) and calls
 :func:`jaxnc.tune.tune_loop` with the study's settings, counting every XLA compilation
-(``jax.monitoring``'s backend-compile events and the names ``jax_log_compiles`` logs) and
+(``jax.monitoring``'s backend-compile events, with the programs' names) and
 attributing each to the stage on the call stack (start evaluation, search, check, gradient
 steps, final evaluation), then prints the seconds compiling per stage and the call's
 compile clock (``LoopTuneResult.compile_s`` / ``n_compilations``). No persistent
@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import logging
-import re
 import sys
 import time
 import traceback
@@ -24,6 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import jax  # noqa: E402
+import jax.monitoring  # noqa: E402
 
 STAGES = collections.defaultdict(lambda: [0, 0.0])
 NAMES = []
@@ -40,15 +39,13 @@ def _stage() -> str:
     return "outside tune_loop"
 
 
-class _Names(logging.Handler):
-    def emit(self, record):
-        m = re.search(r"Finished XLA compilation of (.+?) in ([0-9.e\-]+) s", record.getMessage())
-        if m:
-            t = float(m.group(2))
-            st = _stage()
-            STAGES[st][0] += 1
-            STAGES[st][1] += t
-            NAMES.append((t, st, m.group(1)))
+def _listener(event, secs, fun_name="?", **kw):
+    """XLA compilations (backend-compile events), attributed to the stage on the stack."""
+    if event == "/jax/core/compile/backend_compile_duration":
+        st = _stage()
+        STAGES[st][0] += 1
+        STAGES[st][1] += secs
+        NAMES.append((secs, st, fun_name))
 
 
 def main():
@@ -60,12 +57,7 @@ def main():
     ap.add_argument("--eval-seeds", type=int, default=8)
     ap.add_argument("--top", type=int, default=12)
     a = ap.parse_args()
-    jax.config.update("jax_log_compiles", True)
-    h = _Names()
-    for name in ("jax._src.interpreters.pxla", "jax._src.dispatch", "jax._src.compiler"):
-        lg = logging.getLogger(name)
-        lg.addHandler(h)
-        lg.propagate = False
+    jax.monitoring.register_event_duration_secs_listener(_listener)
     from jaxnc.experiments import tune_study as ts
     from jaxnc.tune import tune_loop
     from jaxnc.experiment import get_experiment
@@ -78,10 +70,10 @@ def main():
                   progress=False)
     wall = time.perf_counter() - t0
     print(f"problem {a.problem}: tune_loop wall {wall:.1f} s, estimator {r.estimator}")
-    for k in ("compile_s", "n_compilations", "stage_s"):
+    for k in ("compile_s", "n_compilations", "stages"):
         if hasattr(r, k):
             print(f"  LoopTuneResult.{k} = {getattr(r, k)}")
-    print(f"  XLA compilations by stage (count, seconds):")
+    print("  XLA compilations by stage (count, seconds):")
     for st, (c, t) in sorted(STAGES.items(), key=lambda kv: -kv[1][1]):
         print(f"    {st:40s} {c:4d} {t:8.1f}")
     print(f"  the {a.top} longest compilations:")
