@@ -44,7 +44,7 @@ from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 5                  # of this study's definition: a stored loop is reused only at the same version
+VERSION = 6                  # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -323,27 +323,14 @@ def _config(settings: dict, seeds: int) -> dict:
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
-    t0 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
-    loops = LOOPS if settings["loops"] == "all" else (settings["loops"],)
-    cfg = _config(settings, seeds)
-    results = []
-    for name in loops:
-        results.append(montecarlo.stored_or_run(
-            out / f"{name}.json", experiment="tune-loops", config=cfg, progress=progress,
-            compute=lambda name=name: study(
-                BUILDERS[name](settings), check_seeds=settings["check_seeds"], steps=settings["steps"],
-                batch=settings["batch"], eval_seeds=seeds, seed=settings["seed"],
-                search_budget=settings["search_budget"], study_check_seeds=settings["study_check_seeds"],
-                progress=progress)))
-    text = tables(results)
-    print("\n" + text)
-    (out / "tables.md").write_text(text, encoding="utf-8")
-    fig = plot(results, out)
-    montecarlo.save_results(out / "results.json", experiment="tune-loops", config=dict(cfg, loops=list(loops)),
-                            results={r["loop"]: r for r in results}, wall_time_s=time.perf_counter() - t0)
-    print(f"wrote {out / 'results.json'}, {out / 'tables.md'} and {fig}")
-    return {r["loop"]: r for r in results}
+    return montecarlo.stored_study(
+        out, experiment="tune-loops", config=_config(settings, seeds), progress=progress,
+        parts=LOOPS if settings["loops"] == "all" else (settings["loops"],),
+        compute=lambda name: study(
+            BUILDERS[name](settings), check_seeds=settings["check_seeds"], steps=settings["steps"],
+            batch=settings["batch"], eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
+            study_check_seeds=settings["study_check_seeds"], progress=progress),
+        tables=tables, plot=plot)
 
 
 register(Experiment(

@@ -18,11 +18,13 @@ The problems:
   delta_c = sigma_c tied), where the tuner is also compared with a fine grid.
 
 For each problem, every method's wall time is measured from its own start to its own end,
-compilations included (the seconds spent tracing, lowering and compiling are recorded
-beside it, from ``jax.monitoring``):
+compilations included (the seconds spent lowering and compiling are recorded
+beside it, from :func:`jaxnc.cache.compile_clock`):
 
 a. :func:`jaxnc.tune.tune_loop` with its defaults (the gradient check picks the estimator;
-   its own final evaluation on ``TUNER_EVAL_SEEDS`` seeds is part of its time);
+   without its own evaluation, ``evaluate=False``: the study evaluates every method's point
+   itself; its compile clock and per-stage times, ``LoopTuneResult.compile_s`` and
+   ``stages``, are stored beside its wall time);
 b. random search: :func:`jaxnc.tune.random_points` in the problem's box, each point run on
    the same ``search_seeds`` seeds (common random numbers) with
    :func:`jaxnc.tune.evaluate`, until the tuner's wall time is spent;
@@ -46,12 +48,12 @@ import time
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxnc.loop as jl
 from jaxnc import montecarlo
+from jaxnc.cache import compile_clock
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
 from jaxnc.tune import (Positive, evaluate, get_path, mean_ci, objective_total, paired_ci, param_paths,
@@ -60,8 +62,7 @@ from jaxnc.tune import (Positive, evaluate, get_path, mean_ci, objective_total, 
 PROBLEMS = ("hdd", "cartpole", "hdd-grid")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (as in tune-loops)
 EVAL_SEED = 6_000_007        # fresh: the tuner and the searches use seeds below 10^5
-TUNER_EVAL_SEEDS = 8         # tune_loop's own start/end evaluation (part of its wall time)
-VERSION = 1                  # of this study's definition: a stored problem is reused only at the same version
+VERSION = 2                  # of this study's definition: a stored problem is reused only at the same version
 METHODS = ("tuner", "random", "halving", "grid")
 
 
@@ -158,31 +159,6 @@ BUILDERS = {"hdd": _hdd, "cartpole": _cartpole, "hdd-grid": _hdd_grid}
 # ----------------------------------------------------------------------------- timing
 
 
-class _CompileClock:
-    """Seconds spent lowering and compiling (``jax.monitoring`` events), summed
-    since this process registered it; :meth:`since` reads the part after a mark."""
-
-    # lowering and XLA's compilation (tracing is left out: a jit traced inside another's
-    # trace reports its own duration too, so trace durations overlap)
-    EVENTS = ("/jax/core/compile/jaxpr_to_mlir_module_duration", "/jax/core/compile/backend_compile_duration")
-    _total = [0.0]
-    _registered = [False]
-
-    @classmethod
-    def start(cls) -> float:
-        if not cls._registered[0]:
-            def listen(name, secs, **kw):
-                if name in cls.EVENTS:
-                    cls._total[0] += secs
-            jax.monitoring.register_event_duration_secs_listener(listen)
-            cls._registered[0] = True
-        return cls._total[0]
-
-    @classmethod
-    def since(cls, mark: float) -> float:
-        return cls._total[0] - mark
-
-
 def _per_seed(problem: Problem, names: dict) -> Callable:
     """``per_seed(point, key)``: the objective of one run at ``point`` ({name: value},
     every path of a tied name written), hard triggers (the configurations' temperature is 0)."""
@@ -216,7 +192,7 @@ def random_search_timed(per_seed: Callable, bounds: dict, *, budget_s: float, se
     Returns a dict: best (point), best_mean, n_points, simulations, wall_time_s and trace
     (the incumbent each time it changed: t, point, mean, n_points)."""
     t0 = time.perf_counter()
-    c0 = _CompileClock.start()
+    c0 = compile_clock()
     pts = random_stream(seed, bounds)
     keys = montecarlo.seed_keys(seed, seeds)
     best, best_mean, trace, n = None, math.inf, [], 0
@@ -229,7 +205,7 @@ def random_search_timed(per_seed: Callable, bounds: dict, *, budget_s: float, se
         if time.perf_counter() - t0 >= budget_s:
             break
     return {"best": best, "best_mean": best_mean, "n_points": n, "simulations": n * seeds,
-            "wall_time_s": time.perf_counter() - t0, "compile_s": _CompileClock.since(c0), "trace": trace}
+            "wall_time_s": time.perf_counter() - t0, "compile_s": (compile_clock() - c0).seconds, "trace": trace}
 
 
 def halving_timed(per_seed: Callable, bounds: dict, start: dict, *, budget_s: float, seeds: int, seed: int) -> dict:
@@ -248,7 +224,7 @@ def halving_timed(per_seed: Callable, bounds: dict, start: dict, *, budget_s: fl
 
     Returns a dict as :func:`random_search_timed`, plus n_candidates, rounds_done and probe_s."""
     t0 = time.perf_counter()
-    c0 = _CompileClock.start()
+    c0 = compile_clock()
     probe_keys = montecarlo.seed_keys(seed + 7, seeds)
     search(per_seed, [start], probe_keys, chunk_size=seeds, progress=False)         # compiles
     t1 = time.perf_counter()
@@ -279,21 +255,21 @@ def halving_timed(per_seed: Callable, bounds: dict, start: dict, *, budget_s: fl
     best = trace[-1]["point"]
     return {"best": best, "best_mean": trace[-1]["mean"], "n_points": n, "n_candidates": n, "rounds": rounds,
             "rounds_done": done, "simulations": sims, "probe_s": unit, "wall_time_s": time.perf_counter() - t0,
-            "compile_s": _CompileClock.since(c0), "trace": trace}
+            "compile_s": (compile_clock() - c0).seconds, "trace": trace}
 
 
 def grid_timed(per_seed: Callable, axes: dict, *, seeds: int, seed: int) -> dict:
     """Every point of the grid ``axes`` ({name: values}) on the same ``seeds`` seeds; the best
     mean wins. Returns a dict as :func:`random_search_timed` (trace: the best, at the end)."""
     t0 = time.perf_counter()
-    c0 = _CompileClock.start()
+    c0 = compile_clock()
     names = list(axes)
     mesh = np.meshgrid(*[np.asarray(axes[n], float) for n in names], indexing="ij")
     pts = [{n: float(m.reshape(-1)[i]) for n, m in zip(names, mesh)} for i in range(mesh[0].size)]
     res = search(per_seed, pts, montecarlo.seed_keys(seed, seeds), chunk_size=seeds, progress=False)
     t = time.perf_counter() - t0
     return {"best": res.best_point, "best_mean": float(res.best_mean), "n_points": len(pts),
-            "simulations": int(res.n_simulations), "wall_time_s": t, "compile_s": _CompileClock.since(c0),
+            "simulations": int(res.n_simulations), "wall_time_s": t, "compile_s": (compile_clock() - c0).seconds,
             "trace": [{"t": t, "point": res.best_point, "mean": float(res.best_mean), "n_points": len(pts)}]}
 
 
@@ -313,13 +289,13 @@ def study(problem: Problem, settings: dict, *, eval_seeds: int, progress: bool =
     start = {n: _f(get_path(problem.config, p[0])) for n, p in names.items()}
     methods = {}
 
-    # (a) the tuner, its defaults (its own evaluation kept small: it is part of its time)
-    c0 = _CompileClock.start()
+    # (a) the tuner, its defaults (without its own evaluation: the study evaluates every point itself)
+    c0 = compile_clock()
     t0 = time.perf_counter()
     r = tune_loop(problem.config, problem.params, problem.objective, run=problem.run, steps=settings["steps"],
                   batch=settings["batch"], check_seeds=settings["check_seeds"],
-                  check_max_seeds=settings["check_max_seeds"] or None, seed=seed, eval_seeds=TUNER_EVAL_SEEDS,
-                  eval_seed=EVAL_SEED + 1, progress=progress)
+                  check_max_seeds=settings["check_max_seeds"] or None, seed=seed, evaluate=False,
+                  progress=progress)
     t_tuner = time.perf_counter() - t0
     tuned = {n: _f(v) for n, v in r.params.items()}
     g_wall = r.tune.wall_time_s if r.tune is not None else 0.0
@@ -332,7 +308,9 @@ def study(problem: Problem, settings: dict, *, eval_seeds: int, progress: bool =
                 trace.append({"t": g0 + g_wall * k / steps, "point": {n: _f(hist[n][k]) for n in hist},
                               "mean": None, "kind": "iterate (time interpolated)"})
     trace.append({"t": t_tuner, "point": tuned, "mean": None, "kind": "tuned"})
-    methods["tuner"] = {"best": tuned, "wall_time_s": t_tuner, "compile_s": _CompileClock.since(c0),
+    methods["tuner"] = {"best": tuned, "wall_time_s": t_tuner, "compile_s": (compile_clock() - c0).seconds,
+                        "compilations": int(r.n_compilations), "own_compile_s": float(r.compile_s),
+                        "stages": {k: list(v) for k, v in (r.stages or {}).items()},
                         "gradient_wall_time_s": g_wall, "simulations": int(r.tuning_simulations),
                         "estimator": r.estimator, "estimator_reason": r.estimator_reason,
                         "check_seeds": int(r.check.seeds) if r.check is not None else 0,
@@ -416,7 +394,8 @@ def tables(results: list[dict]) -> str:
         e = res["eval"]
         rows.append([res["loop"], "start", "", "", "", "", _fmt_pt(res["start"]), _ci(e["mean"]["start"]), ""])
         for m, d in res["methods"].items():
-            how = (f"{d['estimator']}, check on {d['check_seeds']} seeds" if m == "tuner" else
+            how = (f"{d['estimator']}, check on {d['check_seeds']} seeds, {d.get('compilations', '?')} compilations"
+                   if m == "tuner" else
                    f"{d['n_candidates']} candidates, {d['rounds_done']}/{d['rounds']} rounds" if m == "halving" else
                    f"{d['n_points']} points")
             rows.append([res["loop"], m, f"{d['wall_time_s']:.1f}", f"{d['compile_s']:.1f}", str(d["simulations"]),
@@ -482,23 +461,11 @@ def _config(settings: dict, seeds: int) -> dict:
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
-    t0 = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
-    names = PROBLEMS if settings["loops"] == "all" else (settings["loops"],)
-    cfg = _config(settings, seeds)
-    results = []
-    for name in names:
-        results.append(montecarlo.stored_or_run(
-            out / f"{name}.json", experiment="tune-study", config=cfg, progress=progress,
-            compute=lambda name=name: study(BUILDERS[name](settings), settings, eval_seeds=seeds, progress=progress)))
-    text = tables(results)
-    print("\n" + text)
-    (out / "tables.md").write_text(text, encoding="utf-8")
-    fig = plot(results, out)
-    montecarlo.save_results(out / "results.json", experiment="tune-study", config=dict(cfg, loops=list(names)),
-                            results={r["loop"]: r for r in results}, wall_time_s=time.perf_counter() - t0)
-    print(f"wrote {out / 'results.json'}, {out / 'tables.md'} and {fig}")
-    return {r["loop"]: r for r in results}
+    return montecarlo.stored_study(
+        out, experiment="tune-study", config=_config(settings, seeds), progress=progress,
+        parts=PROBLEMS if settings["loops"] == "all" else (settings["loops"],),
+        compute=lambda name: study(BUILDERS[name](settings), settings, eval_seeds=seeds, progress=progress),
+        tables=tables, plot=plot)
 
 
 register(Experiment(

@@ -12,10 +12,49 @@ from __future__ import annotations
 
 import os
 import pathlib
+from typing import NamedTuple
 
-__all__ = ["default_cache_dir", "enable_cache", "cache_beside", "allow_cache_beside"]
+__all__ = ["default_cache_dir", "enable_cache", "cache_beside", "allow_cache_beside", "CompileClock",
+           "compile_clock"]
 
 _BESIDE = [True]
+
+# lowering to MLIR and XLA's compilation (tracing is left out: a jit traced inside another's
+# trace reports its own duration too, so trace durations nest and would be counted twice)
+_LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_COMPILE = "/jax/core/compile/backend_compile_duration"
+_CLOCK = {"seconds": 0.0, "compilations": 0, "registered": False}
+
+
+class CompileClock(NamedTuple):
+    """This process's running totals since :func:`compile_clock` was first called:
+    seconds spent lowering and compiling, and the number of programs compiled by XLA (a
+    program loaded from the persistent cache counts too, with its load time). Subtract two
+    readings for the part between them."""
+    seconds: float
+    compilations: int
+
+    def __sub__(self, other):
+        return CompileClock(self.seconds - other.seconds, self.compilations - other.compilations)
+
+
+def _listen(name, secs, **kw):
+    if name == _COMPILE:
+        _CLOCK["seconds"] += secs
+        _CLOCK["compilations"] += 1
+    elif name == _LOWER:
+        _CLOCK["seconds"] += secs
+
+
+def compile_clock() -> CompileClock:
+    """The compile clock's reading (:class:`CompileClock`), from ``jax.monitoring``'s
+    lowering and backend-compile duration events; the first call registers the listener
+    (compilations before it are not counted). Every thread's compilations count."""
+    if not _CLOCK["registered"]:
+        import jax.monitoring
+        jax.monitoring.register_event_duration_secs_listener(_listen)
+        _CLOCK["registered"] = True
+    return CompileClock(_CLOCK["seconds"], _CLOCK["compilations"])
 
 
 def default_cache_dir() -> pathlib.Path:

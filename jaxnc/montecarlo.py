@@ -26,6 +26,7 @@ import pathlib
 import platform as _platform
 import sys
 import tempfile
+import time
 import weakref
 from typing import Any, Callable
 
@@ -37,7 +38,8 @@ from tqdm.auto import tqdm
 from jaxnc import __version__
 
 __all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results",
-           "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY"]
+           "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
+           "stored_or_run", "stored_study"]
 
 
 # ----------------------------------------------------------------------------- memory
@@ -534,6 +536,28 @@ def stored_or_run(path, *, experiment: str, config: dict, compute, progress: boo
     res = compute()
     save_results(path, experiment=experiment, config=config, results=res, wall_time_s=res["wall_time_s"])
     return load_results(path)["results"]
+
+
+def stored_study(out, *, experiment: str, config: dict, parts, compute, tables, plot, progress: bool = True) -> dict:
+    """A study of several parts (loops, problems) written to folder ``out``: each part's
+    results from :func:`stored_or_run` (``out/<part>.json``, ``compute(part)``), then the
+    markdown ``tables(results)`` printed and written to ``out/tables.md``, the figure
+    ``plot(results, out)`` (returns its path), and every part in ``out/results.json``
+    (config plus ``loops``: the parts). Each part's results must name it in ``"loop"``.
+    Returns ``{part: results}``."""
+    t0 = time.perf_counter()
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = [stored_or_run(out / f"{name}.json", experiment=experiment, config=config, progress=progress,
+                             compute=lambda name=name: compute(name)) for name in parts]
+    text = tables(results)
+    print("\n" + text)
+    (out / "tables.md").write_text(text, encoding="utf-8")
+    fig = plot(results, out)
+    save_results(out / "results.json", experiment=experiment, config=dict(config, loops=list(parts)),
+                 results={r["loop"]: r for r in results}, wall_time_s=time.perf_counter() - t0)
+    print(f"wrote {out / 'results.json'}, {out / 'tables.md'} and {fig}")
+    return {r["loop"]: r for r in results}
 
 
 def load_results(path) -> dict:

@@ -32,3 +32,16 @@ def test_default_cache_dir_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("JAXNC_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "x"))
     assert cache.default_cache_dir() == tmp_path / "x" / "jaxnc" / "xla"
+
+
+def test_compile_clock_counts_a_fresh_program_once():
+    import jax.numpy as jnp
+    x, y = jnp.ones(3), jnp.zeros(3)
+    c0 = cache.compile_clock()
+    f = jax.jit(lambda x: jnp.sin(x) * 3.0 + x)
+    f(x).block_until_ready()
+    c1 = cache.compile_clock()
+    f(y).block_until_ready()                          # the same shapes: no new compilation
+    c2 = cache.compile_clock()
+    assert (c1 - c0).compilations >= 1 and (c1 - c0).seconds > 0
+    assert (c2 - c1).compilations == 0

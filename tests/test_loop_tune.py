@@ -424,3 +424,65 @@ def test_tune_loop_refuses_a_part_or_a_none_field_instead_of_a_leaf():
         tune_loop(lp, {"controller.u_max": Positive()})
     with pytest.raises(ValueError, match=r"'controller_trigger' is None in this loop"):
         check_loop(lp, ["controller_trigger"])
+
+
+# ----------------------------------------------------------------------------- overheads (issue 31, item 3)
+
+
+def test_hard_program_is_the_objective_at_the_start_and_at_each_perturbed_point():
+    """The program the evaluation and the score-function steps share: scale 0 gives the
+    objective at the loop's own values; scale s the objective at constrain(raw + s e), e
+    drawn from the key, against the per-seed function evaluated directly."""
+    from jaxnc.tune.loop_tune import _as_f32, _hard_program, _prepare
+    cfg = _Pair(b=0.5, a=2.0)
+    spec = _prepare("test", cfg, {"b": Positive(), "a": Interval(0.0, 4.0)}, lambda j: j, _pair_run)
+    hard = _hard_program(spec, 16)
+    keys = montecarlo.seed_keys(3, 20)                    # two chunks, the second padded
+    v0, e = hard(_as_f32(cfg, spec), keys, np.zeros(20))
+    direct = np.asarray([_pair_run(cfg, k) for k in keys])
+    np.testing.assert_allclose(v0, direct, rtol=1e-6)
+    assert e.shape == (20, 2)
+    v1, e1 = hard(_as_f32(cfg, spec), keys, np.full(20, 0.1))
+    np.testing.assert_array_equal(e1, e)                  # e depends on the key only
+    raw_a, raw_b = np.log(2.0 / (4.0 - 2.0)), np.log(0.5)  # sorted names: a, then b
+    a = 4.0 / (1.0 + np.exp(-(raw_a + 0.1 * e[:, 0])))
+    b = np.exp(raw_b + 0.1 * e[:, 1])
+    ref = np.asarray([_pair_run(_Pair(b=bi, a=ai), k) for ai, bi, k in zip(a, b, keys)])
+    np.testing.assert_allclose(v1, ref, rtol=1e-5)
+
+
+def _compilations(**kw):
+    from jaxnc.tune import tune_loop
+    r = tune_loop(_Pair(b=0.5, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run,
+                  batch=4, eval_seeds=8, progress=False, **kw)
+    return r
+
+
+@pytest.mark.parametrize("estimator", ["score", "straight_through"])
+def test_tune_loops_compilations_are_bounded_and_do_not_grow_with_steps(estimator):
+    """A fresh tune_loop call compiles its programs once each: the same number for 2 and 9
+    steps (no re-tracing per step: the point and the temperature are arguments), and the
+    score function's steps compile only the optimiser's update (their simulations run in
+    the evaluation's program). The compile clock and the stages are reported."""
+    _compilations(steps=2, estimator=estimator)          # the small eager programs, once per process
+    r2 = _compilations(steps=2, estimator=estimator)
+    r9 = _compilations(steps=9, estimator=estimator)
+    assert r2.n_compilations == r9.n_compilations, (r2.stages, r9.stages)
+    assert set(r9.stages) == {"evaluation", "gradient"}
+    assert 0 < r9.compile_s <= r9.wall_time_s
+    assert r9.stages["evaluation"][2] == 1                 # the hard program, start and end
+    if estimator == "score":
+        assert r9.stages["gradient"][2] == 1               # the update alone
+    else:
+        assert r9.stages["gradient"][2] == 1               # the pathwise step
+    assert "compiling" in r9.summary()
+
+
+def test_evaluation_is_optional_and_does_not_change_the_tuned_point():
+    a = _compilations(steps=3, estimator="score")
+    b = _compilations(steps=3, estimator="score", evaluate=False)
+    np.testing.assert_array_equal(a.params["a"], b.params["a"])
+    np.testing.assert_array_equal(a.params["b"], b.params["b"])
+    assert b.eval_values == () and np.isnan(b.start_eval[0]) and np.isnan(b.paired_diff[1])
+    assert b.n_simulations == b.tuning_simulations == a.tuning_simulations == a.n_simulations - 16
+    assert "evaluation" not in b.stages and "not evaluated" in b.summary()

@@ -294,3 +294,30 @@ def test_run_batched_shards_over_devices(tmp_path):
         outs.append(np.load(f))
     assert outs[0].shape == (37, 50)
     np.testing.assert_allclose(outs[1], outs[0], rtol=1e-6, atol=1e-7)
+
+
+def test_stored_study_writes_every_part_and_reuses_them(tmp_path, capsys):
+    calls = []
+
+    def compute(name):
+        calls.append(name)
+        return {"loop": name, "value": len(name), "wall_time_s": 0.5}
+
+    def plot(results, out):
+        p = out / "fig.png"
+        p.write_text(",".join(r["loop"] for r in results))
+        return p
+
+    tables = lambda results: "| " + " | ".join(f"{r['loop']}={r['value']}" for r in results) + " |"
+    kw = dict(experiment="demo", config={"seeds": 4}, parts=("ab", "cde"), compute=compute, tables=tables, plot=plot)
+    res = mc.stored_study(tmp_path / "o", **kw)
+    assert calls == ["ab", "cde"] and res["cde"]["value"] == 3
+    assert (tmp_path / "o" / "tables.md").read_text() == "| ab=2 | cde=3 |"
+    assert (tmp_path / "o" / "fig.png").read_text() == "ab,cde"
+    doc = mc.load_results(tmp_path / "o" / "results.json")
+    assert doc["config"] == {"seeds": 4, "loops": ["ab", "cde"]} and set(doc["results"]) == {"ab", "cde"}
+    capsys.readouterr()
+    again = mc.stored_study(tmp_path / "o", **kw)            # the same config: nothing recomputed
+    assert calls == ["ab", "cde"] and again == res and "reusing" in capsys.readouterr().out
+    mc.stored_study(tmp_path / "o", **dict(kw, config={"seeds": 8}))
+    assert calls == ["ab", "cde", "ab", "cde"]

@@ -338,3 +338,43 @@ def test_scales_family_is_the_grids_family_and_contains_the_papers_thresholds():
     assert grid_cell((0.0, 0.25, 0.5, 1.0), 0.0) == (0.0, 0.25) and grid_cell((0.0, 0.25, 0.5, 1.0), 1.0) == (0.5, 2.0)
     assert grid_cell((0.03, 0.1, 0.3, 1.0), 0.1) == (0.03, 0.3)
     np.testing.assert_allclose(grid_cell((0.03, 0.1, 0.3, 1.0), 0.03), (0.009, 0.1))
+
+
+def _fresh_quadratic():
+    def per_seed(p, key):
+        return (p["x"] - 0.62) ** 2 + 0.1 * jax.random.normal(key)
+    return per_seed
+
+
+def test_successive_halving_rounds_share_one_program_and_stop_at_max_seconds():
+    """Rounds of 2, 5, 10 and 20 seeds per candidate run in chunks of the first round's 2:
+    one compilation for the whole search (a fresh per-seed function). With a spent
+    wall-time budget only the first round runs, and its leader is the result."""
+    from jaxnc.cache import compile_clock
+    pts = [{"x": float(x)} for x in np.linspace(0, 1, 16)]
+    keys = montecarlo.seed_keys(0, 37)
+    successive_halving(_fresh_quadratic(), pts, keys, budget=160, progress=False)    # the eager helpers, once
+    c0 = compile_clock()
+    h = successive_halving(_fresh_quadratic(), pts, keys, budget=160, progress=False)
+    assert (compile_clock() - c0).compilations == 1
+    assert h.n_simulations == 152 and abs(h.best_point["x"] - 0.6) < 0.1
+    t = successive_halving(_fresh_quadratic(), pts, keys, budget=160, max_seconds=1e-9, progress=False)
+    assert t.n_simulations == 16 * 2 and np.isnan(t.values[:, 2:]).all()
+    first = np.mean(t.values[:, :2], axis=1)
+    assert t.best == int(np.argmin(first))
+    with pytest.raises(ValueError, match="max_seconds"):
+        successive_halving(_fresh_quadratic(), pts, keys, budget=160, max_seconds=0)
+    with pytest.raises(ValueError, match="chunk_size"):
+        successive_halving(_fresh_quadratic(), pts, keys, budget=160, chunk_size=0)
+
+
+def test_search_stops_at_max_seconds_after_the_first_candidate():
+    pts = [{"x": float(x)} for x in np.linspace(0, 1, 5)]
+    keys = montecarlo.seed_keys(0, 8)
+    r = search(_fresh_quadratic(), pts, keys, max_seconds=1e-9, progress=False)
+    assert r.n_simulations == 8 and r.best == 0 and np.isnan(r.values[1:]).all()
+    assert np.isinf(r.mean[1:]).all() and np.isfinite(r.mean[0])
+    full = search(_fresh_quadratic(), pts, keys, max_seconds=1e6, progress=False)
+    assert full.n_simulations == 40 and full.best == 2          # x = 0.5, the closest to 0.62
+    with pytest.raises(ValueError, match="max_seconds"):
+        search(_fresh_quadratic(), pts, keys, max_seconds=-1.0)

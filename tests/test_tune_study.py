@@ -68,6 +68,10 @@ def test_tune_study_tiny_end_to_end_writes_and_resumes(tmp_path, capsys):
     # equal wall time: random search runs until the tuner's time is spent
     assert m["random"]["wall_time_s"] >= m["tuner"]["wall_time_s"]
     assert m["tuner"]["estimator"] in ("straight_through", "score", "richardson", "hybrid")
+    # the tuner's own overheads, without its evaluation (the study evaluates every point)
+    st = m["tuner"]["stages"]
+    assert "check" in st and "gradient" in st and "evaluation" not in st
+    assert m["tuner"]["compilations"] >= 2 and 0 < m["tuner"]["own_compile_s"] <= m["tuner"]["wall_time_s"]
     e = res["eval"]
     assert e["seeds"] == 8 and set(e["mean"]) == {"start", "tuner", "random", "halving", "grid"}
     # a paired difference is the difference of the means (same fresh seeds)

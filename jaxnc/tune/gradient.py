@@ -177,7 +177,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
          optimizer: optax.GradientTransformation | None = None, estimator: str = "straight_through",
          temperature: tuple[float, float] = (1.0, 0.1), seed: int = 0, resample: bool = True,
          score_scale: float = 0.1, score_pairs: int | None = None, average_tail: float = 0.25,
-         progress: bool = True, desc: str = "tune", corrected: Callable | None = None) -> TuneResult:
+         progress: bool = True, desc: str = "tune", corrected: Callable | None = None,
+         host_grad: Callable | None = None) -> TuneResult:
     """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
 
     ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
@@ -190,6 +191,11 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     ``corrected(raw float[d], key) -> (value, grad float[d])``, one seed's corrected
     gradient in the flat raw coordinates (:mod:`jaxnc.tune.jump`; ``loss`` is then unused
     for gradients, and :func:`jaxnc.tune.tune_loop` builds it).
+    ``host_grad(raw dict, keys [batch, 2], temperature) -> (value, grads dict)``, a host
+    function, replaces the estimator's own step (``loss`` is then unused): only the
+    optimiser's update is compiled here, and the simulations run in whatever program
+    ``host_grad`` calls (:func:`jaxnc.tune.tune_loop` shares one between its
+    score-function steps and its evaluation).
     """
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
@@ -239,13 +245,22 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     else:
         value_and_grad = jax.value_and_grad(mean_loss)
 
-    @jax.jit
-    def step_fn(raw, opt_state, keys, temp):
-        value, grads = value_and_grad(raw, keys, temp)
+    def update(raw, opt_state, value, grads):
         grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)   # divergence is data
         updates, opt_state = optimizer.update(grads, opt_state, raw)
         gnorm = optax.tree.norm(grads)
         return optax.apply_updates(raw, updates), opt_state, value, gnorm
+
+    if host_grad is None:
+        @jax.jit
+        def step_fn(raw, opt_state, keys, temp):
+            return update(raw, opt_state, *value_and_grad(raw, keys, temp))
+    else:
+        update_fn = jax.jit(update)
+
+        def step_fn(raw, opt_state, keys, temp):
+            value, grads = host_grad(raw, keys, temp)
+            return update_fn(raw, opt_state, jnp.float32(value), grads)
 
     t0 = time.perf_counter()
     raw = raw0
@@ -269,7 +284,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
             gnorms.append(float(gnorm))
             bar.set_postfix(objective=f"{value:.4g}", T=f"{temp:.3g}")
             bar.update(1)
-    raw_final = jax.tree.map(lambda *xs: jnp.mean(jnp.stack(xs), axis=0), *tail)
+    # averaged on the host: a device mean over a stack of len(tail) would compile one program per tail length
+    raw_final = jax.tree.map(lambda *xs: np.mean(np.stack([np.asarray(x) for x in xs]), axis=0), *tail)
     params = {k: np.asarray(v) for k, v in constrain(raw_final, constraints).items()}
     history = TuneHistory(np.asarray(objs), np.asarray(temps), np.asarray(gnorms),
                           {k: np.stack(v) for k, v in hist.items()})

@@ -31,7 +31,9 @@ gradient check alone, at any point, for a user to run before trusting an estimat
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -41,6 +43,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from jaxnc import montecarlo
+from jaxnc.cache import compile_clock
 from jaxnc._validate import check_int, check_positive
 from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.gradient import Interval, Positive, TuneResult, Unconstrained, constrain, tune, unconstrain
@@ -140,6 +143,9 @@ class LoopTuneResult(NamedTuple):
     n_simulations: int        # every simulation, the final evaluation's included
     wall_time_s: float
     eval_values: tuple = ()   # (start, tuned): per-seed objective on the fresh seeds, float[eval_seeds] each
+    compile_s: float = math.nan   # of wall_time_s, the seconds spent lowering and compiling (jaxnc.cache.compile_clock)
+    n_compilations: int = 0       # XLA compilations during the call (the small eager ones included)
+    stages: Any = None            # {stage: (wall s, compile s, compilations)}: evaluation, search, check, gradient
 
     @property
     def tuning_simulations(self) -> int:
@@ -154,8 +160,15 @@ class LoopTuneResult(NamedTuple):
         for k in self.params:
             lines.append(f"  {k}: {np.array2string(np.asarray(self.start[k]), precision=4)} -> "
                          f"{np.array2string(np.asarray(self.params[k]), precision=4)}")
-        lines.append(f"objective (hard triggers, fresh seeds): start {s[0]:.4g} +- {s[1]:.2g}, "
-                     f"tuned {t[0]:.4g} +- {t[1]:.2g}; paired difference {d[0]:.4g} +- {d[1]:.2g}")
+        if self.eval_values:
+            lines.append(f"objective (hard triggers, fresh seeds): start {s[0]:.4g} +- {s[1]:.2g}, "
+                         f"tuned {t[0]:.4g} +- {t[1]:.2g}; paired difference {d[0]:.4g} +- {d[1]:.2g}")
+        else:
+            lines.append("objective: not evaluated (evaluate=False)")
+        lines.append(f"wall time {self.wall_time_s:.1f} s, of which {self.compile_s:.1f} s lowering and compiling "
+                     f"({self.n_compilations} compilations); {self.n_simulations} simulations")
+        for k, (w, c, n) in (self.stages or {}).items():
+            lines.append(f"  {k}: {w:.1f} s, compiling {c:.1f} s ({n} compilations)")
         return "\n".join(lines)
 
 
@@ -316,6 +329,80 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
+def _raw(constraint, value):
+    """The raw (optimiser) coordinate of ``value`` under ``constraint``, traceable (the
+    inverse of its ``forward``; no domain check: the values come from the loop)."""
+    if isinstance(constraint, Positive):
+        return jnp.log(value - constraint.low)
+    if isinstance(constraint, Interval):
+        f = (value - constraint.low) / (constraint.high - constraint.low)
+        return jnp.log(f / (1.0 - f))
+    return value
+
+
+def _hard_program(spec: _Spec, chunk: int) -> Callable:
+    """``hard(lp, keys [n, 2], scales float[n]) -> (values float[n], e float[n, d])``: the
+    objective of one run per key with hard triggers, the tuned parameters of ``lp`` moved
+    to raw + scale e (raw: their unconstrained coordinates, flattened in sorted-name order;
+    e ~ N(0, I) drawn from the key; scale 0: ``lp``'s own values, untouched).
+
+    One compiled program (``lp`` is an argument) runs, in chunks of ``chunk`` keys (the
+    last padded), both the evaluation (scales 0) and the score function's antithetic pairs
+    (the same key at +s and -s, as :func:`jaxnc.tune.estimators.score_grad`): a loop of the
+    same structure and dtypes reuses it."""
+    cons = spec.constraints
+
+    def one(key, scale, lp):
+        vals = {n: jnp.asarray(get_path(lp, g[0]), jnp.float32) for n, g in spec.paths.items()}
+        flat, unravel = ravel_pytree({n: _raw(cons[n], v) for n, v in vals.items()})
+        e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
+        moved = constrain(unravel(flat + scale * e), cons)
+        point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
+        return spec.objective(spec.run(with_temperature(_set(lp, spec, point), jnp.float32(0.0)), key)), e
+
+    batched = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+
+    def hard(lp, keys, scales):
+        keys, scales = np.asarray(keys), np.asarray(scales, np.float32)
+        n = keys.shape[0]
+        idx = np.minimum(np.arange(-(-n // chunk) * chunk), n - 1)
+        outs = [batched(keys[idx[i:i + chunk]], scales[idx[i:i + chunk]], lp) for i in range(0, idx.size, chunk)]
+        return tuple(np.concatenate([np.asarray(o[j]) for o in outs])[:n] for j in range(2))
+    return hard
+
+
+def _as_f32(loop, spec: _Spec, values: dict | None = None):
+    """``loop`` with every tuned leaf (``values``, default its own) as a float32 array, so
+    that loops before and after tuning share one compiled program."""
+    values = values or {n: get_path(loop, g[0]) for n, g in spec.paths.items()}
+    return _set(loop, spec, {n: np.asarray(v, np.float32) for n, v in values.items()})
+
+
+def _score_step(hard: Callable, loop, spec: _Spec, n_pairs: int, scale: float) -> Callable:
+    """``host_grad(raw, keys, temp) -> (value, grads)`` for :func:`jaxnc.tune.tune`: the
+    antithetic score function (``score_grad``'s estimate, g = mean_i (J(+) - J(-)) e_i / 2s)
+    on the step's first ``n_pairs`` keys, run by ``hard``."""
+    def host_grad(raw, keys, temp):
+        lp = _as_f32(loop, spec, constrain(raw, spec.constraints))
+        pk = np.asarray(keys)[:n_pairs]
+        v, e = hard(lp, np.concatenate([pk, pk]), np.r_[np.full(n_pairs, scale), np.full(n_pairs, -scale)])
+        g = np.mean(((v[:n_pairs] - v[n_pairs:]) / (2.0 * scale))[:, None] * e[:n_pairs], axis=0)
+        return float(np.mean(v)), ravel_pytree(raw)[1](jnp.asarray(g, jnp.float32))
+    return host_grad
+
+
+@contextlib.contextmanager
+def _stage(stages: dict, name: str):
+    """Adds the block's wall time and compile clock to ``stages[name]``."""
+    t, c = time.perf_counter(), compile_clock()
+    try:
+        yield
+    finally:
+        dc = compile_clock() - c
+        w0, c0, n0 = stages.get(name, (0.0, 0.0, 0))
+        stages[name] = (w0 + time.perf_counter() - t, c0 + dc.seconds, n0 + dc.compilations)
+
+
 def _corrected(loop, spec: _Spec, unravel):
     """``corrected(theta, key) -> (value, grad)`` in the flat raw coordinates
     (:func:`jaxnc.tune.jump.corrected_grad` on the hard loop), or None when ``loop`` does not
@@ -361,7 +448,8 @@ def _labels(unravel, size: int) -> tuple:
     return tuple(labels)
 
 
-def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4):
+def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4,
+            chunk_size: int | None = None):
     """``res`` (a SearchResult) with ``budget`` more simulations spent on its best
     ``finalists`` candidates (the same new seeds for all: common random numbers); the best
     is then the lowest mean over all the seeds a candidate ran."""
@@ -372,7 +460,7 @@ def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, fina
     if n_new < 1:
         return res
     new = run_search(per_seed, [res.points[i] for i in top], montecarlo.seed_keys(seed, n_new), static=static,
-                     progress=False)
+                     chunk_size=chunk_size, progress=False)
     values = np.concatenate([res.values, np.full((len(res.points), n_new), np.nan)], axis=1)
     values[top, -n_new:] = new.values
     stats = np.asarray([mean_ci(row[~np.isnan(row)]) for row in values])
@@ -450,7 +538,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
               steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
               learning_rate: float = 0.05, score_scale: float = 0.1, fd_step: float = 0.05, seed: int = 0,
               check_seeds: int = 32, check_max_seeds: int | None = None,
-              eval_seeds: int = 256, eval_seed: int = 100_000, progress: bool = True,
+              eval_seeds: int = 256, eval_seed: int = 100_000, evaluate: bool = True, progress: bool = True,
               check_corrected: bool = False) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
@@ -488,6 +576,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         the check's finite-difference step, in the raw coordinates.
       check_seeds, eval_seeds: seeds of the gradient check and of the final evaluation;
         ``eval_seed``: base seed of the evaluation (fresh: different from ``seed``).
+      evaluate: run the start's and the tuned point's evaluation (default); False skips
+        both (a caller that evaluates the point itself saves their time): ``start_eval``,
+        ``tuned_eval`` and ``paired_diff`` are then NaN, ``eval_values`` empty, and an
+        objective that is NaN at the start is not refused before the budget is spent.
       check_max_seeds: the check's budget: while it recommends nothing because some
         coordinate is unresolved, its seeds double up to this many (>= check_seeds;
         default 16 x check_seeds, four doublings; ``check_seeds`` turns the increase off).
@@ -498,7 +590,17 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         and the least noisy.
 
     Returns:
-      :class:`LoopTuneResult`.
+      :class:`LoopTuneResult`, with its own overheads: ``compile_s`` and
+      ``n_compilations`` (:func:`jaxnc.cache.compile_clock` over the call) and ``stages``,
+      the wall time, compile time and compilations of each stage (``evaluation``,
+      ``search``, ``check``, ``gradient``).
+
+    Compiled programs: the evaluation and the score function's steps share one (the hard
+    objective with the point as an argument, :func:`_hard_program`: the start and the
+    tuned point, and every step, reuse it); the check compiles one (its chunks and seed
+    doublings reuse it); a pathwise estimator's step compiles one (reused by every step:
+    the temperature and the point are arguments); the search one per distinct static
+    value (its rounds share a chunk size). None of these grows with ``steps``.
 
     Raises:
       ValueError: a path that does not exist, names a part (a configuration object) or a
@@ -511,7 +613,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         evaluation's fresh seeds before the budget is spent), an unknown estimator or
         constraint.
     """
-    t0 = time.perf_counter()
+    t0, clock0 = time.perf_counter(), compile_clock()
+    stages = {}
     spec = _prepare("tune_loop", loop, params, objective, run)
     search = dict(search or {})
     if not spec.paths and not search:
@@ -575,12 +678,14 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     # the start's evaluation first (fresh seeds, so its values are those it would have at the
     # end): an objective that is NaN at the start is refused before the budget is spent
     ekeys = montecarlo.seed_keys(eval_seed, eval_seeds)
-    run_hard = lambda key, lp: objective(run(with_temperature(lp, jnp.float32(0.0)), key))
-    v0 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(loop,), chunk_size=eval_seeds, progress=False))
-    if np.any(np.isnan(v0)):
-        raise ValueError(f"tune_loop: the objective is NaN at the start on {int(np.sum(np.isnan(v0)))} of "
-                         f"{eval_seeds} evaluation seeds (a loop without a cost gives m.cost_raw = NaN): there is "
-                         f"nothing to tune; give the loop a cost or an objective that is a number on every run")
+    hard = _hard_program(spec, max(batch, montecarlo.LANES))
+    if evaluate:
+        with _stage(stages, "evaluation"):
+            v0 = hard(_as_f32(loop, spec), ekeys, np.zeros(eval_seeds))[0]
+        if np.any(np.isnan(v0)):
+            raise ValueError(f"tune_loop: the objective is NaN at the start on {int(np.sum(np.isnan(v0)))} of "
+                             f"{eval_seeds} evaluation seeds (a loop without a cost gives m.cost_raw = NaN): there "
+                             f"is nothing to tune; give the loop a cost or an objective that is a number on every run")
     sims = 0
     result_search = None
     loop1 = loop
@@ -599,8 +704,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
                              f"candidate and round: {len(points)} candidates, {rounds} rounds), got {budget}")
         need = sum(s for _, s in halving_schedule(len(points), budget))
         keys = montecarlo.seed_keys(seed + 1, need)
-        result_search = successive_halving(lambda p, k: per_seed(p, k), points, keys, budget=budget, static=static,
-                                           progress=progress, desc="search")
+        search_seed = lambda p, k: per_seed(p, k)      # one function: the search and its refinement share programs
+        search_chunk = halving_schedule(len(points), budget)[0][1]
+        with _stage(stages, "search"):
+            result_search = successive_halving(search_seed, points, keys, budget=budget, static=static,
+                                               chunk_size=search_chunk, progress=progress, desc="search")
         sims += result_search.n_simulations
         sims_search = result_search.n_simulations
         loop1 = set_paths(loop, result_search.best_point)
@@ -613,9 +721,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
         flat0, unravel, flat_objective = _flat(loop1, spec)
         if estimator == "auto":
-            chk = _check(spec, flat0, unravel, flat_objective, seeds=check_seeds, max_seeds=check_max_seeds,
-                         seed=seed + 2, loop=loop1, corrected=check_corrected, temperature=float(temperature[0]),
-                         score_scale=score_scale, fd_step=fd_step, progress=progress)
+            with _stage(stages, "check"):
+                chk = _check(spec, flat0, unravel, flat_objective, seeds=check_seeds, max_seeds=check_max_seeds,
+                             seed=seed + 2, loop=loop1, corrected=check_corrected,
+                             temperature=float(temperature[0]), score_scale=score_scale, fd_step=fd_step,
+                             progress=progress)
             sims += chk.seeds * chk.runs_per_seed
             if chk.recommended is None and result_search is not None:
                 used, reason = "none", (f"no estimator passed the gradient check at the search's winner on "
@@ -637,7 +747,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     if used == "none" and result_search is not None:
         # the gradient stage's budget goes to the search's finalists: new common seeds for
         # the best few, ranked by their mean over every seed each has run
-        result_search = _refine(result_search, lambda p, k: per_seed(p, k), steps * batch, seed + 3, static)
+        with _stage(stages, "search"):
+            result_search = _refine(result_search, search_seed, steps * batch, seed + 3, static, chunk_size=search_chunk)
         sims += result_search.n_simulations - sims_search
         loop1 = set_paths(loop, result_search.best_point)
         tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
@@ -646,18 +757,26 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         import optax
         loss_of = spec.parts if used == "hybrid" else objective
         corr = _corrected(loop1, spec, _flat(loop1, spec)[1]) if used == "corrected" else None
-        tres = tune(lambda p, k, temp: loss_of(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
-                    spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate), estimator=used,
-                    temperature=temperature, seed=seed, score_scale=score_scale, progress=progress, desc="tune_loop",
-                    corrected=corr)
+        # the score function's steps run in the evaluation's program (the hard objective)
+        host = _score_step(hard, loop1, spec, batch // 2, score_scale) if used == "score" else None
+        with _stage(stages, "gradient"):
+            tres = tune(lambda p, k, temp: loss_of(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
+                        spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate),
+                        estimator=used, temperature=temperature, seed=seed, score_scale=score_scale,
+                        progress=progress, desc="tune_loop", corrected=corr, host_grad=host)
         sims += tres.n_simulations
         tuned = tres.params
     final_loop = _set(loop1, spec, tuned)
     best = result_search.best_point if result_search else {}
     final = {**{k: best[ps[0]] for k, ps in search_paths.items() if k not in spec.paths}, **tuned}
 
-    v1 = np.asarray(montecarlo.run_batched(run_hard, ekeys, args=(final_loop,), chunk_size=eval_seeds,
-                                           progress=False))
-    sims += 2 * eval_seeds
-    return LoopTuneResult(final, start, used, reason, chk, result_search, tres, mean_ci(v0), mean_ci(v1),
-                          paired_ci(v1, v0), sims, time.perf_counter() - t0, (v0, v1))
+    nan2 = (math.nan, math.nan)
+    evals = (nan2, nan2, nan2, ())
+    if evaluate:
+        with _stage(stages, "evaluation"):
+            v1 = hard(_as_f32(final_loop, spec), ekeys, np.zeros(eval_seeds))[0]
+        sims += 2 * eval_seeds
+        evals = (mean_ci(v0), mean_ci(v1), paired_ci(v1, v0), (v0, v1))
+    clock = compile_clock() - clock0
+    return LoopTuneResult(final, start, used, reason, chk, result_search, tres, *evals[:3], sims,
+                          time.perf_counter() - t0, evals[3], clock.seconds, clock.compilations, stages)

@@ -127,20 +127,31 @@ def _as_args(point: dict, static: tuple):
 
 
 def search(per_seed: Callable, points: list[dict], keys, *, static: tuple = (), chunk_size: int | None = None,
-           progress: bool = True, desc: str = "search") -> SearchResult:
+           max_seconds: float | None = None, progress: bool = True, desc: str = "search") -> SearchResult:
     """Evaluate every candidate on the same ``keys`` and return the best (lowest mean).
 
     ``per_seed(params, key) -> scalar``; the non-static values are passed as runtime
     arguments (one compilation for all candidates with the same static values).  Non-finite
     losses are kept (they make a candidate's mean inf, so it is never chosen).
+
+    ``max_seconds``: a wall-time budget (random search for a given time: pass many
+    points); no candidate starts once it is spent (the first always runs). A candidate
+    not run has NaN values and an inf mean; ``n_simulations`` counts the runs made.
+
+    Raises:
+      ValueError: no candidates, a max_seconds that is not > 0.
     """
     if not points:
         raise ValueError("search: no candidates")
+    if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and max_seconds > 0):
+        raise ValueError(f"search: max_seconds must be a number > 0 (seconds), got {max_seconds!r}")
     t0 = time.perf_counter()
     n = int(np.asarray(keys).shape[0])
     chunk = chunk_size or n
     rows = []
     for i, p in enumerate(points):
+        if i > 0 and max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
+            break
         fn = _with_static(per_seed, tuple((k, p[k]) for k in static))
         rows.append(np.asarray(montecarlo.run_batched(fn, keys, args=(_as_args(p, static),),
                                                       chunk_size=chunk, progress=False), np.float64))
@@ -148,14 +159,15 @@ def search(per_seed: Callable, points: list[dict], keys, *, static: tuple = (), 
             print(f"\r{desc}: {i + 1}/{len(points)}", end="", flush=True)
     if progress:
         print()
-    values = np.stack(rows)
+    n_run = len(rows)
+    values = np.concatenate([np.stack(rows), np.full((len(points) - n_run, n), np.nan)])
     stats = [mean_ci(r) for r in values]
     mean = np.asarray([s[0] for s in stats])
     ci = np.asarray([s[1] for s in stats])
     mean = np.where(np.isfinite(mean), mean, np.inf)
     best = int(np.argmin(mean))
     return SearchResult(points, values, mean, ci, best, points[best], float(mean[best]), float(ci[best]),
-                        len(points) * n, time.perf_counter() - t0)
+                        n_run * n, time.perf_counter() - t0)
 
 
 def halving_schedule(n_points: int, budget: int) -> list[tuple[int, int]]:
@@ -172,7 +184,8 @@ def halving_schedule(n_points: int, budget: int) -> list[tuple[int, int]]:
 
 
 def successive_halving(per_seed: Callable, points: list[dict], keys, *, budget: int, static: tuple = (),
-                       progress: bool = True, desc: str = "halving") -> SearchResult:
+                       chunk_size: int | None = None, max_seconds: float | None = None, progress: bool = True,
+                       desc: str = "halving") -> SearchResult:
     """Monte-Carlo search that spends its budget where it decides (successive halving,
     Jamieson & Talwalkar 2016, with common random numbers).
 
@@ -184,10 +197,24 @@ def successive_halving(per_seed: Callable, points: list[dict], keys, *, budget: 
     ``budget / 2 / log2 n`` each, and the clearly bad ones are dropped after a few seeds.
     ``values`` is ``[candidates, seeds]`` with NaN where a dropped candidate did not run;
     ``mean``/``ci95`` are over the seeds each candidate ran.
+
+    Every round runs in chunks of ``chunk_size`` seeds (default: the first round's seeds
+    per candidate, the fewest), so all rounds share one compiled program (per static
+    value) instead of compiling one per round size. ``max_seconds``: a wall-time budget;
+    no round starts once it is spent (the first always runs), and the leader of the last
+    round run (by its mean over the seeds it ran) is the result.
+
+    Raises:
+      ValueError: no candidates, a budget below one seed per candidate and round, too few
+        keys, a chunk_size below 1, a max_seconds that is not > 0.
     """
     if not points:
         raise ValueError("successive_halving: no candidates")
     sched = halving_schedule(len(points), budget)
+    chunk = sched[0][1] if chunk_size is None else chunk_size
+    check_int("chunk_size", chunk, 1)
+    if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and max_seconds > 0):
+        raise ValueError(f"successive_halving: max_seconds must be a number > 0 (seconds), got {max_seconds!r}")
     need = sum(s for _, s in sched)
     keys = np.asarray(keys) if not hasattr(keys, "shape") else keys
     if int(keys.shape[0]) < need:
@@ -197,7 +224,11 @@ def successive_halving(per_seed: Callable, points: list[dict], keys, *, budget: 
     values = np.full((len(points), need), np.nan)
     alive, used, sims = list(range(len(points))), 0, 0
     for r, (m, s) in enumerate(sched):
-        res = search(per_seed, [points[i] for i in alive], keys[used:used + s], static=static, progress=False)
+        if r > 0 and max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
+            alive = alive[:1]              # ranked at the end of the last round run
+            break
+        res = search(per_seed, [points[i] for i in alive], keys[used:used + s], static=static, chunk_size=chunk,
+                     progress=False)
         values[alive, used:used + s] = res.values
         used, sims = used + s, sims + m * s
         mean = np.asarray([np.mean(values[i, :used]) for i in alive])
