@@ -1,9 +1,15 @@
 """The tune-loops experiment (experiments/tune_loops.py) in a tiny size: the cart-pole loop's
 checks at two points, one tune_loop call, the equal-budget search, files written and
-reused by a re-run with the same settings."""
+reused by a re-run with the same settings.
+
+Marked slow (about 2.5 minutes on two cores, mostly compiling the cart-pole's check and tuner
+programs): what it shares with other studies is in the default suite, the orchestration by
+test_montecarlo's stored_study tests and tune-study's tiny end-to-end test, tune_loop on
+this cart-pole loop by the autotuning notebook's quick mode."""
 import json
 
 import numpy as np
+import pytest
 
 from jaxnc import montecarlo
 from jaxnc.experiment import load_builtin
@@ -12,6 +18,7 @@ load_builtin()
 from jaxnc.experiments import tune_loops as tl  # noqa: E402
 
 
+@pytest.mark.slow
 def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
     settings = dict(loops="cartpole", steps=4, batch=4, check_seeds=4, study_check_seeds=4, w_drhe=30.0,
                     w_cartpole=2.0, seed=0,
