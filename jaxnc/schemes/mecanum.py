@@ -121,9 +121,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     case = check_choice("case", case, CASES)
     check_int("N", N, 1, 100)
     check_range("dp", dp, 0.0, 1.0, high_open=True)
-    check_range("eta", eta, 0.0, None)
-    check_range("phi", phi, 0.0, None)
-    check_range("trigger_temperature", trigger_temperature, 0.0, None)
+    for name, v in (("eta", eta), ("phi", phi), ("trigger_temperature", trigger_temperature)):
+        check_range(name, v, 0.0, None)
     if horizon_s is not None:
         check_range("horizon_s", horizon_s, 0.0, None, low_open=True)
     plant = plant or Mecanum()
@@ -137,10 +136,9 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         h = default_h(case, N, float(dp), math.ceil(length / float(follower.V_ref) / (N * T)))
     check_int("h", h, 1, 1000)
     check_int("max_silence", max_silence, 0, 100_000)
-    for name, v in (("sigma", sigma), ("delta", delta)):
-        check_range(name, v, 0.0, None)                   # None: the default
     thresholds = {}
     for name, v, default in (("sigma", sigma, DEFAULT_SIGMA), ("delta", delta, PAPER_DELTA)):
+        check_range(name, v, 0.0, None)                   # None: the default
         v = np.asarray(default if v is None else v, np.float32)
         if v.shape not in ((), (1,), (OUTPUT_DIM,)):
             raise ValueError(f"{name} must be a scalar or have {OUTPUT_DIM} entries (one per output), got shape {v.shape}")
