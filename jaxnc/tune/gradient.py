@@ -66,12 +66,17 @@ class Positive:
     def forward(self, raw):
         return self.low + jnp.exp(raw)
 
+    def raw(self, value, xp=jnp):
+        """raw = log(value - low), unchecked, with the array module ``xp`` (``jnp``:
+        traceable; ``np``: on the host, as :meth:`inverse`)."""
+        return xp.log(value - self.low)
+
     def inverse(self, value):
         v = np.asarray(value, np.float64)
         if not np.all(np.isfinite(v) & (v > self.low)):
             raise ValueError(f"must be finite and > {self.low:g} (Positive(low={self.low:g}): raw = "
                              f"log(value - low)), got {v.tolist()}")
-        return np.log(v - self.low).astype(np.float32)
+        return self.raw(v, np).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,13 +94,18 @@ class Interval:
     def forward(self, raw):
         return self.low + (self.high - self.low) * jax.nn.sigmoid(raw)
 
+    def raw(self, value, xp=jnp):
+        """raw = logit((value - low) / (high - low)), unchecked, with the array module ``xp``
+        (``jnp``: traceable; ``np``: on the host, as :meth:`inverse`)."""
+        f = (value - self.low) / (self.high - self.low)
+        return xp.log(f / (1 - f))
+
     def inverse(self, value):
         v = np.asarray(value, np.float64)
         if not np.all(np.isfinite(v) & (v > self.low) & (v < self.high)):
             raise ValueError(f"must be inside the open interval ({self.low:g}, {self.high:g}) (Interval: raw = "
                              f"logit of the fraction of the interval), got {v.tolist()}")
-        f = (v - self.low) / (self.high - self.low)
-        return np.log(f / (1 - f)).astype(np.float32)
+        return self.raw(v, np).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,11 +115,15 @@ class Unconstrained:
     def forward(self, raw):
         return raw
 
+    def raw(self, value, xp=jnp):
+        """raw = value (unchecked)."""
+        return value
+
     def inverse(self, value):
         v = np.asarray(value, np.float64)
         if not np.all(np.isfinite(v)):
             raise ValueError(f"must be finite, got {v.tolist()}")
-        return v.astype(np.float32)
+        return self.raw(v, np).astype(np.float32)
 
 
 def constrain(raw: dict, constraints: dict) -> dict:

@@ -329,17 +329,6 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
     return np.asarray(flat0), unravel, flat_objective
 
 
-def _raw(constraint, value):
-    """The raw (optimiser) coordinate of ``value`` under ``constraint``, traceable (the
-    inverse of its ``forward``; no domain check: the values come from the loop)."""
-    if isinstance(constraint, Positive):
-        return jnp.log(value - constraint.low)
-    if isinstance(constraint, Interval):
-        f = (value - constraint.low) / (constraint.high - constraint.low)
-        return jnp.log(f / (1.0 - f))
-    return value
-
-
 def _hard_program(spec: _Spec, chunk: int) -> Callable:
     """``hard(lp, keys [n, 2], scales float[n]) -> (values float[n], e float[n, d])``: the
     objective of one run per key with hard triggers, the tuned parameters of ``lp`` moved
@@ -354,7 +343,7 @@ def _hard_program(spec: _Spec, chunk: int) -> Callable:
 
     def one(key, scale, lp):
         vals = {n: jnp.asarray(get_path(lp, g[0]), jnp.float32) for n, g in spec.paths.items()}
-        flat, unravel = ravel_pytree({n: _raw(cons[n], v) for n, v in vals.items()})
+        flat, unravel = ravel_pytree({n: cons[n].raw(v) for n, v in vals.items()})
         e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
         moved = constrain(unravel(flat + scale * e), cons)
         point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
