@@ -431,3 +431,21 @@ def test_ideal_downlink_skips_the_believed_copy_bit_for_bit():
         for name in ("x", "u", "xhat", "sent_sc", "recv_ca", "failed"):
             np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
         assert np.asarray(a.x).size and np.ptp(np.asarray(a.u)) > 0
+
+
+def test_a_link_without_capacity_is_sized_by_its_loop():
+    """Link(capacity=None), the default: the Loop picks the smallest ring its delay bounds
+    and the estimator's window allow (at least 2); the run equals the one with that ring
+    given by hand, and a link used outside a Loop asks for a capacity."""
+    slow = dict(delay=nc.PmfDelay([0.5, 0.0, 0.0, 0.5]))                      # delays 0 or 3 periods
+    auto = _lti_loop(uplink=nc.Link(**slow))
+    assert auto.uplink.capacity == 4 and auto.downlink.capacity == 2
+    key = jax.random.PRNGKey(3)
+    a = jax.jit(nc.simulate)(auto, key)
+    b = jax.jit(nc.simulate)(_lti_loop(uplink=nc.Link(**slow, capacity=4)), key)
+    np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
+    assert _lti_loop(buffer=5).uplink.capacity == 6                          # the EKF's window + 1
+    late = nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.01), tau_max=0.8)   # T = 0.1: 5..8 periods
+    assert _lti_loop(uplink=late).uplink.capacity == 9
+    with pytest.raises(ValueError, match="Link.capacity is None: a Loop sizes it"):
+        nc.Link().init(jnp.zeros(2))

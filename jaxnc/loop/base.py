@@ -293,6 +293,11 @@ class AbstractEstimator(abc.ABC):
 
     inputs: ClassVar[str] = "believed"
 
+    #: slow periods of delivered packets the estimator looks back on (declared; e.g. the
+    #: ``EKF``'s ``buffer``): a ``Loop`` sizing its uplink (``Link(capacity=None)``) keeps at
+    #: least ``lookback + 1`` packets in the ring
+    lookback: ClassVar[int] = 0
+
     @abc.abstractmethod
     def init(self, ctx):
         """State before the first instant; ``ctx`` (:class:`jaxnc.loop.runner.Context`)

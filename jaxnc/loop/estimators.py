@@ -121,6 +121,11 @@ class EKF(AbstractEstimator):
         if Q.ndim == 1 and Q.min() < 0:
             raise ValueError("EKF.Q's variances must be >= 0")
 
+    @property
+    def lookback(self) -> int:
+        """The window: a measurement up to ``buffer`` slow periods late is used."""
+        return self.buffer
+
     def init(self, ctx) -> EKFState:
         """The prior at t = 0 and an empty window. Raises ValueError when the model does not
         take the plant's actions or give its measurements, or when the uplink's ring is too

@@ -364,7 +364,10 @@ class Link:
       reliable_first: static; the packet of the first slow instant is never lost or late
         (a start-up handshake).
       order: static, ``"newest"``, ``"all"`` or ``"arrival"`` (module docstring).
-      capacity: static ring length C (transmissions remembered), >= 1.
+      capacity: static ring length C (transmissions remembered), >= 1; None (the default):
+        sized by the :class:`~jaxnc.loop.Loop` that holds the link, the smallest ring that
+        holds every packet the delay model and ``tau_max`` bound (at least 2), or 2 with a
+        warning when the delay has no bound.
     """
 
     loss: Any = NoLoss()
@@ -372,7 +375,7 @@ class Link:
     tau_max: Any = None
     reliable_first: bool = _static(False)
     order: str = _static("newest")
-    capacity: int = _static(2)
+    capacity: int | None = _static(None)
 
     def __post_init__(self):
         check_instance("Link.loss", self.loss, AbstractLoss, "a loss model (a jaxnc.loop.AbstractLoss: NoLoss, "
@@ -381,7 +384,8 @@ class Link:
                        "ShiftedExponential, TruncatedExponential, PmfDelay, TraceDelay, WifiModel)")
         if self.order not in ("newest", "all", "arrival"):
             raise ValueError(f"Link.order must be one of newest, all, arrival, got {self.order!r}")
-        check_int("Link.capacity", self.capacity, 1, 100_000)
+        if self.capacity is not None:
+            check_int("Link.capacity", self.capacity, 1, 100_000)
         check_bool("Link.reliable_first", self.reliable_first)
         if self.tau_max is not None:
             check_range("Link.tau_max", self.tau_max, 0.0, None)
@@ -389,8 +393,15 @@ class Link:
 
     # -- inside the run
     def init(self, example) -> LinkState:
-        """An empty ring for payloads shaped like ``example``."""
+        """An empty ring for payloads shaped like ``example``.
+
+        Raises:
+          ValueError: ``capacity`` is None (a ``Loop`` sizes it; a link used on its own needs one).
+        """
         C = self.capacity
+        if C is None:
+            raise ValueError("Link.capacity is None: a Loop sizes it from the delay bounds; a link used outside "
+                             "a Loop needs capacity=C (an int >= 1)")
         data = jax.tree.map(lambda a: jnp.zeros((C, *jnp.shape(a)), jnp.asarray(a).dtype), example)
         return LinkState(data, jnp.full((C,), -1, jnp.int32), jnp.zeros((C,), _F32),
                          jnp.full((C,), NEVER, jnp.int32), jnp.ones((C,), bool),

@@ -280,6 +280,11 @@ class Loop:
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
             # the downlink at every fast instant (it needs C N > d)
             reach = ring if name == "uplink" else (lambda d: -(-(d + 1) // self.N))
+            if link.capacity is None:       # sized here: the smallest ring the delay bounds allow
+                size = max(2, reach(lo), ring(hi) if hi is not None else 2,
+                           self.estimator.lookback + 1 if name == "uplink" else 1)
+                link = dataclasses.replace(link, capacity=size)
+                object.__setattr__(self, name, link)
             if link.capacity < reach(lo):
                 raise ValueError(f"Loop.{name}.capacity must be >= {reach(lo)}: every packet is delayed at least "
                                  f"{lo} fast periods (N={self.N}), so a ring of {link.capacity} reuses its slot "
