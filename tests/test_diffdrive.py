@@ -20,7 +20,7 @@ K_SE = 4.0                       # equivalence within K_SE combined standard err
 KEYS = montecarlo.seed_keys(0, 48)
 
 # one compiled program per loop structure, shared by the tests (the loop is an argument)
-_runs = jax.jit(jax.vmap(lambda lp, k: (lambda tr: (tr, dd.evaluate(lp, tr)))(nc.simulate(lp, k)), in_axes=(None, 0)))
+_runs = jax.jit(jax.vmap(lambda lp, k: (lambda tr: (tr, dd.metrics(lp, tr)))(nc.simulate(lp, k)), in_axes=(None, 0)))
 _metrics = jax.jit(jax.vmap(dd.run, in_axes=(None, 0)))
 
 

@@ -2,7 +2,7 @@
 
 Build a :class:`Loop` from a plant, a link per direction, a trigger, an estimator, a
 controller and an actuator; :func:`simulate` runs it (one ``lax.scan``), :func:`run`
-returns its :class:`Metrics`, and ``jaxnc.montecarlo.run_batched(run_seed, keys,
+returns its :class:`Metrics` (or a metrics function's of the trajectory), and ``jaxnc.montecarlo.run_batched(run_seed, keys,
 args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 """
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder

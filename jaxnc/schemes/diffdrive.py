@@ -21,6 +21,7 @@ the path and within ``end_tol`` of its end, checked every T) and failure (leavin
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -183,7 +184,7 @@ class Metrics(NamedTuple):
     unstable: jax.Array
 
 
-def evaluate(loop: nc.Loop, traj: nc.Trajectory, N: int = 2) -> Metrics:
+def metrics(loop: nc.Loop, traj: nc.Trajectory, *, N: int = 2) -> Metrics:
     """Eq. (23)-(25) from the true positions every NT (every scenario on the same grid; ``N``
     the multiplicity of that grid)."""
     sub, T, ns = loop.plant.sub, loop.plant.T, loop.controller.ns
@@ -201,6 +202,5 @@ def evaluate(loop: nc.Loop, traj: nc.Trajectory, N: int = 2) -> Metrics:
                    packets=2.0 * jnp.ceil(c.l / ns), l=c.l, unstable=unstable)
 
 
-def run(loop: nc.Loop, key, N: int = 2) -> Metrics:
-    """simulate + evaluate: the per-seed function the Monte-Carlo engine maps."""
-    return evaluate(loop, nc.simulate(loop, key), N)
+#: the per-seed function ``run(loop, key, *, N=2) -> Metrics``: :func:`jaxnc.loop.run` with :func:`metrics`
+run = functools.partial(nc.run, metrics=metrics)
