@@ -116,7 +116,7 @@ def describe(name: str, loop: nc.Loop, settings: dict) -> dict:
 def _fine_t(loop: nc.Loop, tr: nc.Trajectory) -> dict:
     """The run every period T (x, u) and the periods until completion, for the figures."""
     sub = loop.plant.sub
-    return {"x": tr.x[::sub], "u": tr.u[::sub], "l": dd.completion(loop, tr).l}
+    return {"x": tr.x[::sub], "u": tr.u[::sub], "l": tr.done_step // sub}
 
 
 def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:

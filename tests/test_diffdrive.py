@@ -138,6 +138,23 @@ def test_metrics_against_numpy(e_runs):
     assert np.all(m.J1_ref >= m.J1) and np.all(m.J2_ref >= m.J2)
 
 
+def test_completion_and_failure_are_the_monitors(e_runs):
+    """The loop's PathMonitor checks every T (done_step a multiple of sub); the metrics count a
+    failure recorded by the runner at fast instant fail_step only before completion
+    (fail_step <= l sub), and a run never completed is unstable with infinite indexes."""
+    loop, tr, m = e_runs[0.1]
+    sub = loop.plant.sub
+    assert isinstance(loop.monitor, nc.PathMonitor) and loop.monitor.every == sub
+    assert np.all(tr.done) and np.all(tr.done_step % sub == 0) and np.array_equal(m.l, tr.done_step // sub)
+    one = jax.tree.map(lambda a: jnp.asarray(a[0]), tr)
+    l = int(m.l[0])
+    for changes, unstable in ((dict(failed=True, fail_step=l * sub), True), (dict(failed=True, fail_step=l * sub + 1), False),
+                              (dict(failed=True, fail_step=1), True), (dict(done=False), True)):
+        got = dd.metrics(loop, one._replace(**{k: jnp.asarray(v) for k, v in changes.items()}))
+        assert bool(got.unstable) == unstable, changes
+        assert np.isinf(float(got.J3)) == unstable and np.isinf(float(got.J1)) == unstable, changes
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("row", ["a", "b", "c", "d"])
 def test_headline_abcd_match_stored(row):

@@ -253,7 +253,7 @@ class ChainActuator(AbstractActuator):
     model: Any
     law: Any
     Ts: Any
-    horizon: Any
+    horizon: Any = dataclasses.field()      # a leaf without default (the base declares None)
     hold: Any
     mean0: Any
     noise_dim: int = _static(0)

@@ -345,13 +345,17 @@ class AbstractController(abc.ABC):
 
 
 class AbstractActuator(abc.ABC):
-    """Applies, every fast period, an action from the packets it has received."""
+    """Applies, every fast period, an action from the packets it has received.
+
+    ``horizon`` (declared): the actions per packet it plays, a static int that a Loop checks
+    against its controller's ``horizon``; None (the default): it takes packets of any length."""
 
     #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
     #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
     #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
     #: "estimate"),)}``; ``()`` is a scalar)
     field_shapes: ClassVar[dict] = {}
+    horizon = None
 
     @abc.abstractmethod
     def init(self, ctx):

@@ -270,7 +270,7 @@ class Loop:
                 raise ValueError(f"Loop.actuator must not be a LimitedActuator: {type(self.controller).__name__} keeps "
                                  f"its own copy of what it sent (keeps_copy), which the limits would not reach")
         H = self.controller.horizon
-        if isinstance(self.actuator, PacketActuator) and self.actuator.horizon != H:
+        if isinstance(self.actuator.horizon, int) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
         for name in ("uplink", "downlink"):
