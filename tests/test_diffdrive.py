@@ -52,7 +52,7 @@ def test_builder_parts_and_validation():
     """Each scenario's roles (library parts), rates and sizes; bad arguments name themselves."""
     a, d, e = dd.diffdrive_loop("a"), dd.diffdrive_loop("d"), dd.diffdrive_loop("e", h=3)
     assert (a.N, d.N, e.N) == (10, 20, 20) and a.T == pytest.approx(0.01) and a.steps == d.steps == e.steps
-    assert isinstance(a.estimator, nc.Passthrough) and isinstance(e.estimator, nc.PeriodEKF)
+    assert isinstance(a.estimator, nc.Passthrough) and isinstance(e.estimator, nc.EKF) and e.estimator.rate == "slow"
     assert isinstance(d.actuator, nc.ArrivalActuator) and isinstance(e.actuator, nc.PacketActuator)
     assert isinstance(d.downlink.delay, nc.TruncatedExponential) and isinstance(a.downlink.delay, nc.NoDelay)
     assert e.controller.horizon == 2 * 10 * 4 and e.estimator.inputs == "applied"

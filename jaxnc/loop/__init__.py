@@ -30,7 +30,7 @@ from jaxnc.loop.monitors import PathMonitor, PathMonitorState, path_distance
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
-from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF, PeriodEKFState
+from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF
 from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
 from jaxnc.loop.pursuit import PursuitPI, PursuitState
 from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
@@ -57,7 +57,7 @@ __all__ = [
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",
     "Cascade", "CascadeState",
-    "AbstractLiftedPlant", "PeriodEKF", "PeriodEKFState",
+    "AbstractLiftedPlant", "PeriodEKF",
     "DiffDrive", "lifted_wheel_var",
     "PursuitPI", "PursuitState",
     "ArrivalActuator", "ArrivalState",

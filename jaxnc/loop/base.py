@@ -53,7 +53,7 @@ import jax.numpy as jnp
 from jaxnc._validate import checked_pytree
 
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractInitial",
-           "AbstractWrappedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
+           "AbstractWrappedPlant", "AbstractLiftedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
            "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
 
 
@@ -253,6 +253,16 @@ class AbstractWrappedPlant(AbstractPlant):
     def state_vector(self, x):
         """The inner plant's ``state_vector``."""
         return self.plant.state_vector(x)
+
+
+class AbstractLiftedPlant(AbstractPlant):
+    """A plant that also declares its slow-period (lifted) model (seed 004 eq. 8), for an
+    estimator that predicts once per slow period (``EKF(rate="slow")``)."""
+
+    @abc.abstractmethod
+    def period(self, x, us, w):
+        """The state float[n] one slow period after x float[n], with the fast actions
+        ``us`` float[M, m] applied in order and the additive noise w float[n]."""
 
 
 class AbstractTrigger(abc.ABC):

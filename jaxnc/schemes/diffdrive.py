@@ -8,7 +8,7 @@ four right angles by pure pursuit (eq. 15-20) with wheel-speed PI (:class:`jaxnc
 * **c** dual rate (eq. 21-22, 28-29): sensing and pure pursuit every NT, N actions at T;
 * **d** c with remote -> local delays; the local side starts the period's actions when
   the reference packet arrives (:class:`jaxnc.loop.ArrivalActuator`);
-* **e** c with delays, the EKF at NT (eq. 8-13, :class:`jaxnc.loop.PeriodEKF`, collocated
+* **e** c with delays, the EKF at NT (eq. 8-13, :func:`jaxnc.loop.PeriodEKF`, collocated
   with the actuator), the h-step-ahead prediction stage (eq. 14) and packet-based control
   by time stamp (u_{k|k-1} until the new packet arrives), low noise F = 0.1.
 
