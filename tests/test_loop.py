@@ -431,3 +431,18 @@ def test_ideal_downlink_skips_the_believed_copy_bit_for_bit():
         for name in ("x", "u", "xhat", "sent_sc", "recv_ca", "failed"):
             np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), err_msg=name)
         assert np.asarray(a.x).size and np.ptp(np.asarray(a.u)) > 0
+
+
+def test_run_applies_a_metrics_function_and_every_scheme_run_is_it():
+    """run(loop, key, metrics=fn, **context) = fn(loop, simulate(loop, key), **context) (default
+    evaluate); each paper's run is jaxnc.loop.run with that paper's metrics, one signature."""
+    import functools
+    from jaxnc.schemes import balancing, diffdrive, hdd, mecanum
+    loop, key = _lti_loop(), jax.random.PRNGKey(4)
+    tr = nc.simulate(loop, key)
+    fn = lambda lp, traj, *, scale: scale * jnp.sum(traj.x)
+    assert float(nc.run(loop, key, metrics=fn, scale=2.0)) == float(2.0 * jnp.sum(tr.x))
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), nc.run(loop, key), nc.evaluate(loop, tr)))
+    for scheme in (balancing, diffdrive, hdd, mecanum):
+        assert isinstance(scheme.run, functools.partial) and scheme.run.func is nc.run
+        assert scheme.run.args == () and scheme.run.keywords == {"metrics": scheme.metrics}
