@@ -87,7 +87,7 @@ def problem(name):
                 base.controller, law=dataclasses.replace(law, ctrl=ctrl)))
 
         def cost(lp, k):
-            m = hdd.run(lp, k, y_tts, ise_tts, cs)
+            m = hdd.run(lp, k, y_tts=y_tts, ise_tts=ise_tts, cs=cs)
             return jnp.where(m.unstable | ~jnp.isfinite(m.GPI), 10.0, m.GPI)
         return loop_of, cost, np.float32([1.0]), 0.05
     raise ValueError(f"unknown loop {name!r}")

@@ -52,6 +52,12 @@ def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(0.0, c - h), min(1.0, c + h)
 
 
+def run_seed(key, loop):
+    """Per-seed :class:`~jaxnc.schemes.balancing.Metrics` with the loop as an argument, for
+    ``run_batched(run_seed, keys, args=(loop,))`` (module level: one compiled program per loop structure)."""
+    return bal.run(loop, key)
+
+
 def design_loop(settings: dict, design: str, channel: wifi.WifiChannel):
     """The loop of ``design`` with the settings' design options on ``channel`` (both
     directions); ConfigError for a bad setting."""
@@ -192,7 +198,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     summary, runs = {}, {}
     for (sev, d), loop in loops.items():
         # the loop's links carry the severity's channel in both directions
-        m = montecarlo.run_batched(bal.run_seed, keys, args=(loop,),
+        m = montecarlo.run_batched(run_seed, keys, args=(loop,),
                                    chunk_size=min(settings["chunk"], seeds), progress=progress,
                                    desc=f"{sev:>8} {d:>9}")
         summary[f"{sev} / {d}"] = summarise(m)
@@ -368,7 +374,7 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
     for (a, v, d), cfg in todo:
         bar.set_postfix_str(f"{a}={v:g} {d}")
         tc = time.perf_counter()
-        m = montecarlo.run_batched(bal.run_seed, keys, args=(uniform_dtypes(loops[(a, v, d)]),),
+        m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[(a, v, d)]),),
                                    chunk_size=min(settings["chunk"], seeds), progress=False)
         s = summarise(m)
         arrays = {**{k: np.asarray(x) for k, x in m._asdict().items()}, "unstable": ~np.asarray(m.upright, bool)}

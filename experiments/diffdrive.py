@@ -116,7 +116,7 @@ def describe(name: str, loop: nc.Loop, settings: dict) -> dict:
 def _fine_t(loop: nc.Loop, tr: nc.Trajectory) -> dict:
     """The run every period T (x, u) and the periods until completion, for the figures."""
     sub = loop.plant.sub
-    return {"x": tr.x[::sub], "u": tr.u[::sub], "l": dd.completion(loop, tr).l}
+    return {"x": tr.x[::sub], "u": tr.u[::sub], "l": tr.done_step // sub}
 
 
 def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
@@ -166,7 +166,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     results = {}
     for name, loop in loops.items():
-        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k, settings["N"]), keys,
+        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k, N=settings["N"]), keys,
                                    chunk_size=min(64, max(seeds, 1)), progress=progress, desc=f"scenario {name}")
         results[name] = {k: np.asarray(v) for k, v in m._asdict().items()}
     summary = summarise(results)
@@ -226,7 +226,7 @@ def sensitivity_cell(settings: dict, v: float, lad: float, keys) -> dict:
     loops = build_loops(dict(settings, v_ref=v, lad=lad, e_high=False, e_clean=False, compare=False))
     results = {}
     for name, loop in loops.items():
-        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k, settings["N"]), keys,
+        m = montecarlo.run_batched(lambda k, loop=loop: dd.run(loop, k, N=settings["N"]), keys,
                                    chunk_size=min(64, max(len(keys), 1)), progress=False)
         results[name] = {k: np.asarray(v_) for k, v_ in m._asdict().items()}
     s = summarise(results)

@@ -52,7 +52,9 @@ def build_loops(settings: dict) -> dict[int, jl.Loop]:
 
 
 def _batched():
-    return jax.jit(jax.vmap(hdd.run, in_axes=(None, 0, None, None, None)), static_argnums=(4,))
+    """jit(vmap over keys) of :func:`jaxnc.schemes.hdd.run`: (loop, keys, y_tts, ise_tts, cs) -> Metrics."""
+    per_seed = lambda loop, key, y_tts, ise_tts, cs: hdd.run(loop, key, y_tts=y_tts, ise_tts=ise_tts, cs=cs)
+    return jax.jit(jax.vmap(per_seed, in_axes=(None, 0, None, None, None)), static_argnums=(4,))
 
 
 def summarise(m) -> dict:
@@ -245,7 +247,7 @@ def gpi_grid(loop: jl.Loop, ts_values, tc_values, keys, y_tts, ise_tts, cs, *, p
     def point(ts, tc, keys):
         l = set_paths(loop, {"trigger.sigma": ts, "trigger.delta": ts, "controller_trigger.sigma": tc,
                              "controller_trigger.delta": tc})
-        m = jax.vmap(lambda k: hdd.run(l, k, y_tts, ise_tts, cs, W))(keys)
+        m = jax.vmap(lambda k: hdd.run(l, k, y_tts=y_tts, ise_tts=ise_tts, cs=cs, W=W))(keys)
         ok = ~m.unstable
         mean = lambda a: jnp.sum(jnp.where(ok, a, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
         return jnp.stack([mean(m.GPI), mean(m.Uc), mean(m.Ua), mean(m.NE), jnp.mean(m.unstable)])

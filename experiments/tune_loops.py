@@ -125,7 +125,7 @@ def _hdd(settings) -> Problem:
     return Problem(
         "hdd", loop, {("trigger.delta", "trigger.sigma"): Positive(),
                       ("controller_trigger.delta", "controller_trigger.sigma"): Positive()}, objective,
-        lambda lp, k: hdd.run(lp, k, y_tts, ise_tts, cs),
+        lambda lp, k: hdd.run(lp, k, y_tts=y_tts, ise_tts=ise_tts, cs=cs),
         {s: 1e-5, c: 1.32e-2}, {s: np.geomspace(1e-8, 1e-3, 6), c: np.geomspace(1e-5, 1.0, 6)},
         "seed 003 HDD, Case 4 (PETC + NUMRE, noise and disturbance); GPI of eq. (29), W = (0.45, 0.45, 0.1)")
 

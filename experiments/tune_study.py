@@ -103,7 +103,7 @@ def _hdd_parts(settings):
 
     def objective(m):
         return jnp.where(m.unstable | ~jnp.isfinite(m.GPI), GPI_UNSTABLE, m.GPI)
-    return loop, objective, lambda lp, k: hdd.run(lp, k, y_tts, ise_tts, cs)
+    return loop, objective, lambda lp, k: hdd.run(lp, k, y_tts=y_tts, ise_tts=ise_tts, cs=cs)
 
 
 def _hdd_describe(settings, what):

@@ -48,6 +48,7 @@ __all__ = [
     "WifiChannel",
     "NOMINAL",
     "sample_trace",
+    "gilbert_elliott_losses",
     "arrival_steps",
     "newest_arrival",
     "loopback",
@@ -218,22 +219,40 @@ def sample_trace(key, ch: WifiChannel, n: int) -> jax.Array:
     c0 = jax.random.randint(kb, (), 0, ch.gap_max)
     u_sw = jax.random.uniform(k_sw, (n,), _DTYPE)
     u_loss = jax.random.uniform(k_loss, (n,), _DTYPE)
-
-    def step(carry, u):
-        bad, c = carry
-        us, ul = u
-        bad = jnp.where(bad, us >= p_bg, us < p_gb)
-        good_loss = (c >= ch.gap_max) | ((c >= ch.gap_min) & (ul < q_good))
-        lost = jnp.where(bad, ul < q_bad, good_loss)
-        c = jnp.where(lost, 0, c + 1)
-        return (bad, c), lost
-
-    _, lost = jax.lax.scan(step, (bad0, c0), (u_sw, u_loss))
+    lost = gilbert_elliott_losses(bad0, u_sw, u_loss, p_gb, p_bg, q_good, q_bad, c0, ch.gap_min, ch.gap_max)
     u_extra = jax.random.uniform(jax.random.fold_in(key, 1), (n,), _DTYPE)
     lost = lost | (u_extra < jnp.asarray(ch.loss_extra, _DTYPE))
     logits = jnp.log(jnp.asarray(ch.delay_pmf, _DTYPE))
     delay = jax.random.categorical(k_delay, logits, shape=(n,)).astype(jnp.int32)
     return jnp.where(lost, LOST, delay)
+
+
+def gilbert_elliott_losses(bad0, u_switch, u_loss, p_gb, p_bg, loss_good, loss_bad, gap0=0, gap_min: int = 0,
+                           gap_max: int | None = None) -> jax.Array:
+    """bool[n]: the losses of the two-regime chain (module docstring) on given uniforms, one ``lax.scan``.
+
+    Packet i first moves the regime (bad stays bad iff ``u_switch[i] >= p_bg``; good turns bad
+    iff ``u_switch[i] < p_gb``), then is lost in the bad regime iff ``u_loss[i] < loss_bad``; in the good regime iff at least
+    ``gap_min`` packets passed since the last loss and ``u_loss[i] < loss_good``, or
+    ``gap_max`` passed (None: no bound). ``gap_min = 0``, ``gap_max = None`` is the classical
+    Gilbert-Elliott channel (:class:`jaxnc.loop.GilbertElliott`).
+
+    Args:
+      bad0: bool[], the regime before packet 0. u_switch, u_loss: float32[n] uniforms on [0, 1).
+      p_gb, p_bg, loss_good, loss_bad: float32 scalars. gap0: int32, packets passed since the
+        last loss before packet 0. gap_min, gap_max: static ints.
+    """
+    def step(carry, u):
+        bad, c = carry
+        us, ul = u
+        bad = jnp.where(bad, us >= p_bg, us < p_gb)
+        good_loss = (c >= gap_min) & (ul < loss_good)
+        if gap_max is not None:
+            good_loss = (c >= gap_max) | good_loss
+        lost = jnp.where(bad, ul < loss_bad, good_loss)
+        return (bad, jnp.where(lost, 0, c + 1)), lost
+
+    return jax.lax.scan(step, (jnp.asarray(bad0, bool), jnp.asarray(gap0, jnp.int32)), (u_switch, u_loss))[1]
 
 
 def arrival_steps(trace: jax.Array, max_delay: int | None = None) -> jax.Array:

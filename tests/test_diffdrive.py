@@ -20,7 +20,7 @@ K_SE = 4.0                       # equivalence within K_SE combined standard err
 KEYS = montecarlo.seed_keys(0, 48)
 
 # one compiled program per loop structure, shared by the tests (the loop is an argument)
-_runs = jax.jit(jax.vmap(lambda lp, k: (lambda tr: (tr, dd.evaluate(lp, tr)))(nc.simulate(lp, k)), in_axes=(None, 0)))
+_runs = jax.jit(jax.vmap(lambda lp, k: (lambda tr: (tr, dd.metrics(lp, tr)))(nc.simulate(lp, k)), in_axes=(None, 0)))
 _metrics = jax.jit(jax.vmap(dd.run, in_axes=(None, 0)))
 
 
@@ -52,7 +52,7 @@ def test_builder_parts_and_validation():
     """Each scenario's roles (library parts), rates and sizes; bad arguments name themselves."""
     a, d, e = dd.diffdrive_loop("a"), dd.diffdrive_loop("d"), dd.diffdrive_loop("e", h=3)
     assert (a.N, d.N, e.N) == (10, 20, 20) and a.T == pytest.approx(0.01) and a.steps == d.steps == e.steps
-    assert isinstance(a.estimator, nc.Passthrough) and isinstance(e.estimator, nc.PeriodEKF)
+    assert isinstance(a.estimator, nc.Passthrough) and isinstance(e.estimator, nc.EKF) and e.estimator.rate == "slow"
     assert isinstance(d.actuator, nc.ArrivalActuator) and isinstance(e.actuator, nc.PacketActuator)
     assert isinstance(d.downlink.delay, nc.TruncatedExponential) and isinstance(a.downlink.delay, nc.NoDelay)
     assert e.controller.horizon == 2 * 10 * 4 and e.estimator.inputs == "applied"
@@ -136,6 +136,23 @@ def test_metrics_against_numpy(e_runs):
     d = np.asarray(distance_to_points(refs, xy.astype(np.float32))) * 1000
     np.testing.assert_allclose(float(m.J1_ref[s]), d[mask].sum(), rtol=1e-4)
     assert np.all(m.J1_ref >= m.J1) and np.all(m.J2_ref >= m.J2)
+
+
+def test_completion_and_failure_are_the_monitors(e_runs):
+    """The loop's PathMonitor checks every T (done_step a multiple of sub); the metrics count a
+    failure recorded by the runner at fast instant fail_step only before completion
+    (fail_step <= l sub), and a run never completed is unstable with infinite indexes."""
+    loop, tr, m = e_runs[0.1]
+    sub = loop.plant.sub
+    assert isinstance(loop.monitor, nc.PathMonitor) and loop.monitor.every == sub
+    assert np.all(tr.done) and np.all(tr.done_step % sub == 0) and np.array_equal(m.l, tr.done_step // sub)
+    one = jax.tree.map(lambda a: jnp.asarray(a[0]), tr)
+    l = int(m.l[0])
+    for changes, unstable in ((dict(failed=True, fail_step=l * sub), True), (dict(failed=True, fail_step=l * sub + 1), False),
+                              (dict(failed=True, fail_step=1), True), (dict(done=False), True)):
+        got = dd.metrics(loop, one._replace(**{k: jnp.asarray(v) for k, v in changes.items()}))
+        assert bool(got.unstable) == unstable, changes
+        assert np.isinf(float(got.J3)) == unstable and np.isinf(float(got.J1)) == unstable, changes
 
 
 @pytest.mark.slow

@@ -125,7 +125,8 @@ def cases():
     cs = hdd.controller_design().cs
     keys = montecarlo.seed_keys(TEST_SEED, TEST_SEEDS)
     sim = jax.jit(jax.vmap(jl.simulate, in_axes=(None, 0)))
-    met = jax.jit(jax.vmap(hdd.metrics, in_axes=(None, 0, None, None, None)), static_argnums=(4,))
+    met = jax.jit(jax.vmap(lambda lp, tr, y, e, cs: hdd.metrics(lp, tr, y_tts=y, ise_tts=e, cs=cs),
+                           in_axes=(None, 0, None, None, None)), static_argnums=(4,))
     loops = {c: hdd.hdd_loop(c) for c in hdd.CASES}
     trs = {c: sim(loop, keys) for c, loop in loops.items()}
     y_tts = hdd.output(loops[1], jax.tree.map(lambda a: a[0], trs[1]))
@@ -240,7 +241,7 @@ def test_short_horizon_runs_out_and_holds():
     y_tts, ise_tts = hdd.tts_reference()
     loop = hdd.hdd_loop(3, h=64)
     tr = jax.device_get(jax.jit(jl.simulate)(loop, jax.random.PRNGKey(0)))
-    m = hdd.metrics(loop, tr, y_tts, ise_tts, 0.5)
+    m = hdd.metrics(loop, tr, y_tts=y_tts, ise_tts=ise_tts, cs=0.5)
     held = np.asarray(hdd.held(loop, tr))
     assert int(m.n_held) == held.sum() > 0 and float(m.NE) > 0.05
     k = np.flatnonzero(held)

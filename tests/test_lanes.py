@@ -31,12 +31,12 @@ def _mecanum():
 def _hdd():
     from jaxnc.schemes import hdd
     y, ise = hdd.tts_reference(steps=120)
-    return (lambda k, lp: hdd.run(lp, k, y, ise, 0.5).ISEP), hdd.hdd_loop(4, steps=120)
+    return (lambda k, lp: hdd.run(lp, k, y_tts=y, ise_tts=ise, cs=0.5).ISEP), hdd.hdd_loop(4, steps=120)
 
 
 def _balancing():
     from jaxnc.schemes import balancing as bal
-    return (lambda k, lp: bal.run_seed(k, lp).tilt_max_deg), bal.balancing_loop("model", horizon_s=0.5)
+    return (lambda k, lp: bal.run(lp, k).tilt_max_deg), bal.balancing_loop("model", horizon_s=0.5)
 
 
 def _diffdrive():

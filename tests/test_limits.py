@@ -70,6 +70,19 @@ def test_limited_actuator_in_a_loop_saturates_then_rate_limits():
     np.testing.assert_allclose(np.asarray(tr.x)[1:, 0], np.cumsum(u)[:-1], atol=1e-5)     # x+ = x + u
 
 
+def test_limited_actuator_declares_the_inner_horizon_and_the_loop_checks_it():
+    """The wrapper's horizon is the inner actuator's declared one (None for one that takes any
+    packet); a Loop refuses a wrapped packet actuator whose horizon is not the controller's (1)."""
+    sat = nc.Saturation(-1.0, 1.0)
+    assert nc.LimitedActuator(nc.PacketActuator(horizon=3), sat).horizon == 3
+    assert nc.LimitedActuator(nc.ArrivalHold(), sat).horizon is None and nc.ArrivalHold().horizon is None
+    _loop(nc.LimitedActuator(nc.ArrivalHold(), sat))
+    with pytest.raises(ValueError, match=r"Loop.actuator.horizon \(3\) must equal the controller's horizon \(1\)"):
+        _loop(nc.LimitedActuator(nc.PacketActuator(horizon=3), sat))
+    with pytest.raises(ValueError, match=r"Loop.actuator.horizon \(2\)"):
+        _loop(nc.ArrivalActuator(horizon=2))
+
+
 def test_limited_sensor_quantizes_the_measurement():
     inner = nc.LTI(A=[[1.0]], B=[[1.0]], C=[[1.0]], x0=[0.0])
     plant = nc.LimitedSensor(inner, nc.Quantizer(0.5))

@@ -449,3 +449,18 @@ def test_a_link_without_capacity_is_sized_by_its_loop():
     assert _lti_loop(uplink=late).uplink.capacity == 9
     with pytest.raises(ValueError, match="Link.capacity is None: a Loop sizes it"):
         nc.Link().init(jnp.zeros(2))
+
+
+def test_run_applies_a_metrics_function_and_every_scheme_run_is_it():
+    """run(loop, key, metrics=fn, **context) = fn(loop, simulate(loop, key), **context) (default
+    evaluate); each paper's run is jaxnc.loop.run with that paper's metrics, one signature."""
+    import functools
+    from jaxnc.schemes import balancing, diffdrive, hdd, mecanum
+    loop, key = _lti_loop(), jax.random.PRNGKey(4)
+    tr = nc.simulate(loop, key)
+    fn = lambda lp, traj, *, scale: scale * jnp.sum(traj.x)
+    assert float(nc.run(loop, key, metrics=fn, scale=2.0)) == float(2.0 * jnp.sum(tr.x))
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), nc.run(loop, key), nc.evaluate(loop, tr)))
+    for scheme in (balancing, diffdrive, hdd, mecanum):
+        assert isinstance(scheme.run, functools.partial) and scheme.run.func is nc.run
+        assert scheme.run.args == () and scheme.run.keywords == {"metrics": scheme.metrics}

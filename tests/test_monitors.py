@@ -12,11 +12,14 @@ CTX = nc.Context(N=1, steps=10, T=0.1, state_dim=2, input_dim=1, output_dim=2)
 
 
 def _watch(monitor, xs):
-    """(failed, done, dist) after each state of xs [K, n], by the monitor's step in a scan."""
-    def body(s, x):
-        s, failed, done = monitor.step(s, x, jnp.zeros(1), jnp.int32(0))
+    """(failed, done, dist) after each state of xs [K, n] (the state after fast period t = 0, 1, ...),
+    by the monitor's step in a scan."""
+    def body(s, tx):
+        t, x = tx
+        s, failed, done = monitor.step(s, x, jnp.zeros(1), t)
         return s, (failed, done, s.dist)
-    return jax.jit(lambda xs: jax.lax.scan(body, monitor.init(CTX), xs)[1])(jnp.asarray(xs, jnp.float32))
+    run = lambda xs: jax.lax.scan(body, monitor.init(CTX), (jnp.arange(xs.shape[0], dtype=jnp.int32), xs))[1]
+    return jax.jit(run)(jnp.asarray(xs, jnp.float32))
 
 
 def test_leaving_the_tube_fails_at_the_first_state_beyond_max_dev():
@@ -35,6 +38,25 @@ def test_completion_at_the_end_and_no_tube_afterwards():
     failed, done, _ = _watch(nc.PathMonitor(LINE, max_dev=0.5, end_tol=0.1, window=32), xs)
     np.testing.assert_array_equal(done, np.arange(12) >= 10)
     assert not np.any(failed)
+
+
+def test_every_checks_tube_and_end_after_each_multiple_and_holds_between():
+    """every = 3: the tube and the end are checked after fast periods t = 2, 5, 8, ... (t + 1 a
+    multiple of 3), the distance and completion held in between. p_t = (t, 0.12 t) leaves the
+    0.5 m tube at t = 5 (0.6 m) and is first seen there; the end (10, 0) is reached at t = 10,
+    first checked at t = 11. A non-finite state fails at once, between checks too."""
+    t = np.arange(12)
+    failed, _, dist = _watch(nc.PathMonitor(LINE, max_dev=0.5, every=3), np.stack([0.5 * t, 0.12 * t], 1))
+    checked = np.maximum((t + 1) // 3 * 3 - 1, -1)                 # the last checked instant (-1: none yet)
+    np.testing.assert_allclose(dist, np.where(checked >= 0, 0.12 * checked, 0.0), atol=1e-5)
+    np.testing.assert_array_equal(failed, (checked >= 5) & ((t + 1) % 3 == 0))
+    xs = np.concatenate([np.stack([np.arange(11.0), np.zeros(11)], 1), [[10.0, 0.0]]])
+    _, done, _ = _watch(nc.PathMonitor(LINE, end_tol=0.1, window=32, every=3), xs)
+    np.testing.assert_array_equal(done, t >= 11)
+    xs = np.stack([0.1 * t, 0.0 * t], 1)
+    xs[4, 0] = np.nan                                              # t = 4 is not a check
+    failed, _, _ = _watch(nc.PathMonitor(LINE, every=3), xs)
+    np.testing.assert_array_equal(failed, t == 4)
 
 
 def test_position_index_and_non_finite_state():
@@ -76,6 +98,7 @@ def test_in_a_loop_the_runner_records_first_failure_and_completion():
     (dict(end_tol=-1.0), "PathMonitor.end_tol"),
     (dict(window=0), "PathMonitor.window"),
     (dict(xy=-1), "PathMonitor.xy"),
+    (dict(every=0), "PathMonitor.every"),
 ])
 def test_bad_fields_name_themselves(kw, match):
     with pytest.raises(ValueError, match=match):

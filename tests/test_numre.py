@@ -75,18 +75,6 @@ def test_correction_is_bayes_update_of_lifted_model():
     np.testing.assert_allclose(np.asarray(P), M - np.outer(M @ C, M @ C) / S, rtol=1e-10, atol=1e-14)
 
 
-def test_predict_is_eq14():
-    A = np.array([[1.0, 0.1], [0.0, 0.9]])
-    B = np.array([0.0, 0.5])
-    us = np.array([1.0, -2.0, 0.5])
-    x0 = np.array([0.3, -0.1])
-    with jax.enable_x64(True):
-        xs = np.asarray(jax.jit(numre.predict)(jnp.asarray(A), jnp.asarray(B), jnp.asarray(x0), jnp.asarray(us)))
-    for l in range(4):
-        ref = np.linalg.matrix_power(A, l) @ x0 + sum(np.linalg.matrix_power(A, l - 1 - c) @ B * us[c] for c in range(l))
-        np.testing.assert_allclose(xs[l], ref, rtol=1e-12, atol=1e-15)
-
-
 def test_tables_validation():
     with pytest.raises(ValueError, match="n_max"):
         numre.numre_tables(np.eye(2), np.ones(2), np.ones(2), 1.0, 1.0, 0)

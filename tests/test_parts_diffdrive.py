@@ -155,11 +155,13 @@ def _inbox(z, w):
 
 
 def test_period_ekf_is_the_kalman_filter_on_a_linear_model():
-    """PeriodEKF on a linear lifted model: correct = the KF update (numpy), predict = A P A' + Q
-    with the period's actions summed; a period without a delivered measurement keeps the prior."""
+    """PeriodEKF (the EKF part with rate="slow") on a linear lifted model: correct = the KF
+    update (numpy), predict = A P A' + Q with the period's actions summed; a period without a
+    delivered measurement keeps the prior."""
     Q, R = np.diag([0.01, 0.02]), np.diag([0.1, 0.05])
     m0, P0 = np.array([1.0, -1.0]), np.eye(2) * 0.5
     ekf = nc.PeriodEKF(Linear(), Q=Q, R=R, mean0=m0, cov0=P0)
+    assert isinstance(ekf, nc.EKF) and (ekf.rate, ekf.buffer, ekf.inputs) == ("slow", 0, "applied")
     ctx = Context(N=3, steps=30, T=0.1, state_dim=2, input_dim=1, output_dim=2)
     us = jnp.asarray([[1.0], [2.0], [-0.5]])
     step = jax.jit(lambda s, z, w: ekf.predict(ekf.correct(s, _inbox(z, w), 0)[0], us, us, 0))
@@ -175,14 +177,18 @@ def test_period_ekf_is_the_kalman_filter_on_a_linear_model():
         s = step(s, z, w)
         A, B = Linear.A.astype(float), Linear.B.astype(float)
         m, P = A @ m + B @ np.asarray(us).sum(0), A @ P @ A.T + Q
-        np.testing.assert_allclose(np.asarray(s.prior.mean), m, rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(np.asarray(s.prior.cov), P, rtol=1e-4, atol=1e-6)
-    with pytest.raises(ValueError, match="PeriodEKF.model"):
+        np.testing.assert_allclose(np.asarray(s.base.mean), m, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(s.base.cov), P, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="EKF.model must be a plant"):
         nc.PeriodEKF(nc.Passthrough(), Q=Q, R=R, mean0=m0, cov0=P0)
-    with pytest.raises(ValueError, match=r"PeriodEKF.Q must have shape \(2, 2\)"):
+    with pytest.raises(ValueError, match="EKF.model must be a plant with a lifted model"):
+        nc.PeriodEKF(nc.LTI(A=Linear.A, B=Linear.B, C=np.eye(2)), Q=Q, R=R, mean0=m0, cov0=P0)
+    with pytest.raises(ValueError, match=r"EKF.Q must be 2x2 or a vector of 2 variances \(the state's, per slow"):
         nc.PeriodEKF(Linear(), Q=np.eye(3), R=R, mean0=m0, cov0=P0)
-    with pytest.raises(ValueError, match="PeriodEKF.inputs"):
+    with pytest.raises(ValueError, match="EKF.inputs"):
         nc.PeriodEKF(Linear(), Q=Q, R=R, mean0=m0, cov0=P0, inputs="both")
+    with pytest.raises(ValueError, match="EKF.rate must be one of fast, slow"):
+        nc.EKF(Linear(), Q=Q, R=R, mean0=m0, cov0=P0, rate="period")
 
 
 def _ctrl(h=0, assumed_delay=0.0):

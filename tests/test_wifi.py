@@ -268,3 +268,33 @@ def test_delay_cdf_matches_bruteforce():
     ref = np.array([np.mean(d <= k) for k in range(7)])
     np.testing.assert_array_equal(wifi.delay_cdf(t, 6), ref)
     assert np.isnan(wifi.delay_cdf(np.full(4, wifi.LOST), 3)).all()
+
+
+@pytest.mark.parametrize("gap_min, gap_max", [(0, None), (3, 7)])
+def test_gilbert_elliott_kernel_matches_a_python_loop(gap_min, gap_max):
+    """gilbert_elliott_losses on fixed uniforms equals an independent Python loop of the chain
+    (regime move, then the regime's loss rule with the gap counter), for the classical channel
+    and with gap bounds; jaxnc.loop.GilbertElliott is the kernel on its own uniforms."""
+    from jaxnc import loop as nc
+    n, p_gb, p_bg, lg, lb = 4000, 0.05, 0.2, 0.3, 0.8
+    k1, k2 = jax.random.split(jax.random.PRNGKey(3))
+    us, ul = (np.asarray(jax.random.uniform(k, (n,), jnp.float32)) for k in (k1, k2))
+    f32 = np.float32
+    got = np.asarray(jax.jit(lambda a, b: wifi.gilbert_elliott_losses(
+        True, a, b, f32(p_gb), f32(p_bg), f32(lg), f32(lb), 2, gap_min, gap_max))(us, ul))
+    bad, c, want = True, 2, []
+    for a, b in zip(us, ul):
+        bad = bool(a >= f32(p_bg)) if bad else bool(a < f32(p_gb))
+        good_loss = (c >= gap_min and b < f32(lg)) or (gap_max is not None and c >= gap_max)
+        lost = bool(b < f32(lb)) if bad else good_loss
+        c = 0 if lost else c + 1
+        want.append(lost)
+    np.testing.assert_array_equal(got, want)
+    assert 0.05 < got.mean() < 0.95
+    if gap_max is None:       # the link model draws its uniforms from its key and calls the kernel
+        ge, key = nc.GilbertElliott(p_gb, p_bg, lg, lb), jax.random.PRNGKey(5)
+        k0, ks, kl = jax.random.split(key, 3)
+        bad0 = jax.random.uniform(k0, (), jnp.float32) < f32(p_gb) / (f32(p_gb) + f32(p_bg))
+        ref = wifi.gilbert_elliott_losses(bad0, jax.random.uniform(ks, (n,)), jax.random.uniform(kl, (n,)),
+                                          f32(p_gb), f32(p_bg), f32(lg), f32(lb))
+        np.testing.assert_array_equal(np.asarray(ge.sample(key, n)), np.asarray(ref))

@@ -136,6 +136,12 @@ class NudrekfEstimator(AbstractEstimator):
     belief once per fast period (eq. 11) along the actions the remote side *sent* (the
     runner's ``u_believed``: it cannot know whether a control packet was lost).
 
+    The filter of :class:`jaxnc.loop.EKF` with ``buffer=0``, but: the correction is the
+    scalar-sequential :func:`~jaxnc.estimators.ekf.ekf_update_diag` (diagonal R, sparsity
+    ``structure``); the measurement's weight is its ring slot's (the trigger's
+    straight-through gradient also when the sensor is silent); the estimate is a
+    :class:`ChainEstimate` (mean and weight); the means after every fast period are kept.
+
     Attributes:
       model: the kinematic model (``dynamics``, ``measure``, ``noise_dim``).
       Q: float[q], process noise variances per fast period; R: float[p], measurement
@@ -253,7 +259,7 @@ class ChainActuator(AbstractActuator):
     model: Any
     law: Any
     Ts: Any
-    horizon: Any
+    horizon: Any = dataclasses.field()      # a leaf without default (the base declares None)
     hold: Any
     mean0: Any
     noise_dim: int = _static(0)

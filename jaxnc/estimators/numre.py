@@ -19,16 +19,15 @@ traced N just indexes them. The h-step prediction of eq. (14)-(15) is the contro
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_int
+from jaxnc.estimators.ekf import Gaussian, ekf_update_terms
 
-__all__ = ["NumreTables", "numre_tables", "numre_gain", "numre_correct", "numre_steady_gain",
-           "NumreBelief", "predict"]
+__all__ = ["NumreTables", "numre_tables", "numre_gain", "numre_correct", "numre_steady_gain"]
 
 WE_FORMS = ("white", "eq13")
 
@@ -80,39 +79,26 @@ def numre_gain(t: NumreTables, P, N):
 
 
 def numre_correct(t: NumreTables, x_prior, P, y, N):
-    """Eq. (11)-(12): x(k|k) = x(k|k-N) + K(N) (y_k - C x(k|k-N)); returns (x, P+, K)."""
-    K, M = numre_gain(t, P, N)
-    I_KC = jnp.eye(M.shape[0], dtype=M.dtype) - jnp.outer(K, t.C)
-    P_post = I_KC @ M @ I_KC.T + t.V * jnp.outer(K, K)
-    return x_prior + K * (y - t.C @ x_prior), 0.5 * (P_post + P_post.T), K
+    """Eq. (11)-(12): x(k|k) = x(k|k-N) + K(N) (y_k - C x(k|k-N)); returns (x, P+, K).
+
+    The Kalman update of the lifted prior N(x(k|k-N), M) (M of :func:`numre_gain`) with the
+    scalar y = C x + v, Var(v) = V: :func:`jaxnc.estimators.ekf.ekf_update_terms` (Joseph form).
+
+    Args: t the tables; x_prior float[n]; P float[n, n], the posterior covariance of the last
+    arrival; y scalar; N int32 in [1, t.n_max]. Returns: (x float[n], P+ float[n, n], K float[n]).
+    """
+    _, M = numre_gain(t, P, N)
+    h = lambda x, v: jnp.reshape(t.C @ x, (1,)) + v
+    post, _, _, K = ekf_update_terms(h, Gaussian(x_prior, M), jnp.reshape(y, (1,)).astype(M.dtype),
+                                     jnp.reshape(t.V, (1, 1)), 1)
+    return post.mean, post.cov, K[:, 0]
 
 
 def numre_steady_gain(t: NumreTables, N: int, iters: int = 2000, P0=None):
-    """K(N) for a constant multiplicity: eq. (12) iterated ``iters`` times (a fixed point)."""
+    """K(N) for a constant multiplicity: eq. (12) (:func:`numre_correct`'s covariance update)
+    iterated ``iters`` times from ``P0`` (default I), a fixed point."""
     n = t.AN.shape[-1]
     P = jnp.eye(n, dtype=t.AN.dtype) if P0 is None else P0
-
-    def body(_, P):
-        _, M = numre_gain(t, P, N)
-        K = M @ t.C / (t.C @ M @ t.C + t.V)
-        I_KC = jnp.eye(n, dtype=M.dtype) - jnp.outer(K, t.C)
-        P = I_KC @ M @ I_KC.T + t.V * jnp.outer(K, K)
-        return 0.5 * (P + P.T)
-
-    P = jax.lax.fori_loop(0, iters, body, P)
+    x = jnp.zeros((n,), t.AN.dtype)
+    P = jax.lax.fori_loop(0, iters, lambda _, P: numre_correct(t, x, P, 0.0, N)[1], P)
     return numre_gain(t, P, N)[0]
-
-
-class NumreBelief(NamedTuple):
-    """Prior mean x(k|k_last) propagated with the applied actions, posterior cov at k_last."""
-    x: jax.Array
-    P: jax.Array
-
-
-def predict(A, B, x, us):
-    """Eq. (14): x(k+l|k) for l = 0..len(us), from x(k|k) and the actions u_k..u_{k+l-1}."""
-    def step(x, u):
-        xn = A @ x + B * u
-        return xn, xn
-    _, xs = jax.lax.scan(step, x, us)
-    return jnp.concatenate([x[None], xs], axis=0)

@@ -2,7 +2,7 @@
 
 Build a :class:`Loop` from a plant, a link per direction, a trigger, an estimator, a
 controller and an actuator; :func:`simulate` runs it (one ``lax.scan``), :func:`run`
-returns its :class:`Metrics`, and ``jaxnc.montecarlo.run_batched(run_seed, keys,
+returns its :class:`Metrics` (or a metrics function's of the trajectory), and ``jaxnc.montecarlo.run_batched(run_seed, keys,
 args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 """
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
@@ -30,7 +30,7 @@ from jaxnc.loop.monitors import PathMonitor, PathMonitorState, path_distance
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
-from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF, PeriodEKFState
+from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF
 from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
 from jaxnc.loop.pursuit import PursuitPI, PursuitState
 from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
@@ -57,7 +57,7 @@ __all__ = [
     "PacketActuator", "ActuatorState", "HoldLast", "ZeroOrder",
     "Numre", "NumreState",
     "Cascade", "CascadeState",
-    "AbstractLiftedPlant", "PeriodEKF", "PeriodEKFState",
+    "AbstractLiftedPlant", "PeriodEKF",
     "DiffDrive", "lifted_wheel_var",
     "PursuitPI", "PursuitState",
     "ArrivalActuator", "ArrivalState",

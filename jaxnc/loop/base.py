@@ -53,7 +53,7 @@ import jax.numpy as jnp
 from jaxnc._validate import checked_pytree
 
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractInitial",
-           "AbstractWrappedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
+           "AbstractWrappedPlant", "AbstractLiftedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
            "AbstractMonitor", "AbstractLoss", "AbstractDelay"]
 
 
@@ -255,6 +255,16 @@ class AbstractWrappedPlant(AbstractPlant):
         return self.plant.state_vector(x)
 
 
+class AbstractLiftedPlant(AbstractPlant):
+    """A plant that also declares its slow-period (lifted) model (seed 004 eq. 8), for an
+    estimator that predicts once per slow period (``EKF(rate="slow")``)."""
+
+    @abc.abstractmethod
+    def period(self, x, us, w):
+        """The state float[n] one slow period after x float[n], with the fast actions
+        ``us`` float[M, m] applied in order and the additive noise w float[n]."""
+
+
 class AbstractTrigger(abc.ABC):
     """Decides at each slow instant whether a signal is sent (sensor side: z; controller
     side: the first action of a packet)."""
@@ -350,13 +360,17 @@ class AbstractController(abc.ABC):
 
 
 class AbstractActuator(abc.ABC):
-    """Applies, every fast period, an action from the packets it has received."""
+    """Applies, every fast period, an action from the packets it has received.
+
+    ``horizon`` (declared): the actions per packet it plays, a static int that a Loop checks
+    against its controller's ``horizon``; None (the default): it takes packets of any length."""
 
     #: {field: allowed shapes}, each a tuple of dimension names among "state", "input",
     #: "output", "signal" (a trigger's signal), "estimate" (a controller's input): checked
     #: against the loop's sizes when a Loop is built (declared, e.g. ``{"K": (("input",
     #: "estimate"),)}``; ``()`` is a scalar)
     field_shapes: ClassVar[dict] = {}
+    horizon = None
 
     @abc.abstractmethod
     def init(self, ctx):

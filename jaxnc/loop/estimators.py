@@ -9,7 +9,9 @@ now (``Inbox.arrived``) and propagating with the stored inputs, so the estimate 
 an on-time filter would have had with the same measurements (seed 001 eq. 9-15, the
 buffered Kalman filter, extended to a nonlinear model and to N fast periods a slow one). A
 measurement older than the window is lost. ``buffer=0`` is the plain intermittent filter:
-only a measurement stamped now is used.
+only a measurement stamped now is used. ``rate="slow"`` predicts once per slow period with
+the plant's lifted model instead (:class:`~jaxnc.loop.AbstractLiftedPlant`, seed 004
+eq. 8-13; :func:`jaxnc.loop.PeriodEKF`).
 
 :class:`Passthrough` uses the newest delivered measurement as the estimate and holds it
 (eq. 5 of seed 001, no model): for controllers that act on the output.
@@ -22,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, fields_concrete
+from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, concrete
 from jaxnc.estimators.ekf import Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_sqrt
 from jaxnc.estimators.ukf import ukf_predict, ukf_update
-from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
+from jaxnc.loop.base import AbstractEstimator, AbstractLiftedPlant, AbstractPlant, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
@@ -52,7 +54,7 @@ class EKF(AbstractEstimator):
     Attributes:
       model: an :class:`~jaxnc.loop.base.AbstractPlant` (its ``dynamics`` and ``measure``).
       Q: float[q, q] or float[q] (diagonal), process noise covariance of the model's w,
-        per fast period.
+        per fast period (``rate="slow"``: q = n, the lifted model's additive noise per slow period).
       R: float[p, p], measurement noise covariance of v.
       mean0: float[n]; cov0: float[n, n], the prior at t = 0.
       buffer: static int >= 0, slow periods a measurement may be late.
@@ -68,6 +70,9 @@ class EKF(AbstractEstimator):
         :func:`~jaxnc.estimators.ukf.ukf_update` with Merwe's sigma points, the same window
         of late measurements; :func:`jaxnc.loop.UKF` builds it).
       sigma_points: static (alpha, beta, kappa) of the unscented form's sigma points.
+      rate: static, ``"fast"`` (predict every fast period with the model's ``dynamics``) or
+        ``"slow"`` (once per slow period with its lifted ``period(x, us, w)``: the model must
+        be an :class:`~jaxnc.loop.AbstractLiftedPlant`).
     """
 
     model: Any
@@ -79,9 +84,15 @@ class EKF(AbstractEstimator):
     inputs: str = _static("believed")
     form: str = _static("joseph")
     sigma_points: tuple = _static((1.0, 2.0, 0.0))
+    rate: str = _static("fast")
 
     def __post_init__(self):
         check_instance("EKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
+        if self.rate not in ("fast", "slow"):
+            raise ValueError(f"EKF.rate must be one of fast, slow, got {self.rate!r}")
+        if self.rate == "slow":
+            check_instance("EKF.model", self.model, AbstractLiftedPlant,
+                           "a plant with a lifted model (a jaxnc.loop.AbstractLiftedPlant, e.g. DiffDrive) for rate='slow'")
         for n in ("Q", "R", "mean0", "cov0"):
             check_given(f"EKF.{n}", getattr(self, n), "a number or an array of numbers")
             check_finite(f"EKF.{n}", getattr(self, n))
@@ -95,9 +106,10 @@ class EKF(AbstractEstimator):
         if not (isinstance(sp, tuple) and len(sp) == 3 and all(isinstance(v, (int, float)) for v in sp)
                 and np.all(np.isfinite(sp)) and sp[0] > 0):
             raise ValueError(f"EKF.sigma_points must be (alpha > 0, beta, kappa), three numbers, got {sp!r}")
-        if not fields_concrete(self):
+        if not concrete(self.Q, self.R, self.mean0, self.cov0):     # the model's sizes are class data
             return
         n, q, p = self.model.state_dim, self.model.noise_dim, self.model.output_dim
+        q = n if self.rate == "slow" else q
         m0 = np.asarray(self.mean0, np.float32)
         if m0.shape != (n,):
             raise ValueError(f"EKF.mean0 must have {n} entries (the model's state), got shape {m0.shape}")
@@ -106,8 +118,8 @@ class EKF(AbstractEstimator):
             raise ValueError(f"EKF.cov0 must be {n}x{n}, got shape {P0.shape}")
         Q = np.asarray(self.Q, np.float32)
         if Q.shape not in ((q,), (q, q)):
-            raise ValueError(f"EKF.Q must be {q}x{q} or a vector of {q} variances (the model's noise_dim), "
-                             f"got shape {Q.shape}")
+            what = "the state's, per slow period" if self.rate == "slow" else "the model's noise_dim"
+            raise ValueError(f"EKF.Q must be {q}x{q} or a vector of {q} variances ({what}), got shape {Q.shape}")
         R = np.asarray(self.R, np.float32)
         if R.shape != (p, p):
             raise ValueError(f"EKF.R must be {p}x{p} (the model's output_dim), got shape {R.shape}")
@@ -147,6 +159,12 @@ class EKF(AbstractEstimator):
         return dict(zip(("alpha", "beta", "kappa"), self.sigma_points))
 
     def _predict_period(self, g: Gaussian, us):
+        if self.rate == "slow":          # one step of the lifted model over the period's actions us [N, m]
+            n = self.model.state_dim
+            if self.form == "unscented":
+                return ukf_predict(self.model.period, g, us, self.Q, n, **self._sigma())
+            return (ekf_predict_sqrt if self.form == "sqrt" else ekf_predict)(self.model.period, g, us, self.Q, n)
+
         def body(g, u):
             if self.form == "unscented":
                 return ukf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim, **self._sigma()), None

@@ -192,9 +192,9 @@ class LimitedActuator(AbstractActuator):
         object.__setattr__(self, "limits", _check_limits("LimitedActuator", self.limits))
 
     @property
-    def horizon(self) -> int:
-        """The inner actuator's packet length (1 if it has none)."""
-        return getattr(self.actuator, "horizon", 1)
+    def horizon(self):
+        """The inner actuator's declared packet length (:class:`~jaxnc.loop.AbstractActuator`)."""
+        return self.actuator.horizon
 
     def init(self, ctx):
         return self.actuator.init(ctx), tuple(lim.init(ctx.input_dim, ctx.T) for lim in self.limits)

@@ -93,7 +93,8 @@ class Bernoulli(AbstractLoss):
 class GilbertElliott(AbstractLoss):
     """Two-state Markov (bursty) loss: good -> bad with ``p_gb``, bad -> good with ``p_bg``
     per packet; a packet is lost with ``loss_good`` / ``loss_bad`` in each state. The chain
-    starts in its stationary distribution."""
+    starts in its stationary distribution. Its kernel is :func:`jaxnc.wifi.gilbert_elliott_losses`
+    (the Wi-Fi channel's chain with no gap bounds)."""
 
     p_gb: Any = 0.0
     p_bg: Any = 1.0
@@ -116,14 +117,9 @@ class GilbertElliott(AbstractLoss):
         k0, ks, kl = jax.random.split(key, 3)
         p_gb, p_bg = jnp.asarray(self.p_gb, _F32), jnp.asarray(self.p_bg, _F32)
         bad0 = jax.random.uniform(k0, (), _F32) < p_gb / (p_gb + p_bg)
-
-        def step(bad, u):
-            bad = jnp.where(bad, u >= p_bg, u < p_gb)
-            return bad, bad
-
-        _, bad = jax.lax.scan(step, bad0, jax.random.uniform(ks, (n,), _F32))
-        q = jnp.where(bad, jnp.asarray(self.loss_bad, _F32), jnp.asarray(self.loss_good, _F32))
-        return jax.random.uniform(kl, (n,), _F32) < q
+        return wifi.gilbert_elliott_losses(bad0, jax.random.uniform(ks, (n,), _F32), jax.random.uniform(kl, (n,), _F32),
+                                           p_gb, p_bg, jnp.asarray(self.loss_good, _F32),
+                                           jnp.asarray(self.loss_bad, _F32))
 
 
 @_dataclass

@@ -30,7 +30,9 @@ class PathMonitor(AbstractMonitor):
     """Progress, distance, completion and failure of a plant following a planar path
     (the path tube of seed 000 section 4.1 and seed 004 section 4).
 
-    After every fast period, with the position p = (x[xy], x[xy + 1]) of the state vector:
+    After every ``every``-th fast period (those after which t + 1 is a multiple of ``every``:
+    the instants kT of a plant sampled at T = ``every`` fast periods, seed 004's check every
+    T), with the position p = (x[xy], x[xy + 1]) of the state vector:
 
     * progress: the nearest path point searched monotonically in a window of ``window``
       points ahead (:func:`jaxnc.paths.closest_index`), so the search stays on the plant's
@@ -39,14 +41,18 @@ class PathMonitor(AbstractMonitor):
     * complete: once the progress is in the path's last tenth and p within ``end_tol`` of
       its end (stays complete);
     * failed: the distance exceeds ``max_dev`` before completion (afterwards the plant may
-      coast off the end), or the state is not finite.
+      coast off the end);
+
+    and after every fast period: failed when the state is not finite. Between two checks the
+    progress, distance and completion are held.
 
     Record the distance with ``Record(monitor=path_distance)``.
 
     Attributes:
       path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0.
       xy: static, the index of the position's first coordinate in the state vector.
-      window: static, path points searched per period (more than the plant moves in one).
+      window: static, path points searched per check (more than the plant moves between two).
+      every: static, fast periods per check (>= 1; default 1, every fast period).
       freeze: static; hold the plant at its last good state once failed (default False).
 
     Raises:
@@ -58,6 +64,7 @@ class PathMonitor(AbstractMonitor):
     end_tol: Any = 0.1
     xy: int = static_field(0)
     window: int = static_field(32)
+    every: int = static_field(1)
     freeze: bool = static_field(False)
 
     def __post_init__(self):
@@ -66,6 +73,7 @@ class PathMonitor(AbstractMonitor):
         check_range("PathMonitor.end_tol", self.end_tol, 0.0, None, low_open=True)
         check_int("PathMonitor.xy", self.xy, 0, None)
         check_int("PathMonitor.window", self.window, 1, None)
+        check_int("PathMonitor.every", self.every, 1, None)
         check_bool("PathMonitor.freeze", self.freeze)
 
     def init(self, ctx) -> PathMonitorState:
@@ -76,12 +84,20 @@ class PathMonitor(AbstractMonitor):
 
     def step(self, state: PathMonitorState, x, u, t):
         p, path = x[self.xy:self.xy + 2], self.path
-        idx, _ = closest_index(path, p, state.idx, self.window)
-        dist = local_distance(path, p, idx)
-        at_end = (idx >= (9 * path.M) // 10) & (jnp.sum((p - path.points[-1]) ** 2) < self.end_tol ** 2)
-        done = state.done | at_end
-        failed = ((dist > self.max_dev) & ~done) | ~jnp.all(jnp.isfinite(x))
-        return PathMonitorState(idx, dist, done), failed, done
+
+        def check(s):
+            idx, _ = closest_index(path, p, s.idx, self.window)
+            dist = local_distance(path, p, idx)
+            at_end = (idx >= (9 * path.M) // 10) & (jnp.sum((p - path.points[-1]) ** 2) < self.end_tol ** 2)
+            done = s.done | at_end
+            return PathMonitorState(idx, dist, done), (dist > self.max_dev) & ~done
+
+        if self.every == 1:
+            state, off_tube = check(state)
+        else:       # t is the scan's instant, the same in every lane of a batch: a real branch
+            state, off_tube = jax.lax.cond((t + 1) % self.every == 0, check,
+                                           lambda s: (s, jnp.zeros((), bool)), state)
+        return state, off_tube | ~jnp.all(jnp.isfinite(x)), state.done
 
 
 def path_distance(monitor: PathMonitor, state: PathMonitorState):

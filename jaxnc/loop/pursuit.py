@@ -12,7 +12,7 @@ sensing instant kNT, from the estimate xi_k,
    eq. 21-22 and 28-29: G1 at NT, G2 giving ns actions at T);
 3. with ``h >= 1``, the h-step-ahead prediction stage (section 3.2, eq. 14,
    :func:`jaxnc.controllers.prediction.predict_periods`): steps 1-2 and the model's lifted
-   map (:meth:`~jaxnc.loop.multirate.AbstractLiftedPlant.period`) iterated in open loop,
+   map (:meth:`~jaxnc.loop.AbstractLiftedPlant.period`) iterated in open loop,
    giving the estimates (xi_{k|k}, ..., xi_{k+h|k}) and the actions of periods k .. k+h
    (packet-based control). The local side does not measure the delay (section 1: "the
    time-varying network-induced delay is not required to be measured"): in period k it

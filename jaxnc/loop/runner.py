@@ -270,7 +270,7 @@ class Loop:
                 raise ValueError(f"Loop.actuator must not be a LimitedActuator: {type(self.controller).__name__} keeps "
                                  f"its own copy of what it sent (keeps_copy), which the limits would not reach")
         H = self.controller.horizon
-        if isinstance(self.actuator, PacketActuator) and self.actuator.horizon != H:
+        if isinstance(self.actuator.horizon, int) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
         for name in ("uplink", "downlink"):
@@ -704,10 +704,20 @@ def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
     return Metrics(cost, raw, traj.tx_sc / S, traj.tx_ca / S, traj.failed)
 
 
-def run(loop: Loop, key) -> Metrics:
-    """simulate + evaluate: the per-seed function the Monte-Carlo engine maps,
-    ``montecarlo.run_batched(run, keys, args=(loop,))``."""
-    return evaluate(loop, simulate(loop, key))
+def run(loop: Loop, key, *, metrics=evaluate, **context):
+    """One seed's metrics, ``metrics(loop, simulate(loop, key), **context)``: the per-seed
+    function the Monte-Carlo engine maps, ``montecarlo.run_batched(run_seed, keys, args=(loop,))``.
+
+    Args:
+      loop: the :class:`Loop`. key: the run's PRNG key (:func:`draw`).
+      metrics: a function ``metrics(loop, traj, **context)`` of the loop and its
+        :class:`Trajectory` (default :func:`evaluate`: the loop's cost and rates); a paper's
+        scheme passes its own (``jaxnc.schemes.<paper>.run`` is this function with it).
+      context: further keyword arguments of ``metrics`` (e.g. a reference run's output).
+
+    Returns:
+      what ``metrics`` returns (a pytree of arrays)."""
+    return metrics(loop, simulate(loop, key), **context)
 
 
 def run_seed(key, loop: Loop) -> Metrics:

@@ -14,7 +14,7 @@ motors discretised exactly (ZOH) at dt and the kinematics integrated at dt (midp
 heading, trapezoidal wheel speed), so a command may change in the middle of a period T,
 as in the paper's TrueTime simulation. The wheel noise n1 (eq. 4) enters once per period
 T, at its first fine step. Its slow-period (lifted) models, for estimators and predictors
-that run once per sensing period (:class:`jaxnc.loop.multirate.AbstractLiftedPlant`):
+that run once per sensing period (:class:`jaxnc.loop.AbstractLiftedPlant`):
 ``lifted="integrated"``, the same fine integrator over the period with the commands
 applied (the paper's "accurate system model", section 2.2), or ``"eq1"``, eq. (1)-(3) and
 (7) as printed. docs/diffdrive.md gives the numbers the paper leaves out (r, b, u_max,
@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from jaxnc._validate import array_fields, check_choice, check_int, check_nonneg, check_positive
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.loop.multirate import AbstractLiftedPlant
+from jaxnc.loop.base import AbstractLiftedPlant
 
 __all__ = ["DiffDrive", "lifted_wheel_var", "motor", "body_velocity", "wheel_command", "substep",
            "eq1", "integrated", "K_MOTOR", "TAU_MOTOR", "LIFTED_MODELS"]

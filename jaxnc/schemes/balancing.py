@@ -25,6 +25,7 @@ state is not finite (the runner's :class:`~jaxnc.loop.Monitor` freezes the plant
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import jax
@@ -39,7 +40,7 @@ from jaxnc.plants import balancing as bmodel
 from jaxnc.plants.balancing import Balancing
 
 __all__ = ["DESIGNS", "DERIVATIVES", "KF_TILT_NOISES", "W_LQ", "U_LQ", "SEVERITIES", "NOISE_LEVELS",
-           "balancing_loop", "Metrics", "metrics", "reference", "run_seed", "SWEEP_AXES", "MAX_DELAY_INDEX",
+           "balancing_loop", "Metrics", "metrics", "reference", "run", "SWEEP_AXES", "MAX_DELAY_INDEX",
            "delay_law", "sweep_channel"]
 
 DESIGNS = ("model", "emulation")
@@ -170,10 +171,8 @@ def metrics(loop: nc.Loop, tr: nc.Trajectory) -> Metrics:
                    tilt_max_deg=jnp.rad2deg(jnp.max(jnp.abs(th))))
 
 
-def run_seed(key, loop: nc.Loop) -> Metrics:
-    """:func:`metrics` of :func:`jaxnc.loop.simulate` on the runner's draws from ``key``,
-    for ``montecarlo.run_batched(run_seed, keys, args=(loop,))``."""
-    return metrics(loop, nc.simulate(loop, key))
+#: the per-seed function ``run(loop, key) -> Metrics``: :func:`jaxnc.loop.run` with :func:`metrics`
+run = functools.partial(nc.run, metrics=metrics)
 
 
 def _pmf(d: dict, size: int = 19) -> np.ndarray:

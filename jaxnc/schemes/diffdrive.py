@@ -8,19 +8,20 @@ four right angles by pure pursuit (eq. 15-20) with wheel-speed PI (:class:`jaxnc
 * **c** dual rate (eq. 21-22, 28-29): sensing and pure pursuit every NT, N actions at T;
 * **d** c with remote -> local delays; the local side starts the period's actions when
   the reference packet arrives (:class:`jaxnc.loop.ArrivalActuator`);
-* **e** c with delays, the EKF at NT (eq. 8-13, :class:`jaxnc.loop.PeriodEKF`, collocated
+* **e** c with delays, the EKF at NT (eq. 8-13, :func:`jaxnc.loop.PeriodEKF`, collocated
   with the actuator), the h-step-ahead prediction stage (eq. 14) and packet-based control
   by time stamp (u_{k|k-1} until the new packet arrives), low noise F = 0.1.
 
 The downlink's delay (d, e) is the reference packet's, eta + phi Exp(1) truncated at
 tau_max = 0.17 s < NT (eq. 7 of seed 000; section 5.1), quantised up to dt; the noises are
-the plant's, every draw the runner's own (:func:`jaxnc.loop.draw`). The metrics (eq. 23-25)
-are computed on the runner's trajectory: completion (the true position in the last tenth of
-the path and within ``end_tol`` of its end, checked every T) and failure (leaving a
-``max_dev`` tube before completion, or a non-finite state) included.
+the plant's, every draw the runner's own (:func:`jaxnc.loop.draw`). Completion (the true
+position in the last tenth of the path and within ``END_TOL`` of its end) and failure
+(farther than ``MAX_DEV`` from the path before completion) are the runner's, checked every T
+by :class:`jaxnc.loop.PathMonitor`; the metrics (eq. 23-25) are computed on its trajectory.
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -34,7 +35,7 @@ from jaxnc._validate import check_choice, check_int, check_range
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.loop.vehicles import LIFTED_MODELS
 from jaxnc.metrics import distance_to_path, distance_to_points
-from jaxnc.paths import Path, closest_index, from_waypoints, point_at
+from jaxnc.paths import Path, from_waypoints, point_at
 
 SCENARIOS = ("a", "b", "c", "d", "e")
 PREDICTIONS = LIFTED_MODELS        # e's slow-period model: "integrated" or "eq1" (eq. 1 as printed)
@@ -119,7 +120,8 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
     act = nc.ArrivalActuator(horizon=H) if scenario == "d" else nc.PacketActuator(horizon=H, on_exhausted="hold")
     n_slow = math.ceil(horizon_s / (N * T))
     return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=est, controller=ctrl,
-                   downlink=down, actuator=act, monitor=nc.Monitor(freeze=False), N=ns * SUB,
+                   downlink=down, actuator=act, N=ns * SUB,
+                   monitor=nc.PathMonitor(path, max_dev=MAX_DEV, end_tol=END_TOL, xy=2, window=ctrl.window, every=SUB),
                    steps=n_slow * N * SUB, T=T / SUB, record=nc.Record(("x", "u"), controller=controller_trace))
 
 
@@ -127,33 +129,6 @@ def controller_trace(ctrl: nc.PursuitPI, state: nc.PursuitState):
     """(w_com float[2], est float[h+1, 5], U float[ns, 2], u_prior float[ns, 2]) after each
     sensing instant: the references, the estimates packet (Table 1), u_{k|k} and u_{k|k-1}."""
     return state.w_com, state.est, state.U, state.u_prior
-
-
-class Completion(NamedTuple):
-    l: jax.Array        # int32: periods T until the path was completed (all of them if never)
-    done: jax.Array     # bool: completed
-    bad: jax.Array      # bool: failed (tube, non-finite) before completion
-
-
-def completion(loop: nc.Loop, traj: nc.Trajectory, *, end_tol: float = END_TOL, max_dev: float = MAX_DEV) -> Completion:
-    """Completion and failure from the true positions at the end of every period T: the
-    progress (monotone windowed nearest-point search), done when it is in the path's last
-    tenth within ``end_tol`` of the end; failed when, before that, the distance exceeds
-    ``max_dev``, the state is non-finite, or the runner saw a non-finite action."""
-    ctrl, sub = loop.controller, loop.plant.sub
-    xs = jnp.concatenate([traj.x[sub::sub], traj.final_plant[None]])            # [K/sub, 5]
-    path, M = ctrl.path, ctrl.path.M
-
-    def body(c, x):
-        idx, done, l, bad, j = c
-        idx, dist = closest_index(path, x[2:4], idx, ctrl.window)
-        at_end = (idx >= (9 * M) // 10) & (jnp.sum((x[2:4] - path.points[-1]) ** 2) < end_tol ** 2)
-        bad = bad | (~done & ((dist > max_dev) | ~jnp.all(jnp.isfinite(x))))
-        return (idx, done | at_end, jnp.where(done, l, j + 1), bad, j + 1), None
-
-    z, f = jnp.zeros((), jnp.int32), jnp.zeros((), bool)
-    (_, done, l, bad, _), _ = jax.lax.scan(body, (z, f, jnp.asarray(xs.shape[0], jnp.int32), f, z), xs)
-    return Completion(l, done, bad | (traj.failed & ((traj.fail_step - 1) // sub < l)))
 
 
 def reference_points(loop: nc.Loop, N: int = 2) -> jax.Array:
@@ -183,24 +158,25 @@ class Metrics(NamedTuple):
     unstable: jax.Array
 
 
-def evaluate(loop: nc.Loop, traj: nc.Trajectory, N: int = 2) -> Metrics:
+def metrics(loop: nc.Loop, traj: nc.Trajectory, *, N: int = 2) -> Metrics:
     """Eq. (23)-(25) from the true positions every NT (every scenario on the same grid; ``N``
-    the multiplicity of that grid)."""
+    the multiplicity of that grid), up to completion l T (l = ``traj.done_step`` / sub: the
+    path monitor checks every T); unstable when the run failed before completion or never
+    completed."""
     sub, T, ns = loop.plant.sub, loop.plant.T, loop.controller.ns
-    c = completion(loop, traj)
+    l = traj.done_step // sub
     xy = traj.x[::N * sub, 2:4]
-    mask = jnp.arange(xy.shape[0]) * N < c.l
+    mask = jnp.arange(xy.shape[0]) * N < l
     dist = distance_to_path(loop.controller.path, xy) * 1000.0
     dref = distance_to_points(reference_points(loop, N), xy) * 1000.0
-    unstable = c.bad | ~c.done
+    unstable = (traj.failed & ((traj.fail_step - 1) // sub < l)) | ~traj.done
     inf = lambda v: jnp.where(unstable, jnp.asarray(jnp.inf, jnp.float32), v)
     j1 = jnp.sum(jnp.where(mask, dist, 0.0))
     return Metrics(J1=inf(j1), J1_mean=inf(j1 / jnp.maximum(jnp.sum(mask), 1)),
                    J2=inf(jnp.max(jnp.where(mask, dist, 0.0))), J1_ref=inf(jnp.sum(jnp.where(mask, dref, 0.0))),
-                   J2_ref=inf(jnp.max(jnp.where(mask, dref, 0.0))), J3=inf(c.l * T),
-                   packets=2.0 * jnp.ceil(c.l / ns), l=c.l, unstable=unstable)
+                   J2_ref=inf(jnp.max(jnp.where(mask, dref, 0.0))), J3=inf(l * T),
+                   packets=2.0 * jnp.ceil(l / ns), l=l, unstable=unstable)
 
 
-def run(loop: nc.Loop, key, N: int = 2) -> Metrics:
-    """simulate + evaluate: the per-seed function the Monte-Carlo engine maps."""
-    return evaluate(loop, nc.simulate(loop, key), N)
+#: the per-seed function ``run(loop, key, *, N=2) -> Metrics``: :func:`jaxnc.loop.run` with :func:`metrics`
+run = functools.partial(nc.run, metrics=metrics)

@@ -31,6 +31,7 @@ noise and disturbance; 5 narrower thresholds; 6 the DOB instead of the disturban
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -222,7 +223,7 @@ def held(loop: jl.Loop, tr: jl.Trajectory):
     return (k_pkt < 0) | (k - k_pkt >= loop.actuator.horizon)
 
 
-def metrics(loop: jl.Loop, tr: jl.Trajectory, y_tts, ise_tts, cs: float, W=(0.45, 0.45, 0.1)) -> Metrics:
+def metrics(loop: jl.Loop, tr: jl.Trajectory, *, y_tts, ise_tts, cs: float, W=(0.45, 0.45, 0.1)) -> Metrics:
     """Eq. (23)-(29) of one run against the noise-free TTS output ``y_tts`` (Case 1) and
     its ISE; ``cs`` is the MRCI's computation saving (eq. 20). Uc, Ua: transmissions per
     period (TTS sends every period)."""
@@ -237,9 +238,9 @@ def metrics(loop: jl.Loop, tr: jl.Trajectory, y_tts, ise_tts, cs: float, W=(0.45
                    unstable=unstable, N_max=jnp.max(gap), n_held=jnp.sum(held(loop, tr)))
 
 
-def run(loop: jl.Loop, key, y_tts, ise_tts, cs: float, W=(0.45, 0.45, 0.1)) -> Metrics:
-    """:func:`jaxnc.loop.simulate` + :func:`metrics`; vmap over keys for Monte-Carlo."""
-    return metrics(loop, jl.simulate(loop, key), y_tts, ise_tts, cs, W)
+#: the per-seed function ``run(loop, key, *, y_tts, ise_tts, cs, W=...) -> Metrics``:
+#: :func:`jaxnc.loop.run` with :func:`metrics`
+run = functools.partial(jl.run, metrics=metrics)
 
 
 def tts_reference(steps: int = STEPS, reading: str = "sum", m: int = 2):

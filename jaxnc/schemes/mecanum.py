@@ -28,6 +28,7 @@ time + 10 s); its indexes (:func:`metrics`, eq. 21-24) are then inf.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import NamedTuple
 
@@ -239,9 +240,8 @@ def with_follower(loop: nc.Loop, **changes) -> nc.Loop:
                                actuator=actuator)
 
 
-def run(loop: nc.Loop, key) -> Metrics:
-    """simulate + metrics: the per-seed function the Monte-Carlo engine maps."""
-    return metrics(loop, nc.simulate(loop, key))
+#: the per-seed function ``run(loop, key) -> Metrics``: :func:`jaxnc.loop.run` with :func:`metrics`
+run = functools.partial(nc.run, metrics=metrics)
 
 
 def tracking_cost(loop: nc.Loop, key):
