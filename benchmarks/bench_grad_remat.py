@@ -1,10 +1,10 @@
-"""The cart-pole's exact gradient with rematerialisation policies on the runner's scans (issue 32).
+"""A small loop's exact gradient with rematerialisation policies on the runner's scans (issue 32).
 
 Run:  PYTHONPATH=. .venv/bin/python benchmarks/bench_grad_remat.py [--seeds 256] [--repeat 3]
       [--variants none slow:nothing slow:dots fast:nothing]
 
 The objective is bench_grad.py's (mean quadratic cost over ``--seeds`` seeds as a function of
-the LQR gain K). Variants wrap the body of the runner's slow-period scan (``slow``) or of
+the cart-pole's LQR gain K, or ``--loop servo``: the servo's PI gains). Variants wrap the body of the runner's slow-period scan (``slow``) or of
 every scan (``all``) in ``jax.checkpoint`` with a policy (``nothing``: save nothing,
 recompute the body in the backward pass; ``dots``: save matrix products without batch
 dimensions; ``everything``: save every residual), by patching ``jax.lax.scan`` as the
@@ -83,23 +83,33 @@ def patched(variant):
         runner.jax = old
 
 
-def objective(cp):
+def objective(name):
+    """(objective(theta, keys), theta): bench_grad.py's cart-pole (d/dK) or servo (d/d(Kp, Ki))."""
+    if name == "servo":
+        from benchmarks.direct_servo import servo
+        sv = servo()
+
+        def serv(theta, keys):
+            lp = dataclasses.replace(sv, controller=dataclasses.replace(sv.controller, Kp=theta[:1], Ki=theta[1:]))
+            return jnp.mean(jax.vmap(lambda k: nc.run(lp, k).cost_raw)(keys))
+        return serv, jnp.asarray([2.0, 1.0], jnp.float32)
+    cp = cartpole()
+
     def cart(theta, keys):
         lp = dataclasses.replace(cp, controller=dataclasses.replace(cp.controller, K=theta))
         return jnp.mean(jax.vmap(lambda k: nc.run(lp, k).cost_raw)(keys))
-    return cart
+    return cart, jnp.asarray(cp.controller.K, jnp.float32)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=256)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--loop", choices=("cartpole", "servo"), default="cartpole")
     ap.add_argument("--variants", nargs="+", default=["none", "slow:nothing", "slow:dots", "all:nothing"])
     a = ap.parse_args()
-    cp = cartpole()
     keys = montecarlo.seed_keys(0, a.seeds)
-    theta = jnp.asarray(cp.controller.K, jnp.float32)
-    obj = objective(cp)
+    obj, theta = objective(a.loop)
     progs = {}
     c0 = time.process_time()
     progs["forward"] = jax.jit(obj).lower(theta, keys).compile()
@@ -119,7 +129,7 @@ def main():
             jax.block_until_ready(progs[n](theta, keys))
             cpu[n].append(time.process_time() - c0)
     g0 = np.asarray(out[a.variants[0]][1])
-    print(f"\ncart-pole, mean cost over {a.seeds} seeds, d/dK; best of {a.repeat} (process CPU s); "
+    print(f"\n{a.loop}, mean cost over {a.seeds} seeds; best of {a.repeat} (process CPU s); "
           f"load {os.getloadavg()[0]:.1f}\n")
     print("| program | compile CPU s | run CPU s | / forward (run) | / forward (compile) | max rel. gradient diff |")
     print("|---|---|---|---|---|---|")
