@@ -10,7 +10,8 @@ recompute the body in the backward pass; ``dots``: save matrix products without 
 dimensions; ``everything``: save every residual), by patching ``jax.lax.scan`` as the
 runner's module sees it while the programs are traced; ``none`` is the runner as it is.
 Forward and value_and_grad are compiled (CPU seconds) and timed interleaved (best process
-CPU time); the gradient of every variant is compared with the plain one.
+CPU time); the gradient of every variant is compared with the first one. ``loop`` is the
+library's own option, ``Loop(remat=True)`` (the slow body, ``nothing_saveable``).
 """
 from __future__ import annotations
 
@@ -71,7 +72,7 @@ class _Jax:
 
 @contextlib.contextmanager
 def patched(variant):
-    if variant == "none":
+    if variant in ("none", "loop"):
         yield
         return
     where, pol = variant.split(":")
@@ -83,17 +84,18 @@ def patched(variant):
         runner.jax = old
 
 
-def objective(name):
-    """(objective(theta, keys), theta): bench_grad.py's cart-pole (d/dK) or servo (d/d(Kp, Ki))."""
+def objective(name, remat=False):
+    """(objective(theta, keys), theta): bench_grad.py's cart-pole (d/dK) or servo (d/d(Kp, Ki));
+    ``remat``: the loop's own option, ``Loop(remat=True)``."""
     if name == "servo":
         from benchmarks.direct_servo import servo
-        sv = servo()
+        sv = dataclasses.replace(servo(), remat=remat)
 
         def serv(theta, keys):
             lp = dataclasses.replace(sv, controller=dataclasses.replace(sv.controller, Kp=theta[:1], Ki=theta[1:]))
             return jnp.mean(jax.vmap(lambda k: nc.run(lp, k).cost_raw)(keys))
         return serv, jnp.asarray([2.0, 1.0], jnp.float32)
-    cp = cartpole()
+    cp = dataclasses.replace(cartpole(), remat=remat)
 
     def cart(theta, keys):
         lp = dataclasses.replace(cp, controller=dataclasses.replace(cp.controller, K=theta))
@@ -117,7 +119,8 @@ def main():
     for v in a.variants:
         with patched(v):
             c0 = time.process_time()
-            progs[v] = jax.jit(jax.value_and_grad(obj)).lower(theta, keys).compile()
+            o = objective(a.loop, remat=True)[0] if v == "loop" else obj
+            progs[v] = jax.jit(jax.value_and_grad(o)).lower(theta, keys).compile()
             comp[v] = time.process_time() - c0
         print(f"compiled {v}: {comp[v]:.1f} CPU s", flush=True)
     out = {n: jax.block_until_ready(p(theta, keys)) for n, p in progs.items()}
