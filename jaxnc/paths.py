@@ -195,7 +195,7 @@ def closest_index(path: Path, p, idx_prev, window: int):
     start = jnp.clip(idx_prev, 0, M - w)
     pts = jax.lax.dynamic_slice(path.points, (start, jnp.zeros((), jnp.int32)), (w, 2))
     # the two squares added as written, not a sum over the last axis: XLA:CPU hands such a
-    # reduction to a YNNPACK call per use, a third of a seed-000 step's time (benchmarks/RESULTS.md)
+    # reduction to a library (YNNPACK) call per use, slow on a few entries per lane
     p = jnp.asarray(p, _DTYPE)
     dx, dy = pts[:, 0] - p[0], pts[:, 1] - p[1]
     d2 = dx * dx + dy * dy

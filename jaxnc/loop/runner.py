@@ -219,9 +219,8 @@ class Loop:
       remat: static; True wraps each slow period in ``jax.checkpoint`` (saving nothing), so
         reverse mode recomputes a period's forward pass instead of storing its intermediates.
         Forward runs are unchanged (bit for bit); gradients equal up to float rounding. It
-        pays where a period is heavy (an EKF window re-linearising an RK4 model: the
-        cart-pole's exact gradient 0.73x the time) and costs where it is light (the servo's
-        1.8x): measure (benchmarks/bench_grad_remat.py).
+        pays where a period is heavy (an EKF window re-linearising an RK4 model) and costs
+        where it is light: measure (benchmarks/bench_grad_remat.py).
     """
 
     plant: Any
