@@ -1,15 +1,19 @@
-"""Where the time goes: XLA's cost analysis of each loop against the machine's measured peak.
+"""Where the time goes: each loop's arithmetic against the machine's measured peak.
 
 Run:  .venv/bin/python benchmarks/bench_roofline.py [--seeds 1000] [--repeat 3] [--no-record]
 
 For the servo (benchmarks/direct_servo.py, runner and by hand), the cart-pole
-(examples/cartpole.py) and the seed-000 DRHE loop at N = 10, DP = 0.5: the compiled
-``jit(vmap(run))`` program's ``cost_analysis()`` (flops and bytes accessed; a while loop's
-body is counted once per trip as XLA reports it, so the totals are divided by seeds x
-steps), and its measured throughput. The peaks are measured in the same run on this
-machine: a float32 matrix product (4096 x 4096, the flop peak of all cores) and a large
-array copy (256 MB, bytes read plus written per second). Each loop's attained flop/s and
-byte/s are then a fraction of those peaks. Appends the table to benchmarks/RESULTS.md.
+(examples/cartpole.py) and the seed-000 DRHE loop at N = 10 and N = 1, DP = 0.5: flops,
+transcendental functions and bytes per seed-step counted on the jaxpr with every scan
+multiplied by its length (benchmarks/jaxpr_cost.py; bytes: every primitive's operands and
+results once, i.e. the *unfused* traffic, an upper bound), beside XLA's
+``cost_analysis()`` of the compiled ``jit(vmap(run))`` program, which counts each while
+loop's body once whatever its trip count (so its totals divided by seeds x steps are far
+too small: shown to say so), and the measured throughput per CPU-second (process CPU
+time, best of ``--repeat``). The peaks are measured in the same run, per CPU-second too:
+a float32 matrix product (4096 x 4096) and a large array scaling (256 MB, bytes read plus
+written). Each loop's attained flop/s and byte/s per CPU-second are then a fraction of
+those peaks. Appends the table to benchmarks/RESULTS.md.
 """
 from __future__ import annotations
 
@@ -28,6 +32,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from _record import record  # noqa: E402
+from jaxpr_cost import jaxpr_cost  # noqa: E402
 from benchmarks.direct_servo import hand_cost, servo  # noqa: E402
 from examples.cartpole import cartpole  # noqa: E402
 from jaxnc import loop as nc  # noqa: E402
@@ -36,17 +41,18 @@ from jaxnc.report import markdown_table  # noqa: E402
 
 
 def _best(f, repeat):
+    """Best process CPU time of ``repeat`` calls after a first one."""
     jax.block_until_ready(f())
     best = np.inf
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         jax.block_until_ready(f())
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     return best
 
 
 def peaks(repeat):
-    """(flop/s of a 4096^2 float32 matmul, bytes/s of a 256 MB copy: read + write)."""
+    """(flop per CPU-s of a 4096^2 float32 matmul, bytes per CPU-s of a 256 MB scaling: read + write)."""
     n = 4096
     a = jnp.ones((n, n), jnp.float32)
     mm = jax.jit(lambda a: a @ a)
@@ -62,11 +68,12 @@ def _loops():
     from jaxnc.schemes import mecanum as mec
     from experiments.mecanum import run_seed, uniform_dtypes
     sv, cp = servo(), cartpole()
-    drhe = uniform_dtypes(mec.mecanum_loop("DRHE", 10, 0.5))
+    d10, d1 = (uniform_dtypes(mec.mecanum_loop("DRHE", N, 0.5)) for N in (10, 1))
     return [("servo, runner", lambda k, lp: nc.run(lp, k).cost, sv, sv.steps),
             ("servo, by hand", lambda k, lp: hand_cost(lp, k), sv, sv.steps),
             ("cart-pole, runner", lambda k, lp: nc.run(lp, k).cost, cp, cp.steps),
-            ("DRHE N=10 DP=0.5, runner", run_seed, drhe, drhe.steps)]
+            ("DRHE N=10 DP=0.5, runner", run_seed, d10, d10.steps),
+            ("DRHE N=1 DP=0.5, runner", run_seed, d1, d1.steps)]
 
 
 def bench(seeds, repeat):
@@ -77,15 +84,20 @@ def bench(seeds, repeat):
         prog = jax.jit(jax.vmap(fn, in_axes=(0, None)))
         ca = prog.lower(keys, loop).compile().cost_analysis()
         ca = ca[0] if isinstance(ca, (list, tuple)) else ca
+        jc = jaxpr_cost(fn, keys[0], loop)            # one seed's run
         t = _best(lambda: prog(keys, loop), repeat)
         n = seeds * steps
-        fl, by = ca.get("flops", 0.0), ca.get("bytes accessed", 0.0)
-        rows.append([name, f"{fl / n:,.0f}", f"{by / n:,.0f}", f"{n / t:,.0f}", f"{fl / t / 1e9:.2f}",
-                     f"{100 * fl / t / pf:.2f} %", f"{by / t / 1e9:.2f}", f"{100 * by / t / pb:.1f} %"])
-    head = (f"Peaks measured in this run: {pf / 1e9:.1f} GFLOP/s (float32 4096^2 matmul), "
-            f"{pb / 1e9:.1f} GB/s (256 MB copy, read + write).\n\n")
-    return head + markdown_table([f"loop ({seeds} seeds)", "flops / seed-step", "bytes / seed-step",
-                                  "seed-steps/s", "GFLOP/s", "of flop peak", "GB/s", "of byte peak"], rows)
+        fl, tr, by = jc["flops"] / steps, jc["transcendentals"] / steps, jc["bytes"] / steps
+        rate = n / t
+        rows.append([name, f"{fl:,.0f}", f"{tr:,.0f}", f"{by:,.0f}", f"{ca.get('flops', 0.0) / n:,.0f}",
+                     f"{rate:,.0f}", f"{fl * rate / 1e9:.2f}", f"{100 * fl * rate / pf:.1f} %",
+                     f"{by * rate / 1e9:.1f}", f"{100 * by * rate / pb:.0f} %"])
+    head = (f"Peaks measured in this run, per CPU-second: {pf / 1e9:.1f} GFLOP (float32 4096^2 matmul), "
+            f"{pb / 1e9:.1f} GB (256 MB scaling, read + write).\n\n")
+    return head + markdown_table([f"loop ({seeds} seeds)", "flops / seed-step (jaxpr)", "transcendentals",
+                                  "bytes / seed-step (jaxpr, unfused)", "XLA cost_analysis flops / seed-step",
+                                  "seed-steps per CPU-s", "GFLOP per CPU-s", "of flop peak",
+                                  "GB per CPU-s (unfused)", "of byte peak"], rows)
 
 
 def main():

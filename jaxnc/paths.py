@@ -194,14 +194,21 @@ def closest_index(path: Path, p, idx_prev, window: int):
     idx_prev = jnp.clip(jnp.asarray(idx_prev, jnp.int32), 0, M - 1)
     start = jnp.clip(idx_prev, 0, M - w)
     pts = jax.lax.dynamic_slice(path.points, (start, jnp.zeros((), jnp.int32)), (w, 2))
-    d2 = jnp.sum((pts - jnp.asarray(p, _DTYPE)[None, :]) ** 2, axis=-1)
-    idx = start + jnp.arange(w, dtype=jnp.int32)
-    d2 = jnp.where(idx >= idx_prev, d2, jnp.inf)  # near the end the slice starts before idx_prev
-    j = jnp.argmin(d2)
-    d2j = d2[j]
+    # the two squares added as written, not a sum over the last axis: XLA:CPU hands such a
+    # reduction to a library (YNNPACK) call per use, slow on a few entries per lane
+    p = jnp.asarray(p, _DTYPE)
+    dx, dy = pts[:, 0] - p[0], pts[:, 1] - p[1]
+    d2 = dx * dx + dy * dy
+    i = jnp.arange(w, dtype=jnp.int32)
+    d2 = jnp.where(start + i >= idx_prev, d2, jnp.inf)  # near the end the slice starts before idx_prev
+    # jnp.argmin(d2) as two plain reductions (XLA:CPU runs a batched argmin as a scalar loop):
+    # the first minimum; a NaN (a non-finite position) counts as the smallest, as in argmin
+    d2 = jnp.where(jnp.isnan(d2), -jnp.inf, d2)
+    d2j = jnp.min(d2)
+    j = jnp.min(jnp.where(d2 == d2j, i, w))
     pos = d2j > 0.0
     dist = jnp.where(pos, jnp.sqrt(jnp.where(pos, d2j, 1.0)), 0.0)
-    return idx[j], dist.astype(_DTYPE)
+    return start + j, dist.astype(_DTYPE)
 
 
 def point_at(path: Path, s) -> jax.Array:

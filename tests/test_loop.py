@@ -464,3 +464,30 @@ def test_run_applies_a_metrics_function_and_every_scheme_run_is_it():
     for scheme in (balancing, diffdrive, hdd, mecanum):
         assert isinstance(scheme.run, functools.partial) and scheme.run.func is nc.run
         assert scheme.run.args == () and scheme.run.keywords == {"metrics": scheme.metrics}
+
+
+def test_remat_keeps_the_forward_run_and_the_gradient():
+    """Loop(remat=True): the same run bit for bit, the same gradient up to rounding, and the
+    slow period is a checkpoint in the program's jaxpr (and not without it); a non-bool is refused."""
+    loop = _lti_loop(N=2, steps=40, uplink=nc.Link(nc.Bernoulli(0.3)))
+    keys = montecarlo.seed_keys(0, 8)
+
+    def objective(lp):
+        def f(K):
+            lq = dataclasses.replace(lp, controller=dataclasses.replace(lp.controller, K=K))
+            return jnp.mean(jax.vmap(lambda k: nc.run(lq, k).cost_raw)(keys))
+        return f
+
+    K = jnp.asarray(K2, jnp.float32)
+    plain, remat = loop, dataclasses.replace(loop, remat=True)
+    run = jax.jit(jax.vmap(lambda k, lp: nc.simulate(lp, k), in_axes=(0, None)))
+    for a, b in zip(jax.tree.leaves(run(keys, plain)), jax.tree.leaves(run(keys, remat))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    (v0, g0), (v1, g1) = (jax.jit(jax.value_and_grad(objective(lp)))(K) for lp in (plain, remat))
+    assert float(v0) == float(v1)
+    assert np.all(np.abs(np.asarray(g0)) > 0)
+    np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=1e-5)
+    assert "remat2[" in str(jax.make_jaxpr(objective(remat))(K))          # jax.checkpoint's primitive
+    assert "remat2[" not in str(jax.make_jaxpr(objective(plain))(K))
+    with pytest.raises(ValueError, match="Loop.remat"):
+        dataclasses.replace(loop, remat=1)

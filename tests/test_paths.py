@@ -1,4 +1,6 @@
 """Tests for jaxnc.paths: lengths vs independent numpy/scipy, sampling, queries."""
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -116,6 +118,36 @@ def test_closest_index_vmap_monotone():
         dd = np.linalg.norm(pts[lo:hi] - np.asarray(p[k])[None, :], axis=1)
         assert idx[k] == lo + np.argmin(dd)
         np.testing.assert_allclose(float(dist[k]), dd.min(), rtol=1e-5, atol=1e-6)
+
+
+class _Pts(NamedTuple):      # the two fields closest_index reads
+    points: jax.Array
+    M: int
+
+
+@pytest.mark.parametrize("window", [2, 16, 32, 130])
+def test_closest_index_first_minimum_ties_and_nan(window):
+    """The search's index is np.argmin's over the window (float32 squares as written): the
+    first of equal distances, and for a non-finite position the first NaN (the window's
+    start), as jnp.argmin gave; batched under vmap."""
+    rng = np.random.default_rng(window)
+    pts = np.round(rng.uniform(-1, 1, (300, 2)) * 4) / 4          # a coarse grid: many exact ties
+    pts = pts.astype(np.float32)
+    path = _Pts(jnp.asarray(pts), 300)
+    q = (np.round(rng.uniform(-1, 1, (64, 2)) * 8) / 8).astype(np.float32)
+    q[:4] = np.nan
+    q[4, 0] = np.inf
+    prev = rng.integers(0, 300, 64).astype(np.int32)
+    idx, _ = jax.jit(jax.vmap(lambda a, i: P.closest_index(path, a, i, window)))(jnp.asarray(q), jnp.asarray(prev))
+    for k in range(64):
+        start = min(prev[k], 300 - window)
+        d = pts[start:start + window] - q[k][None, :]
+        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+        d2[np.arange(start, start + window) < prev[k]] = np.inf
+        assert int(idx[k]) == start + int(np.argmin(d2)), k
+    tie = _Pts(jnp.asarray([[-1.0, 0.0], [1.0, 0.0], [1.0, 0.0]], jnp.float32), 3)
+    assert int(P.closest_index(tie, jnp.zeros(2), 0, 3)[0]) == 0
+    assert int(P.closest_index(tie, jnp.asarray([1.0, 0.5]), 1, 2)[0]) == 1
 
 
 def test_closest_index_lissajous_crossing_stays_on_branch():

@@ -216,6 +216,11 @@ class Loop:
         False (only the summaries) or a tuple of signal names among
         ``x u z xhat sent_sc recv_sc sent_ca recv_ca``, e.g. ``("xhat", "sent_sc")`` for a
         loop whose metrics need only those: what is not recorded is not computed or stored.
+      remat: static; True wraps each slow period in ``jax.checkpoint`` (saving nothing), so
+        reverse mode recomputes a period's forward pass instead of storing its intermediates.
+        Forward runs are unchanged (bit for bit); gradients equal up to float rounding. It
+        pays where a period is heavy (an EKF window re-linearising an RK4 model) and costs
+        where it is light: measure (benchmarks/bench_grad_remat.py).
     """
 
     plant: Any
@@ -232,6 +237,7 @@ class Loop:
     steps: int = _static(100)
     T: float = _static(1.0)
     record: Any = _static(True)
+    remat: bool = _static(False)
 
     def __post_init__(self):
         for name, cls, what in _ROLES:
@@ -246,6 +252,7 @@ class Loop:
             if jax.tree.leaves(self.cost) == [self.cost]:       # a plain function: part of the program
                 object.__setattr__(self, "cost", FunctionCost(self.cost))
         object.__setattr__(self, "record", Record.of(self.record))
+        check_bool("Loop.remat", self.remat)
         check_int("Loop.N", self.N, 1, 100_000)
         check_int("Loop.steps", self.steps, self.N, None)
         if self.steps % self.N:
@@ -662,7 +669,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         return c, outs
 
     xs_in = (jnp.arange(S, dtype=jnp.int32), d.w, d.v, d.uplink.delay, d.downlink.delay)
-    final, o = jax.lax.scan(slow, carry0, xs_in)
+    body = jax.checkpoint(slow, policy=jax.checkpoint_policies.nothing_saveable) if loop.remat else slow
+    final, o = jax.lax.scan(body, carry0, xs_in)
     K = loop.steps
     fast_rows = lambda tree: jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), tree)   # [S, N, ...] -> [K, ...]
     empty = jnp.zeros((0,), jnp.float32)

@@ -185,5 +185,6 @@ def distances(p: Mecanum, xy):
     dz2 = (p.z_fb - p.z_mb) ** 2
     b = jnp.reshape(p.beacons, p.beacons.shape + (1,) * (jnp.ndim(xy) - 1))
     diff = b - xy[None]                      # (4, 2, *batch); per seed exactly the old (4, 2)
-    return jnp.sqrt(jnp.sum(diff * diff, axis=1) + dz2)
+    # the two squares added as written (a sum over the axis is a library call per use on XLA:CPU)
+    return jnp.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + dz2)
 

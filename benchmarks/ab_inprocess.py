@@ -1,0 +1,91 @@
+"""Several checkouts' seed-000 loops timed in ONE process, interleaved (ABBA), by CPU time.
+
+Run:  .venv/bin/python benchmarks/ab_inprocess.py --trees /tmp/base_e9b HEAD_TREE . [--cells DRHE:10 DRHE:1]
+      [--seeds 1000] [--rounds 3]
+
+For each tree in turn the ``jaxnc`` package (and ``experiments``) is imported afresh from that
+tree (the modules of the previous one dropped from ``sys.modules``), the loop
+``schemes.mecanum.mecanum_loop(case, N, dp)`` built and ``jit(vmap(run))`` over ``--seeds``
+keys compiled (compile CPU seconds recorded) and run once; its metrics are compared with the
+first tree's (bit for bit). The compiled programs then run in the order A B C ... C B A,
+``--rounds`` times, each run's process CPU time and wall time taken; the table gives the
+best of each, seed-steps per CPU-second and the ratio to the first tree. On a machine shared
+with other sessions, the CPU-time ratio within one process is the steadiest comparison.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _purge():
+    for m in list(sys.modules):
+        if m == "jaxnc" or m.startswith(("jaxnc.", "experiments", "tests")):
+            del sys.modules[m]
+
+
+def build(tree: Path, cells, seeds):
+    """[(cell, compiled program, loop, keys, steps, compile CPU s, outputs)] for ``tree``."""
+    import jax
+    _purge()
+    sys.path.insert(0, str(tree))
+    try:
+        from jaxnc import montecarlo
+        from jaxnc.schemes import mecanum as mec
+        out = []
+        for case, N in cells:
+            lp = mec.mecanum_loop(case, N, 0.5)
+            keys = montecarlo.seed_keys(0, seeds)
+            c0 = time.process_time()
+            prog = jax.jit(jax.vmap(lambda k, l: mec.run(l, k), in_axes=(0, None))).lower(keys, lp).compile()
+            res = jax.block_until_ready(prog(keys, lp))
+            out.append(((case, N), prog, lp, keys, lp.steps, time.process_time() - c0,
+                        [np.asarray(v) for v in res]))
+        return out
+    finally:
+        sys.path.remove(str(tree))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trees", nargs="+", type=Path, required=True)
+    ap.add_argument("--cells", nargs="+", default=["DRHE:10", "DRHE:1"])
+    ap.add_argument("--seeds", type=int, default=1000)
+    ap.add_argument("--rounds", type=int, default=3)
+    a = ap.parse_args()
+    import jax
+    cells = [(c.split(":")[0], int(c.split(":")[1])) for c in a.cells]
+    trees = [t.resolve() for t in a.trees]
+    built = [build(t, cells, a.seeds) for t in trees]
+    load0 = os.getloadavg()[0]
+    cpu = {(i, j): [] for i in range(len(trees)) for j in range(len(cells))}
+    wall = {k: [] for k in cpu}
+    order = list(range(len(trees)))
+    for _ in range(a.rounds):
+        for i in order + order[::-1]:
+            for j, (_, prog, lp, keys, *_rest) in enumerate(built[i]):
+                t0, c0 = time.perf_counter(), time.process_time()
+                jax.block_until_ready(prog(keys, lp))
+                cpu[(i, j)].append(time.process_time() - c0)
+                wall[(i, j)].append(time.perf_counter() - t0)
+    print(f"{a.seeds} seeds, {a.rounds} rounds of {'/'.join('ABCDEFGH'[i] for i in order + order[::-1])}; "
+          f"1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n")
+    print("| tree | loop | compile CPU s | best run CPU s | seed-steps per CPU-s | best wall s | CPU ratio to A "
+          "| bit-identical to A |")
+    print("|---|---|---|---|---|---|---|---|")
+    for j, (case, N) in enumerate(cells):
+        for i, t in enumerate(trees):
+            cell, prog, lp, keys, steps, comp, res = built[i][j]
+            same = all(np.array_equal(x, y, equal_nan=True) for x, y in zip(res, built[0][j][6]))
+            b = min(cpu[(i, j)])
+            print(f"| {'ABCDEFGH'[i]} {t} | {case} N={N} DP=0.5 | {comp:.1f} | {b:.3f} | {a.seeds * steps / b:,.0f} "
+                  f"| {min(wall[(i, j)]):.3f} | x{min(cpu[(0, j)]) / b:.3f} | {'yes' if same else 'NO'} |")
+
+
+if __name__ == "__main__":
+    main()
