@@ -219,7 +219,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     update, ``optax.inject_hyperparams``: one compilation for every rate).
     ``max_seconds``: a wall-time budget from this call's start, the compilation of the
     step included: no step starts once the time spent plus the last step's duration
-    would exceed it (the first step always runs); ``steps`` is then the most steps.
+    would exceed it (the first step always runs, and the second whenever time is left:
+    the first one's duration includes the compilation); ``steps`` is then the most steps.
     The number of steps made is ``len(history.objective)``; with ``max_seconds`` it
     depends on the machine's speed (``steps`` alone gives a reproducible run).
     Polyak averaging runs over the last ``average_tail`` fraction of the steps made.
@@ -311,7 +312,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     with tqdm(total=steps, desc=desc, disable=not progress, dynamic_ncols=True) as bar:
         for k in range(steps):
             elapsed = time.perf_counter() - t0
-            if k > 0 and max_seconds is not None and elapsed + last > max_seconds:
+            # the first step's time includes its compilation: the second starts while time is left
+            if k > 0 and max_seconds is not None and elapsed + (last if k > 1 else 0.0) > max_seconds:
                 break
             used = max(k / steps, elapsed / max_seconds if max_seconds is not None else 0.0)
             lr = lr_pair[0] * (lr_pair[1] / lr_pair[0]) ** min(used, 1.0)
