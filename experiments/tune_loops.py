@@ -16,9 +16,10 @@ The three loops:
   objective the run's quadratic cost plus ``w`` times the sensor's rate.
 
 For each loop: :func:`jaxnc.tune.check_loop` at two points (the start and a second one),
-:func:`jaxnc.tune.tune_loop` from the start (one call: the check picks the estimator), and
-successive halving over a log grid of the same parameters with the budget ``tune_loop``
-spent (check + gradient steps); the start, the tuned point and the search's best are
+:func:`jaxnc.tune.tune_loop` from the start (one call: successive halving over the grid
+picks the gradient's start, then its default score-function steps; ``estimator=auto``:
+its own check picks the estimator), and successive halving over a log grid of the same
+parameters with the budget ``tune_loop`` spent (search + check + gradient steps); the start, the tuned point and the search's best are
 evaluated with hard triggers on the same fresh seeds, with paired 95 % intervals.
 Each loop's results are written as soon as it finishes (``<loop>.json``) and reused by a
 re-run with the same settings, so an interrupted study loses at most one loop.
@@ -44,7 +45,7 @@ from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 6                  # of this study's definition: a stored loop is reused only at the same version
+VERSION = 7                  # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -177,7 +178,8 @@ def _check_row(chk) -> dict:
 
 
 def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_seeds: int, seed: int,
-          search_budget: int = 0, study_check_seeds: int = 0, progress: bool = True) -> dict:
+          search_budget: int = 0, study_check_seeds: int = 0, estimator: str = "score",
+          progress: bool = True) -> dict:
     """The check at two points (``study_check_seeds`` seeds, 0: the problem's own), tune_loop
     (its own check on ``check_seeds``), the equal-budget search and the evaluation of one loop."""
     t0 = time.perf_counter()
@@ -196,8 +198,8 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     r = tune_loop(problem.loop, problem.params, problem.objective, run=problem.run, steps=steps, batch=batch,
                   search={n: list(v) for n, v in problem.axes.items()} if two_stage else None,
                   search_budget=search_budget if two_stage else None,
-                  fd_step=problem.fd_step, score_scale=_score_scale(problem),
-                  seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED, progress=progress)
+                  estimator=estimator, seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED,
+                  progress=progress)
     budget = r.tuning_simulations
     axes = {n: [float(v) for v in vals] for n, vals in problem.axes.items()}
     grid_names = list(axes)
@@ -329,7 +331,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
         compute=lambda name: study(
             BUILDERS[name](settings), check_seeds=settings["check_seeds"], steps=settings["steps"],
             batch=settings["batch"], eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
-            study_check_seeds=settings["study_check_seeds"], progress=progress),
+            study_check_seeds=settings["study_check_seeds"], estimator=settings["estimator"], progress=progress),
         tables=tables, plot=plot)
 
 
@@ -338,9 +340,12 @@ register(Experiment(
     description="gradient check + one-call tuning on the DRHE, HDD and cart-pole loops vs equal-budget search",
     options=(
         Option("loops", "choice", "all", "which loop(s)", choices=(*LOOPS, "all")),
-        Option("steps", "int", 30, "gradient steps of tune_loop", low=1, high=10_000),
-        Option("batch", "int", 16, "seeds per gradient step", low=2, high=4096),
-        Option("check_seeds", "int", 512, "seeds of tune_loop's own gradient check", low=2, high=100_000),
+        Option("steps", "int", 200, "gradient steps of tune_loop (its default)", low=1, high=10_000),
+        Option("batch", "int", 16, "seeds per gradient step (tune_loop's default)", low=2, high=4096),
+        Option("estimator", "choice", "score", "tune_loop's estimator (its default: score; auto runs its own check "
+               "on check_seeds)", choices=("score", "auto")),
+        Option("check_seeds", "int", 512, "seeds of tune_loop's own gradient check (estimator auto)", low=2,
+               high=100_000),
         Option("study_check_seeds", "int", 0, "seeds of the study's two gradient checks per loop; 0: the loop's "
                "own (drhe 4096, cartpole 8192, hdd and drhe-safe 512)", low=0, high=100_000),
         Option("search_budget", "int", 1024, "simulations of tune_loop's first stage (successive halving over "

@@ -21,16 +21,23 @@ For each problem, every method's wall time is measured from its own start to its
 compilations included (the seconds spent lowering and compiling are recorded
 beside it, from :func:`jaxnc.cache.compile_clock`):
 
-a. :func:`jaxnc.tune.tune_loop` with its defaults (the gradient check picks the estimator;
-   without its own evaluation, ``evaluate=False``: the study evaluates every method's point
-   itself; its compile clock and per-stage times, ``LoopTuneResult.compile_s`` and
-   ``stages``, are stored beside its wall time);
+d. (``hdd-grid``, first) a fine grid, every point on the same ``grid_seeds`` seeds; its
+   wall time is the tuners' budget there (the issue's "in no more wall time than that grid");
+a. :func:`jaxnc.tune.tune_loop` with its defaults (the score function, 16 seeds a step,
+   Adam's step size decayed from 0.3 to 0.03) and ``max_seconds`` = the budget
+   (``budget_s``; 90 s on hdd, 180 s on the cart-pole), without its own evaluation
+   (``evaluate=False``: the study evaluates every method's point itself); its compile
+   clock and per-stage times are stored beside its wall time;
+a'. the same tuner confined to the searches' box (``Interval`` constraints,
+   :func:`box_constraints`): where a. gains by leaving the box, this shows what the
+   gradient does where the searches look;
+a''. the two-stage tuner: random search (b.) for ``two_stage`` of the budget, then a. from
+   its best for the rest (both stages' times counted);
 b. random search: :func:`jaxnc.tune.random_points` in the problem's box, each point run on
    the same ``search_seeds`` seeds (common random numbers) with
-   :func:`jaxnc.tune.evaluate`, until the tuner's wall time is spent;
+   :func:`jaxnc.tune.evaluate`, until the tuner's (a.) wall time is spent;
 c. successive halving over random points in the same box, sized to the same wall time by a
-   timed probe (:func:`halving_timed`);
-d. (``hdd-grid``) a fine grid, every point on the same ``grid_seeds`` seeds.
+   timed probe (:func:`halving_timed`).
 
 Every method's final point and the start are then evaluated with hard triggers on the same
 fresh seeds (paired 95 % intervals against the start and against each other); the points
@@ -56,14 +63,16 @@ from jaxnc import montecarlo
 from jaxnc.cache import compile_clock
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
-from jaxnc.tune import (Positive, evaluate, get_path, mean_ci, objective_total, paired_ci, param_paths,
+from jaxnc.tune import (Interval, Positive, evaluate, get_path, mean_ci, objective_total, paired_ci, param_paths,
                         random_points, search, set_paths, tune_loop)
 
 PROBLEMS = ("hdd", "cartpole", "hdd-grid")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (as in tune-loops)
 EVAL_SEED = 6_000_007        # fresh: the tuner and the searches use seeds below 10^5
-VERSION = 2                  # of this study's definition: a stored problem is reused only at the same version
-METHODS = ("tuner", "random", "halving", "grid")
+VERSION = 3                  # of this study's definition: a stored problem is reused only at the same version
+METHODS = ("grid", "tuner", "tuner-box", "two-stage", "random", "halving")
+TUNERS = ("tuner", "tuner-box", "two-stage")
+DEFAULT_BUDGET_S = {"hdd": 90.0, "cartpole": 180.0}   # the tuner's max_seconds (hdd-grid: the grid's wall time)
 
 
 @jl.pytree_dataclass
@@ -280,46 +289,84 @@ def _f(x) -> float:
     return float(np.asarray(x))
 
 
+def _tuner_row(r, t_total: float, start: dict, t_offset: float = 0.0) -> dict:
+    """A tune_loop result as a method of the study: its point, times, stages and a trace
+    (the start, three iterates at times interpolated over the gradient stage, the end)."""
+    tuned = {n: _f(v) for n, v in r.params.items()}
+    g_wall = r.stages.get("gradient", (0.0,))[0] if r.stages else 0.0
+    trace = [{"t": t_offset, "point": start, "mean": None, "kind": "start"}]
+    if r.tune is not None:          # iterates, at times interpolated over the gradient stage (it ends the call)
+        hist, steps = r.tune.history.params, len(r.tune.history.objective)
+        g0 = t_total - g_wall
+        for k in sorted({steps // 4, steps // 2, (3 * steps) // 4}):
+            if 0 < k < steps:
+                trace.append({"t": g0 + g_wall * k / steps, "point": {n: _f(hist[n][k]) for n in hist},
+                              "mean": None, "kind": "iterate (time interpolated)"})
+    trace.append({"t": t_total, "point": tuned, "mean": None, "kind": "tuned"})
+    return {"best": tuned, "wall_time_s": t_total, "compilations": int(r.n_compilations),
+            "own_compile_s": float(r.compile_s), "stages": {k: list(v) for k, v in (r.stages or {}).items()},
+            "gradient_wall_time_s": g_wall, "simulations": int(r.tuning_simulations),
+            "steps_done": len(r.tune.history.objective) if r.tune is not None else 0,
+            "estimator": r.estimator, "estimator_reason": r.estimator_reason,
+            "check_seeds": int(r.check.seeds) if r.check is not None else 0,
+            "objective_history": r.tune.history.objective.tolist() if r.tune is not None else [], "trace": trace}
+
+
+def box_constraints(problem: Problem) -> dict:
+    """``problem.params`` with each constraint replaced by the searches' box,
+    ``Interval(low, high)`` of its bounds (the tuner confined where the searches look)."""
+    names = param_paths(problem.params)
+    return {key: Interval(*problem.bounds[n][:2]) for key, n in zip(problem.params, names)}
+
+
 def study(problem: Problem, settings: dict, *, eval_seeds: int, progress: bool = True) -> dict:
-    """The tuner, the two searches at its wall time (and the grid, for a two-parameter
-    problem), and the evaluation of one problem (module docstring)."""
+    """The grid (a two-parameter problem; it sets the budget), the tuner with a wall-time
+    budget, the tuner confined to the searches' box, the two-stage tuner, the two searches
+    at the tuner's wall time, and the evaluation of one problem (module docstring)."""
     t_all = time.perf_counter()
     seed = settings["seed"]
     names = param_paths(problem.params)
     start = {n: _f(get_path(problem.config, p[0])) for n, p in names.items()}
     methods = {}
+    if problem.grid is not None:
+        methods["grid"] = grid_timed(_per_seed(problem, names), problem.grid, seeds=settings["grid_seeds"],
+                                     seed=seed + 3_000)
+        if progress:
+            print(f"[{problem.name}] grid: {methods['grid']['wall_time_s']:.1f} s, {methods['grid']['n_points']} points")
+    budget = (settings["budget_s"] or (methods["grid"]["wall_time_s"] if "grid" in methods
+                                       else DEFAULT_BUDGET_S[problem.name]))
+    kw = dict(objective=problem.objective, run=problem.run, steps=settings["steps"], batch=settings["batch"],
+              estimator=settings["estimator"], check_seeds=settings["check_seeds"],
+              check_max_seeds=settings["check_max_seeds"] or None, seed=seed, evaluate=False, progress=progress)
 
-    # (a) the tuner, its defaults (without its own evaluation: the study evaluates every point itself)
-    c0 = compile_clock()
-    t0 = time.perf_counter()
-    r = tune_loop(problem.config, problem.params, problem.objective, run=problem.run, steps=settings["steps"],
-                  batch=settings["batch"], check_seeds=settings["check_seeds"],
-                  check_max_seeds=settings["check_max_seeds"] or None, seed=seed, evaluate=False,
-                  progress=progress)
-    t_tuner = time.perf_counter() - t0
-    tuned = {n: _f(v) for n, v in r.params.items()}
-    g_wall = r.tune.wall_time_s if r.tune is not None else 0.0
-    trace = [{"t": 0.0, "point": start, "mean": None, "kind": "start"}]
-    if r.tune is not None:          # iterates, at times interpolated over the gradient stage (it ends the call)
-        hist, steps = r.tune.history.params, len(r.tune.history.objective)
-        g0 = t_tuner - g_wall
-        for k in sorted({steps // 4, steps // 2, (3 * steps) // 4}):
-            if 0 < k < steps:
-                trace.append({"t": g0 + g_wall * k / steps, "point": {n: _f(hist[n][k]) for n in hist},
-                              "mean": None, "kind": "iterate (time interpolated)"})
-    trace.append({"t": t_tuner, "point": tuned, "mean": None, "kind": "tuned"})
-    methods["tuner"] = {"best": tuned, "wall_time_s": t_tuner, "compile_s": (compile_clock() - c0).seconds,
-                        "compilations": int(r.n_compilations), "own_compile_s": float(r.compile_s),
-                        "stages": {k: list(v) for k, v in (r.stages or {}).items()},
-                        "gradient_wall_time_s": g_wall, "simulations": int(r.tuning_simulations),
-                        "estimator": r.estimator, "estimator_reason": r.estimator_reason,
-                        "check_seeds": int(r.check.seeds) if r.check is not None else 0,
-                        "objective_history": r.tune.history.objective.tolist() if r.tune is not None else [],
-                        "trace": trace}
+    def tuner(config, params, seconds):
+        c0, t0 = compile_clock(), time.perf_counter()
+        r = tune_loop(config, params, max_seconds=seconds, **kw)
+        return r, time.perf_counter() - t0, (compile_clock() - c0).seconds
+
+    # (a) the tuner with the budget; (a') confined to the searches' box
+    for m, params in (("tuner", problem.params), ("tuner-box", box_constraints(problem))):
+        r, t, c = tuner(problem.config, params, budget)
+        methods[m] = _tuner_row(r, t, start) | {"compile_s": c}
+        if progress:
+            print(f"[{problem.name}] {m}: {t:.1f} s, {methods[m]['steps_done']} steps, {methods[m]['best']}")
+    # (a'') two stages: random search for a fraction of the budget, then the tuner from its best for the rest
+    c0, t0 = compile_clock(), time.perf_counter()
+    first = random_search_timed(_per_seed(problem, names), problem.bounds, budget_s=settings["two_stage"] * budget,
+                                seeds=settings["search_seeds"], seed=seed + 4_000)
+    t_first = time.perf_counter() - t0
+    cfg = set_paths(problem.config, {p: np.float32(first["best"][n]) for n in first["best"] for p in names[n]})
+    r, t, _ = tuner(cfg, problem.params, max(budget - t_first, 1e-3))
+    row = _tuner_row(r, t_first + t, start, t_offset=0.0)
+    row["trace"] = [dict(x, t=x["t"]) for x in first["trace"]] + row["trace"][1:]
+    methods["two-stage"] = row | {"compile_s": (compile_clock() - c0).seconds, "search_s": t_first,
+                                  "search_points": first["n_points"], "gradient_start": first["best"],
+                                  "simulations": row["simulations"] + first["simulations"]}
     if progress:
-        print(f"[{problem.name}] tuner: {t_tuner:.1f} s, estimator {r.estimator}, {tuned}")
+        print(f"[{problem.name}] two-stage: {t_first:.1f} s search ({first['n_points']} points) + {t:.1f} s tuner")
+    t_tuner = methods["tuner"]["wall_time_s"]
 
-    # (b), (c): the same wall time, each its own per-seed function (its own compilations)
+    # (b), (c): the tuner's wall time, each its own per-seed function (its own compilations)
     methods["random"] = random_search_timed(_per_seed(problem, names), problem.bounds, budget_s=t_tuner,
                                             seeds=settings["search_seeds"], seed=seed + 1_000)
     if progress:
@@ -330,11 +377,6 @@ def study(problem: Problem, settings: dict, *, eval_seeds: int, progress: bool =
     if progress:
         print(f"[{problem.name}] successive halving: {methods['halving']['wall_time_s']:.1f} s, "
               f"{methods['halving']['n_candidates']} candidates, {methods['halving']['rounds_done']} rounds")
-    if problem.grid is not None:
-        methods["grid"] = grid_timed(_per_seed(problem, names), problem.grid, seeds=settings["grid_seeds"],
-                                     seed=seed + 3_000)
-        if progress:
-            print(f"[{problem.name}] grid: {methods['grid']['wall_time_s']:.1f} s, {methods['grid']['n_points']} points")
 
     # evaluation: hard triggers, the same fresh seeds for every point
     ev = _per_seed(problem, names)
@@ -363,9 +405,11 @@ def study(problem: Problem, settings: dict, *, eval_seeds: int, progress: bool =
     }
     if "grid" in methods:
         g = float(np.mean(final["grid"]))
-        d, ci = paired_ci(final["tuner"], final["grid"])
-        out["grid_check"] = {"tuner_over_grid": (d / g, ci / abs(g)), "within_2_percent": bool(d / abs(g) <= 0.02),
-                             "tuner_not_slower": bool(methods["tuner"]["wall_time_s"] <= methods["grid"]["wall_time_s"])}
+        out["grid_check"] = {}
+        for m in TUNERS:
+            d, ci = paired_ci(final[m], final["grid"])
+            out["grid_check"][m] = {"over_grid": (d / g, ci / abs(g)), "within_2_percent": bool(d / abs(g) <= 0.02),
+                                    "not_slower": bool(methods[m]["wall_time_s"] <= methods["grid"]["wall_time_s"])}
     out["wall_time_s"] = time.perf_counter() - t_all
     return out
 
@@ -394,8 +438,9 @@ def tables(results: list[dict]) -> str:
         e = res["eval"]
         rows.append([res["loop"], "start", "", "", "", "", _fmt_pt(res["start"]), _ci(e["mean"]["start"]), ""])
         for m, d in res["methods"].items():
-            how = (f"{d['estimator']}, check on {d['check_seeds']} seeds, {d.get('compilations', '?')} compilations"
-                   if m == "tuner" else
+            how = (f"{d['estimator']}, {d['steps_done']} steps, {d.get('compilations', '?')} compilations"
+                   + (f", after {d['search_points']} random points in {d['search_s']:.1f} s" if m == "two-stage" else "")
+                   if m in TUNERS else
                    f"{d['n_candidates']} candidates, {d['rounds_done']}/{d['rounds']} rounds" if m == "halving" else
                    f"{d['n_points']} points")
             rows.append([res["loop"], m, f"{d['wall_time_s']:.1f}", f"{d['compile_s']:.1f}", str(d["simulations"]),
@@ -412,17 +457,16 @@ def tables(results: list[dict]) -> str:
             "compilations included; compile: the part of it spent lowering and compiling):\n\n" + t1
             + "\n\nPaired differences between methods (same fresh seeds):\n\n" + t2 + "\n")
     for res in results:
-        if "grid_check" in res:
-            gc = res["grid_check"]
-            r, ci = gc["tuner_over_grid"]
-            text += (f"\n{res['loop']}: tuner against the grid's best: {100 * r:+.2f} % ± {100 * ci:.2f} % "
-                     f"(within 2 %: {'yes' if gc['within_2_percent'] else 'no'}); tuner "
-                     f"{res['methods']['tuner']['wall_time_s']:.1f} s, grid {res['methods']['grid']['wall_time_s']:.1f} s "
-                     f"(no more wall time: {'yes' if gc['tuner_not_slower'] else 'no'})\n")
+        for m, gc in res.get("grid_check", {}).items():
+            r, ci = gc["over_grid"]
+            text += (f"\n{res['loop']}: {m} against the grid's best: {100 * r:+.2f} % ± {100 * ci:.2f} % "
+                     f"(within 2 %: {'yes' if gc['within_2_percent'] else 'no'}); {m} "
+                     f"{res['methods'][m]['wall_time_s']:.1f} s, grid {res['methods']['grid']['wall_time_s']:.1f} s "
+                     f"(no more wall time: {'yes' if gc['not_slower'] else 'no'})\n")
     return text
 
 
-COLORS = {"tuner": "C3", "random": "C0", "halving": "C2", "grid": "C7"}
+COLORS = {"tuner": "C3", "tuner-box": "C1", "two-stage": "C4", "random": "C0", "halving": "C2", "grid": "C7"}
 
 
 def plot(results: list[dict], out: Path) -> Path:
@@ -436,8 +480,8 @@ def plot(results: list[dict], out: Path) -> Path:
             tr = d["trace"]
             t = [row["t"] for row in tr]
             y = [row["eval"][0] for row in tr]
-            if m == "tuner":
-                ax.plot(t, y, "o:", color=COLORS[m], label="tuner (iterates: times interpolated)")
+            if m in ("tuner", "tuner-box"):
+                ax.plot(t, y, "o:", color=COLORS[m], label=f"{m} (iterates: times interpolated)")
             else:
                 ax.step(t + [d["wall_time_s"]], y + [y[-1]], where="post", color=COLORS[m], label=m)
                 ax.plot(t, y, ".", color=COLORS[m])
@@ -473,10 +517,18 @@ register(Experiment(
     description="the gradient tuner vs random search and successive halving at equal wall time (4-5 leaves, two loops)",
     options=(
         Option("loops", "choice", "all", "which problem(s)", choices=(*PROBLEMS, "all")),
-        Option("steps", "int", 30, "gradient steps of tune_loop (its default)", low=1, high=10_000),
+        Option("budget_s", "float", 0.0, "the tuner's max_seconds; 0: 90 s (hdd), 180 s (cartpole), the grid's wall "
+               "time (hdd-grid)", low=0.0, high=1e5),
+        Option("steps", "int", 100_000, "the most gradient steps of tune_loop (the time budget ends it first)", low=1,
+               high=1_000_000),
         Option("batch", "int", 16, "seeds per gradient step (tune_loop's default)", low=2, high=4096),
-        Option("check_seeds", "int", 32, "seeds of tune_loop's gradient check (its default)", low=2, high=100_000),
-        Option("check_max_seeds", "int", 0, "the check's doubling budget; 0: tune_loop's default (16 x check_seeds)",
+        Option("estimator", "choice", "score", "tune_loop's estimator (its default: score; auto runs its check)",
+               choices=("score", "auto", "richardson")),
+        Option("two_stage", "float", 1 / 3, "two-stage tuner: the fraction of the budget its random search gets",
+               low=0.01, high=0.99),
+        Option("check_seeds", "int", 256, "seeds of tune_loop's gradient check (estimator auto)", low=2,
+               high=100_000),
+        Option("check_max_seeds", "int", 0, "the check's doubling budget; 0: tune_loop's default (32768)",
                low=0, high=1_000_000),
         Option("search_seeds", "int", 32, "random search: seeds per point (common to all points)", low=1,
                high=100_000),

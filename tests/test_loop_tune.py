@@ -67,7 +67,7 @@ def test_tune_loop_improves_the_gain_on_fresh_seeds():
     fresh seeds with the paired 95 % interval below zero."""
     lp = _loop(K=(0.5, 0.3))
     r = tune_loop(lp, {"controller.K": Positive()}, steps=25, batch=8, learning_rate=0.2, check_seeds=16,
-                  eval_seeds=64, progress=False)
+                  estimator="auto", eval_seeds=64, progress=False)
     assert r.estimator in ("straight_through", "score") and r.check is not None
     assert r.paired_diff[0] + r.paired_diff[1] < 0, r.summary()
     assert r.params["controller.K"].shape == (1, 2)
@@ -349,7 +349,7 @@ def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     unresolved."""
     cfg = _Pair(b=1.0, a=1.0)
     params = {"b": Interval(0.0, 2.0), "a": Interval(0.0, 2.0)}       # slope 0.5 at the middle
-    kw = dict(run=_pair_linear_run, steps=1, batch=2, check_seeds=8, eval_seeds=2, progress=False)
+    kw = dict(run=_pair_linear_run, steps=1, batch=2, check_seeds=8, eval_seeds=2, estimator="auto", progress=False)
     r = tune_loop(cfg, params, lambda j: j, check_max_seeds=1024, **kw)
     assert r.estimator == "score" and r.check.recommended == "score", r.check.table()
     assert r.check.reason["straight_through"].startswith("differs"), r.check.table()
@@ -486,3 +486,37 @@ def test_evaluation_is_optional_and_does_not_change_the_tuned_point():
     assert b.eval_values == () and np.isnan(b.start_eval[0]) and np.isnan(b.paired_diff[1])
     assert b.n_simulations == b.tuning_simulations == a.tuning_simulations == a.n_simulations - 16
     assert "evaluation" not in b.stages and "not evaluated" in b.summary()
+
+
+def test_default_estimator_is_the_score_function_without_a_check():
+    """The default never uses an estimator that can be biased on hard triggers without a
+    passing check: it is the score function (unbiased for the smoothed objective), no check
+    runs, and its reason says so; the check is opt-in (estimator="auto")."""
+    r = _compilations(steps=3, evaluate=False)
+    assert r.estimator == "score" and r.check is None and "check" not in r.stages
+    assert "unbiased" in r.estimator_reason
+    import inspect
+    sig = inspect.signature(tune_loop).parameters
+    assert sig["estimator"].default == "score"
+    # the check's defaults are check_loop's: 256 seeds doubling to 32768, fd 0.2, scale fd / sqrt(3)
+    cl = inspect.signature(check_loop).parameters
+    assert sig["fd_step"].default == cl["fd_step"].default == 0.2
+    assert sig["check_seeds"].default == 256 and sig["score_scale"].default is None is cl["score_scale"].default
+
+
+def test_max_seconds_bounds_the_tuning_and_the_steps_follow_the_time():
+    """With max_seconds the gradient stage stops when the budget (the call's time without
+    its evaluation, compilations included) would be passed: far fewer than the steps
+    allowed, inside the budget plus one step, and the evaluation is not counted."""
+    _compilations(steps=2)                                 # the small eager programs, once per process
+    r = _compilations(steps=100_000, max_seconds=3.0)
+    done = len(r.tune.history.objective)
+    tuning = sum(w for k, (w, _, _) in r.stages.items() if k != "evaluation")
+    step = r.stages["gradient"][0] / done
+    assert 2 <= done < 100_000
+    assert tuning <= 3.0 + 2 * step + 0.1, (r.stages, done)
+    assert r.tuning_simulations == done * 4                # batch 4: 2 antithetic pairs, 4 runs a step
+    with pytest.raises(ValueError, match="max_seconds"):
+        _compilations(steps=2, max_seconds=0.0)
+    with pytest.raises(ValueError, match="learning_rate"):
+        _compilations(steps=2, learning_rate=(0.3, 0.0))

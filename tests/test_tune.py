@@ -3,6 +3,7 @@ import dataclasses
 import math
 import sys
 import pathlib
+import time
 
 import jax
 import jax.numpy as jnp
@@ -378,3 +379,70 @@ def test_search_stops_at_max_seconds_after_the_first_candidate():
     assert full.n_simulations == 40 and full.best == 2          # x = 0.5, the closest to 0.62
     with pytest.raises(ValueError, match="max_seconds"):
         search(_fresh_quadratic(), pts, keys, max_seconds=-1.0)
+
+
+def _constant_grad(sleep_s=0.0):
+    """host_grad for tune(): the gradient +1 on every coordinate (after ``sleep_s``)."""
+    def host_grad(raw, keys, temp):
+        time.sleep(sleep_s)
+        return 0.0, jax.tree.map(jnp.ones_like, raw)
+    return host_grad
+
+
+def test_learning_rate_pair_decays_geometrically_over_the_steps():
+    """With a constant gradient, Adam's bias-corrected step is exactly the learning rate, so
+    the raw iterate is raw0 - sum_k lr_k with lr_k = a (b / a)^(k / steps) (closed form)."""
+    steps, (a, b) = 12, (0.3, 0.03)
+    r = tune(None, {"x": np.float32(0.0)}, steps=steps, batch=2, learning_rate=(a, b), host_grad=_constant_grad(),
+             average_tail=0.0, progress=False)
+    lr = a * (b / a) ** (np.arange(steps) / steps)
+    np.testing.assert_allclose(r.history.params["x"][1:], -np.cumsum(lr)[:-1], rtol=1e-4)
+    np.testing.assert_allclose(r.params["x"], -np.sum(lr), rtol=1e-4)
+    c = tune(None, {"x": np.float32(0.0)}, steps=5, batch=2, learning_rate=0.1, host_grad=_constant_grad(),
+             average_tail=0.0, progress=False)
+    np.testing.assert_allclose(c.params["x"], -0.5, rtol=1e-4)         # a number: constant
+
+
+def test_max_seconds_ends_the_steps_within_the_budget():
+    """No step starts once the time spent plus the last step's would pass max_seconds; the
+    number of steps made is the history's length, the simulations count those steps."""
+    t0 = time.perf_counter()
+    r = tune(None, {"x": np.float32(0.0)}, steps=1000, batch=2, learning_rate=(0.1, 0.01), max_seconds=0.6,
+             host_grad=_constant_grad(0.05), average_tail=0.0, progress=False)
+    wall = time.perf_counter() - t0
+    done = len(r.history.objective)
+    assert 4 <= done < 1000
+    assert r.wall_time_s <= 0.6 + 0.05 and wall <= 0.6 + 0.05 + 0.5   # one step's sleep; setup
+    assert r.n_simulations == done * 2
+    # the rate decays with the fraction of the time spent (not of the 1000 steps): the last
+    # step starts after at least (0.6 - 2 x 0.05) / 0.6 of the budget, so its rate is below
+    # 0.1 x 0.1^(5/6) (with a constant gradient Adam's step is the rate)
+    assert 0.01 <= -(r.params["x"] - r.history.params["x"][-1]) <= 0.1 * 0.1 ** (5 / 6)
+    one = tune(None, {"x": np.float32(0.0)}, steps=1, batch=2, learning_rate=0.1, max_seconds=1e-3,
+               host_grad=_constant_grad(0.01), progress=False)
+    assert len(one.history.objective) == 1                              # the first step always runs
+
+
+@pytest.mark.parametrize("kw, msg", [(dict(learning_rate=0.0), "learning_rate"),
+                                     (dict(learning_rate=(0.1, -1.0)), "learning_rate"),
+                                     (dict(learning_rate=(0.1, 0.2, 0.3)), "learning_rate"),
+                                     (dict(max_seconds=0.0), "max_seconds"),
+                                     (dict(learning_rate=0.1, optimizer=optax.sgd(0.1)), "optimizer")])
+def test_tune_refuses_bad_rates_and_budgets(kw, msg):
+    with pytest.raises(ValueError, match=msg):
+        tune(None, {"x": np.float32(0.0)}, steps=2, batch=2, host_grad=_constant_grad(), progress=False, **kw)
+
+
+def test_max_seconds_does_not_count_the_first_steps_compilation_as_a_step():
+    """A first step that takes over 1.2 s (as a compilation would) and later steps of 0.02 s
+    under a 2 s budget: the second step starts (2 x 1.2 > 2 would have stopped it), and the
+    steps go on until the budget."""
+    calls = []
+
+    def host_grad(raw, keys, temp):
+        time.sleep(1.2 if not calls else 0.02)
+        calls.append(1)
+        return 0.0, jax.tree.map(jnp.ones_like, raw)
+    r = tune(None, {"x": np.float32(0.0)}, steps=1000, batch=2, learning_rate=0.1, max_seconds=2.0,
+             host_grad=host_grad, progress=False)
+    assert len(r.history.objective) >= 4 and r.wall_time_s <= 2.0 + 0.02 + 0.05

@@ -20,7 +20,7 @@ from jaxnc.experiments import tune_loops as tl  # noqa: E402
 
 @pytest.mark.slow
 def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
-    settings = dict(loops="cartpole", steps=4, batch=4, check_seeds=4, study_check_seeds=4, w_drhe=30.0,
+    settings = dict(loops="cartpole", steps=10, batch=4, estimator="score", check_seeds=4, study_check_seeds=4, w_drhe=30.0,
                     w_cartpole=2.0, seed=0,
                     search_budget=0)
     res = tl.run(settings, seeds=8, out=tmp_path, progress=False)["cartpole"]

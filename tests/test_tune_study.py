@@ -1,6 +1,6 @@
 """The tune-study experiment (experiments/tune_study.py): the time-budgeted searches on a
 closed-form objective, and the whole study in a tiny size (the two-parameter HDD problem,
-which runs all four methods), its files, and the reuse of a stored problem."""
+which runs all six methods), its files, and the reuse of a stored problem."""
 import json
 import math
 import time
@@ -56,31 +56,40 @@ def test_halving_sizes_itself_to_the_budget_and_keeps_the_better_half():
 
 
 def test_tune_study_tiny_end_to_end_writes_and_resumes(tmp_path, capsys):
-    settings = dict(loops="hdd-grid", steps=2, batch=4, check_seeds=4, check_max_seeds=4, search_seeds=4, sh_seeds=2,
-                    grid_seeds=2, grid_shape=(2, 2), curve_seeds=4, hdd_h=4, hdd_steps=40, w_cartpole=2.0, seed=0)
+    settings = dict(loops="hdd-grid", budget_s=0.0, steps=3, batch=4, estimator="score", two_stage=0.3,
+                    check_seeds=4, check_max_seeds=4, search_seeds=4, sh_seeds=2, grid_seeds=2, grid_shape=(2, 2),
+                    curve_seeds=4, hdd_h=4, hdd_steps=40, w_cartpole=2.0, seed=0)
     res = ts.run(settings, seeds=8, out=tmp_path, progress=False)["hdd-grid"]
     m = res["methods"]
-    assert set(m) == {"tuner", "random", "halving", "grid"}
+    assert set(m) == {"grid", "tuner", "tuner-box", "two-stage", "random", "halving"}
     for name, d in m.items():
         assert d["wall_time_s"] > 0 and 0 <= d["compile_s"] <= d["wall_time_s"] + 1e-6, name
         assert d["simulations"] > 0 and d["trace"], name
         assert all(np.isfinite(row["eval"][0]) for row in d["trace"]), name
     # equal wall time: random search runs until the tuner's time is spent
     assert m["random"]["wall_time_s"] >= m["tuner"]["wall_time_s"]
-    assert m["tuner"]["estimator"] in ("straight_through", "score", "richardson", "hybrid")
-    # the tuner's own overheads, without its evaluation (the study evaluates every point)
-    st = m["tuner"]["stages"]
-    assert "check" in st and "gradient" in st and "evaluation" not in st
-    assert m["tuner"]["compilations"] >= 2 and 0 < m["tuner"]["own_compile_s"] <= m["tuner"]["wall_time_s"]
+    for name in ts.TUNERS:
+        assert m[name]["estimator"] == "score" and 1 <= m[name]["steps_done"] <= 3, name
+        # the tuner's own overheads, without its evaluation (the study evaluates every point)
+        st = m[name]["stages"]
+        assert "gradient" in st and "check" not in st and "evaluation" not in st, name
+    # the box-confined tuner stays inside the searches' box
+    for n, v in m["tuner-box"]["best"].items():
+        lo, hi, _ = res["bounds"][n]
+        assert lo < v < hi, n
+    assert m["two-stage"]["search_points"] >= 1 and m["two-stage"]["search_s"] > 0
+    assert m["tuner"]["compilations"] >= 1 and 0 < m["tuner"]["own_compile_s"] <= m["tuner"]["wall_time_s"]
     e = res["eval"]
-    assert e["seeds"] == 8 and set(e["mean"]) == {"start", "tuner", "random", "halving", "grid"}
+    assert e["seeds"] == 8 and set(e["mean"]) == {"start", *m}
     # a paired difference is the difference of the means (same fresh seeds)
     for k, (d, _) in e["paired"].items():
         a, b = k.split(" - ")
         assert abs(d - (e["mean"][a][0] - e["mean"][b][0])) < 1e-9, k
-    gc = res["grid_check"]
-    assert gc["tuner_not_slower"] == (m["tuner"]["wall_time_s"] <= m["grid"]["wall_time_s"])
-    assert abs(gc["tuner_over_grid"][0] - e["paired"]["tuner - grid"][0] / e["mean"]["grid"][0]) < 1e-9
+    for name, gc in res["grid_check"].items():
+        assert gc["not_slower"] == (m[name]["wall_time_s"] <= m["grid"]["wall_time_s"])
+        diff = e["paired"].get(f"{name} - grid", (None,))[0]
+        diff = -e["paired"][f"grid - {name}"][0] if diff is None else diff
+        assert abs(gc["over_grid"][0] - diff / e["mean"]["grid"][0]) < 1e-9
     for f in ("hdd-grid.json", "results.json", "tables.md", "tune_study.png"):
         assert (tmp_path / f).exists(), f
     before = (tmp_path / "hdd-grid.json").read_bytes()

@@ -46,7 +46,7 @@ from jax.flatten_util import ravel_pytree
 from tqdm.auto import tqdm
 
 from jaxnc import montecarlo
-from jaxnc._validate import check_int, check_range
+from jaxnc._validate import check_int, check_positive, check_range
 from jaxnc.tune.estimators import ESTIMATORS, annealed_temperature, score_grad
 
 __all__ = ["Positive", "Interval", "Unconstrained", "constrain", "unconstrain", "TuneHistory", "TuneResult", "tune",
@@ -192,7 +192,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
          temperature: tuple[float, float] = (1.0, 0.1), seed: int = 0, resample: bool = True,
          score_scale: float = 0.1, score_pairs: int | None = None, average_tail: float = 0.25,
          progress: bool = True, desc: str = "tune", corrected: Callable | None = None,
-         host_grad: Callable | None = None) -> TuneResult:
+         host_grad: Callable | None = None, learning_rate: float | tuple | None = None,
+         max_seconds: float | None = None) -> TuneResult:
     """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
 
     ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
@@ -210,6 +211,25 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     optimiser's update is compiled here, and the simulations run in whatever program
     ``host_grad`` calls (:func:`jaxnc.tune.tune_loop` shares one between its
     score-function steps and its evaluation).
+
+    ``learning_rate``: Adam's step size on the raw parameters when ``optimizer`` is None
+    (default 0.05), or a pair ``(start, end)`` decayed geometrically over the budget: at
+    step k the rate is start (end / start)^f, f = max(k / steps, elapsed / max_seconds)
+    the fraction of the budget used (the rate is a runtime argument of the compiled
+    update, ``optax.inject_hyperparams``: one compilation for every rate).
+    ``max_seconds``: a wall-time budget from this call's start, the compilation of the
+    step included: no step starts once the time spent plus the last step's duration
+    would exceed it (the first step always runs, and the second whenever time is left:
+    the first one's duration includes the compilation); ``steps`` is then the most steps.
+    The number of steps made is ``len(history.objective)``; with ``max_seconds`` it
+    depends on the machine's speed (``steps`` alone gives a reproducible run).
+    Polyak averaging runs over the last ``average_tail`` fraction of the steps made.
+
+    Raises:
+      ValueError: steps or batch below their minimum, an unknown estimator, ``corrected``
+        missing for ``"corrected"``, ``average_tail`` outside [0, 1], both ``optimizer``
+        and ``learning_rate``, a learning rate that is not > 0 (or a pair of them),
+        ``max_seconds`` not > 0.
     """
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
@@ -220,8 +240,14 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
         raise ValueError(f"estimator must be one of {', '.join(ESTIMATORS)}, got {estimator!r}")
     if estimator == "corrected" and not callable(corrected):
         raise ValueError("estimator='corrected' needs corrected(raw, key) -> (value, grad)")
+    if optimizer is not None and learning_rate is not None:
+        raise ValueError("tune: give either optimizer or learning_rate, not both")
+    lr_pair = _rate_pair(0.05 if learning_rate is None else learning_rate)
+    if max_seconds is not None:
+        check_positive("max_seconds", max_seconds)
     constraints = dict(constraints or {})
-    optimizer = optimizer or optax.adam(0.05)
+    scheduled = optimizer is None
+    optimizer = optimizer or optax.inject_hyperparams(optax.adam)(learning_rate=lr_pair[0])
     raw0 = unconstrain({k: np.asarray(v, np.float32) for k, v in init.items()}, constraints)
     opt_state = optimizer.init(raw0)
 
@@ -259,48 +285,67 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     else:
         value_and_grad = jax.value_and_grad(mean_loss)
 
-    def update(raw, opt_state, value, grads):
+    def update(raw, opt_state, value, grads, lr):
         grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)   # divergence is data
+        if scheduled:
+            opt_state = opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
         updates, opt_state = optimizer.update(grads, opt_state, raw)
         gnorm = optax.tree.norm(grads)
         return optax.apply_updates(raw, updates), opt_state, value, gnorm
 
     if host_grad is None:
         @jax.jit
-        def step_fn(raw, opt_state, keys, temp):
-            return update(raw, opt_state, *value_and_grad(raw, keys, temp))
+        def step_fn(raw, opt_state, keys, temp, lr):
+            return update(raw, opt_state, *value_and_grad(raw, keys, temp), lr)
     else:
         update_fn = jax.jit(update)
 
-        def step_fn(raw, opt_state, keys, temp):
+        def step_fn(raw, opt_state, keys, temp, lr):
             value, grads = host_grad(raw, keys, temp)
-            return update_fn(raw, opt_state, jnp.float32(value), grads)
+            return update_fn(raw, opt_state, jnp.float32(value), grads, lr)
 
     t0 = time.perf_counter()
     raw = raw0
     objs, temps, gnorms, hist = [], [], [], {k: [] for k in raw0}
-    tail_start = steps - max(1, int(round(average_tail * steps))) if average_tail > 0 else steps - 1
-    tail = []
+    iterates = []
+    last = 0.0
     with tqdm(total=steps, desc=desc, disable=not progress, dynamic_ncols=True) as bar:
         for k in range(steps):
+            elapsed = time.perf_counter() - t0
+            # the first step's time includes its compilation: the second starts while time is left
+            if k > 0 and max_seconds is not None and elapsed + (last if k > 1 else 0.0) > max_seconds:
+                break
+            used = max(k / steps, elapsed / max_seconds if max_seconds is not None else 0.0)
+            lr = lr_pair[0] * (lr_pair[1] / lr_pair[0]) ** min(used, 1.0)
             keys = montecarlo.seed_keys(seed, batch, start=k * batch if resample else 0)
             temp = (float(annealed_temperature(k, steps, *temperature))
                     if estimator not in ("score", "richardson") else 0.0)
             p_now = constrain(raw, constraints)
             for name in hist:
                 hist[name].append(np.asarray(p_now[name]))
-            raw, opt_state, value, gnorm = step_fn(raw, opt_state, keys, jnp.float32(temp))
-            if k >= tail_start:
-                tail.append(raw)
+            ts = time.perf_counter()
+            raw, opt_state, value, gnorm = step_fn(raw, opt_state, keys, jnp.float32(temp), jnp.float32(lr))
+            iterates.append(jax.tree.map(np.asarray, raw))
             value = float(value)
+            last = time.perf_counter() - ts
             objs.append(value)
             temps.append(temp)
             gnorms.append(float(gnorm))
             bar.set_postfix(objective=f"{value:.4g}", T=f"{temp:.3g}")
             bar.update(1)
+    done = len(objs)
+    tail = iterates[done - max(1, int(round(average_tail * done))):] if average_tail > 0 else iterates[-1:]
     # averaged on the host: a device mean over a stack of len(tail) would compile one program per tail length
-    raw_final = jax.tree.map(lambda *xs: np.mean(np.stack([np.asarray(x) for x in xs]), axis=0), *tail)
+    raw_final = jax.tree.map(lambda *xs: np.mean(np.stack(xs), axis=0), *tail)
     params = {k: np.asarray(v) for k, v in constrain(raw_final, constraints).items()}
     history = TuneHistory(np.asarray(objs), np.asarray(temps), np.asarray(gnorms),
                           {k: np.stack(v) for k, v in hist.items()})
-    return TuneResult(params, history, steps * sims_per_step, time.perf_counter() - t0)
+    return TuneResult(params, history, done * sims_per_step, time.perf_counter() - t0)
+
+
+def _rate_pair(learning_rate) -> tuple[float, float]:
+    """``(start, end)`` of a learning rate given as a number (constant) or a pair, each > 0."""
+    pair = tuple(learning_rate) if isinstance(learning_rate, (tuple, list)) else (learning_rate, learning_rate)
+    if len(pair) != 2 or not all(isinstance(v, (int, float)) and np.isfinite(v) and v > 0 for v in pair):
+        raise ValueError(f"learning_rate must be a number > 0 or a pair (start, end) of them, got {learning_rate!r}")
+    return float(pair[0]), float(pair[1])

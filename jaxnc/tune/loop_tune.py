@@ -15,12 +15,16 @@ one parameter. It
 2. with ``search={"path": [values, ...]}`` first runs successive halving with common
    random numbers over those values (static integers such as a buffer length or
    horizon included, each value compiling once: :func:`jaxnc.tune.search.successive_halving`);
-3. picks the gradient estimator by :func:`jaxnc.tune.check.gradient_check` at the start
-   point (``estimator="auto"``: an estimator that agrees with central finite differences
-   with every coordinate resolved, the seeds doubled up to ``check_max_seeds`` until the
-   check is conclusive; it says which and why, or which coordinate stayed unresolved) and
-   runs :func:`jaxnc.tune.tune` (optax, constraints by reparametrisation: log for
-   :class:`Positive`, logit for :class:`Interval`; Polyak averaging);
+3. runs :func:`jaxnc.tune.tune` (Adam with a decaying step size, constraints by
+   reparametrisation: log for :class:`Positive`, logit for :class:`Interval`; Polyak
+   averaging) with the antithetic score function by default: unbiased for the
+   Gaussian-smoothed hard objective, so it needs no per-call check (a pathwise estimator
+   can be biased on hard triggers, docs/tuning_loops.md). ``estimator="auto"`` instead
+   picks the estimator by :func:`jaxnc.tune.check.gradient_check` at the start (an
+   estimator that agrees with central finite differences with every coordinate resolved,
+   the seeds doubled up to ``check_max_seeds``; it says which and why); ``max_seconds``
+   bounds the time of the whole tuning (search, check, gradient steps, compilations
+   included);
 4. evaluates the start and the tuned point with hard triggers on fresh seeds: means
    with 95 % intervals and the paired 95 % interval of the difference.
 
@@ -46,7 +50,8 @@ from jaxnc import montecarlo
 from jaxnc.cache import compile_clock
 from jaxnc._validate import check_int, check_positive
 from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
-from jaxnc.tune.gradient import Interval, Positive, TuneResult, Unconstrained, constrain, tune, unconstrain
+from jaxnc.tune.gradient import (Interval, Positive, TuneResult, Unconstrained, _rate_pair, constrain, tune,
+                                 unconstrain)
 from jaxnc.tune.search import halving_schedule, mean_ci, paired_ci, successive_halving
 
 __all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "tune_loop", "check_loop",
@@ -54,6 +59,7 @@ __all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "t
 
 _CONSTRAINTS = (Positive, Interval, Unconstrained)
 CHECK_SEEDS, CHECK_MAX_SEEDS = 256, 32768   # check_loop's default seeds and budget (docs/tuning_loops.md, issue 31)
+STEPS, BATCH, LEARNING_RATE = 200, 16, (0.3, 0.03)   # tune_loop's gradient stage (docs/tuning_loops.md, "tune-study")
 
 
 def _split(path: str) -> list[str]:
@@ -524,11 +530,11 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
 
 def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None = None, *,
               run: Callable | None = None, search: dict | None = None, search_budget: int | None = None,
-              steps: int = 30, batch: int = 16, estimator: str = "auto", temperature: tuple = (1e-2, 1e-3),
-              learning_rate: float = 0.05, score_scale: float = 0.1, fd_step: float = 0.05, seed: int = 0,
-              check_seeds: int = 32, check_max_seeds: int | None = None,
-              eval_seeds: int = 256, eval_seed: int = 100_000, evaluate: bool = True, progress: bool = True,
-              check_corrected: bool = False) -> LoopTuneResult:
+              steps: int = STEPS, batch: int = BATCH, estimator: str = "score", temperature: tuple = (1e-2, 1e-3),
+              learning_rate: float | tuple = LEARNING_RATE, score_scale: float | None = None, fd_step: float = 0.2,
+              seed: int = 0, check_seeds: int = CHECK_SEEDS, check_max_seeds: int | None = None,
+              max_seconds: float | None = None, eval_seeds: int = 256, eval_seed: int = 100_000,
+              evaluate: bool = True, progress: bool = True, check_corrected: bool = False) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
     Args:
@@ -550,8 +556,14 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         that names a parameter of ``params`` (its path, or ``"a=b"`` for a tied group)
         makes the search pick the gradient's *start* among the values (the two-stage
         tuner for objectives dominated by rare failures, docs/tuning_loops.md).
-      steps, batch: gradient steps and seeds per step (the budget), >= 1 each.
-      estimator: ``"auto"`` (the gradient check decides), ``"straight_through"``, ``"score"``,
+      steps, batch: gradient steps (the most, with ``max_seconds``) and seeds per step,
+        >= 1 each (>= 2 for the score function: batch // 2 antithetic pairs). Default 200
+        steps of 16 seeds: small batches, many steps (on CPU a batch below 16 costs as much
+        as 16: the runs are vectorised 16 at a time; docs/tuning_loops.md, "tune-study").
+      estimator: ``"score"`` (default: the antithetic score function, unbiased for the
+        objective smoothed by N(0, score_scale^2) in the raw coordinates, whatever the
+        triggers; no check is run), ``"auto"`` (the gradient check decides: opt-in, it
+        compiles and runs a check program of the whole loop), ``"straight_through"``,
         ``"richardson"`` (the score extrapolated over its scale, :mod:`jaxnc.tune.check`),
         ``"hybrid"`` (a pair objective), ``"corrected"`` (a Loop whose sensor trigger is a
         hard PETC with additive measurement noise: :mod:`jaxnc.tune.jump`)
@@ -560,18 +572,31 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         ``steps * batch`` simulations, goes to the search's four best candidates.
       temperature: (start, end) of the annealed temperature of every trigger with a
         ``temperature`` field (:func:`with_temperature`; pathwise estimator only).
-      learning_rate: Adam's step size on the raw (unconstrained) parameters.
+      learning_rate: Adam's step size on the raw (unconstrained) parameters: a number
+        (constant) or ``(start, end)``, decayed geometrically over the budget (the
+        fraction of ``steps`` or of ``max_seconds`` spent, whichever is larger). The
+        default (0.3, 0.03) lets a parameter cross decades: a raw step of 0.3 is a
+        factor e^0.3 of a ``Positive`` value.
       score_scale, fd_step: the score function's perturbation scale (check and steps) and
-        the check's finite-difference step, in the raw coordinates.
-      check_seeds, eval_seeds: seeds of the gradient check and of the final evaluation;
-        ``eval_seed``: base seed of the evaluation (fresh: different from ``seed``).
+        the check's finite-difference step, in the raw coordinates; default
+        ``fd_step`` = 0.2 and ``score_scale`` = fd_step / sqrt(3), as :func:`check_loop`.
+      check_seeds, eval_seeds: seeds of the gradient check (default 256, as
+        :func:`check_loop`) and of the final evaluation; ``eval_seed``: base seed of the
+        evaluation (fresh: different from ``seed``).
+      max_seconds: a wall-time budget (s) for the tuning: the search, the check and the
+        gradient steps, their compilations included, from the call's start (the
+        evaluation is not counted); the search starts no round and the gradient stage no
+        step once it would be spent (each makes at least one), so ``steps`` is then the
+        most steps. A check (``"auto"``) cannot be cut short: give it a smaller
+        ``check_max_seeds`` under a tight budget. None: no time limit.
       evaluate: run the start's and the tuned point's evaluation (default); False skips
         both (a caller that evaluates the point itself saves their time): ``start_eval``,
         ``tuned_eval`` and ``paired_diff`` are then NaN, ``eval_values`` empty, and an
         objective that is NaN at the start is not refused before the budget is spent.
       check_max_seeds: the check's budget: while it recommends nothing because some
         coordinate is unresolved, its seeds double up to this many (>= check_seeds;
-        default 16 x check_seeds, four doublings; ``check_seeds`` turns the increase off).
+        default 32768 or check_seeds if larger, as :func:`check_loop`; ``check_seeds``
+        turns the increase off).
         A check still inconclusive there says which coordinate and how many seeds it
         would need (``LoopTuneResult.estimator_reason``).
       check_corrected: the check also tests the corrected estimator (``check_loop``'s
@@ -600,7 +625,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         search, a non-scalar objective, the default objective on a Loop without a cost,
         an objective that is NaN at the start on some evaluation seed (checked on the
         evaluation's fresh seeds before the budget is spent), an unknown estimator or
-        constraint.
+        constraint, a learning rate that is not > 0 or a pair of them, a ``max_seconds``,
+        ``fd_step`` or ``score_scale`` that is not > 0.
     """
     t0, clock0 = time.perf_counter(), compile_clock()
     stages = {}
@@ -635,14 +661,17 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
-    check_max_seeds = 16 * check_seeds if check_max_seeds is None else check_max_seeds
+    check_max_seeds = max(CHECK_MAX_SEEDS, check_seeds) if check_max_seeds is None else check_max_seeds
     check_int("check_max_seeds", check_max_seeds, check_seeds)
     check_int("eval_seeds", eval_seeds, 2)
     check_int("seed", seed, 0, 2**32 - 3)
     check_int("eval_seed", eval_seed, 0, 2**32 - 1)
-    check_positive("learning_rate", learning_rate)
-    check_positive("score_scale", score_scale)
+    _rate_pair(learning_rate)
     check_positive("fd_step", fd_step)
+    score_scale = fd_step / math.sqrt(3.0) if score_scale is None else score_scale
+    check_positive("score_scale", score_scale)
+    if max_seconds is not None:
+        check_positive("max_seconds", max_seconds)
     if estimator not in ("auto", "straight_through", "score", "richardson", "hybrid", "corrected", "none"):
         raise ValueError(f"tune_loop: estimator must be auto, straight_through, score, richardson, hybrid, corrected "
                          f"or none, got {estimator!r}")
@@ -660,6 +689,14 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     for t in temperature:
         check_positive("temperature", t)
     run, objective = spec.run, spec.objective
+
+    def left():
+        """Seconds of ``max_seconds`` left (None: no budget): the call's time so far without
+        its evaluation; at least a millisecond, so that a stage still makes its first step."""
+        if max_seconds is None:
+            return None
+        spent = time.perf_counter() - t0 - stages.get("evaluation", (0.0,))[0]
+        return max(max_seconds - spent, 1e-3)
 
     def per_seed(point, key, temp=jnp.float32(0.0)):
         return objective(run(with_temperature(set_paths(loop, point), temp), key))
@@ -697,14 +734,18 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         search_chunk = halving_schedule(len(points), budget)[0][1]
         with _stage(stages, "search"):
             result_search = successive_halving(search_seed, points, keys, budget=budget, static=static,
-                                               chunk_size=search_chunk, progress=progress, desc="search")
+                                               chunk_size=search_chunk, progress=progress, desc="search",
+                                               max_seconds=left())
         sims += result_search.n_simulations
         sims_search = result_search.n_simulations
         loop1 = set_paths(loop, result_search.best_point)
     start = {n: np.asarray(get_path(loop, g[0])) for n, g in spec.paths.items()}
     start.update({k: np.asarray(get_path(loop, ps[0])) for k, ps in search_paths.items() if k not in spec.paths})
 
-    chk, reason, used, tres = None, "given" if estimator != "none" else "asked for no gradient stage", estimator, None
+    reason = {"none": "asked for no gradient stage",
+              "score": "the score function: unbiased for the hard objective smoothed by N(0, score_scale^2) in the "
+                       "raw coordinates, so no check is needed"}.get(estimator, "given")
+    chk, used, tres = None, estimator, None
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
@@ -743,16 +784,15 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
         reason += "; its budget refined the search's finalists"
     elif spec.paths and used != "none":
-        import optax
         loss_of = spec.parts if used == "hybrid" else objective
         corr = _corrected(loop1, spec, _flat(loop1, spec)[1]) if used == "corrected" else None
         # the score function's steps run in the evaluation's program (the hard objective)
         host = _score_step(hard, loop1, spec, batch // 2, score_scale) if used == "score" else None
         with _stage(stages, "gradient"):
             tres = tune(lambda p, k, temp: loss_of(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
-                        spec.constraints, steps=steps, batch=batch, optimizer=optax.adam(learning_rate),
+                        spec.constraints, steps=steps, batch=batch, learning_rate=learning_rate,
                         estimator=used, temperature=temperature, seed=seed, score_scale=score_scale,
-                        progress=progress, desc="tune_loop", corrected=corr, host_grad=host)
+                        progress=progress, desc="tune_loop", corrected=corr, host_grad=host, max_seconds=left())
         sims += tres.n_simulations
         tuned = tres.params
     final_loop = _set(loop1, spec, tuned)
