@@ -154,7 +154,7 @@ def test_search_over_a_tuned_parameter_picks_the_gradients_start():
     best = r.search.best_point
     assert set(best) == {"trigger.delta", "trigger.sigma"} and best["trigger.delta"] == best["trigger.sigma"]
     assert float(r.tune.history.params[name][0]) == pytest.approx(float(best["trigger.delta"]), rel=1e-6)
-    assert r.tuning_simulations == r.search.n_simulations + 2 * 4
+    assert r.tuning_simulations == r.search.n_simulations + 2 * 4 + 2 * 256     # the steps, the pick
     with pytest.raises(ValueError, match="is tuned as part of 'trigger.delta=trigger.sigma': search that name"):
         tune_loop(lp, {("trigger.delta", "trigger.sigma"): Positive()}, search={"trigger.delta": [1e-3]})
 
@@ -356,7 +356,7 @@ def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     assert 8 < r.check.seeds <= 1024
     # a check seed: the value, 2 x 2 x 2 central differences (h, 2h), a pathwise pass, pairs at s and 2s
     assert r.check.runs_per_seed == 1 + 8 + 1 + 2 + 2
-    assert r.tuning_simulations == r.check.seeds * r.check.runs_per_seed + 2   # score: batch 2 = one antithetic pair
+    assert r.tuning_simulations == r.check.seeds * r.check.runs_per_seed + 2 + 2 * 256   # score: batch 2 = one pair; the pick
     # in the user's units: dE/da = 1, dE/db = 0.3; theta is the logit, d value / d theta = 0.5
     assert r.check.names == ("a", "b")
     np.testing.assert_allclose(r.check.values, [1.0, 1.0], rtol=1e-6)
@@ -468,7 +468,8 @@ def test_tune_loops_compilations_are_bounded_and_do_not_grow_with_steps(estimato
     r2 = _compilations(steps=2, estimator=estimator)
     r9 = _compilations(steps=9, estimator=estimator)
     assert r2.n_compilations == r9.n_compilations, (r2.stages, r9.stages)
-    assert set(r9.stages) == {"evaluation", "gradient"}
+    assert set(r9.stages) == {"evaluation", "gradient", "pick"}
+    assert r9.stages["pick"][2] == 0                       # the pick runs in the evaluation's program
     assert 0 < r9.compile_s <= r9.wall_time_s
     assert r9.stages["evaluation"][2] == 1                 # the hard program, start and end
     if estimator == "score":
@@ -511,12 +512,39 @@ def test_max_seconds_bounds_the_tuning_and_the_steps_follow_the_time():
     _compilations(steps=2)                                 # the small eager programs, once per process
     r = _compilations(steps=100_000, max_seconds=3.0)
     done = len(r.tune.history.objective)
-    tuning = sum(w for k, (w, _, _) in r.stages.items() if k != "evaluation")
+    tuning = sum(w for k, (w, _, _) in r.stages.items() if k not in ("evaluation", "pick"))
     step = r.stages["gradient"][0] / done
     assert 2 <= done < 100_000
     assert tuning <= 3.0 + 2 * step + 0.1, (r.stages, done)
-    assert r.tuning_simulations == done * 4                # batch 4: 2 antithetic pairs, 4 runs a step
+    assert r.tuning_simulations == done * 4 + 2 * 256      # batch 4: 2 antithetic pairs, 4 runs a step; the pick
     with pytest.raises(ValueError, match="max_seconds"):
         _compilations(steps=2, max_seconds=0.0)
     with pytest.raises(ValueError, match="learning_rate"):
         _compilations(steps=2, learning_rate=(0.3, 0.0))
+
+
+def _bowl_run(cfg, key):
+    """E[J] = (log b)^2 + (log a/2)^2 + const: the minimum at b = 1, a = 2."""
+    eps = jax.random.normal(key, (2,))
+    return jnp.log(cfg.b) ** 2 + jnp.log(cfg.a / 2.0) ** 2 + 0.01 * eps[0]
+
+
+def test_the_pick_keeps_the_start_when_the_steps_made_it_worse():
+    """After the gradient stage its start and end run on common seeds and the better is
+    kept: steps of e^3 from the bowl's minimum end far worse, so the start is returned (and
+    the reason says so); from b = 3 small steps improve, so the end is kept. pick_seeds=0
+    keeps the end whatever it is."""
+    from jaxnc.tune import tune_loop
+    kw = dict(run=_bowl_run, batch=4, evaluate=False, progress=False)
+    params = {"b": Positive(), "a": Positive()}
+    wild = tune_loop(_Pair(b=1.0, a=2.0), params, lambda j: j, steps=3, learning_rate=3.0, **kw)
+    assert float(wild.params["b"]) == 1.0 and float(wild.params["a"]) == 2.0
+    assert wild.pick[1] > wild.pick[0] and "the start is kept" in wild.estimator_reason
+    assert wild.tuning_simulations == 3 * 4 + 2 * 256
+    off = tune_loop(_Pair(b=1.0, a=2.0), params, lambda j: j, steps=3, learning_rate=3.0, pick_seeds=0, **kw)
+    assert float(off.params["b"]) != 1.0 and off.pick == () and "pick" not in off.stages
+    calm = tune_loop(_Pair(b=3.0, a=2.0), params, lambda j: j, steps=20, learning_rate=0.3, **kw)
+    assert abs(np.log(float(calm.params["b"]))) < np.log(3.0) and calm.pick[1] < calm.pick[0]
+    assert "beat its start" in calm.estimator_reason
+    with pytest.raises(ValueError, match="pick_seeds"):
+        tune_loop(_Pair(), params, lambda j: j, pick_seeds=-1, **kw)

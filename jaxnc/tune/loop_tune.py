@@ -24,7 +24,8 @@ one parameter. It
    estimator that agrees with central finite differences with every coordinate resolved,
    the seeds doubled up to ``check_max_seeds``; it says which and why); ``max_seconds``
    bounds the time of the whole tuning (search, check, gradient steps, compilations
-   included);
+   included); then the gradient's start and end run on ``pick_seeds`` common seeds and
+   the better is kept (a flat, noisy objective can make the steps drift);
 4. evaluates the start and the tuned point with hard triggers on fresh seeds: means
    with 95 % intervals and the paired 95 % interval of the difference.
 
@@ -151,7 +152,8 @@ class LoopTuneResult(NamedTuple):
     eval_values: tuple = ()   # (start, tuned): per-seed objective on the fresh seeds, float[eval_seeds] each
     compile_s: float = math.nan   # of wall_time_s, the seconds spent lowering and compiling (jaxnc.cache.compile_clock)
     n_compilations: int = 0       # XLA compilations during the call (the small eager ones included)
-    stages: Any = None            # {stage: (wall s, compile s, compilations)}: evaluation, search, check, gradient
+    stages: Any = None            # {stage: (wall s, compile s, compilations)}: evaluation, search, check, gradient, pick
+    pick: tuple = ()              # (gradient's start, its end): mean objective on the pick's common seeds; () without a pick
 
     @property
     def tuning_simulations(self) -> int:
@@ -533,8 +535,9 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
               steps: int = STEPS, batch: int = BATCH, estimator: str = "score", temperature: tuple = (1e-2, 1e-3),
               learning_rate: float | tuple = LEARNING_RATE, score_scale: float | None = None, fd_step: float = 0.2,
               seed: int = 0, check_seeds: int = CHECK_SEEDS, check_max_seeds: int | None = None,
-              max_seconds: float | None = None, eval_seeds: int = 256, eval_seed: int = 100_000,
-              evaluate: bool = True, progress: bool = True, check_corrected: bool = False) -> LoopTuneResult:
+              max_seconds: float | None = None, pick_seeds: int = 256, eval_seeds: int = 256,
+              eval_seed: int = 100_000, evaluate: bool = True, progress: bool = True,
+              check_corrected: bool = False) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
     Args:
@@ -589,6 +592,13 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         step once it would be spent (each makes at least one), so ``steps`` is then the
         most steps. A check (``"auto"``) cannot be cut short: give it a smaller
         ``check_max_seeds`` under a tight budget. None: no time limit.
+      pick_seeds: after the gradient stage, its start (the search's winner, or the given
+        start) and its end run on ``pick_seeds`` common seeds (hard triggers, seeds of their
+        own), and the one with the lower mean is the tuned point: on a flat, noisy objective
+        the steps can drift to a worse point, and the pick keeps the start then
+        (``LoopTuneResult.pick`` has both means, ``estimator_reason`` says which was kept).
+        0 turns it off (the end is kept). Its ``2 * pick_seeds`` simulations count in the
+        budget and in ``n_simulations``, not in ``max_seconds``. Default 256.
       evaluate: run the start's and the tuned point's evaluation (default); False skips
         both (a caller that evaluates the point itself saves their time): ``start_eval``,
         ``tuned_eval`` and ``paired_diff`` are then NaN, ``eval_values`` empty, and an
@@ -664,6 +674,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_max_seeds = max(CHECK_MAX_SEEDS, check_seeds) if check_max_seeds is None else check_max_seeds
     check_int("check_max_seeds", check_max_seeds, check_seeds)
     check_int("eval_seeds", eval_seeds, 2)
+    check_int("pick_seeds", pick_seeds, 0)
     check_int("seed", seed, 0, 2**32 - 3)
     check_int("eval_seed", eval_seed, 0, 2**32 - 1)
     _rate_pair(learning_rate)
@@ -745,7 +756,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     reason = {"none": "asked for no gradient stage",
               "score": "the score function: unbiased for the hard objective smoothed by N(0, score_scale^2) in the "
                        "raw coordinates, so no check is needed"}.get(estimator, "given")
-    chk, used, tres = None, estimator, None
+    chk, used, tres, pick = None, estimator, None, ()
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
@@ -795,6 +806,20 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
                         progress=progress, desc="tune_loop", corrected=corr, host_grad=host, max_seconds=left())
         sims += tres.n_simulations
         tuned = tres.params
+        if pick_seeds:      # the end against the start, on common seeds of their own (not the evaluation's)
+            with _stage(stages, "pick"):
+                pkeys = montecarlo.seed_keys(seed + 4, pick_seeds)
+                va, vb = (hard(_as_f32(loop1, spec, pt), pkeys, np.zeros(pick_seeds))[0] for pt in (init, tuned))
+            sims += 2 * pick_seeds
+            pick = (float(np.mean(va)), float(np.mean(vb)))
+            d = paired_ci(vb, va)
+            if not pick[1] <= pick[0]:          # a NaN end keeps the start
+                tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
+                reason += (f"; the gradient's end was worse than its start on {pick_seeds} common seeds "
+                           f"({pick[1]:.4g} against {pick[0]:.4g}, paired {d[0]:.3g} +- {d[1]:.2g}): the start is kept")
+            else:
+                reason += (f"; the gradient's end beat its start on {pick_seeds} common seeds "
+                           f"({pick[1]:.4g} against {pick[0]:.4g}, paired {d[0]:.3g} +- {d[1]:.2g})")
     final_loop = _set(loop1, spec, tuned)
     best = result_search.best_point if result_search else {}
     final = {**{k: best[ps[0]] for k, ps in search_paths.items() if k not in spec.paths}, **tuned}
@@ -808,4 +833,4 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         evals = (mean_ci(v0), mean_ci(v1), paired_ci(v1, v0), (v0, v1))
     clock = compile_clock() - clock0
     return LoopTuneResult(final, start, used, reason, chk, result_search, tres, *evals[:3], sims,
-                          time.perf_counter() - t0, evals[3], clock.seconds, clock.compilations, stages)
+                          time.perf_counter() - t0, evals[3], clock.seconds, clock.compilations, stages, pick)
