@@ -805,7 +805,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
                         estimator=used, temperature=temperature, seed=seed, score_scale=score_scale,
                         progress=progress, desc="tune_loop", corrected=corr, host_grad=host, max_seconds=left())
         sims += tres.n_simulations
-        tuned = tres.params
+        tuned, kept = tres.params, tuned          # kept: the gradient's start, loop1's values
         if pick_seeds:      # the end against the start, on common seeds of their own (not the evaluation's)
             with _stage(stages, "pick"):
                 pkeys = montecarlo.seed_keys(seed + 4, pick_seeds)
@@ -814,7 +814,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             pick = (float(np.mean(va)), float(np.mean(vb)))
             d = paired_ci(vb, va)
             if not pick[1] <= pick[0]:          # a NaN end keeps the start
-                tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
+                tuned = kept
                 reason += (f"; the gradient's end was worse than its start on {pick_seeds} common seeds "
                            f"({pick[1]:.4g} against {pick[0]:.4g}, paired {d[0]:.3g} +- {d[1]:.2g}): the start is kept")
             else:
