@@ -202,10 +202,15 @@ def closest_index(path: Path, p, idx_prev, window: int):
     i = jnp.arange(w, dtype=jnp.int32)
     d2 = jnp.where(start + i >= idx_prev, d2, jnp.inf)  # near the end the slice starts before idx_prev
     # jnp.argmin(d2) as two plain reductions (XLA:CPU runs a batched argmin as a scalar loop):
-    # the first minimum; a NaN (a non-finite position) counts as the smallest, as in argmin
+    # the first minimum; a NaN (a non-finite position) counts as the smallest, as in argmin.
+    # Both reductions on int32: d2 is +0, positive or +-inf, whose float32 bit patterns as
+    # int32 keep their order (-inf, the only negative, is below every other), so the minimum
+    # is at the same place; a float32 min over the window is a library (YNNPACK) call per use
+    # on XLA:CPU, an int32 one is inline code. The minimum itself is read at j (differentiable).
     d2 = jnp.where(jnp.isnan(d2), -jnp.inf, d2)
-    d2j = jnp.min(d2)
-    j = jnp.min(jnp.where(d2 == d2j, i, w))
+    bits = jax.lax.bitcast_convert_type(d2, jnp.int32)
+    j = jnp.min(jnp.where(bits == jnp.min(bits), i, w))
+    d2j = d2[j]
     pos = d2j > 0.0
     dist = jnp.where(pos, jnp.sqrt(jnp.where(pos, d2j, 1.0)), 0.0)
     return start + j, dist.astype(_DTYPE)

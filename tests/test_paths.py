@@ -150,6 +150,16 @@ def test_closest_index_first_minimum_ties_and_nan(window):
     assert int(P.closest_index(tie, jnp.asarray([1.0, 0.5]), 1, 2)[0]) == 1
 
 
+def test_closest_index_distance_is_differentiable():
+    """The distance returned is the minimum read at the index found (the search reduces the
+    squares' bit patterns as int32): its gradient is the unit vector from the nearest point."""
+    path = P.get_path("turn180")
+    q = jnp.asarray([0.3, -0.7], jnp.float32)
+    i, _ = P.closest_index(path, q, 0, 60)
+    g = jax.grad(lambda a: P.closest_index(path, a, 0, 60)[1])(q)
+    d = np.asarray(q) - np.asarray(path.points[int(i)])
+    np.testing.assert_allclose(np.asarray(g), d / np.linalg.norm(d), rtol=1e-5)
+
 def test_closest_index_lissajous_crossing_stays_on_branch():
     path = P.get_path("lissajous")
     M = path.M
