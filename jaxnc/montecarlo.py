@@ -37,7 +37,7 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "compile_ahead", "Summary", "summarize", "save_results", "load_results",
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
            "stored_or_run", "stored_study"]
 
@@ -270,58 +270,6 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     if jax.process_count() > 1:
         return _run_processes(batched, keys, args, chunk_size, progress, desc, out_bytes)
     return _run_local(batched, keys, args, chunk_size, progress, desc, out_bytes)
-
-
-def compile_ahead(fn: Callable[..., Any], n: int, args_list, *, chunk_size: int = 256, workers: int = 2) -> int:
-    """Compile, side by side, the programs that ``run_batched(fn, keys, args=args,
-    chunk_size=chunk_size)`` will run for each ``args`` of ``args_list`` with ``n`` keys of
-    :func:`seed_keys`; returns the number of programs compiled (configurations of one
-    structure share one: each is compiled once).
-
-    XLA compiles a program on one core, and a study's programs one after another; here they
-    are traced in turn and compiled in up to ``workers`` threads at once (XLA releases
-    Python's lock while it compiles), so that a cold run of several structures (e.g. the
-    ``mecanum`` experiment's N = 1 and N = 10 programs) compiles in about the time of its
-    longest program on as many cores. The programs land in the jitted function's own cache
-    (and the persistent cache when it is on): the ``run_batched`` calls that follow compile
-    nothing. Nothing is computed. With several devices or processes this does nothing
-    (returns 0): ``run_batched`` compiles as before.
-
-    Raises:
-      ValueError: as :func:`run_batched` for ``fn``, ``chunk_size``; for ``n`` < 1 or ``workers`` < 1.
-    """
-    if not callable(fn):
-        raise ValueError(f"compile_ahead: fn must be a function fn(key, *args), got {type(fn).__name__}")
-    for name, v in (("n", n), ("chunk_size", chunk_size), ("workers", workers)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"compile_ahead: {name} must be an integer >= 1, got {v!r}")
-    if len(jax.local_devices()) > 1 or jax.process_count() > 1:
-        return 0
-    batched = _compiled(fn)
-    spec = jax.ShapeDtypeStruct((1, 2), jnp.uint32)        # seed_keys' raw keys
-    lowered, seen = [], set()
-    for args in args_list:
-        if not isinstance(args, tuple):
-            raise ValueError(f"compile_ahead: each args must be a tuple (of fn's extra arguments), "
-                             f"got {type(args).__name__}")
-        group = LANES
-        out_bytes = _out_bytes(batched, spec, args, -(-int(chunk_size) // group) * group)
-        size = chunk_lanes(int(chunk_size), int(n), out_bytes, 1)
-        keys = jax.ShapeDtypeStruct((size, 2), jnp.uint32)
-        sig = (size, jax.tree_util.tree_structure(args),
-               tuple((np.shape(a), np.result_type(a)) for a in jax.tree_util.tree_leaves(args)))
-        if sig in seen:
-            continue
-        seen.add(sig)
-        lowered.append(batched.lower(keys, args))
-    if len(lowered) > 1 and workers > 1:
-        from concurrent.futures import ThreadPoolExecutor
-        with ThreadPoolExecutor(min(workers, len(lowered))) as pool:
-            list(pool.map(lambda low: low.compile(), lowered))
-    else:
-        for low in lowered:
-            low.compile()
-    return len(lowered)
 
 
 def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: str, out_bytes: int):

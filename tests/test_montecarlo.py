@@ -321,35 +321,3 @@ def test_stored_study_writes_every_part_and_reuses_them(tmp_path, capsys):
     assert calls == ["ab", "cde"] and again == res and "reusing" in capsys.readouterr().out
     mc.stored_study(tmp_path / "o", **dict(kw, config={"seeds": 8}))
     assert calls == ["ab", "cde", "ab", "cde"]
-
-
-def test_compile_ahead_compiles_each_structure_once_and_the_runs_compile_nothing():
-    """Two structures (a scalar and a 3-vector gain) among three configurations: two programs,
-    compiled side by side; the run_batched calls that follow compile nothing and give what a
-    run without compile_ahead gives, bit for bit."""
-    from jaxnc.cache import compile_clock
-
-    def fn(key, gain):
-        return jnp.sum(gain * jax.random.normal(key, (3,)))
-
-    configs = [(np.float32(0.5),), (np.float32(2.0),), (np.asarray([1.0, 2.0, 3.0], np.float32),)]
-    keys = mc.seed_keys(0, 37)
-    assert mc.compile_ahead(fn, 37, configs, chunk_size=16) == 2
-    before = compile_clock()
-    out = [mc.run_batched(fn, keys, args=a, chunk_size=16, progress=False) for a in configs]
-    assert (compile_clock() - before).compilations == 0
-    assert mc._compiled(fn)._cache_size() == 2
-
-    def fresh(key, gain):                 # the same function, another object: its own programs
-        return jnp.sum(gain * jax.random.normal(key, (3,)))
-    for a, o in zip(configs, out):
-        np.testing.assert_array_equal(o, mc.run_batched(fresh, keys, args=a, chunk_size=16, progress=False))
-
-
-@pytest.mark.parametrize("kw, match", [(dict(n=0), "n must be"), (dict(chunk_size=0), "chunk_size must be"),
-                                       (dict(workers=0), "workers must be"), (dict(args_list=[1.0]), "must be a tuple")])
-def test_compile_ahead_refuses_bad_arguments(kw, match):
-    call = dict(fn=lambda key, g: g * jax.random.normal(key), n=4, args_list=[(np.float32(1.0),)])
-    call.update(kw)
-    with pytest.raises(ValueError, match=match):
-        mc.compile_ahead(call.pop("fn"), call.pop("n"), call.pop("args_list"), **call)
