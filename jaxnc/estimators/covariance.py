@@ -91,12 +91,16 @@ def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None
 def _dot(x, h, live, axis: int, unroll: bool):
     """sum over j in ``live`` (static) of x[..., j, ...] (j on ``axis``) times h[j]; ``h`` has
     the index j leading and ``x``'s batch axes trailing. ``unroll``: a chain of slices and
-    adds in the order of ``live``; else one multiply and a reduction over ``axis``."""
+    adds in the order of ``live``; else one multiply and a reduction over ``axis``. (The
+    operands' order, x h on axis 1 and h x on axis 0, is the code's this replaced.)"""
     lead = (None,) * axis
     if unroll:
         at = (slice(None),) * axis
-        return _sum(x[at + (j,)] * h[j][lead] for j in live)
-    return jnp.sum(take(x, live, axis) * take(h, live, 0)[lead], axis=axis)
+        terms = ((x[at + (j,)], h[j][lead]) for j in live)
+    else:
+        terms = [(take(x, live, axis), take(h, live, 0)[lead])]
+    terms = [a * b if axis else b * a for a, b in terms]
+    return _sum(terms) if unroll else jnp.sum(terms[0], axis=axis)
 
 
 def _lead(x, k: int, unroll: bool):
@@ -134,7 +138,7 @@ def update_diag(P, H, innovation, r, ph: Pattern | None = None, *, unroll: bool 
     """
     n, m = P.shape[0], H.shape[0]
     mh = _mask(ph, (m, n))
-    delta = None
+    delta = None if unroll else jnp.zeros(P.shape[1:], P.dtype)
     for i in range(m):
         live = tuple(int(j) for j in np.flatnonzero(mh[i]))
         if not live:                           # z_i does not depend on the state
