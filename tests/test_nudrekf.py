@@ -37,15 +37,21 @@ def materialised_packet(model, controller, controller_next, mean, ctrl_state, st
     return jnp.stack(us), jax.tree.map(lambda *a: jnp.stack(a), *cs)
 
 
-@pytest.mark.parametrize("hold", [1, 3])
-def test_chain_reproduces_the_materialised_packet(hold):
+def _packet_problem(hold):
+    """Seed 000's model and path follower (the first action's law, the later ones'), a
+    horizon of 12 actions, a corrected estimate and a controller state."""
     plant, fol = Mecanum(), PathFollower(get_path("lissajous"))
     Ts = plant.T * hold
     ctrl = lambda m, c: fol(plant, m, c, Ts)
     nxt = lambda m, c: fol(plant, m, c, Ts, narrow=True)
-    H = 12
     mean = jnp.array([0.05, -0.02, 0.1, 0.01, -0.03, 0.2], jnp.float32)
     c0 = fol.init()._replace(integ=jnp.array([0.01, -0.02, 0.03], jnp.float32))
+    return plant, ctrl, nxt, 12, mean, c0
+
+
+@pytest.mark.parametrize("hold", [1, 3])
+def test_chain_reproduces_the_materialised_packet(hold):
+    plant, ctrl, nxt, H, mean, c0 = _packet_problem(hold)
 
     @jax.jit
     def both():
@@ -74,13 +80,7 @@ def test_chain_is_the_lazy_form_of_predict_periods(hold):
     materialises with the packet's law (the first action from the corrected estimate, then
     every ``hold`` periods below the horizon, held in between): the same states, actions and
     controller states at every position below the horizon."""
-    plant, fol = Mecanum(), PathFollower(get_path("lissajous"))
-    Ts = plant.T * hold
-    ctrl = lambda m, c: fol(plant, m, c, Ts)
-    nxt = lambda m, c: fol(plant, m, c, Ts, narrow=True)
-    H = 12
-    mean = jnp.array([0.05, -0.02, 0.1, 0.01, -0.03, 0.2], jnp.float32)
-    c0 = fol.init()._replace(integ=jnp.array([0.01, -0.02, 0.03], jnp.float32))
+    plant, ctrl, nxt, H, mean, c0 = _packet_problem(hold)
 
     def law(c, x):                  # c: (the follower's state, the position j, the action held)
         s, j, u = c
