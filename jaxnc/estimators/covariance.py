@@ -91,8 +91,8 @@ def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None
 def _dot(x, h, live, axis: int, unroll: bool):
     """sum over j in ``live`` (static) of x[..., j, ...] (j on ``axis``) times h[j]; ``h`` has
     the index j leading and ``x``'s batch axes trailing. ``unroll``: a chain of slices and
-    adds in the order of ``live``; else one multiply and a reduction over ``axis``. (The
-    operands' order, x h on axis 1 and h x on axis 0, is the code's this replaced.)"""
+    adds in the order of ``live``; else one multiply and a reduction over ``axis``. Products
+    are written x h on axis 1, h x on axis 0 (docs/design_notes.md, "One diagonal update")."""
     lead = (None,) * axis
     if unroll:
         at = (slice(None),) * axis
@@ -130,7 +130,8 @@ def update_diag(P, H, innovation, r, ph: Pattern | None = None, *, unroll: bool 
         columns only, and a row without any is skipped (z_i does not depend on the state).
       unroll: static; True writes every sum over a matrix index as slices and adds (the
         batch-last form, fast with the batch axes trailing), False as reductions (per
-        seed under ``vmap``). Same operations in the same order otherwise.
+        seed under ``vmap``), the mean's correction then starting from zeros. Same
+        operations in the same order otherwise.
 
     Returns:
       (delta float[n, *batch], the correction of the mean; the posterior covariance

@@ -19,7 +19,7 @@ The scheme's roles in :mod:`jaxnc.loop` live here too: :class:`NudrekfEstimator`
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
