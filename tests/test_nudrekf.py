@@ -12,8 +12,8 @@ import pytest
 from jaxnc import loop as nc
 from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict
-from jaxnc.estimators.nudrekf import (ChainActuator, ChainController, ChainEstimate, NudrekfEstimator, advance_chain,
-                                      exhausted_chain, start_chain)
+from jaxnc.controllers.prediction import advance_chain, exhausted_chain, predict_periods, start_chain
+from jaxnc.estimators.nudrekf import ChainActuator, ChainController, ChainEstimate, NudrekfEstimator
 from jaxnc.paths import get_path
 from jaxnc.plants.mecanum import PROCESS_NOISE_DIM, Mecanum
 
@@ -37,15 +37,21 @@ def materialised_packet(model, controller, controller_next, mean, ctrl_state, st
     return jnp.stack(us), jax.tree.map(lambda *a: jnp.stack(a), *cs)
 
 
-@pytest.mark.parametrize("hold", [1, 3])
-def test_chain_reproduces_the_materialised_packet(hold):
+def _packet_problem(hold):
+    """Seed 000's model and path follower (the first action's law, the later ones'), a
+    horizon of 12 actions, a corrected estimate and a controller state."""
     plant, fol = Mecanum(), PathFollower(get_path("lissajous"))
     Ts = plant.T * hold
     ctrl = lambda m, c: fol(plant, m, c, Ts)
     nxt = lambda m, c: fol(plant, m, c, Ts, narrow=True)
-    H = 12
     mean = jnp.array([0.05, -0.02, 0.1, 0.01, -0.03, 0.2], jnp.float32)
     c0 = fol.init()._replace(integ=jnp.array([0.01, -0.02, 0.03], jnp.float32))
+    return plant, ctrl, nxt, 12, mean, c0
+
+
+@pytest.mark.parametrize("hold", [1, 3])
+def test_chain_reproduces_the_materialised_packet(hold):
+    plant, ctrl, nxt, H, mean, c0 = _packet_problem(hold)
 
     @jax.jit
     def both():
@@ -66,6 +72,42 @@ def test_chain_reproduces_the_materialised_packet(hold):
     assert not np.allclose(us[0], us[-1])                   # the packet does vary
     if hold > 1:
         np.testing.assert_array_equal(us[1:hold], np.broadcast_to(us[0], (hold - 1, 4)))
+
+
+@pytest.mark.parametrize("hold", [1, 3])
+def test_chain_is_the_lazy_form_of_predict_periods(hold):
+    """Advancing ``start_chain`` position by position gives what ``predict_periods``
+    materialises with the packet's law (the first action from the corrected estimate, then
+    every ``hold`` periods below the horizon, held in between): the same states, actions and
+    controller states at every position below the horizon."""
+    plant, ctrl, nxt, H, mean, c0 = _packet_problem(hold)
+
+    def law(c, x):                  # c: (the follower's state, the position j, the action held)
+        s, j, u = c
+        first = jax.tree.map(lambda a, b: jnp.where(j == 0, a, b), ctrl(x, s), nxt(x, s))
+        run = (j < H) & (j % hold == 0)
+        u, s = jax.tree.map(lambda a, b: jnp.where(run, a, b), first, (u, s))
+        return u, (s, j + 1, u)
+
+    @jax.jit
+    def both():
+        states, us, (cs, _, _), _ = predict_periods(law, plant.dynamics, mean, (c0, jnp.zeros((), jnp.int32),
+                                                                                 jnp.zeros(4, jnp.float32)),
+                                                    H, PROCESS_NOISE_DIM)
+        body = lambda ch, _: (advance_chain(plant, nxt, ch, H, hold, PROCESS_NOISE_DIM), ch)
+        _, chains = jax.lax.scan(body, start_chain(ctrl, mean, c0), None, length=H)
+        return states, us, cs, chains
+
+    states, us, cs, chains = both()
+    # the same operations in another program: XLA:CPU fuses them differently, a few float32 ulps apart
+    np.testing.assert_allclose(chains.x, states, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(chains.u, us, rtol=1e-5, atol=1e-5)
+    for a, b in zip(jax.tree.leaves(chains.c_after), jax.tree.leaves(cs)):
+        if jnp.issubdtype(a.dtype, jnp.integer):
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(us[0], us[-1])                   # the packet does vary
 
 
 def test_exhausted_chain_holds_its_action():

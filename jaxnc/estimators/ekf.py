@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from jaxnc.estimators.covariance import predict_cov
-from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns, take
+from jaxnc.estimators.covariance import predict_cov, update_diag
+from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns
 
 
 class Gaussian(NamedTuple):
@@ -263,14 +263,12 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     """Correction for additive measurement noise with diagonal covariance ``diag(r)``.
 
     Same result as ``ekf_update`` with ``R = diag(r)`` and ``M = I`` (seed 000 eq.
-    13-16), computed by processing the measurements one scalar at a time (sequential
-    processing of independent measurements; e.g. Bar-Shalom, Li & Kirubarajan,
-    "Estimation with Applications to Tracking and Navigation", section 7.2). All
-    scalars use the Jacobian and prediction at the prior mean, so the result is the
-    batch linearised update exactly; no matrix is factorised or inverted, which keeps
-    the batched (vmapped) update elementwise and fast. Each scalar step is
-    P <- P - (P h')(P h')' / s, an exactly symmetric rank-one downdate (equal to the
-    Joseph form for the optimal gain). ``jacobian_grad``: as in :func:`ekf_predict`.
+    13-16), computed by processing the measurements one scalar at a time, all linearised
+    at the prior mean: :func:`jaxnc.estimators.covariance.update_diag` (its sums as
+    reductions), the kernel the batch-last :mod:`jaxnc.estimators.ekf_batched` runs too.
+    No matrix is factorised or inverted, which keeps the batched (vmapped) update
+    elementwise and fast; the covariance stays exactly symmetric. ``jacobian_grad``: as in
+    :func:`ekf_predict`.
 
     ``structure`` (static): with H's pattern, H is computed only along its nonzero
     columns and each scalar step sums only over the states its row depends on.
@@ -286,21 +284,8 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     innovation = z - h(belief.mean, v0)
     ph = Pattern.dense(z.shape[0], n) if structure is None else structure.H
     check_shape("ekf_update_diag", "H", ph, (z.shape[0], n))
-    cols = ph.cols
-    pos = {j: p for p, j in enumerate(cols)}
-    H = jacobian_columns(lambda x: h(x, v0), _at(belief.mean, jacobian_grad), cols)   # H[:, cols]
-    P = belief.cov
-    delta = jnp.zeros_like(belief.mean)          # correction of the mean so far
-    for i in range(z.shape[0]):
-        live = ph.row(i)
-        if not live:                             # z_i does not depend on the state: no correction
-            continue
-        Hi = take(H[i], [pos[j] for j in live], axis=0)
-        PHt = jnp.sum(take(P, live, axis=1) * Hi[None, :], axis=1)
-        s = jnp.sum(Hi * take(PHt, live, axis=0)) + r[i]
-        k = PHt / s
-        delta = delta + k * (innovation[i] - jnp.sum(Hi * take(delta, live, axis=0)))
-        P = P - (PHt[:, None] * PHt[None, :]) / s   # products commute: exactly symmetric
+    H = jacobian_columns(lambda x: h(x, v0), _at(belief.mean, jacobian_grad), ph.cols)   # H[:, cols]
+    delta, P = update_diag(belief.cov, embed(H, ph.cols, n, axis=1), innovation, jnp.asarray(r), ph, unroll=False)
     return Gaussian(belief.mean + delta, P)
 
 

@@ -37,48 +37,19 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.custom_batching import custom_vmap
 
 from jaxnc.estimators.ekf import Gaussian
-from jaxnc.estimators.covariance import _mask, _sum, predict_cov
-from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns
+from jaxnc.estimators.covariance import predict_cov, update_diag
+from jaxnc.estimators.sparsity import EKFStructure, check_shape, embed, jacobian_columns
 
 __all__ = ["Gaussian", "ekf_filter", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
 
 
 # -- batch-last kernels: matrix indices lead, batch axes (possibly none) trail --------
-# Structurally zero entries (a Pattern) are never read. ``predict_cov`` (entry by entry)
-# lives in jaxnc.estimators.covariance, shared with the per-seed ``ekf.ekf_predict``.
-def update_diag(P, H, innovation, r, ph: Pattern | None = None):
-    """Sequential scalar correction (seed 000 eq. 13-16 with R = diag(r)), batch-last.
-
-    Returns ``(delta, P)``: the correction of the mean and the posterior covariance.
-    Same algorithm as ``ekf.ekf_update_diag``: for each output i, with the Jacobian at
-    the prior mean, s = h P h' + r_i, k = P h' / s, delta += k (e_i - h delta),
-    P <- P - (P h')(P h')' / s (exactly symmetric). ``ph`` (static): the pattern of H;
-    each row's sums run over its nonzero columns only.
-
-    Written on whole (n, n, *batch) arrays, unlike :func:`predict_cov`
-    (docs/design_notes.md says why).
-    """
-    n, m = P.shape[0], H.shape[0]
-    mh = _mask(ph, (m, n))
-    delta = None
-    for i in range(m):
-        live = np.flatnonzero(mh[i])
-        if live.size == 0:                     # z_i does not depend on the state
-            continue
-        h = H[i]
-        PHt = _sum(P[:, j] * h[j][None] for j in live)
-        s = _sum(h[j] * PHt[j] for j in live) + r[i]
-        e = innovation[i] if delta is None else innovation[i] - _sum(h[j] * delta[j] for j in live)
-        k = PHt / s[None]
-        delta = k * e[None] if delta is None else delta + k * e[None]
-        P = P - (PHt[:, None] * PHt[None, :]) / s[None, None]
-    if delta is None:
-        return jnp.zeros(P.shape[1:], P.dtype), P
-    return delta, P
+# ``predict_cov`` (entry by entry) and ``update_diag`` (the sequential scalar update) live
+# in jaxnc.estimators.covariance, shared with the per-seed ``ekf.ekf_predict`` and
+# ``ekf.ekf_update_diag``; structurally zero entries (a Pattern) are never read.
 
 
 # -- batching and differentiation -------------------------------------------------------
@@ -144,15 +115,8 @@ def _predict_cov_compact(P, A, L, Q):
     return 0.5 * (C + C.T)
 
 
-def _update_diag_compact(P, H, innovation, r):
-    delta = jnp.zeros_like(P[0])
-    for i in range(H.shape[0]):
-        h = H[i]
-        PHt = jnp.sum(P * h[None, :], axis=1)
-        s = jnp.sum(h * PHt) + r[i]
-        delta = delta + PHt / s * (innovation[i] - jnp.sum(h * delta))
-        P = P - (PHt[:, None] * PHt[None, :]) / s
-    return delta, P
+#: the sequential update per seed, its sums as reductions (the backward pass's form)
+_update_diag_compact = functools.partial(update_diag, unroll=False)
 
 
 _predict_cov = _batch_last(predict_cov, _predict_cov_compact)

@@ -13,16 +13,18 @@ the whole horizon at every correction, as the text literally says, would compute
 h*N covariance steps of which only those up to the next correction are ever used.
 
 The scheme's roles in :mod:`jaxnc.loop` live here too: :class:`NudrekfEstimator`,
-:class:`ChainController` and :class:`ChainActuator` (packets as prediction chains).
+:class:`ChainController` and :class:`ChainActuator` (packets as prediction chains,
+:class:`jaxnc.controllers.prediction.PacketChain`).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
+from jaxnc.controllers.prediction import PacketChain, advance_chain, exhausted_chain, start_chain
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.loop.base import AbstractActuator, AbstractController, AbstractEstimator, Inbox, Packet, blend
@@ -43,62 +45,6 @@ def nudrekf_correct(model, belief: Gaussian, z, R, *, jacobian_grad: bool = True
     if not jacobian_grad:
         raise ValueError("nudrekf_correct: jacobian_grad=False needs a diagonal R (a vector of variances)")
     return ekf_update(model.measure, belief, z, R, z.shape[0])
-
-
-class PacketChain(NamedTuple):
-    """A control packet of section 3.3.1, represented by its prediction chain.
-
-    The prediction stage is deterministic: the h*N actions of a packet are a function
-    of the corrected estimate and the controller state it starts from. Rather than
-    materialising them, a closed loop may keep the chain's position and advance it one
-    fast period at a time (:func:`advance_chain`), producing at every instant exactly the
-    action the packet carries for it. The cost per fast period is then one controller
-    and one model evaluation, whatever h.
-
-    ``j`` is the position (fast instant minus the packet's time stamp); ``x`` the
-    predicted state and ``u`` the packet's action at that position; ``c_before`` the
-    controller state at the instant (before computing ``u``) and ``c_after`` after it.
-    """
-
-    x: jax.Array
-    u: jax.Array
-    c_before: Any
-    c_after: Any
-    j: jax.Array   # int32
-
-
-def start_chain(controller: Callable, mean, ctrl_state) -> PacketChain:
-    """Position 0 of a new packet: the first action from the corrected estimate (step 1)."""
-    u, c = controller(mean, ctrl_state)
-    return PacketChain(mean, u, ctrl_state, c, jnp.zeros((), jnp.int32))
-
-
-def exhausted_chain(mean, u, ctrl_state, horizon: int) -> PacketChain:
-    """A chain that only holds ``u`` (e.g. the actuator before the first packet)."""
-    return PacketChain(mean, u, ctrl_state, ctrl_state, jnp.asarray(horizon, jnp.int32))
-
-
-def advance_chain(model, controller_next: Callable, chain: PacketChain, horizon: int, hold: int = 1,
-                  noise_dim: int = 0) -> PacketChain:
-    """Move the chain one fast period on (steps 2-4 of section 3.3.1).
-
-    The model is iterated noise-free along the packet's action; the controller runs when
-    the new position is a multiple of ``hold`` and below ``horizon`` (= h*N); past the
-    horizon the packet's last action is held (section 2.4). Advancing ``start_chain``
-    j times gives the packet's action and controller state at position j of the
-    prediction stage, eq. (17) (``tests/test_nudrekf.py`` checks it against a
-    materialised packet written there as a reference).
-    """
-    w0 = jnp.zeros((noise_dim,), chain.x.dtype)
-    x = model.dynamics(chain.x, chain.u, w0)
-    j = chain.j + 1
-    run = (j < horizon) & ((j % hold) == 0)
-    u_new, c_new = controller_next(x, chain.c_after)
-    u = jnp.where(run, u_new, chain.u)
-    c_after = jax.tree.map(lambda a, b: jnp.where(run, a, b), c_new, chain.c_after)
-    # past the horizon the prediction is no longer used: freeze it
-    x = jnp.where(j <= horizon, x, chain.x)
-    return PacketChain(x, u, chain.c_after, c_after, jnp.minimum(j, horizon))
 
 
 # ----------------------------------------------------------------------------- loop roles
