@@ -17,7 +17,9 @@ The three loops:
 
 For each loop: :func:`jaxnc.tune.check_loop` at two points (the start and a second one),
 :func:`jaxnc.tune.tune_loop` from the start (one call: successive halving over the grid
-picks the gradient's start, then its default score-function steps; ``estimator=auto``:
+picks the gradient's start, then its default score-function steps, with its budget rule:
+steps that resolve no coordinate after a quarter of their number stop, and the rest of
+their budget runs the search's finalists and the steps' end; ``estimator=auto``:
 its own check picks the estimator), and successive halving over a log grid of the same
 parameters with the budget ``tune_loop`` spent (search + check + gradient steps); the start, the tuned point and the search's best are
 evaluated with hard triggers on the same fresh seeds, with paired 95 % intervals.
@@ -45,7 +47,7 @@ from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 8                  # of this study's definition: a stored loop is reused only at the same version
+VERSION = 9                  # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -219,7 +221,15 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
         "loop": problem.name, "describe": problem.describe, "checks": checks,
         "tune": {"start": start, "tuned": {n: float(np.asarray(v)) for n, v in r.params.items()},
                  "two_stage": two_stage, "search_budget": search_budget,
-                 "gradient_start": ({n: float(r.search.best_point[names[n][0]]) for n in names} if two_stage else start),
+                 # the steps' first point (after the rule, r.search's winner may be another candidate or the end)
+                 "gradient_start": ({n: float(np.asarray(r.tune.history.params[n][0])) for n in names}
+                                    if r.tune is not None else
+                                    {n: float(r.search.best_point[names[n][0]]) for n in names} if two_stage else start),
+                 "gradient_steps": len(r.tune.history.objective) if r.tune is not None else 0,
+                 "steps": steps,
+                 "resolution": ({"steps": r.resolution[0], "t": np.asarray(r.resolution[1]).tolist(),
+                                 "z": r.resolution[2]} if r.resolution else None),
+                 "pick": list(r.pick),
                  "check_at_gradient_start": _check_row(r.check) if r.check is not None else None,
                  "estimator": r.estimator, "estimator_reason": r.estimator_reason,
                  "objective_history": r.tune.history.objective.tolist() if r.tune else [],
@@ -247,6 +257,18 @@ def _ci(x) -> str:
     return f"{x[0]:.4g} ± {x[1]:.2g}"
 
 
+def _steps(tn: dict) -> str:
+    """The gradient steps made, of ``steps``, and the budget rule's test (tune_loop's resolve_at)."""
+    if "gradient_steps" not in tn:
+        return ""
+    made = f"{tn['gradient_steps']} of {tn['steps']}"
+    rs = tn.get("resolution")
+    if not rs:
+        return made
+    t = max(rs["t"])
+    return f"{made} (after {rs['steps']}: {t:.2f} {'≥' if t >= rs['z'] else '<'} {rs['z']:.2f})"
+
+
 def tables(results: list[dict]) -> str:
     """The study's two tables (markdown): the checks, and tuned vs search."""
     rows = []
@@ -269,9 +291,10 @@ def tables(results: list[dict]) -> str:
         e, tn, sr = res["eval"], res["tune"], res["search"]
         rows.append([res["loop"], _fmt_pt(tn["start"]), _fmt_pt(tn.get("gradient_start", tn["start"])),
                      _fmt_pt(tn["tuned"]), tn["estimator"], _fmt_pt(sr["best"]),
-                     str(tn["simulations"]), str(sr["simulations"]), _ci(e["start"]), _ci(e["tuned"]),
+                     _steps(tn), str(tn["simulations"]), str(sr["simulations"]), _ci(e["start"]), _ci(e["tuned"]),
                      _ci(e["search"]), _ci(e["tuned_minus_search"]), res["verdict"]])
-    t2 = markdown_table(["loop", "start", "gradient from", "tuned", "estimator", "search's best", "tuner sims",
+    t2 = markdown_table(["loop", "start", "gradient from", "tuned", "estimator", "search's best",
+                         "steps (budget rule: max |t| vs z)", "tuner sims",
                          "search sims",
                          "start", "tuned", "search", "tuned − search (paired)", "verdict"], rows)
     return ("Gradient check (coordinates: log of each parameter; 95 % intervals over the check's seeds; "

@@ -548,3 +548,70 @@ def test_the_pick_keeps_the_start_when_the_steps_made_it_worse():
     assert "beat its start" in calm.estimator_reason
     with pytest.raises(ValueError, match="pick_seeds"):
         tune_loop(_Pair(), params, lambda j: j, pick_seeds=-1, **kw)
+
+
+def _flat_run(cfg, key):
+    """E[J] = 0 for every b (flat), but each seed's J = eps b moves with b: the score
+    function's per-step estimates are noise of mean zero."""
+    return jax.random.normal(key) * cfg.b
+
+
+def test_budget_rule_gives_an_unresolved_gradient_stage_to_the_search_finalists():
+    """The default budget rule: on a flat objective the score steps resolve no coordinate
+    after a quarter of their number (here 10 of 40), so they stop, their end is dropped,
+    and the 30 steps not made plus the pick's seeds refine the search's finalists: the
+    same total budget, the tuned point a searched candidate. On a bowl the steps resolve
+    the slope at once and all of them run, followed by the pick."""
+    from jaxnc.tune import tune_loop
+    kw = dict(batch=4, steps=40, pick_seeds=16, evaluate=False, progress=False)
+    grid = [0.5, 1.0, 2.0, 4.0]
+    # the test is at the 95 % level: of 8 seeds, 7 stop here (seed 0 drifts up for 10 steps, |t| 2.96)
+    stopped = [len(tune_loop(_Pair(b=1.0), {"b": Positive()}, lambda j: j, run=_flat_run, search={"b": grid},
+                             search_budget=16, seed=s, **kw).tune.history.objective) == 10 for s in range(8)]
+    assert sum(stopped) >= 6, stopped
+    flat = tune_loop(_Pair(b=1.0), {"b": Positive()}, lambda j: j, run=_flat_run, search={"b": grid},
+                     search_budget=16, seed=1, **kw)
+    n_test, t, z = flat.resolution
+    assert n_test == 10 and t.shape == (1,) and t[0] < z == pytest.approx(1.959964, rel=1e-5)
+    assert len(flat.tune.history.objective) == 10 and flat.pick == ()
+    assert "no coordinate was resolved" in flat.estimator_reason
+    # the steps not made and the pick's seeds, 152 simulations, run 4 finalists (all the grid here) and the
+    # steps' end on 30 common new seeds each (the remainder, 2, is not spent): the budget without the rule, less 2
+    assert flat.search.n_simulations == 16 + 5 * 30 and len(flat.search.points) == 5
+    assert flat.tuning_simulations == 16 + 10 * 4 + 5 * 30 == 16 + 40 * 4 + 2 * 16 - 2
+    assert np.all(~np.isnan(flat.search.values[:, -30:]))
+    assert float(flat.params["b"]) == pytest.approx(float(flat.search.best_point["b"]))
+    assert flat.search.best == int(np.argmin(np.nanmean(flat.search.values[:, -30:], axis=1)))   # on the new seeds
+    # the rule off: every step runs, then the pick
+    off = tune_loop(_Pair(b=1.0), {"b": Positive()}, lambda j: j, run=_flat_run, search={"b": grid},
+                    search_budget=16, resolve_at=0.0, seed=1, **kw)
+    assert off.resolution == () and len(off.tune.history.objective) == 40 and off.pick != ()
+    assert off.tuning_simulations == 16 + 40 * 4 + 2 * 16
+    # a bowl still being descended at the test: resolved, so the steps run on, then the pick
+    kb = dict(kw, learning_rate=0.1)
+    far = tune_loop(_Pair(b=300.0, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j, run=_bowl_run,
+                    search={"b": [300.0, 500.0]}, search_budget=4, **kb)
+    n_test, t, z = far.resolution
+    assert n_test == 10 and t[1] >= z == pytest.approx(2.241403, rel=1e-5)   # d = 2; b is coordinate 1
+    assert len(far.tune.history.objective) == 40 and far.pick != () and far.pick[1] < far.pick[0]
+    assert float(far.params["b"]) < 300.0 / np.e ** 2
+    # a bowl reached before the test (from b = 3 at a rate of 0.3): nothing left to resolve, so the
+    # steps stop, and their end, a finalist beside the searched 3 and 5, wins on the common seeds
+    near = tune_loop(_Pair(b=3.0, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j, run=_bowl_run,
+                     search={"b": [3.0, 5.0]}, search_budget=4, learning_rate=0.3, **kw)
+    n_test, t, z = near.resolution
+    assert n_test == 10 and np.all(t < z) and len(near.tune.history.objective) == 10
+    assert near.search.best == len(near.search.points) - 1 and "the steps' end won" in near.estimator_reason
+    assert abs(np.log(float(near.params["b"]))) < np.log(3.0) / 2 and near.tuning_simulations == 4 + 10 * 4 + 3 * 50
+    with pytest.raises(ValueError, match="resolve_at"):
+        tune_loop(_Pair(b=1.0), {"b": Positive()}, lambda j: j, run=_flat_run, search={"b": grid}, resolve_at=1.5)
+
+
+def test_steps_resolution_is_the_t_statistic_over_the_steps():
+    from jaxnc.tune.loop_tune import steps_resolution
+    g = np.array([[1.0, 0.0, 2.0], [3.0, 0.0, 2.0], [2.0, 0.0, 2.0], [np.nan, 1.0, 1.0]])
+    t, z = steps_resolution(g)              # the non-finite step is dropped: n = 3
+    assert t[0] == pytest.approx(2.0 / (1.0 / np.sqrt(3.0))) and t[1] == 0.0 and t[2] == np.inf
+    assert z == pytest.approx(2.393980, rel=1e-5)                     # Phi^-1(1 - 0.025 / 3)
+    with pytest.raises(ValueError, match="n >= 2"):
+        steps_resolution(np.ones((1, 2)))

@@ -1,5 +1,5 @@
 """The tune-loops experiment (experiments/tune_loops.py) in a tiny size: the cart-pole loop's
-checks at two points, one tune_loop call, the equal-budget search, files written and
+checks at two points, one two-stage tune_loop call (its budget rule tested), the equal-budget search, files written and
 reused by a re-run with the same settings.
 
 Marked slow (about 2.5 minutes on two cores, mostly compiling the cart-pole's check and tuner
@@ -22,7 +22,7 @@ from jaxnc.experiments import tune_loops as tl  # noqa: E402
 def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
     settings = dict(loops="cartpole", steps=10, batch=4, estimator="score", check_seeds=4, study_check_seeds=4, w_drhe=30.0,
                     w_cartpole=2.0, seed=0,
-                    search_budget=0)
+                    search_budget=36)     # 9 candidates x 4 rounds: the two-stage tuner, its budget rule tested at step 8
     res = tl.run(settings, seeds=8, out=tmp_path, progress=False)["cartpole"]
     assert len(res["checks"]) == 2 and {c["recommended"] for c in res["checks"]} <= {"straight_through", "score", "richardson", None}
     assert res["checks"][1]["at"] == {"trigger.delta": 1e-2} and res["checks"][0]["seeds"] == 4
@@ -30,6 +30,10 @@ def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
     # the paired difference is the difference of the means (same seeds)
     assert abs(e["tuned_minus_search"][0] - (e["tuned"][0] - e["search"][0])) < 1e-9
     assert res["search"]["simulations"] <= res["tune"]["simulations"]            # equal budget, not more
+    tn = res["tune"]
+    assert tn["resolution"]["steps"] == 8 and len(tn["resolution"]["t"]) == 1 and tn["steps"] == 10
+    stopped = max(tn["resolution"]["t"]) < tn["resolution"]["z"]
+    assert tn["gradient_steps"] == (8 if stopped else 10) and (tn["pick"] == []) == stopped
     assert res["verdict"] in ("better than the search", "within the search's interval", "worse than the search")
     for f in ("cartpole.json", "results.json", "tables.md", "tune_loops.png"):
         assert (tmp_path / f).exists(), f

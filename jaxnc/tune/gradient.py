@@ -193,7 +193,7 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
          score_scale: float = 0.1, score_pairs: int | None = None, average_tail: float = 0.25,
          progress: bool = True, desc: str = "tune", corrected: Callable | None = None,
          host_grad: Callable | None = None, learning_rate: float | tuple | None = None,
-         max_seconds: float | None = None) -> TuneResult:
+         max_seconds: float | None = None, stop: Callable[[], bool] | None = None) -> TuneResult:
     """Minimise E_seeds[loss(params, key, temperature)] over ``params`` (a dict of arrays).
 
     ``batch`` seeds per step (for ``"score"``: batch // 2 antithetic pairs, the same
@@ -223,6 +223,10 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
     the first one's duration includes the compilation); ``steps`` is then the most steps.
     The number of steps made is ``len(history.objective)``; with ``max_seconds`` it
     depends on the machine's speed (``steps`` alone gives a reproducible run).
+    ``stop() -> bool``, a host function asked before every step after the first: True
+    ends the steps there (e.g. :func:`jaxnc.tune.tune_loop`'s rule that hands an
+    unresolved gradient stage's budget to its search's finalists); ``steps`` is then the
+    most steps, as with ``max_seconds``.
     Polyak averaging runs over the last ``average_tail`` fraction of the steps made.
 
     Raises:
@@ -314,6 +318,8 @@ def tune(loss: Callable, init: dict, constraints: dict | None = None, *, steps: 
             elapsed = time.perf_counter() - t0
             # the first step's time includes its compilation: the second starts while time is left
             if k > 0 and max_seconds is not None and elapsed + (last if k > 1 else 0.0) > max_seconds:
+                break
+            if k > 0 and stop is not None and stop():
                 break
             used = max(k / steps, elapsed / max_seconds if max_seconds is not None else 0.0)
             lr = lr_pair[0] * (lr_pair[1] / lr_pair[0]) ** min(used, 1.0)

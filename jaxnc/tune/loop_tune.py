@@ -25,7 +25,10 @@ one parameter. It
    the seeds doubled up to ``check_max_seeds``; it says which and why); ``max_seconds``
    bounds the time of the whole tuning (search, check, gradient steps, compilations
    included); then the gradient's start and end run on ``pick_seeds`` common seeds and
-   the better is kept (a flat, noisy objective can make the steps drift);
+   the better is kept (a flat, noisy objective can make the steps drift); after a search,
+   the score function's steps are tested at a quarter of their number, and if they
+   resolve no coordinate the rest of their budget (and the pick's) runs the search's
+   finalists and the steps' end on common seeds instead (``resolve_at``);
 4. evaluates the start and the tuned point with hard triggers on fresh seeds: means
    with 95 % intervals and the paired 95 % interval of the difference.
 
@@ -49,18 +52,19 @@ from jax.flatten_util import ravel_pytree
 
 from jaxnc import montecarlo
 from jaxnc.cache import compile_clock
-from jaxnc._validate import check_int, check_positive
+from jaxnc._validate import check_int, check_positive, check_range
 from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.gradient import (Interval, Positive, TuneResult, Unconstrained, _rate_pair, constrain, tune,
                                  unconstrain)
 from jaxnc.tune.search import halving_schedule, mean_ci, paired_ci, successive_halving
 
-__all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "tune_loop", "check_loop",
+__all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "tune_loop", "check_loop", "steps_resolution",
            "with_temperature", "has_temperature"]
 
 _CONSTRAINTS = (Positive, Interval, Unconstrained)
 CHECK_SEEDS, CHECK_MAX_SEEDS = 256, 32768   # check_loop's default seeds and budget (docs/tuning_loops.md, issue 31)
 STEPS, BATCH, LEARNING_RATE = 200, 16, (0.3, 0.03)   # tune_loop's gradient stage (docs/tuning_loops.md, "tune-study")
+RESOLVE_AT, RESOLVE_MIN_STEPS = 0.25, 8   # tune_loop's budget rule: when its steps are tested (docs/tuning_loops.md, version 9)
 
 
 def _split(path: str) -> list[str]:
@@ -154,6 +158,7 @@ class LoopTuneResult(NamedTuple):
     n_compilations: int = 0       # XLA compilations during the call (the small eager ones included)
     stages: Any = None            # {stage: (wall s, compile s, compilations)}: evaluation, search, check, gradient, pick
     pick: tuple = ()              # (gradient's start, its end): mean objective on the pick's common seeds; () without a pick
+    resolution: tuple = ()        # (steps looked at, per-coordinate |t| float[d], threshold z): the budget rule's test; () untested
 
     @property
     def tuning_simulations(self) -> int:
@@ -375,15 +380,18 @@ def _as_f32(loop, spec: _Spec, values: dict | None = None):
     return _set(loop, spec, {n: np.asarray(v, np.float32) for n, v in values.items()})
 
 
-def _score_step(hard: Callable, loop, spec: _Spec, n_pairs: int, scale: float) -> Callable:
+def _score_step(hard: Callable, loop, spec: _Spec, n_pairs: int, scale: float, record: list | None = None) -> Callable:
     """``host_grad(raw, keys, temp) -> (value, grads)`` for :func:`jaxnc.tune.tune`: the
     antithetic score function (``score_grad``'s estimate, g = mean_i (J(+) - J(-)) e_i / 2s)
-    on the step's first ``n_pairs`` keys, run by ``hard``."""
+    on the step's first ``n_pairs`` keys, run by ``hard``; each step's flat g (float[d],
+    sorted-name order) is appended to ``record`` when given."""
     def host_grad(raw, keys, temp):
         lp = _as_f32(loop, spec, constrain(raw, spec.constraints))
         pk = np.asarray(keys)[:n_pairs]
         v, e = hard(lp, np.concatenate([pk, pk]), np.r_[np.full(n_pairs, scale), np.full(n_pairs, -scale)])
         g = np.mean(((v[:n_pairs] - v[n_pairs:]) / (2.0 * scale))[:, None] * e[:n_pairs], axis=0)
+        if record is not None:
+            record.append(g)
         return float(np.mean(v)), ravel_pytree(raw)[1](jnp.asarray(g, jnp.float32))
     return host_grad
 
@@ -445,26 +453,63 @@ def _labels(unravel, size: int) -> tuple:
     return tuple(labels)
 
 
+def steps_resolution(grads) -> tuple[np.ndarray, float]:
+    """The budget rule's test on the gradient steps made so far: ``grads`` float[n, d], one
+    independent gradient estimate per step (fresh seeds each). Returns the per-coordinate
+    |t| = |mean| / (sd / sqrt(n)) and the threshold z = Phi^-1(1 - 0.025 / d), the
+    family-wise 95 % level over the d coordinates (the gradient check's, Bonferroni). On a
+    flat objective every step's estimate has mean zero, so all |t| < z with probability at
+    least 0.95; a coordinate the steps agree on (a slope they descend) has |t| growing like
+    sqrt(n). A coordinate whose estimates are all equal has |t| = inf when they are not 0,
+    0 when they are."""
+    g = np.asarray(grads, np.float64)
+    if g.ndim != 2 or g.shape[0] < 2:
+        raise ValueError(f"steps_resolution: needs float[n >= 2, d] gradients, got shape {g.shape}")
+    d = g.shape[1]
+    g = g[np.all(np.isfinite(g), axis=1)]      # a step with a non-finite estimate moved nothing (tune zeroes it)
+    n = g.shape[0]
+    if n < 2:
+        return np.zeros(d), _z_family(d)
+    mean, se = g.mean(axis=0), g.std(axis=0, ddof=1) / math.sqrt(n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(se > 0, np.abs(mean) / se, np.where(mean != 0, np.inf, 0.0))
+    return t, _z_family(d)
+
+
+def _z_family(d: int) -> float:
+    from scipy.stats import norm
+    return float(norm.ppf(1.0 - 0.025 / d))
+
+
 def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4,
-            chunk_size: int | None = None):
+            chunk_size: int | None = None, extra: dict | None = None, new_only: bool = False):
     """``res`` (a SearchResult) with ``budget`` more simulations spent on its best
-    ``finalists`` candidates (the same new seeds for all: common random numbers); the best
-    is then the lowest mean over all the seeds a candidate ran."""
+    ``finalists`` candidates, and on ``extra`` (a point that is not among them, appended to
+    the candidates) when given: the same new seeds for all (common random numbers). The
+    best is then the lowest mean over all the seeds a candidate ran, or with ``new_only``
+    over the new seeds alone (the finalists were chosen on the old ones, whose means are
+    biased low by that choice; an ``extra`` point has only new ones): the refined rows'
+    ``mean`` and ``ci95`` are then those of the new seeds."""
     from jaxnc.tune.search import SearchResult, search as run_search
     order = [int(i) for i in np.argsort(np.where(np.isfinite(res.mean), res.mean, np.inf), kind="stable")]
     top = order[:min(finalists, len(order))]
-    n_new = budget // len(top)
+    points = list(res.points) + ([extra] if extra is not None else [])
+    rows = top + ([len(res.points)] if extra is not None else [])
+    n_new = budget // len(rows)
     if n_new < 1:
         return res
-    new = run_search(per_seed, [res.points[i] for i in top], montecarlo.seed_keys(seed, n_new), static=static,
+    new = run_search(per_seed, [points[i] for i in rows], montecarlo.seed_keys(seed, n_new), static=static,
                      chunk_size=chunk_size, progress=False)
-    values = np.concatenate([res.values, np.full((len(res.points), n_new), np.nan)], axis=1)
-    values[top, -n_new:] = new.values
+    values = np.full((len(points), res.values.shape[1] + n_new), np.nan)
+    values[:len(res.points), :res.values.shape[1]] = res.values
+    values[rows, -n_new:] = new.values
     stats = np.asarray([mean_ci(row[~np.isnan(row)]) for row in values])
+    if new_only:
+        stats[rows] = [mean_ci(values[i, -n_new:]) for i in rows]
     mean = np.where(np.isfinite(stats[:, 0]), stats[:, 0], np.inf)
-    best = min(top, key=lambda i: mean[i])
-    return SearchResult(res.points, values, mean, stats[:, 1], best, res.points[best], float(mean[best]),
-                        float(stats[best, 1]), res.n_simulations + len(top) * n_new,
+    best = min(rows, key=lambda i: mean[i])
+    return SearchResult(points, values, mean, stats[:, 1], best, points[best], float(mean[best]),
+                        float(stats[best, 1]), res.n_simulations + len(rows) * n_new,
                         res.wall_time_s + new.wall_time_s)
 
 
@@ -537,7 +582,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
               seed: int = 0, check_seeds: int = CHECK_SEEDS, check_max_seeds: int | None = None,
               max_seconds: float | None = None, pick_seeds: int = 256, eval_seeds: int = 256,
               eval_seed: int = 100_000, evaluate: bool = True, progress: bool = True,
-              check_corrected: bool = False) -> LoopTuneResult:
+              check_corrected: bool = False, resolve_at: float = RESOLVE_AT) -> LoopTuneResult:
     """Tune the leaves of ``loop`` named in ``params`` (module docstring).
 
     Args:
@@ -599,6 +644,19 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         (``LoopTuneResult.pick`` has both means, ``estimator_reason`` says which was kept).
         0 turns it off (the end is kept). Its ``2 * pick_seeds`` simulations count in the
         budget and in ``n_simulations``, not in ``max_seconds``. Default 256.
+      resolve_at: the budget rule of the score function's steps after a search (the
+        default path; no check is run): once ``max(8, ceil(resolve_at * steps))`` steps
+        are made (fewer than ``steps``), their per-step gradient estimates are tested
+        (:func:`steps_resolution`: each coordinate's |mean| / standard error against the
+        family-wise 95 % threshold). If no coordinate is resolved, the objective is flat to
+        within what the steps resolve (or the steps reached a minimum before the test):
+        the steps stop, and the simulations of the steps not made plus the pick's
+        ``2 * pick_seeds`` run the search's four best candidates and the steps' end on new
+        common seeds; the lowest mean on those seeds alone (the finalists' search means are
+        biased low by their selection) is the tuned point (``LoopTuneResult.search`` holds
+        the end as its last candidate; the budget is the same). ``LoopTuneResult.resolution`` holds the
+        test, ``estimator_reason`` says what happened. In [0, 1]; 0 turns the rule off.
+        Default 0.25 (docs/tuning_loops.md, study version 9).
       evaluate: run the start's and the tuned point's evaluation (default); False skips
         both (a caller that evaluates the point itself saves their time): ``start_eval``,
         ``tuned_eval`` and ``paired_diff`` are then NaN, ``eval_values`` empty, and an
@@ -675,6 +733,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     check_int("check_max_seeds", check_max_seeds, check_seeds)
     check_int("eval_seeds", eval_seeds, 2)
     check_int("pick_seeds", pick_seeds, 0)
+    check_range("resolve_at", resolve_at, 0.0, 1.0)
     check_int("seed", seed, 0, 2**32 - 3)
     check_int("eval_seed", eval_seed, 0, 2**32 - 1)
     _rate_pair(learning_rate)
@@ -756,7 +815,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     reason = {"none": "asked for no gradient stage",
               "score": "the score function: unbiased for the hard objective smoothed by N(0, score_scale^2) in the "
                        "raw coordinates, so no check is needed"}.get(estimator, "given")
-    chk, used, tres, pick = None, estimator, None, ()
+    chk, used, tres, pick, resolution = None, estimator, None, (), ()
     tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
     if spec.paths:
         init = {n: np.asarray(get_path(loop1, g[0]), np.float32) for n, g in spec.paths.items()}
@@ -798,15 +857,50 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         loss_of = spec.parts if used == "hybrid" else objective
         corr = _corrected(loop1, spec, _flat(loop1, spec)[1]) if used == "corrected" else None
         # the score function's steps run in the evaluation's program (the hard objective)
-        host = _score_step(hard, loop1, spec, batch // 2, score_scale) if used == "score" else None
+        grads = []
+        host = _score_step(hard, loop1, spec, batch // 2, score_scale, grads) if used == "score" else None
+        # the budget rule (score steps after a search): at the test's step, no coordinate resolved -> stop
+        n_test = max(RESOLVE_MIN_STEPS, math.ceil(resolve_at * steps))
+        rule = used == "score" and result_search is not None and resolve_at > 0 and n_test < steps
+        resolution = ()
+
+        def stop():
+            nonlocal resolution
+            if not rule or len(grads) != n_test or resolution:
+                return False
+            t, z = steps_resolution(grads)
+            resolution = (n_test, t, z)
+            return not bool(np.any(t >= z))
         with _stage(stages, "gradient"):
             tres = tune(lambda p, k, temp: loss_of(run(with_temperature(_set(loop1, spec, p), temp), k)), init,
                         spec.constraints, steps=steps, batch=batch, learning_rate=learning_rate,
                         estimator=used, temperature=temperature, seed=seed, score_scale=score_scale,
-                        progress=progress, desc="tune_loop", corrected=corr, host_grad=host, max_seconds=left())
+                        progress=progress, desc="tune_loop", corrected=corr, host_grad=host, max_seconds=left(),
+                        stop=stop if rule else None)
         sims += tres.n_simulations
         tuned, kept = tres.params, tuned          # kept: the gradient's start, loop1's values
-        if pick_seeds:      # the end against the start, on common seeds of their own (not the evaluation's)
+        made = len(tres.history.objective)
+        if resolution and not np.any(resolution[1] >= resolution[2]):
+            # nothing resolved: the steps' end is noise; the steps not made and the pick's seeds refine the
+            # search's finalists instead (the same total), and the tuned point is the refined search's winner
+            # (the steps' end is one of the finalists: a bowl descended before the test has no slope left)
+            extra = (steps - made) * batch + 2 * pick_seeds
+            n_before, n_points = result_search.n_simulations, len(result_search.points)
+            end = {**result_search.best_point,
+                   **{p: np.asarray(v, np.float32) for n, v in tres.params.items() for p in spec.paths[n]}}
+            with _stage(stages, "search"):
+                result_search = _refine(result_search, search_seed, extra, seed + 3, static, chunk_size=search_chunk,
+                                        extra=end, new_only=True)
+            sims += result_search.n_simulations - n_before
+            won = "the steps' end" if result_search.best == n_points else "a searched candidate"
+            loop1 = set_paths(loop, result_search.best_point)
+            tuned = {n: np.asarray(get_path(loop1, g[0])) for n, g in spec.paths.items()}
+            t_txt = ", ".join(f"{lab} {v:.2g}" for lab, v in zip(_labels(unravel, flat0.size), resolution[1]))
+            reason += (f"; after {made} of {steps} steps no coordinate was resolved (|t| {t_txt} < {resolution[2]:.2f}):"
+                       f" the steps stopped, and their remaining budget and the pick's "
+                       f"({result_search.n_simulations - n_before} simulations) ran the search's finalists and the "
+                       f"steps' end on common new seeds: {won} won")
+        elif pick_seeds:    # the end against the start, on common seeds of their own (not the evaluation's)
             with _stage(stages, "pick"):
                 pkeys = montecarlo.seed_keys(seed + 4, pick_seeds)
                 va, vb = (hard(_as_f32(loop1, spec, pt), pkeys, np.zeros(pick_seeds))[0] for pt in (init, tuned))
@@ -833,4 +927,5 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         evals = (mean_ci(v0), mean_ci(v1), paired_ci(v1, v0), (v0, v1))
     clock = compile_clock() - clock0
     return LoopTuneResult(final, start, used, reason, chk, result_search, tres, *evals[:3], sims,
-                          time.perf_counter() - t0, evals[3], clock.seconds, clock.compilations, stages, pick)
+                          time.perf_counter() - t0, evals[3], clock.seconds, clock.compilations, stages, pick,
+                          resolution)
