@@ -139,6 +139,7 @@ def test_check_loop_on_a_gain_agrees_with_finite_differences_at_two_points():
         assert c.recommended == "straight_through", c.table()
         g, fd = c.estimates["straight_through"][0], c.estimates["finite_difference"][0]
         np.testing.assert_allclose(g, fd, rtol=2e-2, atol=1e-4)
+    assert str(c) == repr(c) == c.table() and "recommended: straight_through" in str(c)   # print(check) is the table
     with pytest.raises(ValueError, match=r"the point names \['K'\]"):
         check_loop(lp, {"controller.K": Positive()}, at={"K": 1.0})
 
@@ -595,6 +596,10 @@ def test_budget_rule_gives_an_unresolved_gradient_stage_to_the_search_finalists(
     assert n_test == 10 and t[1] >= z == pytest.approx(2.241403, rel=1e-5)   # d = 2; b is coordinate 1
     assert len(far.tune.history.objective) == 40 and far.pick != () and far.pick[1] < far.pick[0]
     assert float(far.params["b"]) < 300.0 / np.e ** 2
+    # printing a result gives its summary (a few lines), not the per-seed arrays it holds
+    text = str(far)
+    assert text == repr(far) == far.summary() and len(text.splitlines()) < 20
+    assert "budget rule: after 10 steps" in text and "pick: the gradient's start" in text
     # a bowl reached before the test (from b = 3 at a rate of 0.3): nothing left to resolve, so the
     # steps stop, and their end, a finalist beside the searched 3 and 5, wins on the common seeds
     near = tune_loop(_Pair(b=3.0, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j, run=_bowl_run,

@@ -145,6 +145,11 @@ class GradientCheck(NamedTuple):
         slope = np.ones_like(m) if self.dvalue_dtheta is None else np.asarray(self.dvalue_dtheta, float)
         return m / slope, s / np.abs(slope)
 
+    def __str__(self) -> str:
+        return self.table()
+
+    __repr__ = __str__
+
     def table(self) -> str:
         """A plain-text table: one row per estimator and coordinate, gradients and the
         resolution in the user's units when the check knows them (``values``)."""

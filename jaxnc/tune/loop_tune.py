@@ -167,7 +167,15 @@ class LoopTuneResult(NamedTuple):
         n_eval = len(self.eval_values[0]) if self.eval_values else 0
         return self.n_simulations - 2 * n_eval
 
+    def __str__(self) -> str:
+        return self.summary()
+
+    __repr__ = __str__
+
     def summary(self) -> str:
+        """A few lines: the estimator and why, each parameter's start and tuned value, the
+        objective at both on the fresh seeds, the budget rule's test and the pick, times.
+        ``print(result)`` prints this (the per-seed arrays stay in the fields)."""
         s, t, d = self.start_eval, self.tuned_eval, self.paired_diff
         lines = [f"estimator: {self.estimator} ({self.estimator_reason})"]
         for k in self.params:
@@ -178,6 +186,13 @@ class LoopTuneResult(NamedTuple):
                          f"tuned {t[0]:.4g} +- {t[1]:.2g}; paired difference {d[0]:.4g} +- {d[1]:.2g}")
         else:
             lines.append("objective: not evaluated (evaluate=False)")
+        if self.resolution:
+            looked, tv, z = self.resolution
+            lines.append(f"budget rule: after {looked} steps, per-coordinate |t| "
+                         f"{np.array2string(np.abs(np.asarray(tv, float)), precision=2)} against z = {z:.2f}")
+        if self.pick:
+            lines.append(f"pick: the gradient's start {self.pick[0]:.4g}, its end {self.pick[1]:.4g} "
+                         f"(mean objective on the pick's common seeds)")
         lines.append(f"wall time {self.wall_time_s:.1f} s, of which {self.compile_s:.1f} s lowering and compiling "
                      f"({self.n_compilations} compilations); {self.n_simulations} simulations")
         for k, (w, c, n) in (self.stages or {}).items():
