@@ -37,7 +37,7 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "save_results", "load_results",
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
            "stored_or_run", "stored_study"]
 
@@ -388,6 +388,46 @@ def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
     ci95 = 1.96 * std / math.sqrt(k) if k >= 2 else nan
     return Summary(mean=mean, ci95=ci95, std=std, n=n, n_stable=k,
                    unstable_fraction=(n - k) / n)
+
+
+def describe(metrics) -> str:
+    """A NamedTuple of per-run metrics as a few readable lines (the runner's ``Metrics``
+    prints this way).
+
+    A batch (every field float[seeds] or bool[seeds], as :func:`run_batched` returns): one
+    line per field, the mean and 95 % half-width over the stable runs (:func:`summarize`,
+    with the tuple's ``unstable`` field when it has one) and how many runs were left out; a
+    boolean field as the fraction of runs where it holds. One run (every field a scalar):
+    the values. Anything else (traced values inside ``jit``, other shapes): the tuple's
+    plain repr."""
+    name, fields = type(metrics).__name__, metrics._asdict()
+    plain = f"{name}(" + ", ".join(f"{k}={v!r}" for k, v in fields.items()) + ")"
+    if any(isinstance(v, jax.core.Tracer) for v in fields.values()):
+        return plain
+    try:
+        arrays = {k: np.asarray(v) for k, v in fields.items()}
+    except Exception:                       # a field that is not an array
+        return plain
+    shapes = {a.shape for a in arrays.values()}
+    if shapes == {()}:
+        return f"{name}(" + ", ".join(f"{k}={a.item():.6g}" if a.dtype.kind == "f" else f"{k}={a.item()}"
+                                      for k, a in arrays.items()) + ")"
+    if len(shapes) != 1 or len(next(iter(shapes))) != 1:
+        return plain
+    n = next(iter(shapes))[0]
+    unstable = arrays.get("unstable", np.zeros(n, bool)).astype(bool)
+    lines = [f"{name} over {n} runs (mean +- 95 % over the stable runs)"]
+    w = max(len(k) for k in arrays)
+    for k, a in arrays.items():
+        if a.dtype == bool:
+            lines.append(f"  {k:<{w}}  {a.mean():.4g} of the runs")
+        elif a.dtype.kind in "fiu":
+            sm = summarize(a, unstable if k != "unstable" else np.zeros(n, bool))
+            left = f" ({n - sm.n_stable} left out: unstable or not finite)" if sm.n_stable < n else ""
+            lines.append(f"  {k:<{w}}  {sm.mean:.6g} +- {sm.ci95:.2g}{left}")
+        else:
+            return plain
+    return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- results files

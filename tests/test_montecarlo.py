@@ -185,6 +185,27 @@ def test_summarize_nonfinite_counts_as_unstable():
     assert one.mean == 5.0 and one.n_stable == 1 and math.isnan(one.ci95)
 
 
+def test_metrics_print_as_a_summary_of_the_batch():
+    """print(run_batched(...)) of the runner's Metrics: one line per field (mean and 95 %
+    half-width over the stable runs, as summarize); one run prints its values; traced or
+    other shapes keep the plain tuple repr."""
+    from jaxnc.loop.runner import Metrics
+    m = Metrics(jnp.array([1.0, 3.0, jnp.inf, 2.0]), jnp.array([1.0, 3.0, 9.0, 2.0]), jnp.full(4, 0.5),
+                jnp.ones(4), jnp.array([False, False, True, False]))
+    lines = repr(m).splitlines()
+    assert str(m) == repr(m) and lines[0] == "Metrics over 4 runs (mean +- 95 % over the stable runs)"
+    s = mc.summarize(np.array([1.0, 3.0, np.inf, 2.0]), np.array([False, False, True, False]))
+    assert lines[1].split() == ["cost", f"{s.mean:.6g}", "+-", f"{s.ci95:.2g}", "(1", "left", "out:", "unstable",
+                                "or", "not", "finite)"]
+    assert lines[2].split()[:2] == ["cost_raw", "2"] and lines[5].split() == ["unstable", "0.25", "of", "the", "runs"]
+    one = jax.tree.map(lambda a: a[0], m)
+    assert repr(one) == "Metrics(cost=1, cost_raw=1, rate_sc=0.5, rate_ca=1, unstable=False)"
+    seen = []
+    jax.jit(lambda t: seen.append(repr(t)) or t)(m)
+    assert seen[0].startswith("Metrics(cost=") and "float32[4]" in seen[0]
+    assert repr(jax.tree.map(lambda a: a[:, None], m)).startswith("Metrics(cost=Array(")
+
+
 def test_summarize_ci95_random():
     rng = np.random.default_rng(0)
     v = rng.normal(size=200)

@@ -700,6 +700,10 @@ class Metrics(NamedTuple):
     rate_ca: jax.Array    # controller transmissions per slow period
     unstable: jax.Array   # bool: the run failed
 
+    def __repr__(self) -> str:
+        from jaxnc.montecarlo import describe
+        return describe(self)
+
 
 def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
     """Metrics of one recorded run."""
