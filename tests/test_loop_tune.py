@@ -606,6 +606,7 @@ def test_budget_rule_gives_an_unresolved_gradient_stage_to_a_second_halving():
     text = str(far)
     assert text == repr(far) == far.summary() and len(text.splitlines()) < 20
     assert "budget rule: after 10 steps" in text and "pick: the gradient's start" in text
+    assert "gradient steps made: 40" in text
     # a bowl reached before the test (from b = 3 at a rate of 0.3): nothing left to resolve, so the
     # steps stop, and their end, a finalist beside the searched 3 and 5, wins on the common seeds
     near = tune_loop(_Pair(b=3.0, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j, run=_bowl_run,

@@ -186,6 +186,8 @@ class LoopTuneResult(NamedTuple):
                          f"tuned {t[0]:.4g} +- {t[1]:.2g}; paired difference {d[0]:.4g} +- {d[1]:.2g}")
         else:
             lines.append("objective: not evaluated (evaluate=False)")
+        if self.tune is not None:
+            lines.append(f"gradient steps made: {len(self.tune.history.objective)}")
         if self.resolution:
             looked, tv, z = self.resolution
             lines.append(f"budget rule: after {looked} steps, per-coordinate |t| "
