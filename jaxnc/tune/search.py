@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc import montecarlo
-from jaxnc._validate import check_int
+from jaxnc._validate import check_int, check_range
 
 __all__ = ["grid", "random_points", "SearchResult", "search", "halving_schedule", "successive_halving", "evaluate",
            "mean_ci", "paired_ci"]
@@ -126,6 +126,12 @@ def _as_args(point: dict, static: tuple):
     return {k: jnp.asarray(v, jnp.float32) for k, v in point.items() if k not in static}
 
 
+def _check_seconds(fn: str, max_seconds) -> None:
+    """A wall-time budget: None, or a number > 0 (inf allowed); ValueError naming ``fn``."""
+    if max_seconds is not None:
+        check_range(f"{fn}: max_seconds", max_seconds, 0.0, None, low_open=True, finite=False)
+
+
 def search(per_seed: Callable, points: list[dict], keys, *, static: tuple = (), chunk_size: int | None = None,
            max_seconds: float | None = None, progress: bool = True, desc: str = "search") -> SearchResult:
     """Evaluate every candidate on the same ``keys`` and return the best (lowest mean).
@@ -143,8 +149,7 @@ def search(per_seed: Callable, points: list[dict], keys, *, static: tuple = (), 
     """
     if not points:
         raise ValueError("search: no candidates")
-    if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and max_seconds > 0):
-        raise ValueError(f"search: max_seconds must be a number > 0 (seconds), got {max_seconds!r}")
+    _check_seconds("search", max_seconds)
     t0 = time.perf_counter()
     n = int(np.asarray(keys).shape[0])
     chunk = chunk_size or n
@@ -213,8 +218,7 @@ def successive_halving(per_seed: Callable, points: list[dict], keys, *, budget: 
     sched = halving_schedule(len(points), budget)
     chunk = sched[0][1] if chunk_size is None else chunk_size
     check_int("chunk_size", chunk, 1)
-    if max_seconds is not None and not (isinstance(max_seconds, (int, float)) and max_seconds > 0):
-        raise ValueError(f"successive_halving: max_seconds must be a number > 0 (seconds), got {max_seconds!r}")
+    _check_seconds("successive_halving", max_seconds)
     need = sum(s for _, s in sched)
     keys = np.asarray(keys) if not hasattr(keys, "shape") else keys
     if int(keys.shape[0]) < need:
