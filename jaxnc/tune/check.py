@@ -92,6 +92,7 @@ import numpy as np
 
 from jaxnc import montecarlo
 from jaxnc._validate import check_int, check_positive
+from jaxnc.tune.estimators import score_terms
 
 __all__ = ["GradientCheck", "gradient_check", "objective_total"]
 
@@ -406,16 +407,17 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
             e = jax.random.normal(jax.random.fold_in(key, 7919), (d,), jnp.float32)
             (tp, jp) = parts(th + score_scale * e, key, jnp.float32(0.0))
             (tm, jm) = parts(th - score_scale * e, key, jnp.float32(0.0))
-            g1 = (tp - tm) / (2 * score_scale) * e
+            g1 = score_terms(tp, tm, e, score_scale)
             if "score" in estimators:
                 out["score"] = g1
             if "richardson" in estimators:
                 # the same seed and perturbation at twice the scale (module docstring)
-                g2 = (hard(th + 2 * score_scale * e, key) - hard(th - 2 * score_scale * e, key)) / (4 * score_scale) * e
+                g2 = score_terms(hard(th + 2 * score_scale * e, key), hard(th - 2 * score_scale * e, key), e,
+                                 2 * score_scale)
                 out["richardson"] = (4.0 * g1 - g2) / 3.0
                 out["bias_score"] = (g2 - g1) / 3.0
             if "hybrid" in estimators:
-                out["hybrid"] = st + (jp - jm) / (2 * score_scale) * e
+                out["hybrid"] = st + score_terms(jp, jm, e, score_scale)
         if "corrected" in estimators:
             out["corrected"] = jnp.asarray(corrected(th, key)[1], jnp.float32)
         return out

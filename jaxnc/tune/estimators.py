@@ -81,7 +81,7 @@ from jaxnc._validate import check_positive
 from jaxnc.loop.triggers import Petc, fires_straight_through
 
 __all__ = ["ESTIMATORS", "relax_trigger", "sigmoid_relaxation", "straight_through",
-           "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad"]
+           "annealed_temperature", "bernoulli_fires", "score_surrogate", "score_grad", "score_terms"]
 
 ESTIMATORS = ("straight_through", "sigmoid", "score", "richardson", "hybrid", "corrected")
 
@@ -154,6 +154,14 @@ def score_surrogate(cost, logp, baseline=0.0):
     return cost + adv * (logp - jax.lax.stop_gradient(logp))
 
 
+def score_terms(plus, minus, e, scale):
+    """The antithetic score function's term of each pair, (J(+) - J(-)) e / (2 s): ``plus``
+    and ``minus`` the objective at mean +- s e (float[...]), ``e`` the perturbation
+    (float[..., d]); float[..., d]. NumPy arrays in, NumPy out (the tuner's host steps),
+    jax arrays in, jax out (:func:`score_grad`, the gradient check)."""
+    return ((plus - minus) / (2 * scale))[..., None] * e
+
+
 def score_grad(fn, mean, key, n_pairs: int, scale, richardson: bool = False):
     """Antithetic Gaussian score-function estimate of d/d mean E_e[fn(mean + scale e, k)].
 
@@ -178,7 +186,7 @@ def score_grad(fn, mean, key, n_pairs: int, scale, richardson: bool = False):
     def at(sc):
         plus = jax.vmap(lambda e, k: fn(mean + sc * e, k))(eps, keys)
         minus = jax.vmap(lambda e, k: fn(mean - sc * e, k))(eps, keys)
-        return 0.5 * (jnp.mean(plus) + jnp.mean(minus)), jnp.mean(((plus - minus) / (2.0 * sc))[:, None] * eps, axis=0)
+        return 0.5 * (jnp.mean(plus) + jnp.mean(minus)), jnp.mean(score_terms(plus, minus, eps, sc), axis=0)
     v, g = at(scale)
     if richardson:
         g = (4.0 * g - at(2.0 * scale)[1]) / 3.0

@@ -57,6 +57,7 @@ from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.gradient import (Interval, Positive, TuneResult, Unconstrained, _rate_pair, constrain, tune,
                                  unconstrain)
 from jaxnc.tune.search import halving_schedule, mean_ci, paired_ci, successive_halving
+from jaxnc.tune.estimators import score_terms
 
 __all__ = ["get_path", "set_paths", "is_static", "mc_mean", "LoopTuneResult", "tune_loop", "check_loop", "steps_resolution",
            "with_temperature", "has_temperature"]
@@ -406,7 +407,7 @@ def _score_step(hard: Callable, loop, spec: _Spec, n_pairs: int, scale: float, r
         lp = _as_f32(loop, spec, constrain(raw, spec.constraints))
         pk = np.asarray(keys)[:n_pairs]
         v, e = hard(lp, np.concatenate([pk, pk]), np.r_[np.full(n_pairs, scale), np.full(n_pairs, -scale)])
-        g = np.mean(((v[:n_pairs] - v[n_pairs:]) / (2.0 * scale))[:, None] * e[:n_pairs], axis=0)
+        g = np.mean(score_terms(v[:n_pairs], v[n_pairs:], e[:n_pairs], scale), axis=0)
         if record is not None:
             record.append(g)
         return float(np.mean(v)), ravel_pytree(raw)[1](jnp.asarray(g, jnp.float32))
@@ -532,7 +533,7 @@ def _halve_again(res, per_seed: Callable, budget: int, seed: int, static: tuple,
     search's columns followed by the new ones, whose ``mean``/``ci95`` and best are the new
     search's, and whose ``n_simulations`` counts both; ``res`` unchanged when ``budget`` is
     below one seed per candidate and round."""
-    from jaxnc.tune.search import SearchResult, halving_schedule, successive_halving
+    from jaxnc.tune.search import SearchResult
     points = list(res.points) + [extra]
     rounds = max(1, math.ceil(math.log2(len(points))))
     if budget < rounds * len(points):
