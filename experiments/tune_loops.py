@@ -61,6 +61,7 @@ class Problem(NamedTuple):
     describe: str
     fd_step: float = 0.05        # the check's finite-difference step (log units); score scale fd_step / sqrt(3)
     check_seeds: int = 512       # seeds of the study's two gradient checks (study_check_seeds=0)
+    eval_seeds: int = 0          # the evaluation's seeds at least (0: the study's seeds); docs/tuning_loops.md
 
 
 def _j1_nom() -> float:
@@ -95,7 +96,8 @@ def _drhe(settings) -> Problem:
         "drhe", _drhe_loop(0), DRHE_PARAMS, objective, lambda lp, k: mecanum_terms(lp, k, j1_nom),
         {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,
         f"seed 000 DRHE (the paper's loop), N = 10, DP = 0.3, Lissajous; L_w = J1'/J1_nom + {w:g} J4, a run that "
-        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)", fd_step=0.2, check_seeds=4096)
+        f"leaves the tube charged J1' = 0.5 m (J1_nom = {100 * j1_nom:.3f} cm)", fd_step=0.2, check_seeds=4096,
+        eval_seeds=8192)
 
 
 def _drhe_safe(settings) -> Problem:
@@ -183,8 +185,10 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
           search_budget: int = 0, study_check_seeds: int = 0, estimator: str = "score",
           progress: bool = True) -> dict:
     """The check at two points (``study_check_seeds`` seeds, 0: the problem's own), tune_loop
-    (its own check on ``check_seeds``), the equal-budget search and the evaluation of one loop."""
+    (its own check on ``check_seeds``), the equal-budget search and the evaluation of one loop
+    (on ``eval_seeds`` common seeds, or the problem's ``eval_seeds`` if more)."""
     t0 = time.perf_counter()
+    eval_seeds = max(eval_seeds, problem.eval_seeds)
     n_check = study_check_seeds or problem.check_seeds
     names = param_paths(problem.params)
     start = {n: float(np.asarray(get_path(problem.loop, p[0]))) for n, p in names.items()}
@@ -215,7 +219,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     best = {n: sh.best_point[names[n][0]] for n in grid_names}
     ekeys = montecarlo.seed_keys(EVAL_SEED, eval_seeds)
     v_search = np.asarray(montecarlo.run_batched(lambda k, pt: per_seed(pt, k), ekeys, args=(sh.best_point,),
-                                                 chunk_size=eval_seeds, progress=False), np.float64)
+                                                 chunk_size=min(eval_seeds, 1024), progress=False), np.float64)
     v_start, v_tuned = (np.asarray(v, np.float64) for v in r.eval_values)
     out = {
         "loop": problem.name, "describe": problem.describe, "checks": checks,
@@ -291,11 +295,12 @@ def tables(results: list[dict]) -> str:
         e, tn, sr = res["eval"], res["tune"], res["search"]
         rows.append([res["loop"], _fmt_pt(tn["start"]), _fmt_pt(tn.get("gradient_start", tn["start"])),
                      _fmt_pt(tn["tuned"]), tn["estimator"], _fmt_pt(sr["best"]),
-                     _steps(tn), str(tn["simulations"]), str(sr["simulations"]), _ci(e["start"]), _ci(e["tuned"]),
+                     _steps(tn), str(tn["simulations"]), str(sr["simulations"]), str(e["seeds"]), _ci(e["start"]),
+                     _ci(e["tuned"]),
                      _ci(e["search"]), _ci(e["tuned_minus_search"]), res["verdict"]])
     t2 = markdown_table(["loop", "start", "gradient from", "tuned", "estimator", "search's best",
                          "steps (budget rule: max |t| vs z)", "tuner sims",
-                         "search sims",
+                         "search sims", "eval seeds",
                          "start", "tuned", "search", "tuned − search (paired)", "verdict"], rows)
     return ("Gradient check (coordinates: log of each parameter; 95 % intervals over the check's seeds; "
             "resolution: 1.96 x the standard error of the paired difference to the finite differences, the "
