@@ -47,7 +47,7 @@ from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 10                 # of this study's definition: a stored loop is reused only at the same version
+VERSION = 11                 # of this study's definition: a stored loop is reused only at the same version
 
 
 class Problem(NamedTuple):
@@ -115,7 +115,7 @@ def _drhe_safe(settings) -> Problem:
         "drhe-safe", _drhe_loop(2), DRHE_PARAMS, lambda t: t[0] + w * t[1], run,
         {"trigger.delta": 0.02, "trigger.sigma": 3e-3}, DRHE_AXES,
         f"seed 000 DRHE with the safety condition (max_silence = 2), N = 10, DP = 0.3, Lissajous; mean distance "
-        f"over the horizon / J1_nom + {w:g} x sensor rate", fd_step=0.2)
+        f"over the horizon / J1_nom + {w:g} x sensor rate", fd_step=0.2, eval_seeds=8192)
 
 
 def _hdd(settings) -> Problem:

@@ -500,52 +500,35 @@ def _z_family(d: int) -> float:
 
 
 def _refine(res, per_seed: Callable, budget: int, seed: int, static: tuple, finalists: int = 4,
-            chunk_size: int | None = None):
+            chunk_size: int | None = None, extra: dict | None = None, new_only: bool = False):
     """``res`` (a SearchResult) with ``budget`` more simulations spent on its best
-    ``finalists`` candidates, the same new seeds for all (common random numbers); the best
-    is then the lowest mean over all the seeds a candidate ran."""
+    ``finalists`` candidates, and on ``extra`` (a point that is not among them, appended to
+    the candidates) when given: the same new seeds for all (common random numbers). The
+    best is then the lowest mean over all the seeds a candidate ran, or with ``new_only``
+    over the new seeds alone (the finalists were chosen on the old ones, whose means are
+    biased low by that choice; an ``extra`` point has only new ones): the refined rows'
+    ``mean`` and ``ci95`` are then those of the new seeds."""
     from jaxnc.tune.search import SearchResult, search as run_search
     order = [int(i) for i in np.argsort(np.where(np.isfinite(res.mean), res.mean, np.inf), kind="stable")]
-    rows = order[:min(finalists, len(order))]
+    top = order[:min(finalists, len(order))]
+    points = list(res.points) + ([extra] if extra is not None else [])
+    rows = top + ([len(res.points)] if extra is not None else [])
     n_new = budget // len(rows)
     if n_new < 1:
         return res
-    new = run_search(per_seed, [res.points[i] for i in rows], montecarlo.seed_keys(seed, n_new), static=static,
+    new = run_search(per_seed, [points[i] for i in rows], montecarlo.seed_keys(seed, n_new), static=static,
                      chunk_size=chunk_size, progress=False)
-    values = np.full((len(res.points), res.values.shape[1] + n_new), np.nan)
-    values[:, :res.values.shape[1]] = res.values
+    values = np.full((len(points), res.values.shape[1] + n_new), np.nan)
+    values[:len(res.points), :res.values.shape[1]] = res.values
     values[rows, -n_new:] = new.values
     stats = np.asarray([mean_ci(row[~np.isnan(row)]) for row in values])
+    if new_only:
+        stats[rows] = [mean_ci(values[i, -n_new:]) for i in rows]
     mean = np.where(np.isfinite(stats[:, 0]), stats[:, 0], np.inf)
     best = min(rows, key=lambda i: mean[i])
-    return SearchResult(res.points, values, mean, stats[:, 1], best, res.points[best], float(mean[best]),
+    return SearchResult(points, values, mean, stats[:, 1], best, points[best], float(mean[best]),
                         float(stats[best, 1]), res.n_simulations + len(rows) * n_new,
                         res.wall_time_s + new.wall_time_s)
-
-
-def _halve_again(res, per_seed: Callable, budget: int, seed: int, static: tuple, extra: dict,
-                 chunk_size: int | None = None):
-    """A second successive halving with ``budget`` simulations over every candidate of
-    ``res`` (a SearchResult) and ``extra`` (appended), on new common seeds and ranked on
-    those alone: the first search's means are biased by its own eliminations (its finalists
-    low, the candidates it dropped after a few seeds high), so they decide nothing here.
-    Returns a SearchResult over the candidates and ``extra`` whose ``values`` are the first
-    search's columns followed by the new ones, whose ``mean``/``ci95`` and best are the new
-    search's, and whose ``n_simulations`` counts both; ``res`` unchanged when ``budget`` is
-    below one seed per candidate and round."""
-    from jaxnc.tune.search import SearchResult
-    points = list(res.points) + [extra]
-    rounds = max(1, math.ceil(math.log2(len(points))))
-    if budget < rounds * len(points):
-        return res
-    need = sum(s for _, s in halving_schedule(len(points), budget))
-    new = successive_halving(per_seed, points, montecarlo.seed_keys(seed, need), budget=budget, static=static,
-                             chunk_size=chunk_size, progress=False)
-    values = np.full((len(points), res.values.shape[1] + need), np.nan)
-    values[:len(res.points), :res.values.shape[1]] = res.values
-    values[:, res.values.shape[1]:] = new.values
-    return SearchResult(points, values, new.mean, new.ci95, new.best, new.best_point, new.best_mean,
-                        new.best_ci95, res.n_simulations + new.n_simulations, res.wall_time_s + new.wall_time_s)
 
 
 def check_loop(loop, params: dict | list | tuple, objective: Callable | None = None, *, at: dict | None = None,
@@ -686,13 +669,12 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         family-wise 95 % threshold). If no coordinate is resolved, the objective is flat to
         within what the steps resolve (or the steps reached a minimum before the test):
         the steps stop, and the simulations of the steps not made plus the pick's
-        ``2 * pick_seeds`` run a second successive halving over every searched candidate and
-        the steps' end on new common seeds, ranked on those seeds alone (the first search's
-        means are biased by its own eliminations: its finalists low, the candidates it dropped
-        after a few seeds high); its winner is the tuned point (``LoopTuneResult.search``
-        holds the end as its last candidate, and both searches' seeds; the budget is the same). ``LoopTuneResult.resolution`` holds the
+        ``2 * pick_seeds`` run the search's four best candidates and the steps' end on new
+        common seeds; the lowest mean on those seeds alone (the finalists' search means are
+        biased low by their selection) is the tuned point (``LoopTuneResult.search`` holds
+        the end as its last candidate; the budget is the same). ``LoopTuneResult.resolution`` holds the
         test, ``estimator_reason`` says what happened. In [0, 1]; 0 turns the rule off.
-        Default 0.25 (docs/tuning_loops.md, study versions 9 and 10).
+        Default 0.25 (docs/tuning_loops.md, study versions 9 and 11).
       evaluate: run the start's and the tuned point's evaluation (default); False skips
         both (a caller that evaluates the point itself saves their time): ``start_eval``,
         ``tuned_eval`` and ``paired_diff`` are then NaN, ``eval_values`` empty, and an
@@ -917,16 +899,16 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         tuned, kept = tres.params, tuned          # kept: the gradient's start, loop1's values
         made = len(tres.history.objective)
         if resolution and not np.any(resolution[1] >= resolution[2]):
-            # nothing resolved: the steps' end is noise; the steps not made and the pick's seeds run a second
-            # successive halving over every searched candidate and the steps' end (the same total), and the
-            # tuned point is its winner (a bowl descended before the test has no slope left: the end may win)
+            # nothing resolved: the steps' end is noise; the steps not made and the pick's seeds refine the
+            # search's finalists instead (the same total), and the tuned point is the refined search's winner
+            # (the steps' end is one of the finalists: a bowl descended before the test has no slope left)
             extra = (steps - made) * batch + 2 * pick_seeds
             n_before, n_points = result_search.n_simulations, len(result_search.points)
             end = {**result_search.best_point,
                    **{p: np.asarray(v, np.float32) for n, v in tres.params.items() for p in spec.paths[n]}}
             with _stage(stages, "search"):
-                result_search = _halve_again(result_search, search_seed, extra, seed + 3, static, end,
-                                             chunk_size=search_chunk)
+                result_search = _refine(result_search, search_seed, extra, seed + 3, static, chunk_size=search_chunk,
+                                        extra=end, new_only=True)
             sims += result_search.n_simulations - n_before
             won = "the steps' end" if result_search.best == n_points else "a searched candidate"
             loop1 = set_paths(loop, result_search.best_point)
@@ -934,8 +916,8 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             t_txt = ", ".join(f"{lab} {v:.2g}" for lab, v in zip(_labels(unravel, flat0.size), resolution[1]))
             reason += (f"; after {made} of {steps} steps no coordinate was resolved (|t| {t_txt} < {resolution[2]:.2f}):"
                        f" the steps stopped, and their remaining budget and the pick's "
-                       f"({result_search.n_simulations - n_before} simulations) ran a second successive halving "
-                       f"over the searched candidates and the steps' end on common new seeds: {won} won")
+                       f"({result_search.n_simulations - n_before} simulations) ran the search's finalists and the "
+                       f"steps' end on common new seeds: {won} won")
         elif pick_seeds:    # the end against the start, on common seeds of their own (not the evaluation's)
             with _stage(stages, "pick"):
                 pkeys = montecarlo.seed_keys(seed + 4, pick_seeds)
