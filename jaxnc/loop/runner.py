@@ -33,6 +33,7 @@ from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
 from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_delay_bounds
+from jaxnc.prng import unrolled
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
            "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
@@ -500,15 +501,16 @@ class Draws(NamedTuple):
 
 
 def draw(loop: Loop, key) -> Draws:
-    """All of a run's random draws, one stream per purpose (:data:`STREAMS`)."""
+    """All of a run's random draws, one stream per purpose (:data:`STREAMS`). The noise
+    draws go through :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled)."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     k = {name: jax.random.fold_in(key, i) for i, name in enumerate(STREAMS)}
     w_std, v_std = jnp.asarray(p.w_std, jnp.float32), jnp.asarray(p.v_std, jnp.float32)
-    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
+    w = jax.random.normal(unrolled(k["process"]), (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
     if p.noise_period != 1:
         t = np.arange(S * N).reshape(S, N)
         w = jnp.where(jnp.asarray(t % p.noise_period == 0)[:, :, None], w, 0.0)
-    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * v_std[None, :]
+    v = jax.random.normal(unrolled(k["measurement"]), (S, p.output_dim), jnp.float32) * v_std[None, :]
     return Draws(w, v, draw_link(loop.uplink, k["uplink"], S, loop.T), draw_link(loop.downlink, k["downlink"], S, loop.T),
                  k["plant_init"])
 
