@@ -194,13 +194,15 @@ def test_jacobian_grad_false_holds_the_jacobians_constant():
         b = Gaussian(jnp.asarray(x), jnp.asarray(P))
         z = plant.measure(b.mean, jnp.zeros(9)) + 0.01
         G = jnp.asarray(np.random.default_rng(1).normal(size=(6, 6)))      # cotangent of P'
+        # every step compiled whole (eagerly, each primitive is a program of its own: 345 of them)
+        plain = jax.jit(lambda b: ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7))(b)
+        A = np.asarray(jax.jit(jax.jacfwd(plant.dynamics))(b.mean, jnp.asarray(u), jnp.zeros(7)))
         for exact in (True, False):
             pred = lambda b: ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7, jacobian_grad=exact)
-            out = pred(b)
-            np.testing.assert_array_equal(out.mean, ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7).mean)
-            np.testing.assert_array_equal(out.cov, ekf_predict(plant.dynamics, b, jnp.asarray(u), Q, 7).cov)
-            g = jax.grad(lambda b: jnp.sum(G * pred(b).cov))(b)
-            A = np.asarray(jax.jacfwd(plant.dynamics)(b.mean, jnp.asarray(u), jnp.zeros(7)))
+            out = jax.jit(pred)(b)
+            np.testing.assert_array_equal(out.mean, plain.mean)
+            np.testing.assert_array_equal(out.cov, plain.cov)
+            g = jax.jit(jax.grad(lambda b: jnp.sum(G * pred(b).cov)))(b)
             Gs = 0.5 * (np.asarray(G) + np.asarray(G).T)                   # the prediction symmetrises P'
             np.testing.assert_allclose(g.cov, A.T @ Gs @ A, rtol=1e-12, atol=1e-12)
             if exact:
@@ -211,7 +213,7 @@ def test_jacobian_grad_false_holds_the_jacobians_constant():
         for exact in (True, False):
             upd = lambda m: ekf_update_diag(plant.measure, Gaussian(m, b.cov), z, r, 9,
                                             jacobian_grad=exact).cov
-            g = jax.grad(lambda m: jnp.sum(G * upd(m)))(b.mean)
+            g = jax.jit(jax.grad(lambda m: jnp.sum(G * upd(m))))(b.mean)
             if exact:
                 assert np.max(np.abs(g)) > 1e-6
             else:

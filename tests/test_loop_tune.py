@@ -56,8 +56,10 @@ def test_mc_mean_is_the_vmap_mean_in_value_and_gradient():
         return nc.run(dataclasses.replace(lp, controller=nc.StateFeedback(k_gain)), key).cost_raw
 
     K = jnp.asarray([[3.0, 1.5]])
-    direct = jax.value_and_grad(lambda g: jnp.mean(jax.vmap(lambda k: f(g, k))(keys)))(K)
-    chunked = jax.value_and_grad(lambda g: mc_mean(lambda k: f(g, k), keys, chunk_size=4))(K)   # 3 chunks, padded
+    # each side one compiled program (run eagerly, the gradient compiles every primitive apart: ~300 programs)
+    direct = jax.jit(jax.value_and_grad(lambda g: jnp.mean(jax.vmap(lambda k: f(g, k))(keys))))(K)
+    # 3 chunks, padded
+    chunked = jax.jit(jax.value_and_grad(lambda g: mc_mean(lambda k: f(g, k), keys, chunk_size=4)))(K)
     np.testing.assert_allclose(chunked[0], direct[0], rtol=1e-5)
     np.testing.assert_allclose(chunked[1], direct[1], rtol=1e-4, atol=1e-7)
 

@@ -80,15 +80,23 @@ def test_single_rate_holds_each_action_for_NT():
     assert np.all(np.diff(changes) >= 3)
 
 
+def _sent(key, loop):                 # module level, the loop an argument: the cases of one N share a program
+    return nc.simulate(loop, key).sent_sc
+
+
+def _unstable(key, loop):
+    return mec.run(loop, key).unstable
+
+
 def test_transmissions_J4_ordering():
+    from experiments.mecanum import uniform_dtypes
     kw = dict(horizon_s=SHORT)
     keys = montecarlo.seed_keys(0, 8)
     rate = {}
     for case in ("SR", "DRH", "DRHE"):
         N = 1 if case == "SR" else 2
         loop = mec.mecanum_loop(case, N, 0.0, **kw)
-        tr = montecarlo.run_batched(lambda k, loop=loop: nc.simulate(loop, k).sent_sc, keys, chunk_size=8,
-                                    progress=False)
+        tr = montecarlo.run_batched(_sent, keys, args=(uniform_dtypes(loop),), chunk_size=8, progress=False)
         rate[case] = tr.sum(axis=1).mean() / loop.steps
     assert rate["SR"] == pytest.approx(1.0)
     assert rate["DRH"] == pytest.approx(0.5)          # one packet per NT
@@ -97,11 +105,12 @@ def test_transmissions_J4_ordering():
 
 def test_paper_qualitative_stability_at_N6_DP02():
     """Acceptance: at N = 6, DP = 0.2 SR is unstable (most runs) while DRH is stable."""
+    from experiments.mecanum import uniform_dtypes
     keys = montecarlo.seed_keys(0, 16)
     res = {}
-    for case in ("SR", "DRH"):
+    for case in ("SR", "DRH"):                 # one program for both (the case is a leaf)
         loop = mec.mecanum_loop(case, 6, 0.2)
-        res[case] = montecarlo.run_batched(lambda k, loop=loop: mec.run(loop, k).unstable, keys, chunk_size=16,
+        res[case] = montecarlo.run_batched(_unstable, keys, args=(uniform_dtypes(loop),), chunk_size=16,
                                            progress=False)
     assert res["SR"].mean() > 0.5
     assert res["DRH"].mean() == 0.0
