@@ -5,7 +5,8 @@ Run:  python benchmarks/tune_loops_tail.py [seeds] [loop] [delta,sigma ...]
       (defaults: 8192 seeds, drhe, the points of versions 8-10: the tuner's, the search's, version 8's)
 
 Each point runs on the same seeds (base 7 000 003); the first point is compared with each other one,
-paired, on the first 512, 2048 and all seeds, with the seeds whose difference is largest.
+paired, on the first 512, 2048 and all seeds, with the seeds whose difference is largest, and the
+seeds Cochran's rule asks for (montecarlo.seeds_for_normal_interval) on each sample.
 """
 import sys
 import time
@@ -32,13 +33,15 @@ for d, s in pts:
     vals[(d, s)] = v
     print(f"{loop} delta={d:.4g} sigma={s:.4g}: mean {v.mean():.4f} +- {1.96 * v.std(ddof=1) / np.sqrt(n):.3f}; "
           f"median {np.median(v):.4f}; std {v.std(ddof=1):.3f}; share of runs above 10: {np.mean(v > 10):.4f}; "
+          f"Cochran's rule asks {montecarlo.seeds_for_normal_interval(v)} seeds; "
           f"{time.time() - t0:.0f} s", flush=True)
 first = pts[0]
 for other in pts[1:]:
     diff = vals[first] - vals[other]
     for m in (512, 2048, n):
         dd = diff[:m]
-        print(f"  {first} - {other} on the first {m}: {dd.mean():+.4f} +- {1.96 * dd.std(ddof=1) / np.sqrt(m):.3f}")
+        print(f"  {first} - {other} on the first {m}: {dd.mean():+.4f} +- {1.96 * dd.std(ddof=1) / np.sqrt(m):.3f}"
+              f" (Cochran's rule asks {montecarlo.seeds_for_normal_interval(dd)} seeds)")
     big = np.argsort(-np.abs(diff))[:5]
     print("   largest |diff| seeds:", big.tolist(), np.round(diff[big], 2).tolist(), "share of the sum",
           round(float(np.sum(diff[big]) / np.sum(diff)), 2))

@@ -244,13 +244,28 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
                    "candidate_seeds": np.sum(~np.isnan(sh.values), axis=1).tolist()},
         "eval": {"seeds": eval_seeds, "start": mean_ci(v_start), "tuned": mean_ci(v_tuned),
                  "search": mean_ci(v_search), "tuned_minus_start": paired_ci(v_tuned, v_start),
-                 "tuned_minus_search": paired_ci(v_tuned, v_search)},
+                 "tuned_minus_search": paired_ci(v_tuned, v_search),
+                 # Cochran's rule (montecarlo.seeds_for_normal_interval): seeds the normal interval needs
+                 "normal_interval_seeds": {
+                     "tuned": montecarlo.seeds_for_normal_interval(v_tuned),
+                     "search": montecarlo.seeds_for_normal_interval(v_search),
+                     "tuned_minus_search": montecarlo.seeds_for_normal_interval(
+                         np.asarray(v_tuned, np.float64) - np.asarray(v_search, np.float64))}},
         "wall_time_s": time.perf_counter() - t0,
     }
-    d, ci = out["eval"]["tuned_minus_search"]
-    out["verdict"] = ("better than the search" if d + ci < 0 else
-                      "within the search's interval" if d - ci <= 0 else "worse than the search")
+    out["verdict"] = verdict(*out["eval"]["tuned_minus_search"], max(out["eval"]["normal_interval_seeds"].values()),
+                             eval_seeds)
     return out
+
+
+def verdict(d: float, ci: float, need: int, seeds: int) -> str:
+    """Tuned against search from the paired difference ``d`` +- ``ci`` (95 %) on ``seeds``
+    common seeds; doubtful when Cochran's rule asks ``need`` > ``seeds`` seeds
+    (:func:`jaxnc.montecarlo.seeds_for_normal_interval` of either point's costs or of
+    their differences)."""
+    v = ("better than the search" if d + ci < 0 else
+         "within the search's interval" if d - ci <= 0 else "worse than the search")
+    return v + (f" (doubtful: skewed costs, the normal interval needs about {need} seeds)" if need > seeds else "")
 
 
 def _fmt_pt(pt: dict) -> str:

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxnc.montecarlo import mean_ci
 from jaxnc.paths import Path
 
 __all__ = ["distance_to_path", "distance_to_points", "local_distance", "J1", "J2", "J3", "J4", "ci95"]
@@ -129,11 +130,5 @@ def J4(tx, l, tx_nom, l_nom) -> jax.Array:
     return (f(tx) / f(l)) / (f(tx_nom) / f(l_nom))
 
 
-def ci95(x) -> tuple[float, float]:
-    """(mean, half-width) of the normal 95% interval: 1.96 std(ddof=1) / sqrt(n); nan half-width if n < 2."""
-    x = np.asarray(x, dtype=np.float64).ravel()
-    n = x.size
-    mean = float(np.mean(x)) if n else float("nan")
-    if n < 2:
-        return mean, float("nan")
-    return mean, float(1.96 * np.std(x, ddof=1) / np.sqrt(n))
+#: (mean, half-width of the normal 95 % interval): :func:`jaxnc.montecarlo.mean_ci`.
+ci95 = mean_ci

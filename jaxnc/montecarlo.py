@@ -37,7 +37,8 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "describe", "save_results", "load_results",
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
+           "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
            "stored_or_run", "stored_study"]
 
@@ -364,6 +365,41 @@ class Summary:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
 
+def mean_ci(values) -> tuple[float, float]:
+    """Mean of ``values`` (any shape, flattened) and the half-width of its normal 95 %
+    interval, 1.96 s / sqrt(n) (s the sample standard deviation, ddof = 1). The half-width is
+    nan for fewer than two values, the mean nan for none. Whether the normal interval can be
+    trusted for these values: :func:`seeds_for_normal_interval`."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    if v.size < 2:
+        return (float(v.mean()) if v.size else math.nan), math.nan
+    return float(v.mean()), float(1.96 * v.std(ddof=1) / math.sqrt(v.size))
+
+
+def seeds_for_normal_interval(values) -> int:
+    """How many values the normal 95 % interval of their mean needs to be trusted, by
+    Cochran's rule as refined by Sugden, Smith and Jones (2000, "Cochran's rule for simple
+    random sampling", JRSS B 62(4)): n > 28 + 25 G1^2, G1 the sample skewness
+    (m3 / m2^1.5, central moments of ``values``, flattened, non-finite values dropped).
+
+    A cost with rare, large failures (a robot leaving its tube 1 run in 200 at 20x the
+    typical cost) has G1 of 10 or more, so its interval needs thousands of runs however small
+    it looks on a few hundred: see docs/tuning_loops.md ("512 evaluation seeds are too few on
+    DRHE"). The rule reads the skewness from the sample, so a sample that holds none of the
+    rare runs cannot see them: it flags the tails a sample shows, it does not prove their
+    absence. Returns an int >= 28 (28 for fewer than three finite values or a constant)."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    v = v[np.isfinite(v)]
+    if v.size < 3:
+        return 28
+    c = v - v.mean()
+    m2 = float(np.mean(c * c))
+    if m2 <= 0.0:
+        return 28
+    g1 = float(np.mean(c ** 3)) / m2 ** 1.5
+    return int(math.floor(28 + 25 * g1 * g1)) + 1
+
+
 def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
     """Summary of ``values`` (one per run) over the runs where ``unstable`` is false.
 
@@ -383,9 +419,8 @@ def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
     nan = float("nan")
     if n == 0:
         return Summary(mean=nan, ci95=nan, std=nan, n=0, n_stable=0, unstable_fraction=nan)
-    mean = float(np.mean(good)) if k else math.inf
+    mean, ci95 = mean_ci(good) if k else (math.inf, nan)
     std = float(np.std(good, ddof=1)) if k >= 2 else nan
-    ci95 = 1.96 * std / math.sqrt(k) if k >= 2 else nan
     return Summary(mean=mean, ci95=ci95, std=std, n=n, n_stable=k,
                    unstable_fraction=(n - k) / n)
 
@@ -399,7 +434,9 @@ def describe(metrics) -> str:
     with the tuple's ``unstable`` field when it has one) and how many runs were left out; a
     boolean field as the fraction of runs where it holds. One run (every field a scalar):
     the values. Anything else (traced values inside ``jit``, other shapes): the tuple's
-    plain repr."""
+    plain repr. A field whose stable runs are too skewed for their normal interval
+    (:func:`seeds_for_normal_interval` above their count and above 56, i.e. |skewness| > 1,
+    so that a small symmetric batch is not flagged) says so on its line."""
     name, fields = type(metrics).__name__, metrics._asdict()
     plain = f"{name}(" + ", ".join(f"{k}={v!r}" for k, v in fields.items()) + ")"
     if any(isinstance(v, jax.core.Tracer) for v in fields.values()):
@@ -424,7 +461,11 @@ def describe(metrics) -> str:
         elif a.dtype.kind in "fiu":
             sm = summarize(a, unstable if k != "unstable" else np.zeros(n, bool))
             left = f" ({n - sm.n_stable} left out: unstable or not finite)" if sm.n_stable < n else ""
-            lines.append(f"  {k:<{w}}  {sm.mean:.6g} +- {sm.ci95:.2g}{left}")
+            good = a.reshape(-1)[~(unstable if k != "unstable" else np.zeros(n, bool))]
+            need = seeds_for_normal_interval(good)
+            skew = (f" [skewed: the interval needs about {need} runs (Cochran's rule), not {sm.n_stable}]"
+                    if need > max(sm.n_stable, 56) else "")
+            lines.append(f"  {k:<{w}}  {sm.mean:.6g} +- {sm.ci95:.2g}{left}{skew}")
         else:
             return plain
     return "\n".join(lines)

@@ -206,6 +206,41 @@ def test_metrics_print_as_a_summary_of_the_batch():
     assert repr(jax.tree.map(lambda a: a[:, None], m)).startswith("Metrics(cost=Array(")
 
 
+def test_seeds_for_normal_interval_is_cochrans_rule_on_the_sample_skewness():
+    """n > 28 + 25 G1^2 (Sugden, Smith and Jones 2000). A 0/1 sample with exactly k ones in n
+    has the closed-form skewness (1 - 2p) / sqrt(p (1 - p)), p = k / n; the rule is affine
+    invariant; symmetric samples need the floor of 28 (+1); too few values give 28."""
+    for n, k in ((1000, 5), (512, 3), (200, 100)):
+        x = np.zeros(n)
+        x[:k] = 1.0
+        p = k / n
+        g1 = (1 - 2 * p) / math.sqrt(p * (1 - p))
+        assert mc.seeds_for_normal_interval(x) == math.floor(28 + 25 * g1 ** 2) + 1
+        # a rare failure at 20x the typical cost, anywhere on the scale: the same rule
+        assert mc.seeds_for_normal_interval(5.0 + 95.0 * x) == mc.seeds_for_normal_interval(x)
+    assert mc.seeds_for_normal_interval(np.r_[np.zeros(995), np.ones(5)]) > 4000   # 1000 seeds are too few
+    assert mc.seeds_for_normal_interval(np.array([-1.0, 0.0, 1.0])) == 29
+    assert mc.seeds_for_normal_interval([1.0, 2.0]) == 28 and mc.seeds_for_normal_interval(np.ones(9)) == 28
+    assert mc.seeds_for_normal_interval(np.r_[np.zeros(10), np.inf, np.nan]) == 28   # non-finite values dropped
+
+
+def test_describe_flags_a_field_too_skewed_for_its_interval():
+    """print(metrics) of a batch whose cost has 3 failures in 512 runs says the interval needs
+    thousands of runs; a symmetric field does not."""
+    from jaxnc.loop.runner import Metrics
+    n = 512
+    cost = np.full(n, 5.0)
+    cost[:3] = 100.0
+    cost[3:] += np.linspace(-1, 1, n - 3)
+    sym = np.linspace(0.0, 1.0, n)
+    m = Metrics(jnp.asarray(cost), jnp.asarray(sym), jnp.asarray(sym), jnp.asarray(sym), jnp.zeros(n, bool))
+    lines = repr(m).splitlines()
+    need = mc.seeds_for_normal_interval(cost)
+    assert need > 2000
+    assert lines[1].split()[0] == "cost" and f"needs about {need} runs (Cochran's rule), not {n}" in lines[1]
+    assert all("skewed" not in ln for ln in lines[2:])
+
+
 def test_summarize_ci95_random():
     rng = np.random.default_rng(0)
     v = rng.normal(size=200)

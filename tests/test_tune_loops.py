@@ -34,7 +34,11 @@ def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
     assert tn["resolution"]["steps"] == 8 and len(tn["resolution"]["t"]) == 1 and tn["steps"] == 10
     stopped = max(tn["resolution"]["t"]) < tn["resolution"]["z"]
     assert tn["gradient_steps"] == (8 if stopped else 10) and (tn["pick"] == []) == stopped
-    assert res["verdict"] in ("better than the search", "within the search's interval", "worse than the search")
+    assert res["verdict"].split(" (doubtful")[0] in ("better than the search", "within the search's interval",
+                                                     "worse than the search")
+    need = e["normal_interval_seeds"]
+    assert set(need) == {"tuned", "search", "tuned_minus_search"} and min(need.values()) >= 28
+    assert "doubtful" in res["verdict"]          # 8 seeds are below Cochran's floor of 28 whatever the skewness
     for f in ("cartpole.json", "results.json", "tables.md", "tune_loops.png"):
         assert (tmp_path / f).exists(), f
     doc = montecarlo.load_results(tmp_path / "results.json")
@@ -47,3 +51,10 @@ def test_tune_loops_cartpole_tiny_writes_and_resumes(tmp_path, capsys):
     assert json.dumps(again, sort_keys=True) == json.dumps(montecarlo.load_results(tmp_path / "cartpole.json")["results"],
                                                            sort_keys=True)
     assert np.isfinite(again["eval"]["tuned"][0])
+
+
+def test_verdict_is_doubtful_when_cochrans_rule_asks_for_more_seeds():
+    assert tl.verdict(-0.3, 0.15, 4000, 8192) == "better than the search"
+    assert tl.verdict(0.1, 0.15, 100, 512) == "within the search's interval"
+    assert tl.verdict(0.16, 0.02, 4019, 512) == ("worse than the search (doubtful: skewed costs, the normal interval "
+                                                "needs about 4019 seeds)")

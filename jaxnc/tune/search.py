@@ -58,12 +58,7 @@ def random_points(seed: int, n: int, **bounds) -> list[dict]:
             for i in range(n)]
 
 
-def mean_ci(values) -> tuple[float, float]:
-    """Mean and half-width of its normal 95 % interval, 1.96 s / sqrt(n)."""
-    v = np.asarray(values, np.float64).reshape(-1)
-    if v.size < 2:
-        return float(v.mean()) if v.size else math.nan, math.nan
-    return float(v.mean()), float(1.96 * v.std(ddof=1) / math.sqrt(v.size))
+mean_ci = montecarlo.mean_ci
 
 
 def paired_ci(a, b) -> tuple[float, float]:
