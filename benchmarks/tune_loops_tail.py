@@ -41,7 +41,9 @@ for other in pts[1:]:
     for m in (512, 2048, n):
         dd = diff[:m]
         print(f"  {first} - {other} on the first {m}: {dd.mean():+.4f} +- {1.96 * dd.std(ddof=1) / np.sqrt(m):.3f}"
-              f" (Cochran's rule asks {montecarlo.seeds_for_normal_interval(dd)} seeds)")
+              f" (Cochran's rule asks {montecarlo.seeds_for_normal_interval(dd)} seeds for the differences, "
+              f"{montecarlo.seeds_for_normal_interval(vals[first][:m])} and "
+              f"{montecarlo.seeds_for_normal_interval(vals[other][:m])} for the two points)")
     big = np.argsort(-np.abs(diff))[:5]
     print("   largest |diff| seeds:", big.tolist(), np.round(diff[big], 2).tolist(), "share of the sum",
           round(float(np.sum(diff[big]) / np.sum(diff)), 2))

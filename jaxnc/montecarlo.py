@@ -425,18 +425,22 @@ def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
                    unstable_fraction=(n - k) / n)
 
 
-def describe(metrics) -> str:
-    """A NamedTuple of per-run metrics as a few readable lines (the runner's ``Metrics``
-    prints this way).
+def describe(metrics, run_ndim: int = 0) -> str:
+    """A NamedTuple of per-run metrics as a few readable lines (the runner's ``Metrics`` and
+    ``TrackingMetrics`` print this way).
 
-    A batch (every field float[seeds] or bool[seeds], as :func:`run_batched` returns): one
-    line per field, the mean and 95 % half-width over the stable runs (:func:`summarize`,
-    with the tuple's ``unstable`` field when it has one) and how many runs were left out; a
-    boolean field as the fraction of runs where it holds. One run (every field a scalar):
-    the values. Anything else (traced values inside ``jit``, other shapes): the tuple's
-    plain repr. A field whose stable runs are too skewed for their normal interval
-    (:func:`seeds_for_normal_interval` above their count and above 56, i.e. |skewness| > 1,
-    so that a small symmetric batch is not flagged) says so on its line."""
+    ``run_ndim`` is the number of axes of one run's field (0: scalars, as ``Metrics``; 1:
+    float[c] per channel, as ``TrackingMetrics``). A batch (every field with one leading
+    axis more, of the same length, as :func:`run_batched` returns): one line per field and
+    channel (``name[j]`` when a field has more than one), the mean and 95 % half-width over
+    the stable runs (:func:`summarize`, with the tuple's ``unstable`` field when it has one)
+    and how many runs were left out (unstable or not finite: a settling time that is nan
+    because the run never settled is left out and counted); a boolean field as the fraction
+    of runs where it holds. One run: the values. Anything else (traced values inside
+    ``jit``, other shapes): the tuple's plain repr. A field whose stable runs are too skewed
+    for their normal interval (:func:`seeds_for_normal_interval` above their count and above
+    56, i.e. |skewness| > 1, so that a small symmetric batch is not flagged) says so on its
+    line."""
     name, fields = type(metrics).__name__, metrics._asdict()
     plain = f"{name}(" + ", ".join(f"{k}={v!r}" for k, v in fields.items()) + ")"
     if any(isinstance(v, jax.core.Tracer) for v in fields.values()):
@@ -445,27 +449,34 @@ def describe(metrics) -> str:
         arrays = {k: np.asarray(v) for k, v in fields.items()}
     except Exception:                       # a field that is not an array
         return plain
-    shapes = {a.shape for a in arrays.values()}
-    if shapes == {()}:
-        return f"{name}(" + ", ".join(f"{k}={a.item():.6g}" if a.dtype.kind == "f" else f"{k}={a.item()}"
-                                      for k, a in arrays.items()) + ")"
-    if len(shapes) != 1 or len(next(iter(shapes))) != 1:
+    ndims = {a.ndim for a in arrays.values()}
+    if ndims == {run_ndim}:
+        fmt = lambda x: f"{x:.6g}" if isinstance(x, float) else f"{x}"
+        val = lambda a: fmt(a.item()) if a.ndim == 0 else "[" + ", ".join(fmt(x) for x in a.reshape(-1).tolist()) + "]"
+        return f"{name}(" + ", ".join(f"{k}={val(a)}" for k, a in arrays.items()) + ")"
+    if ndims != {run_ndim + 1} or len({a.shape[0] for a in arrays.values()}) != 1 or run_ndim > 1:
         return plain
-    n = next(iter(shapes))[0]
-    unstable = arrays.get("unstable", np.zeros(n, bool)).astype(bool)
-    lines = [f"{name} over {n} runs (mean +- 95 % over the stable runs)"]
-    w = max(len(k) for k in arrays)
+    n = next(iter(arrays.values())).shape[0]
+    unstable = arrays["unstable"].astype(bool) if "unstable" in arrays and arrays["unstable"].ndim == 1 \
+        else np.zeros(n, bool)
+    columns = {}
     for k, a in arrays.items():
+        c = a.reshape(n, -1)
+        for j in range(c.shape[1]):
+            columns[k if c.shape[1] == 1 else f"{k}[{j}]"] = (k, c[:, j])
+    lines = [f"{name} over {n} runs (mean +- 95 % over the stable runs)"]
+    w = max(len(k) for k in columns)
+    for label, (k, a) in columns.items():
         if a.dtype == bool:
-            lines.append(f"  {k:<{w}}  {a.mean():.4g} of the runs")
+            lines.append(f"  {label:<{w}}  {a.mean():.4g} of the runs")
         elif a.dtype.kind in "fiu":
-            sm = summarize(a, unstable if k != "unstable" else np.zeros(n, bool))
+            bad = unstable if k != "unstable" else np.zeros(n, bool)
+            sm = summarize(a, bad)
             left = f" ({n - sm.n_stable} left out: unstable or not finite)" if sm.n_stable < n else ""
-            good = a.reshape(-1)[~(unstable if k != "unstable" else np.zeros(n, bool))]
-            need = seeds_for_normal_interval(good)
+            need = seeds_for_normal_interval(a[~bad])
             skew = (f" [skewed: the interval needs about {need} runs (Cochran's rule), not {sm.n_stable}]"
                     if need > max(sm.n_stable, 56) else "")
-            lines.append(f"  {k:<{w}}  {sm.mean:.6g} +- {sm.ci95:.2g}{left}{skew}")
+            lines.append(f"  {label:<{w}}  {sm.mean:.6g} +- {sm.ci95:.2g}{left}{skew}")
         else:
             return plain
     return "\n".join(lines)

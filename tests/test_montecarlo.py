@@ -241,6 +241,27 @@ def test_describe_flags_a_field_too_skewed_for_its_interval():
     assert all("skewed" not in ln for ln in lines[2:])
 
 
+def test_tracking_metrics_print_per_channel_and_count_runs_that_never_settled():
+    """TrackingMetrics (float[c] per run): a batch prints one line per field and channel,
+    a nan settling time (never settled) is left out and counted; one run prints its values."""
+    from jaxnc.loop import TrackingMetrics
+    n = 4
+    two = jnp.array([[1.0, 10.0], [3.0, 30.0], [2.0, 20.0], [2.0, 20.0]])
+    settle = jnp.array([[1.0, jnp.nan], [2.0, 3.0], [jnp.nan, 4.0], [3.0, 5.0]])
+    tm = TrackingMetrics(two, two, two, two, two, settle, two)
+    lines = repr(tm).splitlines()
+    assert lines[0] == f"TrackingMetrics over {n} runs (mean +- 95 % over the stable runs)" and len(lines) == 1 + 14
+    s0 = mc.summarize(np.array([1.0, 3.0, 2.0, 2.0]), np.zeros(n, bool))
+    assert lines[1].split() == ["ise[0]", f"{s0.mean:.6g}", "+-", f"{s0.ci95:.2g}"]
+    assert lines[2].split()[:2] == ["ise[1]", "20"]
+    s1 = mc.summarize(np.array([3.0, 4.0, 5.0]), np.zeros(3, bool))
+    assert lines[12].split() == ["settling_time[1]", f"{s1.mean:.6g}", "+-", f"{s1.ci95:.2g}", "(1", "left", "out:",
+                                 "unstable", "or", "not", "finite)"]
+    one = jax.tree.map(lambda a: a[1], tm)
+    assert repr(one) == ("TrackingMetrics(ise=[3, 30], iae=[3, 30], itae=[3, 30], overshoot=[3, 30], "
+                         "rise_time=[3, 30], settling_time=[2, 3], steady_state_error=[3, 30])")
+
+
 def test_summarize_ci95_random():
     rng = np.random.default_rng(0)
     v = rng.normal(size=200)

@@ -44,6 +44,10 @@ class TrackingMetrics(NamedTuple):
     settling_time: jax.Array
     steady_state_error: jax.Array
 
+    def __repr__(self) -> str:
+        from jaxnc.montecarlo import describe
+        return describe(self, run_ndim=1)
+
 
 @_dataclass
 class Tracking:
