@@ -387,14 +387,15 @@ def seeds_for_normal_interval(values) -> int:
     it looks on a few hundred: see docs/tuning_loops.md ("512 evaluation seeds are too few on
     DRHE"). The rule reads the skewness from the sample, so a sample that holds none of the
     rare runs cannot see them: it flags the tails a sample shows, it does not prove their
-    absence. Returns an int >= 28 (28 for fewer than three finite values or a constant)."""
+    absence. Returns an int >= 28 (28 for fewer than three finite values or values constant
+    up to rounding, a spread below 1e-12 of their largest magnitude)."""
     v = np.asarray(values, np.float64).reshape(-1)
     v = v[np.isfinite(v)]
     if v.size < 3:
         return 28
     c = v - v.mean()
     m2 = float(np.mean(c * c))
-    if m2 <= 0.0:
+    if m2 <= (1e-12 * float(np.max(np.abs(v)))) ** 2:     # constant up to rounding: no skewness to read
         return 28
     g1 = float(np.mean(c ** 3)) / m2 ** 1.5
     return int(math.floor(28 + 25 * g1 * g1)) + 1

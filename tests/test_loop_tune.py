@@ -602,7 +602,16 @@ def test_budget_rule_gives_an_unresolved_gradient_stage_to_the_search_finalists(
     text = str(far)
     assert text == repr(far) == far.summary() and len(text.splitlines()) < 20
     assert "budget rule: after 10 steps" in text and "pick: the gradient's start" in text
-    assert "gradient steps made: 40" in text
+    assert "gradient steps made: 40" in text and "doubtful" not in text
+    # an evaluation whose costs have rare, large runs says its interval is doubtful (Cochran's rule)
+    v0 = np.full(512, 5.0)
+    v0[:3] = 100.0
+    v1 = v0.copy()
+    v1[3] = 4.0
+    skewed = far._replace(eval_values=(v0, v1))
+    need = max(montecarlo.seeds_for_normal_interval(v) for v in (v0, v1, v1 - v0))
+    assert need > 4000 and (f"doubtful: the objective is skewed (rare costly runs); its normal interval needs about "
+                            f"{need} seeds by Cochran's rule, the evaluation has 512") in skewed.summary()
     # a bowl reached before the test (from b = 3 at a rate of 0.3): nothing left to resolve, so the
     # steps stop, and their end, a finalist beside the searched 3 and 5, wins on the common seeds
     near = tune_loop(_Pair(b=3.0, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j, run=_bowl_run,

@@ -222,6 +222,8 @@ def test_seeds_for_normal_interval_is_cochrans_rule_on_the_sample_skewness():
     assert mc.seeds_for_normal_interval(np.array([-1.0, 0.0, 1.0])) == 29
     assert mc.seeds_for_normal_interval([1.0, 2.0]) == 28 and mc.seeds_for_normal_interval(np.ones(9)) == 28
     assert mc.seeds_for_normal_interval(np.r_[np.zeros(10), np.inf, np.nan]) == 28   # non-finite values dropped
+    a = np.r_[np.full(509, 5.0), np.full(3, 100.0)]
+    assert mc.seeds_for_normal_interval((a - 0.1) - a) == 28     # a constant difference up to rounding has no skew
 
 
 def test_describe_flags_a_field_too_skewed_for_its_interval():
