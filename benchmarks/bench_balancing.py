@@ -1,10 +1,10 @@
 """The balancing robot's two designs (seed 001): compile and run CPU seconds per checkout, in ONE process.
 
-Run:  PYTHONPATH=. .venv/bin/python benchmarks/bench_balancing.py --trees /tmp/base . [--seeds 32]
+Run:  JAXNC_NO_CACHE=1 PYTHONPATH=. .venv/bin/python benchmarks/bench_balancing.py --trees /tmp/base . [--seeds 32]
       [--horizon 25] [--designs model emulation] [--rounds 2]
 
 For each tree in turn the ``jaxnc`` package is imported afresh from that tree (the previous
-tree's modules dropped from ``sys.modules``, as ``benchmarks/ab_inprocess.py`` does), each
+tree's modules dropped from ``sys.modules``, ``benchmarks/ab_inprocess.py``'s helpers), each
 design's loop ``schemes.balancing.balancing_loop(design, horizon_s=H)`` built and
 ``jit(vmap(run))`` over ``--seeds`` keys (base seed 1, the headline test's) lowered and
 compiled (process CPU seconds of lowering + compiling), and run once; its metrics (and the
@@ -23,11 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _purge():
-    for m in list(sys.modules):
-        if m == "jaxnc" or m.startswith(("jaxnc.", "experiments", "tests")):
-            del sys.modules[m]
+from benchmarks.ab_inprocess import _purge, time_abba
 
 
 def build(tree: Path, designs, seeds: int, horizon: float):
@@ -70,14 +66,8 @@ def main():
     trees = [t.resolve() for t in a.trees]
     load0 = os.getloadavg()[0]
     built = [build(t, a.designs, a.seeds, a.horizon) for t in trees]
-    cpu = {(i, j): [] for i in range(len(trees)) for j in range(len(a.designs))}
+    cpu, _ = time_abba(built, a.rounds)
     order = list(range(len(trees)))
-    for _ in range(a.rounds):
-        for i in order + order[::-1]:
-            for j, (_, prog, lp, keys, *_rest) in enumerate(built[i]):
-                c0 = time.process_time()
-                jax.block_until_ready(prog(keys, lp))
-                cpu[(i, j)].append(time.process_time() - c0)
     names = "ABCDEFGH"
     print(f"{a.seeds} seeds x {built[0][0][4]} steps ({a.horizon:g} s), {a.rounds} rounds of "
           f"{'/'.join(names[i] for i in order + order[::-1])}; 1-min load average {load0:.1f} at the start, "
