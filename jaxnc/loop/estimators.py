@@ -183,11 +183,12 @@ class EKF(AbstractEstimator):
         return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
 
     def correct(self, state: EKFState, inbox: Inbox, k) -> tuple[EKFState, jax.Array]:
-        """Re-run the window k - D .. k - 1 (D = ``buffer``) from ``state.base``, then
-        correct at k. The window is a ``lax.scan`` over its D instants (one compiled
-        step, not D unrolled copies: XLA fused the unrolled copies into large loop
-        fusions, about 8x slower to run and twice as long to compile; the same
-        operations in the same order, so the same numbers; docs/design_notes.md)."""
+        """Re-run the window k - D .. k - 1 (D = ``buffer``) from ``state.base``, correcting
+        at each instant whose measurement has arrived, then correct at k.
+
+        Returns (the state with the posterior at k and the next window's base, the
+        posterior mean float[n]). The window is a ``lax.scan`` over its D instants, not D
+        unrolled copies (docs/design_notes.md, "The buffered EKF's window as a scan")."""
         N = state.u.shape[1]                             # fast periods per slow period
         D = self.buffer
 
