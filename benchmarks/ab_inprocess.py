@@ -51,6 +51,24 @@ def build(tree: Path, cells, seeds):
         sys.path.remove(str(tree))
 
 
+def time_abba(built, rounds: int):
+    """Run every tree's programs in the order A B ... B A, ``rounds`` times: ``built[i][j]`` =
+    (cell, compiled program, loop, keys, ...) of tree i, called ``prog(keys, loop)``.
+    Returns ({(i, j): [process CPU s of each run]}, {(i, j): [wall s of each run]})."""
+    import jax
+    cpu = {(i, j): [] for i in range(len(built)) for j in range(len(built[i]))}
+    wall = {k: [] for k in cpu}
+    order = list(range(len(built)))
+    for _ in range(rounds):
+        for i in order + order[::-1]:
+            for j, (_, prog, lp, keys, *_rest) in enumerate(built[i]):
+                t0, c0 = time.perf_counter(), time.process_time()
+                jax.block_until_ready(prog(keys, lp))
+                cpu[(i, j)].append(time.process_time() - c0)
+                wall[(i, j)].append(time.perf_counter() - t0)
+    return cpu, wall
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trees", nargs="+", type=Path, required=True)
@@ -63,16 +81,8 @@ def main():
     trees = [t.resolve() for t in a.trees]
     built = [build(t, cells, a.seeds) for t in trees]
     load0 = os.getloadavg()[0]
-    cpu = {(i, j): [] for i in range(len(trees)) for j in range(len(cells))}
-    wall = {k: [] for k in cpu}
+    cpu, wall = time_abba(built, a.rounds)
     order = list(range(len(trees)))
-    for _ in range(a.rounds):
-        for i in order + order[::-1]:
-            for j, (_, prog, lp, keys, *_rest) in enumerate(built[i]):
-                t0, c0 = time.perf_counter(), time.process_time()
-                jax.block_until_ready(prog(keys, lp))
-                cpu[(i, j)].append(time.process_time() - c0)
-                wall[(i, j)].append(time.perf_counter() - t0)
     print(f"{a.seeds} seeds, {a.rounds} rounds of {'/'.join('ABCDEFGH'[i] for i in order + order[::-1])}; "
           f"1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n")
     print("| tree | loop | compile CPU s | best run CPU s | seed-steps per CPU-s | best wall s | CPU ratio to A "

@@ -1,6 +1,6 @@
 """Which compiled operations a loop's time goes to: jax.profiler's per-thunk trace of XLA:CPU.
 
-Run:  PYTHONPATH=. .venv/bin/python benchmarks/profile_ops.py [--loop drhe10|drhe1|cartpole] [--seeds 1000] [--top 25]
+Run:  PYTHONPATH=. .venv/bin/python benchmarks/profile_ops.py [--loop drhe10|drhe1|cartpole|balmodel|balemu] [--seeds 1000] [--top 25]
 
 Compiles ``jit(vmap(run))`` of the loop over ``--seeds`` keys (configuration as an argument,
 as the experiments run it), runs it once to warm up, then once under ``jax.profiler.trace``
@@ -47,6 +47,10 @@ def loops():
         out["cartpole"] = (lambda k, lp: nc.run(lp, k).cost, cp, cp.steps)
     except ImportError:      # an older checkout without the example
         pass
+    from jaxnc.schemes import balancing as bal
+    for design, name in (("model", "balmodel"), ("emulation", "balemu")):     # 2.5 s of the 25 s scenario
+        bl = bal.balancing_loop(design, horizon_s=2.5)
+        out[name] = (lambda k, lp: bal.run(lp, k), bl, bl.steps)
     return out
 
 

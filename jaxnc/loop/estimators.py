@@ -183,15 +183,27 @@ class EKF(AbstractEstimator):
         return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
 
     def correct(self, state: EKFState, inbox: Inbox, k) -> tuple[EKFState, jax.Array]:
+        """Re-run the window k - D .. k - 1 (D = ``buffer``) from ``state.base``, correcting
+        at each instant whose measurement has arrived, then correct at k.
+
+        Returns (the state with the posterior at k and the next window's base, the
+        posterior mean float[n]). The window is a ``lax.scan`` over its D instants, not D
+        unrolled copies (docs/design_notes.md, "The buffered EKF's window as a scan")."""
         N = state.u.shape[1]                             # fast periods per slow period
-        g = state.base
-        next_base = state.base
-        for i in range(self.buffer):                     # the window k - D .. k - 1 (static D)
-            s = k - self.buffer + i
-            g1 = self._predict_period(self._correct_at(g, inbox, s, N), state.u[i])
+        D = self.buffer
+
+        def instant(carry, xs):
+            g, next_base = carry
+            i, us = xs
+            s = k - D + i
+            g1 = self._predict_period(self._correct_at(g, inbox, s, N), us)
             g = blend((s >= 0).astype(jnp.float32), g1, g)
-            if i == 0:
-                next_base = g
+            next_base = jax.tree.map(lambda a, b: jnp.where(i == 0, a, b), g, next_base)   # prior at k - D + 1
+            return (g, next_base), None
+
+        g = next_base = state.base
+        if D:
+            (g, next_base), _ = jax.lax.scan(instant, (g, next_base), (jnp.arange(D), state.u))
         post = self._correct_at(g, inbox, k, N)
         return state._replace(post=post, next_base=next_base), post.mean
 
