@@ -74,13 +74,16 @@ def direct_cost(loop: nc.Loop, key):
         # the window's measurements: zs[i], arr[i] of instant k - D + i (i = D: now)
         zs = jnp.concatenate([zs[1:], z[None]])
         arr = jnp.concatenate([arr[1:], jnp.where(fire & (delay >= 0), k + delay, NEVER)[None]])
-        g, next_base = base, base
-        for i in range(D):                                # re-run k - D .. k - 1
+        def instant(cw, xs):                              # re-run k - D .. k - 1 (a scan: one compiled step)
+            g, nb = cw
+            i, ui, zi, ai = xs
             s = k - D + i
-            g1 = predict(correct(g, zs[i], arr[i] <= k), us[i])
+            g1 = predict(correct(g, zi, ai <= k), ui)
             g = jax.tree.map(lambda a, b: jnp.where(s >= 0, a, b), g1, g)
-            if i == 0:
-                next_base = g
+            nb = jax.tree.map(lambda a, b: jnp.where(i == 0, a, b), g, nb)
+            return (g, nb), None
+
+        (g, next_base), _ = jax.lax.scan(instant, (base, base), (jnp.arange(D), us, zs[:D], arr[:D]))
         post = correct(g, zs[D], arr[D] <= k)
         # PI on the estimated angle, clamping anti-windup (reference 0)
         e = -post.mean[:1]
