@@ -506,8 +506,9 @@ def draw(loop: Loop, key) -> Draws:
     :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled: one fused kernel each
     instead of a loop, and less to compile); the plant's initial key keeps ``key``'s type."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
-    fast = unrolled(key)
-    k = {name: jax.random.fold_in(fast, i) for i, name in enumerate(STREAMS)}
+    # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
+    ks = jax.vmap(lambda i: jax.random.fold_in(unrolled(key), i))(jnp.arange(len(STREAMS), dtype=jnp.uint32))
+    k = {name: ks[i] for i, name in enumerate(STREAMS)}
     w_std, v_std = jnp.asarray(p.w_std, jnp.float32), jnp.asarray(p.v_std, jnp.float32)
     w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
     if p.noise_period != 1:
