@@ -5,10 +5,12 @@ four rounds (a compile-time saving), so XLA:CPU materialises the two 32-bit word
 counter five times; on a run's draws (:func:`jaxnc.loop.runner.draw`, e.g. 1000 seeds x 4830
 process-noise samples) those passes cost more than the rest of the draw. :func:`unrolled`
 re-labels a key with :data:`THREEFRY_UNROLLED`, a PRNG implementation equal to JAX's
-``threefry2x32`` in everything (key shape, seeding, ``split``, ``fold_in``) except that its
-32-bit random bits come from :func:`threefry2x32` written out, which XLA fuses with what uses
-them. Integer arithmetic is exact, so every draw (``normal``, ``uniform``, ``split``, ...) is
-bit for bit JAX's (tests/test_prng.py); docs/design_notes.md, "The draws' hash unrolled".
+``threefry2x32`` in everything (key shape, seeding) except that its 32-bit random bits
+(:func:`random_bits`), :func:`split` and :func:`fold_in` come from :func:`threefry2x32`
+written out, which XLA fuses with what uses them (one kernel instead of a loop's several).
+Integer arithmetic is exact, so every key and draw (``normal``, ``uniform``, ``split``, ...)
+is bit for bit JAX's (tests/test_prng.py); docs/design_notes.md, "The draws' hash unrolled"
+and "Every draw through the unrolled hash".
 """
 from __future__ import annotations
 
