@@ -503,11 +503,12 @@ class Draws(NamedTuple):
 def draw(loop: Loop, key) -> Draws:
     """All of a run's random draws, one stream per purpose (:data:`STREAMS`). Every draw
     (the streams' ``fold_in``, the noise, the links' ``split`` and samples) goes through
-    :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled: one fused kernel each
-    instead of a loop, and less to compile); the plant's initial key keeps ``key``'s type."""
+    :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled: fused with what uses it
+    instead of a loop of several kernels); the plant's initial key keeps ``key``'s kind."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
-    ks = jax.vmap(lambda i: jax.random.fold_in(unrolled(key), i))(jnp.arange(len(STREAMS), dtype=jnp.uint32))
+    fast = unrolled(key)
+    ks = jax.vmap(lambda i: jax.random.fold_in(fast, i))(jnp.arange(len(STREAMS), dtype=jnp.uint32))
     k = {name: ks[i] for i, name in enumerate(STREAMS)}
     w_std, v_std = jnp.asarray(p.w_std, jnp.float32), jnp.asarray(p.v_std, jnp.float32)
     w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
