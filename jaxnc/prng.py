@@ -5,10 +5,12 @@ four rounds (a compile-time saving), so XLA:CPU materialises the two 32-bit word
 counter five times; on a run's draws (:func:`jaxnc.loop.runner.draw`, e.g. 1000 seeds x 4830
 process-noise samples) those passes cost more than the rest of the draw. :func:`unrolled`
 re-labels a key with :data:`THREEFRY_UNROLLED`, a PRNG implementation equal to JAX's
-``threefry2x32`` in everything (key shape, seeding, ``split``, ``fold_in``) except that its
-32-bit random bits come from :func:`threefry2x32` written out, which XLA fuses with what uses
-them. Integer arithmetic is exact, so every draw (``normal``, ``uniform``, ``split``, ...) is
-bit for bit JAX's (tests/test_prng.py); docs/design_notes.md, "The draws' hash unrolled".
+``threefry2x32`` in everything (key shape, seeding) except that its 32-bit random bits
+(:func:`random_bits`), :func:`split` and :func:`fold_in` come from :func:`threefry2x32`
+written out, which XLA fuses with what uses them (one kernel instead of a loop's several).
+Integer arithmetic is exact, so every key and draw (``normal``, ``uniform``, ``split``, ...)
+is bit for bit JAX's (tests/test_prng.py); docs/design_notes.md, "The draws' hash unrolled"
+and "Every draw through the unrolled hash".
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import numpy as np
 from jax import lax
 from jax.extend.random import define_prng_impl, threefry_prng_impl
 
-__all__ = ["threefry2x32", "random_bits", "THREEFRY_UNROLLED", "unrolled"]
+__all__ = ["threefry2x32", "random_bits", "split", "fold_in", "THREEFRY_UNROLLED", "unrolled"]
 
 _ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
 
@@ -66,10 +68,42 @@ def random_bits(key, bit_width: int, shape):
     return b1 ^ b2
 
 
-#: JAX's threefry2x32 PRNG with :func:`random_bits` (the same streams)
+def split(key, shape):
+    """The keys of JAX's ``threefry2x32`` ``split`` (``jax_threefry_partitionable`` mode) of raw
+    key data ``key`` (uint32[2]): the hash of the row-major index of each new key, its two words
+    the new key. The non-partitionable mode and 2**32 keys or more are JAX's own function.
+
+    Args:
+      key: uint32[2]; shape: static tuple of ints, the keys' shape.
+
+    Returns:
+      uint32[*shape, 2], bit for bit ``jax.random.split`` of the same key.
+    """
+    shape = tuple(int(d) for d in shape)
+    size = int(np.prod(shape, dtype=np.int64))
+    if not jax.config.jax_threefry_partitionable or size >= 2**32:
+        return threefry_prng_impl.split(key, shape)
+    lo = lax.iota(np.uint32, size).reshape(shape)
+    b1, b2 = threefry2x32(key[0], key[1], jnp.zeros(shape, np.uint32), lo)
+    return jnp.stack([b1, b2], axis=len(shape))
+
+
+def fold_in(key, data):
+    """JAX's ``threefry2x32`` ``fold_in`` of raw key data ``key`` (uint32[2]) and a scalar
+    ``data``: the hash of the counter (0, data as uint32), its two words the new key.
+
+    Returns:
+      uint32[2], bit for bit ``jax.random.fold_in`` of the same key and data.
+    """
+    d = jnp.asarray(data).astype(np.uint32)
+    b1, b2 = threefry2x32(key[0], key[1], jnp.zeros((), np.uint32), d)
+    return jnp.stack([b1, b2])
+
+
+#: JAX's threefry2x32 PRNG with :func:`random_bits`, :func:`split` and :func:`fold_in` (the same streams)
 THREEFRY_UNROLLED = define_prng_impl(
-    key_shape=(2,), seed=threefry_prng_impl.seed, split=threefry_prng_impl.split,
-    random_bits=random_bits, fold_in=threefry_prng_impl.fold_in, name="threefry2x32_unrolled", tag="fru")
+    key_shape=(2,), seed=threefry_prng_impl.seed, split=split,
+    random_bits=random_bits, fold_in=fold_in, name="threefry2x32_unrolled", tag="fru")
 
 
 def unrolled(key):

@@ -72,3 +72,35 @@ def test_runner_draws_are_jax_streams():
     v = jax.jit(lambda k: jax.random.normal(k, (S, p.output_dim), jnp.float32)
                 * jnp.asarray(p.v_std, jnp.float32)[None, :])(kv)
     assert _same(d.w, w) and _same(d.v, v)
+
+
+@pytest.mark.parametrize("shape", [(2,), (3,), (4, 3)])
+def test_split_and_fold_in_of_many_keys_equal_jax_bit_for_bit(shape):
+    """The unrolled split and fold_in (prng.split, prng.fold_in) under jit(vmap) equal JAX's own."""
+    keys = _keys()
+    ref = jax.jit(jax.vmap(lambda k: jax.random.split(k, shape)))(keys)
+    got = jax.jit(jax.vmap(lambda k: jax.random.key_data(jax.random.split(prng.unrolled(k), shape))))(keys)
+    assert _same(ref, got)
+    for data in (0, 4, 2**31 + 7):
+        ref = jax.jit(jax.vmap(lambda k: jax.random.fold_in(k, data)))(keys)
+        got = jax.jit(jax.vmap(lambda k: jax.random.key_data(jax.random.fold_in(prng.unrolled(k), data))))(keys)
+        assert _same(ref, got)
+
+
+@pytest.mark.parametrize("typed", [False, True])
+def test_runner_link_draws_and_init_key_are_jax_streams(typed):
+    """The links' draws (split, uniform losses, exponential delays) equal those of JAX's own
+    stream, and the plant's initial key keeps the run key's kind (raw data or typed)."""
+    from jaxnc.loop.links import draw_link
+    from jaxnc.loop.runner import STREAMS, draw
+    from jaxnc.schemes.mecanum import mecanum_loop
+    lp = mecanum_loop("DRHE", 10, 0.5)
+    key = jax.random.key(5) if typed else jax.random.PRNGKey(5)
+    d = jax.jit(draw)(lp, key)
+    S = lp.steps // lp.N
+    for name, link, got in (("uplink", lp.uplink, d.uplink), ("downlink", lp.downlink, d.downlink)):
+        ref = jax.jit(lambda k: draw_link(link, jax.random.fold_in(k, STREAMS.index(name)), S, lp.T))(key)
+        assert _same(ref.delay, got.delay)
+    init = jax.random.fold_in(key, STREAMS.index("plant_init"))
+    assert d.init_key.dtype == init.dtype
+    assert _same(jax.random.key_data(init) if typed else init, jax.random.key_data(d.init_key) if typed else d.init_key)

@@ -501,18 +501,33 @@ class Draws(NamedTuple):
 
 
 def draw(loop: Loop, key) -> Draws:
-    """All of a run's random draws, one stream per purpose (:data:`STREAMS`). The noise
-    draws go through :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled)."""
+    """All of a run's random draws, one stream per purpose (:data:`STREAMS`). Every draw
+    (the streams' ``fold_in``, the noise, the links' ``split`` and samples) goes through
+    :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled: fused with what uses it
+    instead of a loop of several kernels); the plant's initial key keeps ``key``'s kind."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
-    k = {name: jax.random.fold_in(key, i) for i, name in enumerate(STREAMS)}
+    # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
+    fast = unrolled(key)
+    ks = jax.vmap(lambda i: jax.random.fold_in(fast, i))(jnp.arange(len(STREAMS), dtype=jnp.uint32))
+    k = {name: ks[i] for i, name in enumerate(STREAMS)}
     w_std, v_std = jnp.asarray(p.w_std, jnp.float32), jnp.asarray(p.v_std, jnp.float32)
-    w = jax.random.normal(unrolled(k["process"]), (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
+    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
     if p.noise_period != 1:
         t = np.arange(S * N).reshape(S, N)
         w = jnp.where(jnp.asarray(t % p.noise_period == 0)[:, :, None], w, 0.0)
-    v = jax.random.normal(unrolled(k["measurement"]), (S, p.output_dim), jnp.float32) * v_std[None, :]
+    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * v_std[None, :]
     return Draws(w, v, draw_link(loop.uplink, k["uplink"], S, loop.T), draw_link(loop.downlink, k["downlink"], S, loop.T),
-                 k["plant_init"])
+                 _as_key_of(k["plant_init"], key))
+
+
+def _as_key_of(k, like):
+    """``k`` (a :func:`jaxnc.prng.unrolled` key, or ``like``'s own when not re-labelled) as a key
+    of ``like``'s kind: raw uint32 data, or a typed key of its implementation."""
+    if k.dtype == like.dtype:
+        return k
+    data = jax.random.key_data(k)
+    return jax.random.wrap_key_data(data, impl=jax.random.key_impl(like)) if jnp.issubdtype(
+        like.dtype, jax.dtypes.prng_key) else data
 
 
 class Trajectory(NamedTuple):
