@@ -48,6 +48,17 @@ def threefry2x32(k1, k2, x1, x2):
     return x1, x2
 
 
+def _size(shape) -> int:
+    return int(np.prod(shape, dtype=np.int64))
+
+
+def _hash_indices(key, shape):
+    """The hash under raw key data ``key`` (uint32[2]) of each element's row-major index
+    (the counter (0, index)): the partitionable mode's bits and split keys."""
+    lo = lax.iota(np.uint32, _size(shape)).reshape(shape)
+    return threefry2x32(key[0], key[1], jnp.zeros(shape, np.uint32), lo)
+
+
 def random_bits(key, bit_width: int, shape):
     """The random bits of JAX's ``threefry2x32`` (``jax_threefry_partitionable`` mode) for raw
     key data ``key`` (uint32[2]): each element's row-major index is the counter, and the
@@ -60,11 +71,9 @@ def random_bits(key, bit_width: int, shape):
     Returns:
       uint{bit_width}[shape], bit for bit ``jax.random.bits`` of the same key.
     """
-    size = int(np.prod(shape, dtype=np.int64))
-    if bit_width != 32 or not jax.config.jax_threefry_partitionable or size >= 2**32:
+    if bit_width != 32 or not jax.config.jax_threefry_partitionable or _size(shape) >= 2**32:
         return threefry_prng_impl.random_bits(key, bit_width, shape)
-    lo = lax.iota(np.uint32, size).reshape(shape)
-    b1, b2 = threefry2x32(key[0], key[1], jnp.zeros(shape, np.uint32), lo)
+    b1, b2 = _hash_indices(key, shape)
     return b1 ^ b2
 
 
@@ -80,12 +89,9 @@ def split(key, shape):
       uint32[*shape, 2], bit for bit ``jax.random.split`` of the same key.
     """
     shape = tuple(int(d) for d in shape)
-    size = int(np.prod(shape, dtype=np.int64))
-    if not jax.config.jax_threefry_partitionable or size >= 2**32:
+    if not jax.config.jax_threefry_partitionable or _size(shape) >= 2**32:
         return threefry_prng_impl.split(key, shape)
-    lo = lax.iota(np.uint32, size).reshape(shape)
-    b1, b2 = threefry2x32(key[0], key[1], jnp.zeros(shape, np.uint32), lo)
-    return jnp.stack([b1, b2], axis=len(shape))
+    return jnp.stack(_hash_indices(key, shape), axis=len(shape))
 
 
 def fold_in(key, data):
