@@ -249,8 +249,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
                  "normal_interval_seeds": {
                      "tuned": montecarlo.seeds_for_normal_interval(v_tuned),
                      "search": montecarlo.seeds_for_normal_interval(v_search),
-                     "tuned_minus_search": montecarlo.seeds_for_normal_interval(
-                         np.asarray(v_tuned, np.float64) - np.asarray(v_search, np.float64))}},
+                     "tuned_minus_search": montecarlo.seeds_for_normal_interval(v_tuned - v_search)}},
         "wall_time_s": time.perf_counter() - t0,
     }
     out["verdict"] = verdict(*out["eval"]["tuned_minus_search"], max(out["eval"]["normal_interval_seeds"].values()),
