@@ -69,6 +69,21 @@ def time_abba(built, rounds: int):
     return cpu, wall
 
 
+def abba_rows(built, cpu):
+    """Per cell j, then tree i: (i, j, best process CPU s of its runs, whether its results
+    (``built[i][j][6]``, a tuple of arrays) equal tree A's bit for bit)."""
+    for j in range(len(built[0])):
+        for i in range(len(built)):
+            same = all(np.array_equal(x, y, equal_nan=True) for x, y in zip(built[i][j][6], built[0][j][6]))
+            yield i, j, min(cpu[(i, j)]), same
+
+
+def abba_order(n_trees: int) -> str:
+    """One round's order of trees, e.g. A/B/B/A."""
+    order = list(range(n_trees))
+    return "/".join("ABCDEFGH"[i] for i in order + order[::-1])
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trees", nargs="+", type=Path, required=True)
@@ -82,19 +97,15 @@ def main():
     built = [build(t, cells, a.seeds) for t in trees]
     load0 = os.getloadavg()[0]
     cpu, wall = time_abba(built, a.rounds)
-    order = list(range(len(trees)))
-    print(f"{a.seeds} seeds, {a.rounds} rounds of {'/'.join('ABCDEFGH'[i] for i in order + order[::-1])}; "
+    print(f"{a.seeds} seeds, {a.rounds} rounds of {abba_order(len(trees))}; "
           f"1-min load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end\n")
     print("| tree | loop | compile CPU s | best run CPU s | seed-steps per CPU-s | best wall s | CPU ratio to A "
           "| bit-identical to A |")
     print("|---|---|---|---|---|---|---|---|")
-    for j, (case, N) in enumerate(cells):
-        for i, t in enumerate(trees):
-            cell, prog, lp, keys, steps, comp, res = built[i][j]
-            same = all(np.array_equal(x, y, equal_nan=True) for x, y in zip(res, built[0][j][6]))
-            b = min(cpu[(i, j)])
-            print(f"| {'ABCDEFGH'[i]} {t} | {case} N={N} DP=0.5 | {comp:.1f} | {b:.3f} | {a.seeds * steps / b:,.0f} "
-                  f"| {min(wall[(i, j)]):.3f} | x{min(cpu[(0, j)]) / b:.3f} | {'yes' if same else 'NO'} |")
+    for i, j, b, same in abba_rows(built, cpu):
+        (case, N), steps, comp = cells[j], built[i][j][4], built[i][j][5]
+        print(f"| {'ABCDEFGH'[i]} {trees[i]} | {case} N={N} DP=0.5 | {comp:.1f} | {b:.3f} | {a.seeds * steps / b:,.0f} "
+              f"| {min(wall[(i, j)]):.3f} | x{min(cpu[(0, j)]) / b:.3f} | {'yes' if same else 'NO'} |")
 
 
 if __name__ == "__main__":

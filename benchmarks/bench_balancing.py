@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.ab_inprocess import _purge, time_abba
+from benchmarks.ab_inprocess import _purge, abba_order, abba_rows, time_abba
 
 
 def build(tree: Path, designs, seeds: int, horizon: float):
@@ -67,21 +67,16 @@ def main():
     load0 = os.getloadavg()[0]
     built = [build(t, a.designs, a.seeds, a.horizon) for t in trees]
     cpu, _ = time_abba(built, a.rounds)
-    order = list(range(len(trees)))
-    names = "ABCDEFGH"
     print(f"{a.seeds} seeds x {built[0][0][4]} steps ({a.horizon:g} s), {a.rounds} rounds of "
-          f"{'/'.join(names[i] for i in order + order[::-1])}; 1-min load average {load0:.1f} at the start, "
+          f"{abba_order(len(trees))}; 1-min load average {load0:.1f} at the start, "
           f"{os.getloadavg()[0]:.1f} at the end\n")
     print("| tree | design | compile CPU s | best run CPU s | us per seed-step | run CPU ratio A / this "
           "| bit-identical to A |")
     print("|---|---|---|---|---|---|---|")
-    for j, design in enumerate(a.designs):
-        for i, t in enumerate(trees):
-            _, _, _, _, steps, comp, res = built[i][j]
-            same = all(np.array_equal(x, y, equal_nan=True) for x, y in zip(res, built[0][j][6]))
-            b = min(cpu[(i, j)])
-            print(f"| {names[i]} {t} | {design} | {comp:.1f} | {b:.3f} | {b / (a.seeds * steps) * 1e6:.2f} "
-                  f"| x{min(cpu[(0, j)]) / b:.2f} | {'yes' if same else 'NO'} |")
+    for i, j, b, same in abba_rows(built, cpu):
+        steps, comp = built[i][j][4], built[i][j][5]
+        print(f"| {'ABCDEFGH'[i]} {trees[i]} | {a.designs[j]} | {comp:.1f} | {b:.3f} | {b / (a.seeds * steps) * 1e6:.2f} "
+              f"| x{min(cpu[(0, j)]) / b:.2f} | {'yes' if same else 'NO'} |")
 
 
 if __name__ == "__main__":
