@@ -22,9 +22,13 @@ steps that resolve no coordinate after a quarter of their number stop, and the r
 their budget runs the search's finalists and the steps' end; ``estimator=auto``:
 its own check picks the estimator), and successive halving over a log grid of the same
 parameters with the budget ``tune_loop`` spent (search + check + gradient steps); the start, the tuned point and the search's best are
-evaluated with hard triggers on the same fresh seeds, with paired 95 % intervals.
-Each loop's results are written as soon as it finishes (``<loop>.json``) and reused by a
-re-run with the same settings, so an interrupted study loses at most one loop.
+evaluated with hard triggers on the same fresh seeds, with paired 95 % intervals, the tuned
+point and the search's best on more seeds while Cochran's rule says their comparison needs
+more (up to ``max_eval_seeds``; :func:`evaluate`).
+Each loop's checks, tuning and search are written as soon as they finish
+(``<loop>.tuning.json``), then its evaluation (``<loop>.json``); each is reused by a re-run
+whose settings it depends on are unchanged, so an interrupted study loses at most one stage
+of one loop, and a new evaluation rule does not re-tune.
 """
 from __future__ import annotations
 
@@ -47,7 +51,9 @@ from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
 GPI_UNSTABLE = 10.0          # the GPI charged to an unstable HDD run (a stable one is below 1.5)
 EVAL_SEED = 5_000_011        # fresh: the check, the tuner and the search use seeds below 10^5
-VERSION = 11                 # of this study's definition: a stored loop is reused only at the same version
+TUNING_VERSION = 11          # of the checks, the tuning and the search: a stored <loop>.tuning.json is reused only at it
+VERSION = 12                 # of the whole study (the evaluation's seed rule): a stored <loop>.json likewise
+MAX_EVAL_SEEDS = 65_536      # the evaluation's default cap (option max_eval_seeds)
 
 
 class Problem(NamedTuple):
@@ -185,8 +191,9 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
           search_budget: int = 0, study_check_seeds: int = 0, estimator: str = "score",
           progress: bool = True) -> dict:
     """The check at two points (``study_check_seeds`` seeds, 0: the problem's own), tune_loop
-    (its own check on ``check_seeds``), the equal-budget search and the evaluation of one loop
-    (on ``eval_seeds`` common seeds, or the problem's ``eval_seeds`` if more)."""
+    (its own check on ``check_seeds``; its own report evaluates on ``eval_seeds`` seeds, or the
+    problem's ``eval_seeds`` if more) and the equal-budget search of one loop; the study's
+    evaluation of the three points is :func:`evaluate`."""
     t0 = time.perf_counter()
     eval_seeds = max(eval_seeds, problem.eval_seeds)
     n_check = study_check_seeds or problem.check_seeds
@@ -212,15 +219,10 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     mesh = np.meshgrid(*[np.arange(len(axes[n])) for n in grid_names], indexing="ij")
     points = [{p: axes[n][int(idx[j])] for j, n in enumerate(grid_names) for p in names[n]}
               for idx in zip(*[m.reshape(-1) for m in mesh])]
-    def per_seed(point, key):
-        return objective_total(problem.objective(problem.run(set_paths(problem.loop, point), key)))
+    per_seed = _per_seed(problem)
     sh = successive_halving(per_seed, points, montecarlo.seed_keys(seed + 50_000, budget), budget=budget,
                             progress=progress, desc=f"{problem.name} search")
     best = {n: sh.best_point[names[n][0]] for n in grid_names}
-    ekeys = montecarlo.seed_keys(EVAL_SEED, eval_seeds)
-    v_search = np.asarray(montecarlo.run_batched(lambda k, pt: per_seed(pt, k), ekeys, args=(sh.best_point,),
-                                                 chunk_size=min(eval_seeds, 1024), progress=False), np.float64)
-    v_start, v_tuned = (np.asarray(v, np.float64) for v in r.eval_values)
     out = {
         "loop": problem.name, "describe": problem.describe, "checks": checks,
         "tune": {"start": start, "tuned": {n: float(np.asarray(v)) for n, v in r.params.items()},
@@ -242,19 +244,69 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
                    "candidates": [{n: pt[names[n][0]] for n in grid_names} for pt in sh.points],
                    "candidate_mean": [float(m) if np.isfinite(m) else "inf" for m in sh.mean],
                    "candidate_seeds": np.sum(~np.isnan(sh.values), axis=1).tolist()},
-        "eval": {"seeds": eval_seeds, "start": mean_ci(v_start), "tuned": mean_ci(v_tuned),
-                 "search": mean_ci(v_search), "tuned_minus_start": paired_ci(v_tuned, v_start),
-                 "tuned_minus_search": paired_ci(v_tuned, v_search),
-                 # Cochran's rule (montecarlo.seeds_for_normal_interval): seeds the normal interval needs
-                 "normal_interval_seeds": {
-                     "tuned": montecarlo.seeds_for_normal_interval(v_tuned),
-                     "search": montecarlo.seeds_for_normal_interval(v_search),
-                     "tuned_minus_search": montecarlo.seeds_for_normal_interval(v_tuned - v_search)}},
         "wall_time_s": time.perf_counter() - t0,
     }
-    out["verdict"] = verdict(*out["eval"]["tuned_minus_search"], max(out["eval"]["normal_interval_seeds"].values()),
-                             eval_seeds)
     return out
+
+
+def _per_seed(problem: Problem) -> Callable:
+    """``f(point, key)``: the objective of one run at ``point`` ({path: value}), hard triggers."""
+    def f(point, key):
+        return objective_total(problem.objective(problem.run(set_paths(problem.loop, point), key)))
+    return f
+
+
+def _point(names: dict, values: dict) -> dict:
+    """{path: value} for set_paths from {name: value} (a tied name sets each of its paths)."""
+    return {p: float(values[n]) for n, paths in names.items() for p in paths}
+
+
+def evaluate(problem: Problem, res: dict, *, seeds: int, max_seeds: int, progress: bool = True) -> dict:
+    """The start, the tuned point and the search's best of ``res`` (a :func:`study` result)
+    on common fresh seeds (base ``EVAL_SEED``), hard triggers: each on ``seeds`` seeds (or
+    the problem's ``eval_seeds`` if more); then, while Cochran's rule for the tuned-vs-search
+    comparison (:func:`jaxnc.montecarlo.seeds_for_paired_interval`) asks for more seeds than
+    it has, the tuned point and the search's best on more (at least twice as many, at least
+    what the rule asks), up to ``max_seeds``. Identical points need no more (their
+    difference is zero on every seed). Returns ``{"eval": ..., "verdict": ...}``: the
+    intervals, the paired differences (tuned - start on the first ``start_seeds`` seeds),
+    the seed counts of each round and what the rule asks on the final sample."""
+    n = max(seeds, problem.eval_seeds)
+    names = param_paths(problem.params)
+    pts = {k: _point(names, v) for k, v in (("start", res["tune"]["start"]), ("tuned", res["tune"]["tuned"]),
+                                            ("search", res["search"]["best"]))}
+
+    per_seed = _per_seed(problem)
+
+    def more(point, have: np.ndarray, upto: int) -> np.ndarray:
+        keys = montecarlo.seed_keys(EVAL_SEED, upto - have.size, start=have.size)
+        v = montecarlo.run_batched(lambda k, pt: per_seed(pt, k), keys, args=(point,), chunk_size=min(upto - have.size, 1024),
+                                   progress=False)
+        return np.concatenate([have, np.asarray(v, np.float64)])
+
+    vals = {k: more(pt, np.zeros(0), n) for k, pt in pts.items()}
+    rounds = [n]
+    same = pts["tuned"] == pts["search"]
+    need = montecarlo.seeds_for_paired_interval(vals["tuned"], vals["search"])
+    while not same and need > n and n < max_seeds:
+        n = min(max_seeds, max(2 * n, -(-need // 1024) * 1024))
+        if progress:
+            print(f"[{problem.name}] evaluation: Cochran's rule asks {need} seeds; tuned and search on {n}", flush=True)
+        vals["tuned"], vals["search"] = more(pts["tuned"], vals["tuned"], n), more(pts["search"], vals["search"], n)
+        rounds.append(n)
+        need = montecarlo.seeds_for_paired_interval(vals["tuned"], vals["search"])
+    v_start, v_tuned, v_search = vals["start"], vals["tuned"], vals["search"]
+    ev = {"seeds": n, "start_seeds": rounds[0], "rounds": rounds, "max_seeds": max_seeds,
+          "start": mean_ci(v_start), "tuned": mean_ci(v_tuned), "search": mean_ci(v_search),
+          "tuned_minus_start": paired_ci(v_tuned[:rounds[0]], v_start),
+          "tuned_minus_search": paired_ci(v_tuned, v_search),
+          "same_point": same,
+          # Cochran's rule (montecarlo.seeds_for_normal_interval) on the final sample
+          "normal_interval_seeds": {
+              "tuned": montecarlo.seeds_for_normal_interval(v_tuned),
+              "search": montecarlo.seeds_for_normal_interval(v_search),
+              "tuned_minus_search": montecarlo.seeds_for_normal_interval(v_tuned - v_search)}}
+    return {"eval": ev, "verdict": verdict(*ev["tuned_minus_search"], 0 if same else need, n)}
 
 
 def verdict(d: float, ci: float, need: int, seeds: int) -> str:
@@ -273,6 +325,13 @@ def _fmt_pt(pt: dict) -> str:
 
 def _ci(x) -> str:
     return f"{x[0]:.4g} ± {x[1]:.2g}"
+
+
+def _seeds(e: dict) -> str:
+    """The evaluation's seeds: each round's count (Cochran's rule), and the start's if fewer."""
+    rounds = e.get("rounds", [e["seeds"]])
+    s = " → ".join(str(n) for n in rounds)
+    return s + (f" (start {e['start_seeds']})" if e.get("start_seeds", rounds[-1]) != rounds[-1] else "")
 
 
 def _steps(tn: dict) -> str:
@@ -309,7 +368,7 @@ def tables(results: list[dict]) -> str:
         e, tn, sr = res["eval"], res["tune"], res["search"]
         rows.append([res["loop"], _fmt_pt(tn["start"]), _fmt_pt(tn.get("gradient_start", tn["start"])),
                      _fmt_pt(tn["tuned"]), tn["estimator"], _fmt_pt(sr["best"]),
-                     _steps(tn), str(tn["simulations"]), str(sr["simulations"]), str(e["seeds"]), _ci(e["start"]),
+                     _steps(tn), str(tn["simulations"]), str(sr["simulations"]), _seeds(e), _ci(e["start"]),
                      _ci(e["tuned"]),
                      _ci(e["search"]), _ci(e["tuned_minus_search"]), res["verdict"]])
     t2 = markdown_table(["loop", "start", "gradient from", "tuned", "estimator", "search's best",
@@ -366,14 +425,33 @@ def _config(settings: dict, seeds: int) -> dict:
     return {k: v for k, v in settings.items() if k != "loops"} | {"seeds": seeds, "version": VERSION}
 
 
+def _tuning_config(settings: dict, seeds: int) -> dict:
+    """The configuration the checks, the tuning and the search depend on (not the evaluation's cap)."""
+    return {k: v for k, v in settings.items() if k not in ("loops", "max_eval_seeds")} | {
+        "seeds": seeds, "version": TUNING_VERSION}
+
+
+def _part(name: str, settings: dict, seeds: int, out: Path, progress: bool) -> dict:
+    """One loop: its checks, tuning and search (stored in ``out/<loop>.tuning.json``, reused
+    while their configuration is unchanged), then :func:`evaluate`."""
+    problem = BUILDERS[name](settings)
+    res = montecarlo.stored_or_run(
+        out / f"{name}.tuning.json", experiment="tune-loops", config=_tuning_config(settings, seeds), progress=progress,
+        compute=lambda: study(
+            problem, check_seeds=settings["check_seeds"], steps=settings["steps"], batch=settings["batch"],
+            eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
+            study_check_seeds=settings["study_check_seeds"], estimator=settings["estimator"], progress=progress))
+    t0 = time.perf_counter()
+    ev = evaluate(problem, res, seeds=seeds, max_seeds=max(settings["max_eval_seeds"], seeds), progress=progress)
+    return dict(res, **ev, wall_time_s=res["wall_time_s"] + time.perf_counter() - t0,
+                tuning_wall_time_s=res["wall_time_s"])
+
+
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
     return montecarlo.stored_study(
         out, experiment="tune-loops", config=_config(settings, seeds), progress=progress,
         parts=LOOPS if settings["loops"] == "all" else (settings["loops"],),
-        compute=lambda name: study(
-            BUILDERS[name](settings), check_seeds=settings["check_seeds"], steps=settings["steps"],
-            batch=settings["batch"], eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
-            study_check_seeds=settings["study_check_seeds"], estimator=settings["estimator"], progress=progress),
+        compute=lambda name: _part(name, settings, seeds, Path(out), progress),
         tables=tables, plot=plot)
 
 
@@ -397,6 +475,9 @@ register(Experiment(
         Option("w_cartpole", "float", 2.0, "cart-pole: weight of the sensor rate", low=0.0, high=1e4),
         Option("seed", "int", 0, "base seed of checks, tuning and search (evaluation: 5000011)", low=0,
                high=1_000_000),
+        Option("max_eval_seeds", "int", MAX_EVAL_SEEDS, "the evaluation's cap: the tuned point and the search's "
+               "best get more seeds (doubling) while Cochran's rule asks for more, up to this many", low=2,
+               high=1_048_576),
     ),
     run=run,
 ))

@@ -37,7 +37,7 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval", "seeds_for_paired_interval",
            "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
            "stored_or_run", "stored_study"]
@@ -399,6 +399,23 @@ def seeds_for_normal_interval(values) -> int:
         return 28
     g1 = float(np.mean(c ** 3)) / m2 ** 1.5
     return int(math.floor(28 + 25 * g1 * g1)) + 1
+
+
+def seeds_for_paired_interval(a, b) -> int:
+    """The seeds a paired comparison of ``a`` and ``b`` (costs of two configurations on the
+    same seeds, equal shapes) needs before its normal intervals can be trusted: the largest
+    of :func:`seeds_for_normal_interval` of ``a``, of ``b`` and of their differences
+    ``a - b``. Each point's own costs count, not only the differences: on few seeds two
+    heavy-tailed points can agree in every run drawn so far while either one's rare costly
+    runs (not yet drawn together) decide the sign (docs/tuning_loops.md, "When a normal
+    interval can be trusted").
+
+    Raises ValueError when the shapes differ."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"seeds_for_paired_interval: a and b must have the same shape (paired seeds), "
+                         f"got {a.shape} and {b.shape}")
+    return max(seeds_for_normal_interval(v) for v in (a, b, a - b))
 
 
 def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:

@@ -226,6 +226,23 @@ def test_seeds_for_normal_interval_is_cochrans_rule_on_the_sample_skewness():
     assert mc.seeds_for_normal_interval((a - 0.1) - a) == 28     # a constant difference up to rounding has no skew
 
 
+def test_seeds_for_paired_interval_counts_each_point_and_the_differences():
+    """Two points with the same three rare failures agree on every seed (differences nearly
+    symmetric), yet each point's mean needs thousands of seeds: the paired count is the
+    largest of the three; unequal shapes (not paired) raise."""
+    a = np.r_[np.full(509, 5.0), np.full(3, 100.0)] + np.linspace(-1.0, 1.0, 512)
+    b = a + np.linspace(-0.5, 0.5, 512)[::-1]
+    n_a, n_b, n_d = (mc.seeds_for_normal_interval(v) for v in (a, b, a - b))
+    assert n_d < 100 < 2000 < min(n_a, n_b)
+    assert mc.seeds_for_paired_interval(a, b) == max(n_a, n_b, n_d) == mc.seeds_for_paired_interval(b, a)
+    # differences skewed more than either point: the differences decide
+    c = a.copy()
+    c[10] += 400.0
+    assert mc.seeds_for_paired_interval(a, c) == mc.seeds_for_normal_interval(a - c) > mc.seeds_for_normal_interval(a)
+    with pytest.raises(ValueError, match="same shape"):
+        mc.seeds_for_paired_interval(a, b[:-1])
+
+
 def test_describe_flags_a_field_too_skewed_for_its_interval():
     """print(metrics) of a batch whose cost has 3 failures in 512 runs says the interval needs
     thousands of runs; a symmetric field does not."""

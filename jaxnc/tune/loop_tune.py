@@ -186,7 +186,7 @@ class LoopTuneResult(NamedTuple):
             lines.append(f"objective (hard triggers, fresh seeds): start {s[0]:.4g} +- {s[1]:.2g}, "
                          f"tuned {t[0]:.4g} +- {t[1]:.2g}; paired difference {d[0]:.4g} +- {d[1]:.2g}")
             v0, v1 = (np.asarray(v, np.float64) for v in self.eval_values)
-            need = max(montecarlo.seeds_for_normal_interval(v) for v in (v0, v1, v1 - v0))
+            need = montecarlo.seeds_for_paired_interval(v1, v0)
             if need > v0.size:
                 lines.append(f"  doubtful: the objective is skewed (rare costly runs); its normal interval needs about "
                              f"{need} seeds by Cochran's rule, the evaluation has {v0.size} (eval_seeds)")
