@@ -49,11 +49,21 @@ def test_bad_input_is_refused_before_tracing():
 
 
 def test_mc_mean_is_the_vmap_mean_in_value_and_gradient():
-    lp = _loop()
+    """mc_mean's chunks (lax.map, each checkpointed) against one vmap, in value and gradient.
+    The per-seed function is _loop's plant under the gain written as a scan (40 noisy steps):
+    a loop in the checkpointed backward pass, as a runner loop would be, but whose two
+    gradient programs compile in a fraction of the runner's time (mc_mean does not look
+    inside fn; the runner's own gradient is tested in tests/test_loop.py)."""
     keys = montecarlo.seed_keys(0, 10)
+    a, b = jnp.asarray(A, jnp.float32), jnp.asarray(B, jnp.float32)
 
     def f(k_gain, key):
-        return nc.run(dataclasses.replace(lp, controller=nc.StateFeedback(k_gain)), key).cost_raw
+        def step(x, w):
+            u = -(k_gain @ x)
+            x = a @ x + b @ u + w
+            return x, x @ x + 0.01 * u @ u
+        w = jax.random.normal(key, (40, 2)) * jnp.asarray([[0.01, 0.02]])
+        return jnp.sum(jax.lax.scan(step, jnp.asarray([1.0, 0.0]), w)[1])
 
     K = jnp.asarray([[3.0, 1.5]])
     # each side one compiled program (run eagerly, the gradient compiles every primitive apart: ~300 programs)
@@ -114,18 +124,23 @@ def test_tied_paths_move_together_and_must_start_equal():
 
 def test_run_argument_takes_any_per_seed_function_of_the_configuration():
     """``run=`` returns whatever the objective reads (here a tuple): the result is the same
-    as the default run with the equivalent objective, on the same seeds."""
-    lp = _loop(K=(0.5, 0.3))
-    kw = dict(steps=3, batch=4, estimator="straight_through", eval_seeds=16, progress=False)
-    a = tune_loop(lp, {"controller.K": Positive()}, lambda m: m.cost_raw + 0.1 * m.rate_sc, **kw)
-    b = tune_loop(lp, {"controller.K": Positive()}, lambda t: t[0] + 0.1 * t[1],
+    as the default run with the equivalent objective, on the same seeds. (The default run
+    is test_pair_objective_reaches_the_check_and_the_hybrid_tuner's straight-through call:
+    the same loop, parameter, objective and batch, so the suite compiles its programs once.)"""
+    lp = _loop(delta=1e-2)
+    kw = dict(steps=2, batch=4, estimator="straight_through", eval_seeds=16, progress=False)
+    a = tune_loop(lp, {"trigger.delta": Positive()}, lambda m: m.cost_raw + 0.5 * m.rate_sc, **kw)
+    b = tune_loop(lp, {"trigger.delta": Positive()}, lambda t: t[0] + 0.5 * t[1],
                   run=lambda l, k: (nc.run(l, k).cost_raw, nc.run(l, k).rate_sc), **kw)
-    np.testing.assert_allclose(a.params["controller.K"], b.params["controller.K"], rtol=1e-5)
+    np.testing.assert_allclose(a.params["trigger.delta"], b.params["trigger.delta"], rtol=1e-5)
+    steps_a, steps_b = (np.asarray(r.tune.history.params["trigger.delta"]) for r in (a, b))
+    assert not np.allclose(steps_a, 1e-2, rtol=1e-3)           # the steps moved, and b's moved alike
+    np.testing.assert_allclose(steps_a, steps_b, rtol=1e-5)
     np.testing.assert_allclose(a.eval_values[1], b.eval_values[1], rtol=1e-5)
     with pytest.raises(ValueError, match="run must be a function"):
-        tune_loop(lp, {"controller.K": Positive()}, run=3)
+        tune_loop(lp, {"trigger.delta": Positive()}, run=3)
     with pytest.raises(ValueError, match="does not fit what run"):
-        tune_loop(lp, {"controller.K": Positive()}, lambda m: m.J1)
+        tune_loop(lp, {"trigger.delta": Positive()}, lambda m: m.J1)
 
 
 def test_check_loop_on_a_gain_agrees_with_finite_differences_at_two_points():
