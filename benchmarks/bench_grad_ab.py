@@ -3,9 +3,9 @@
 Run:  PYTHONPATH=. .venv/bin/python benchmarks/bench_grad_ab.py --trees /tmp/base . [--seeds 256] [--rounds 3]
       [--loops cart servo]
 
-For each tree in turn ``jaxnc`` (and the loops' modules, ``examples.cartpole`` and
-``benchmarks.direct_servo``) is imported afresh from that tree, and bench_grad.py's objectives
-(the mean cost over ``--seeds`` seeds as a function of the controller's gains) are compiled,
+For each tree in turn ``jaxnc`` (and ``benchmarks``, ``examples``) is imported afresh from that
+tree, and its bench_grad.py's objectives (the mean cost over ``--seeds`` seeds as a function of
+the controller's gains) are compiled,
 ``jit(objective)`` and ``jit(value_and_grad(objective))`` (compile CPU seconds), and run once.
 The compiled programs then run in the order A B ... B A, ``--rounds`` times
 (:func:`ab_inprocess.time_abba`); the table gives each program's best process CPU time, its
@@ -15,7 +15,6 @@ the gradient's largest difference from tree A's relative to tree A's largest ent
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 import time
@@ -41,27 +40,15 @@ def build(tree: Path, loops, seeds):
     """[(name, program(theta, keys) as f(keys, theta), theta, keys, None, compile CPU s, outputs)] of ``tree``:
     forward and value_and_grad of each loop, in the entry shape :func:`ab_inprocess.time_abba` takes."""
     import jax
-    import jax.numpy as jnp
     _purge()
+    path = list(sys.path)
     sys.path.insert(0, str(tree))
     try:
-        from benchmarks.direct_servo import servo
-        from examples.cartpole import cartpole
-        from jaxnc import loop as nc
+        from benchmarks.bench_grad import _objectives       # the tree's own (it puts its folders on sys.path)
         from jaxnc import montecarlo
         keys = montecarlo.seed_keys(0, seeds)
-        cp, sv = cartpole(), servo()
-
-        def cart(theta, keys):
-            lp = dataclasses.replace(cp, controller=dataclasses.replace(cp.controller, K=theta))
-            return jnp.mean(jax.vmap(lambda k: nc.run(lp, k).cost_raw)(keys))
-
-        def serv(theta, keys):
-            lp = dataclasses.replace(sv, controller=dataclasses.replace(sv.controller, Kp=theta[:1], Ki=theta[1:]))
-            return jnp.mean(jax.vmap(lambda k: nc.run(lp, k).cost_raw)(keys))
-
-        objs = {"cart": (cart, jnp.asarray(cp.controller.K, jnp.float32)),
-                "servo": (serv, jnp.asarray([2.0, 1.0], jnp.float32))}
+        every = _objectives()
+        objs = {short: every[long] for short, long in LOOPS.items()}
         out = []
         for name in loops:
             obj, theta = objs[name]
@@ -73,7 +60,7 @@ def build(tree: Path, loops, seeds):
                             time.process_time() - c0, [np.asarray(v) for v in jax.tree.leaves(res)]))
         return out
     finally:
-        sys.path.remove(str(tree))
+        sys.path[:] = path
 
 
 def main():
