@@ -50,7 +50,7 @@ def fires_straight_through(gap, temperature):
     the hard decision alone, without the soft term: the same value, and a derivative that
     was exactly 0 anyway, but none for reverse mode to carry through everything the
     decision weights (the link's packets, the filter's blends; docs/design_notes.md,
-    "Hard decisions carry no derivative")."""
+    "The exact gradient: hard decisions, a recomputed prediction")."""
     hard = (gap > 0).astype(gap.dtype)
     if concrete(temperature) and not np.any(np.asarray(temperature)):
         return hard
