@@ -110,3 +110,15 @@ def test_blend_is_an_exact_select_that_passes_gradients():
     np.testing.assert_array_equal(jl.blend(1.0, jnp.int32(3), jnp.int32(5)), 3)
     g = jax.grad(lambda w: jnp.sum(jl.blend(w, z, zl)))(1.0)
     assert float(g) == pytest.approx(float(jnp.sum(z - zl)))
+
+
+def test_a_temperature_known_to_be_zero_gives_the_hard_decision_with_no_soft_term():
+    """fires_straight_through with a concrete temperature 0: the hard value, and no sigmoid in
+    the program (nothing for reverse mode to carry); a traced temperature keeps the term, and
+    a positive one the straight-through gradient."""
+    gap = jnp.asarray([-0.5, 0.0, 0.7], jnp.float32)
+    np.testing.assert_array_equal(np.asarray(fires_straight_through(gap, 0.0)), [0.0, 0.0, 1.0])
+    assert "logistic" not in str(jax.make_jaxpr(lambda g: fires_straight_through(g, 0.0))(gap))
+    assert "logistic" in str(jax.make_jaxpr(fires_straight_through)(gap, jnp.float32(0.0)))
+    np.testing.assert_array_equal(np.asarray(jax.jit(fires_straight_through)(gap, jnp.float32(0.0))), [0.0, 0.0, 1.0])
+    assert np.all(np.asarray(jax.grad(lambda g: jnp.sum(fires_straight_through(g, 0.5)))(gap)) > 0)

@@ -43,6 +43,18 @@ class EKFState(NamedTuple):
     next_base: Gaussian  # prior at k - buffer + 1 (becomes base after predict)
 
 
+def _recomputed_predict(f, g: Gaussian, u, Q, noise_dim: int) -> Gaussian:
+    """:func:`~jaxnc.estimators.ekf.ekf_predict` under ``jax.checkpoint`` (nothing saved):
+    the same values, and a program without differentiation is unchanged (bit for bit), but
+    reverse mode recomputes the prediction from (g, u, Q) instead of storing the
+    intermediates of its Jacobian's forward-mode products for every step of the run
+    (docs/design_notes.md, "The exact gradient: hard decisions, a recomputed prediction")."""
+    # prevent_cse=False: it is always called inside a scan (:meth:`EKF._predict_period`'s),
+    # which keeps XLA from merging the recomputation with the forward pass (JAX's advice)
+    return jax.checkpoint(lambda g, u, Q: ekf_predict(f, g, u, Q, noise_dim),
+                          policy=jax.checkpoint_policies.nothing_saveable, prevent_cse=False)(g, u, Q)
+
+
 class PassthroughState(NamedTuple):
     z: jax.Array
 
@@ -168,8 +180,9 @@ class EKF(AbstractEstimator):
         def body(g, u):
             if self.form == "unscented":
                 return ukf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim, **self._sigma()), None
-            predict = ekf_predict_sqrt if self.form == "sqrt" else ekf_predict
-            return predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
+            if self.form == "sqrt":
+                return ekf_predict_sqrt(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
+            return _recomputed_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
         g, _ = jax.lax.scan(body, g, us)
         return g
 

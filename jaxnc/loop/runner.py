@@ -220,8 +220,9 @@ class Loop:
       remat: static; True wraps each slow period in ``jax.checkpoint`` (saving nothing), so
         reverse mode recomputes a period's forward pass instead of storing its intermediates.
         Forward runs are unchanged (bit for bit); gradients equal up to float rounding. It
-        pays where a period is heavy (an EKF window re-linearising an RK4 model) and costs
-        where it is light: measure (benchmarks/bench_grad_remat.py).
+        pays where a period is heavy and costs where it is light: measure
+        (benchmarks/bench_grad_remat.py); the :class:`~jaxnc.loop.EKF`'s prediction is
+        recomputed in any case, which took the cart-pole's gain (docs/design_notes.md).
     """
 
     plant: Any

@@ -44,9 +44,18 @@ def soft_decision(gap, temperature):
 
 def fires_straight_through(gap, temperature):
     """1[gap > 0] as a float; with ``temperature`` > 0 its gradient is that of
-    :func:`soft_decision` (hard + (soft - sg(soft)): the forward value is exactly 0 or 1)."""
+    :func:`soft_decision` (hard + (soft - sg(soft)): the forward value is exactly 0 or 1).
+
+    A ``temperature`` known to be 0 at trace time (a concrete number, not a tracer) gives
+    the hard decision alone, without the soft term: the same value, and a derivative that
+    was exactly 0 anyway, but none for reverse mode to carry through everything the
+    decision weights (the link's packets, the filter's blends; docs/design_notes.md,
+    "The exact gradient: hard decisions, a recomputed prediction")."""
+    hard = (gap > 0).astype(gap.dtype)
+    if concrete(temperature) and not np.any(np.asarray(temperature)):
+        return hard
     soft = soft_decision(gap, temperature)
-    return (gap > 0).astype(gap.dtype) + (soft - jax.lax.stop_gradient(soft))
+    return hard + (soft - jax.lax.stop_gradient(soft))
 
 
 def petc_gap(last, s, sigma, delta, reading: str = "sum"):
