@@ -192,13 +192,16 @@ def _loopback_runs(keys, ch):
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
+    from .mecanum import uniform_dtypes
+
     t0 = time.perf_counter()
     loops = build_loops(settings)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
     summary, runs = {}, {}
     for (sev, d), loop in loops.items():
-        # the loop's links carry the severity's channel in both directions
-        m = montecarlo.run_batched(run_seed, keys, args=(loop,),
+        # the loop's links carry the severity's channel in both directions; uniform dtypes as
+        # in run_sweep, so that the severities and the sweep's points of a design share a program
+        m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loop),),
                                    chunk_size=min(settings["chunk"], seeds), progress=progress,
                                    desc=f"{sev:>8} {d:>9}")
         summary[f"{sev} / {d}"] = summarise(m)

@@ -1,6 +1,8 @@
 """Bit-identity of a seed in every lane of a chunk (run_batched), on the loops of all four
-papers and the runner: the first, a middle and the last lane, for chunk sizes that are and
-are not multiples of the vector width (montecarlo.LANES)."""
+papers and the runner, for chunk sizes that are and are not multiples of the vector width
+(montecarlo.LANES): chunk_size 20 (rounded up to 32 lanes, two vector groups) over 40 seeds,
+so one compiled program per loop shows the first lane, the first of the second vector group,
+the last lane and a lane of the padded second chunk; the runner's loop also at 16."""
 import jax
 import numpy as np
 import pytest
@@ -47,15 +49,26 @@ def _diffdrive():
 LOOPS = {"runner": _runner, "mecanum": _mecanum, "hdd": _hdd, "balancing": _balancing, "diffdrive": _diffdrive}
 
 
-@pytest.mark.parametrize("name", list(LOOPS))
-@pytest.mark.parametrize("chunk", [20, 16])
-def test_every_lane_is_bit_identical_to_the_seed_alone(name, chunk):
+def _check_lanes(name, chunk, n, lanes):
     fn, loop = LOOPS[name]()
-    keys = montecarlo.seed_keys(0, chunk)
+    keys = montecarlo.seed_keys(0, n)
     full = np.asarray(montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=chunk, progress=False))
-    for i in (0, chunk // 2, chunk - 1):
+    for i in lanes:
         alone = np.asarray(montecarlo.run_batched(fn, keys[i:i + 1], args=(loop,), chunk_size=chunk,
                                                   progress=False))
-        np.testing.assert_array_equal(full[i], alone[0], err_msg=f"{name}, lane {i} of {chunk}")
+        np.testing.assert_array_equal(full[i], alone[0], err_msg=f"{name}, seed {i} at chunk_size {chunk}")
     rev = np.asarray(montecarlo.run_batched(fn, keys[::-1], args=(loop,), chunk_size=chunk, progress=False))
-    np.testing.assert_array_equal(rev[::-1], full, err_msg=f"{name}: reversing the chunk changes a seed")
+    np.testing.assert_array_equal(rev[::-1], full, err_msg=f"{name}: reversing the seeds changes a seed")
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_every_lane_is_bit_identical_to_the_seed_alone(name):
+    """chunk_size 20 -> 32 lanes; 40 seeds: two chunks, the second padded (8 seeds + 24 copies
+    of the last). One program per loop (each loop's costliest part is its compile)."""
+    assert montecarlo.chunk_lanes(20, 40, 0) == 32
+    _check_lanes(name, 20, 40, (0, 16, 31, 32, 39))
+
+
+def test_every_lane_is_bit_identical_at_a_chunk_of_one_vector_group():
+    """chunk_size = LANES = 16 (a multiple: no rounding), 16 seeds: one chunk, no padding."""
+    _check_lanes("runner", 16, 16, (0, 8, 15))

@@ -1,7 +1,6 @@
 """Structural sparsity of the EKF Jacobians: detection, and the structured EKF steps
 against the dense ones (float64: the skipped terms are exact zeros, so the two agree to
 rounding) and against the Mecanum Jacobians written out by hand from seed 000 eq. (1)-(2)."""
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +10,7 @@ import pytest
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update_diag
 from jaxnc.estimators.sparsity import EKFStructure, Pattern, detect_structure, embed, take
 from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, MecanumNoise
-from jaxnc import loop as nc
+from jaxnc import montecarlo
 from jaxnc.schemes import mecanum as mec
 
 TOL64 = 1e-12
@@ -131,13 +130,14 @@ def test_structured_update_equals_dense_float64_with_a_state_free_output():
 
 def test_sparse_and_dense_closed_loops_agree():
     """The DRHE loop with and without the structure: the same packets are sent and the
-    trajectories agree to float32 rounding (the loop is float32)."""
-    loop = mec.mecanum_loop("DRHE", 5, 0.3, horizon_s=8.0, full=True)
+    trajectories agree to float32 rounding (the loop is float32). The sparse loop's program
+    is tests/test_mecanum_loop.py's short-run program (the persistent cache shares it)."""
+    from tests.test_mecanum_loop import short_runs
+    keys = montecarlo.seed_keys(5, 8)
+    loop = mec.mecanum_loop("DRHE", 4, 0.3, horizon_s=8.0, full=True)
     assert loop.estimator.structure is not None
-    dense = dataclasses.replace(loop, estimator=dataclasses.replace(loop.estimator, structure=None))
-    keys = jax.random.split(jax.random.key(5), 8)
-    sim = jax.jit(jax.vmap(nc.simulate, in_axes=(None, 0)), static_argnums=())
-    a, b = sim(loop, keys), sim(dense, keys)
+    a = short_runs("DRHE", keys, dp=0.3)
+    b = short_runs("DRHE", keys, dp=0.3, sparse=False)
     np.testing.assert_array_equal(a.sent_sc, b.sent_sc)
     assert np.max(np.abs(np.asarray(a.x - b.x))) < 1e-4
     assert np.max(np.abs(np.asarray(a.parts["estimator"] - b.parts["estimator"]))) < 1e-4
