@@ -187,15 +187,14 @@ def _check_row(chk) -> dict:
             "consistent": chk.consistent, "reason": chk.reason, "table": chk.table()}
 
 
-def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_seeds: int, seed: int,
+def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, seed: int,
           search_budget: int = 0, study_check_seeds: int = 0, estimator: str = "score",
           progress: bool = True) -> dict:
     """The check at two points (``study_check_seeds`` seeds, 0: the problem's own), tune_loop
-    (its own check on ``check_seeds``; its own report evaluates on ``eval_seeds`` seeds, or the
-    problem's ``eval_seeds`` if more) and the equal-budget search of one loop; the study's
-    evaluation of the three points is :func:`evaluate`."""
+    (its own check on ``check_seeds``; without its own evaluation, which does not move its
+    point or its budget) and the equal-budget search of one loop; the study's evaluation of the
+    three points is :func:`evaluate`."""
     t0 = time.perf_counter()
-    eval_seeds = max(eval_seeds, problem.eval_seeds)
     n_check = study_check_seeds or problem.check_seeds
     names = param_paths(problem.params)
     start = {n: float(np.asarray(get_path(problem.loop, p[0]))) for n, p in names.items()}
@@ -211,7 +210,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, eval_se
     r = tune_loop(problem.loop, problem.params, problem.objective, run=problem.run, steps=steps, batch=batch,
                   search={n: list(v) for n, v in problem.axes.items()} if two_stage else None,
                   search_budget=search_budget if two_stage else None,
-                  estimator=estimator, seed=seed, check_seeds=check_seeds, eval_seeds=eval_seeds, eval_seed=EVAL_SEED,
+                  estimator=estimator, seed=seed, check_seeds=check_seeds, evaluate=False,
                   progress=progress)
     budget = r.tuning_simulations
     axes = {n: [float(v) for v in vals] for n, vals in problem.axes.items()}
@@ -439,7 +438,7 @@ def _part(name: str, settings: dict, seeds: int, out: Path, progress: bool) -> d
         out / f"{name}.tuning.json", experiment="tune-loops", config=_tuning_config(settings, seeds), progress=progress,
         compute=lambda: study(
             problem, check_seeds=settings["check_seeds"], steps=settings["steps"], batch=settings["batch"],
-            eval_seeds=seeds, seed=settings["seed"], search_budget=settings["search_budget"],
+            seed=settings["seed"], search_budget=settings["search_budget"],
             study_check_seeds=settings["study_check_seeds"], estimator=settings["estimator"], progress=progress))
     t0 = time.perf_counter()
     ev = evaluate(problem, res, seeds=seeds, max_seeds=max(settings["max_eval_seeds"], seeds), progress=progress)

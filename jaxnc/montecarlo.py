@@ -37,8 +37,8 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval", "seeds_for_paired_interval",
-           "describe", "save_results", "load_results",
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
+           "seeds_for_paired_interval", "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
            "stored_or_run", "stored_study"]
 
