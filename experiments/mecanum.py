@@ -19,6 +19,7 @@ import numpy as np
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo, results as per_seed
+from jaxnc.montecarlo import uniform_dtypes
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -49,19 +50,6 @@ def loop_config(loop: nc.Loop) -> dict:
         a = np.asarray(obj)
         return a.tolist() if a.ndim else a.item()
     return conv(loop)
-
-
-def uniform_dtypes(loop):
-    """float32 / int32 leaves, so that configurations of one structure share a compiled
-    program when passed as runtime arguments (``run_batched(..., args=(loop,))``)."""
-    def conv(x):
-        a = np.asarray(x)
-        if a.dtype.kind == "f":
-            return a.astype(np.float32)
-        if a.dtype.kind in "iu":
-            return a.astype(np.int32)
-        return a
-    return jax.tree.map(conv, loop)
 
 
 def run_seed(key, loop):

@@ -40,7 +40,7 @@ from jaxnc import __version__
 __all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
            "seeds_for_paired_interval", "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
-           "stored_or_run", "stored_study"]
+           "stored_or_run", "stored_study", "uniform_dtypes"]
 
 
 # ----------------------------------------------------------------------------- memory
@@ -271,6 +271,31 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     if jax.process_count() > 1:
         return _run_processes(batched, keys, args, chunk_size, progress, desc, out_bytes)
     return _run_local(batched, keys, args, chunk_size, progress, desc, out_bytes)
+
+
+def uniform_dtypes(config):
+    """``config`` with every floating leaf as float32 and every integer leaf as int32 (numpy
+    arrays; booleans and other leaves unchanged).
+
+    Two configurations of one structure passed to :func:`run_batched` as ``args`` share a
+    compiled program only when their leaves have the same dtypes and shapes; a Python int in
+    one and a float in the other, or a float64 array built with numpy, would each compile
+    their own. Seed 000's grid and the balancing sweep pass every cell's loop through this.
+
+    Args:
+        config: a pytree (e.g. a ``jaxnc.loop.Loop``).
+
+    Returns:
+        the same pytree with numpy leaves of the uniform dtypes.
+    """
+    def conv(x):
+        a = np.asarray(x)
+        if a.dtype.kind == "f":
+            return a.astype(np.float32)
+        if a.dtype.kind in "iu":
+            return a.astype(np.int32)
+        return a
+    return jax.tree.map(conv, config)
 
 
 def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: str, out_bytes: int):

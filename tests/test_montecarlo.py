@@ -417,3 +417,31 @@ def test_stored_study_writes_every_part_and_reuses_them(tmp_path, capsys):
     assert calls == ["ab", "cde"] and again == res and "reusing" in capsys.readouterr().out
     mc.stored_study(tmp_path / "o", **dict(kw, config={"seeds": 8}))
     assert calls == ["ab", "cde", "ab", "cde"]
+
+
+def test_uniform_dtypes_lets_configurations_share_one_program():
+    """Two configurations of one structure, one with Python ints and float64 numpy leaves,
+    the other with Python floats: as given they compile two programs; through
+    ``uniform_dtypes`` one (float32 / int32 leaves, booleans unchanged)."""
+    traces = []
+
+    def fn(key, cfg):
+        traces.append(1)
+        return {"y": cfg["gain"] * jax.random.normal(key) + cfg["n"]}
+
+    a = {"gain": np.float64(2.0), "n": 3, "on": True}
+    b = {"gain": 1.5, "n": np.int64(4), "on": False}
+    u = mc.uniform_dtypes(a)
+    assert u["gain"].dtype == np.float32 and u["n"].dtype == np.int32 and u["on"].dtype == np.bool_
+    keys = mc.seed_keys(0, 4)
+    mc.run_batched(fn, keys, args=(a,), chunk_size=4, progress=False)
+    mc.run_batched(fn, keys, args=(b,), chunk_size=4, progress=False)
+    assert len(traces) == 2
+    ra = mc.run_batched(fn, keys, args=(mc.uniform_dtypes(a),), chunk_size=4, progress=False)
+    rb = mc.run_batched(fn, keys, args=(mc.uniform_dtypes(b),), chunk_size=4, progress=False)
+    assert len(traces) == 3
+    z = np.asarray(jax.vmap(jax.random.normal)(keys))        # the same draws: only the values changed
+    # float32 rounding of terms below 8 in size (the program may fuse the multiply-add): 2^-20
+    z = z.astype(np.float64)
+    np.testing.assert_allclose(ra["y"], 2.0 * z + 3, rtol=0, atol=2.0 ** -20)
+    np.testing.assert_allclose(rb["y"], 1.5 * z + 4, rtol=0, atol=2.0 ** -20)
