@@ -192,7 +192,6 @@ def _loopback_runs(keys, ch):
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
-    from .mecanum import uniform_dtypes
 
     t0 = time.perf_counter()
     loops = build_loops(settings)
@@ -201,7 +200,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     for (sev, d), loop in loops.items():
         # the loop's links carry the severity's channel in both directions; uniform dtypes as
         # in run_sweep, so that the severities and the sweep's points of a design share a program
-        m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loop),),
+        m = montecarlo.run_batched(run_seed, keys, args=(montecarlo.uniform_dtypes(loop),),
                                    chunk_size=min(settings["chunk"], seeds), progress=progress,
                                    desc=f"{sev:>8} {d:>9}")
         summary[f"{sev} / {d}"] = summarise(m)
@@ -348,7 +347,6 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
 
     from jaxnc import sweep as cells
 
-    from .mecanum import uniform_dtypes
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -377,7 +375,7 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
     for (a, v, d), cfg in todo:
         bar.set_postfix_str(f"{a}={v:g} {d}")
         tc = time.perf_counter()
-        m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[(a, v, d)]),),
+        m = montecarlo.run_batched(run_seed, keys, args=(montecarlo.uniform_dtypes(loops[(a, v, d)]),),
                                    chunk_size=min(settings["chunk"], seeds), progress=False)
         s = summarise(m)
         arrays = {**{k: np.asarray(x) for k, x in m._asdict().items()}, "unstable": ~np.asarray(m.upright, bool)}

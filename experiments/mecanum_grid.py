@@ -50,7 +50,7 @@ from jaxnc.paths import PATHS
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
-from .mecanum import UNSTABLE_CELL, horizon, run_seed, uniform_dtypes
+from .mecanum import UNSTABLE_CELL, horizon, run_seed
 
 INF = math.inf
 GRID_N = tuple(range(1, 13))
@@ -190,7 +190,7 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
             p, N, case, dp = cell
             bar.set_postfix_str(f"{p} N={N} {case} DP={dp:g}")
             tc = time.perf_counter()
-            m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[cell]),),
+            m = montecarlo.run_batched(run_seed, keys, args=(montecarlo.uniform_dtypes(loops[cell]),),
                                        chunk_size=min(settings["chunk"], seeds), progress=False)
             wall = time.perf_counter() - tc
             sweep.save_cell(cell_file(out, cfg), {"config": cfg, "summary": _summary(m), "wall_time_s": wall},

@@ -46,7 +46,7 @@ from jaxnc.paths import PATHS, get_path, scaled
 from jaxnc.report import fmt, markdown_table
 from jaxnc.schemes import mecanum as mec
 
-from .mecanum import UNSTABLE_CELL, horizon, plot_paths, run_seed, true_plant, uniform_dtypes
+from .mecanum import UNSTABLE_CELL, horizon, plot_paths, run_seed, true_plant
 from .mecanum_grid import _version
 
 INF = math.inf
@@ -310,7 +310,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     for cell, cfg in todo:
         bar.set_postfix_str(f"{cell[0]} N={cell[1]} DP={cell[2]:g}")
         tc = time.perf_counter()
-        m = montecarlo.run_batched(run_seed, keys, args=(uniform_dtypes(loops[cell]),),
+        m = montecarlo.run_batched(run_seed, keys, args=(montecarlo.uniform_dtypes(loops[cell]),),
                                    chunk_size=min(settings["chunk"], seeds), progress=False)
         s = _summary(m)
         sweep.save_cell(cell_file(out, cfg), {"config": cfg, "summary": s, "wall_time_s": time.perf_counter() - tc},
