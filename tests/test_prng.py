@@ -19,7 +19,7 @@ def _same(a, b):
 @pytest.mark.parametrize("shape", [(3,), (69, 10, 7), (2, 3, 5)])
 def test_draws_equal_jax_bit_for_bit(shape):
     """normal, uniform and bits of many keys, under jit(vmap), equal JAX's own (raw keys).
-    The five draws and their references are one compiled program per shape (ten before)."""
+    The five draws and their references are one compiled program per shape."""
     draws = (lambda k: jax.random.normal(k, shape, jnp.float32),
              lambda k: jax.random.uniform(k, shape, jnp.float32, -2.0, 3.0),
              lambda k: jax.random.bits(k, shape, jnp.uint32),
