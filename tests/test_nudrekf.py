@@ -3,6 +3,7 @@ packet chain yields exactly the actions and controller states of the materialise
 the scheme's loop roles (estimator, copy-keeping controller, chain actuator) against chains
 advanced by hand."""
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -177,38 +178,47 @@ def _period_u(plant, fol, act, chain):
     return np.stack([np.asarray(_advance_n(plant, fol, act, chain, j).u) for j in range(N_ROLES)])
 
 
-@pytest.mark.parametrize("d", [0, 2, N_ROLES])
-def test_actuator_installs_the_chain_at_its_arrival(d):
-    """A packet stamped s arriving at t = s + d: the actuator applies at t the action the
-    packet's chain holds at position d (its first action advanced d times by hand), and
-    afterwards continues that chain; a packet of weight 0 is not installed."""
+@functools.cache
+def _installing_actuator():
+    """The roles, the packet stamped s = 2 N (the mean, the controller's first chain start)
+    and ``run(w, arrive)``: the actuator's outputs u_t, t = 0 .. s + N + 2, when that packet
+    (with weight ``w``) is delivered at instant ``arrive`` (the inbox empty before and after).
+    One compiled program (a scan over t; the weight and the instant are arguments) for every
+    test case below."""
     plant, fol, act, ctrl, ctx = _roles()
     mean = jnp.array([0.04, -0.01, 0.12, 0.02, -0.03, 0.21], jnp.float32)
     k = 2
     _, pkt, _ = ctrl.step(ctrl.init(ctx), ChainEstimate(mean, jnp.float32(1.0)), 1.0, jnp.int32(k), ctx)
     s = k * N_ROLES
 
-    def box(t, w, arrived):
-        data = jax.tree.map(lambda a: a[None], pkt.data._replace(weight=jnp.float32(w)))
-        new = jnp.asarray([float(arrived)], jnp.float32)
-        return nc.Inbox(data, jnp.asarray([s], jnp.int32), jnp.ones((1,)), jnp.asarray([arrived]), new)
-
     @jax.jit
-    def run(w):
-        st = act.init(ctx)
-        us = []
-        for t in range(s + d + 3):
-            st = act.receive(st, box(t, w, t == s + d))
-            st, u = act.output(st, jnp.int32(t))
-            us.append(u)
-        return jnp.stack(us)
+    def run(w, arrive):
+        data = jax.tree.map(lambda a: a[None], pkt.data._replace(weight=jnp.float32(w)))
 
-    us = run(1.0)
+        def body(st, t):
+            arrived = t == arrive
+            box = nc.Inbox(data, jnp.asarray([s], jnp.int32), jnp.ones((1,)), arrived[None],
+                           arrived[None].astype(jnp.float32))
+            st = act.receive(st, box)
+            return act.output(st, t)
+
+        return jax.lax.scan(body, act.init(ctx), jnp.arange(s + N_ROLES + 3, dtype=jnp.int32))[1]
+
+    return plant, fol, act, mean, s, run
+
+
+@pytest.mark.parametrize("d", [0, 2, N_ROLES])
+def test_actuator_installs_the_chain_at_its_arrival(d):
+    """A packet stamped s arriving at t = s + d: the actuator applies at t the action the
+    packet's chain holds at position d (its first action advanced d times by hand), and
+    afterwards continues that chain; a packet of weight 0 is not installed."""
+    plant, fol, act, mean, s, run = _installing_actuator()
+    us = run(1.0, s + d)
     start = start_chain(lambda m, c: fol(plant, m, c, act.Ts), mean, fol.init())
     for j in range(3):
         np.testing.assert_allclose(us[s + d + j], _advance_n(plant, fol, act, start, d + j).u, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(us[:s + d], 0.0)               # the idle chain holds zero
-    np.testing.assert_array_equal(run(0.0), 0.0)                 # weight 0: never installed
+    np.testing.assert_array_equal(run(0.0, s + d), 0.0)          # weight 0: never installed
 
 
 def test_estimator_predicts_along_the_believed_actions():
