@@ -53,8 +53,9 @@ def main(argv=None):
         v = np.asarray(evaluate(ev, pt, keys, chunk_size=256), np.float64)
         stored_mean = res["eval"]["mean"][m][0]
         again = float(np.mean(v[:n0]))
+        mean, ci = montecarlo.mean_ci(v)
         print(f"{m:>10}: first {n0} seeds {again:.6g} (stored {stored_mean:.6g}); "
-              f"{v.size} seeds {montecarlo.mean_ci(v)[0]:.5g} +- {montecarlo.mean_ci(v)[1]:.2g}", flush=True)
+              f"{v.size} seeds {mean:.5g} +- {ci:.2g}", flush=True)
         if not np.isclose(again, stored_mean, rtol=1e-5, atol=0):
             print(f"    warning: does not reproduce the stored mean (relative {again / stored_mean - 1:.2e})")
         values[m] = v

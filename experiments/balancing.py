@@ -192,7 +192,6 @@ def _loopback_runs(keys, ch):
 
 
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
-
     t0 = time.perf_counter()
     loops = build_loops(settings)
     keys = montecarlo.seed_keys(settings["seed"], seeds)
@@ -346,7 +345,6 @@ def run_sweep(settings: dict, *, seeds: int, out: Path, progress: bool = True) -
     from tqdm.auto import tqdm
 
     from jaxnc import sweep as cells
-
 
     t0 = time.perf_counter()
     out = Path(out)

@@ -19,7 +19,6 @@ import numpy as np
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo, results as per_seed
-from jaxnc.montecarlo import uniform_dtypes
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.experiment import ConfigError, Experiment, Option, register
@@ -185,7 +184,7 @@ def plot_paths(loops: dict, key, out: Path, title: str, paths: dict | None = Non
         paths = {}
         for name, loop in loops.items():
             full = dataclasses.replace(loop, record=mec.FULL_RECORD)
-            traj = _simulate(uniform_dtypes(full), key)
+            traj = _simulate(montecarlo.uniform_dtypes(full), key)
             paths[name] = (np.asarray(traj.x[:, 3:5])[: int(traj.done_step)], bool(mec.metrics(full, traj).unstable))
     fig, ax = plt.subplots(figsize=(7, 5))
     path = next(iter(loops.values())).monitor.path
@@ -220,7 +219,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     results, paths = {}, {}
     for name, loop in loops.items():
         # the configuration is a runtime argument: the loops of one structure share a compilation
-        arg = uniform_dtypes(with_positions(loop) if record_paths else loop)
+        arg = montecarlo.uniform_dtypes(with_positions(loop) if record_paths else loop)
         out_ = montecarlo.run_batched(
             fn, keys, args=(arg,), progress=progress, chunk_size=min(256, seeds),
             desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")

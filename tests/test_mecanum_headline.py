@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import pytest
 
-from experiments.mecanum import run_seed, uniform_dtypes
+from experiments.mecanum import run_seed
 from jaxnc import montecarlo
 from jaxnc.schemes import mecanum as mec
 
@@ -40,7 +40,7 @@ def headline(seed: int, n: int) -> dict:
     keys = montecarlo.seed_keys(seed, n)
     out = {}
     for case in CASES:
-        loop = uniform_dtypes(mec.mecanum_loop(case, **CELL))     # the cases share one program
+        loop = montecarlo.uniform_dtypes(mec.mecanum_loop(case, **CELL))     # the cases share one program
         m = montecarlo.run_batched(run_seed, keys, args=(loop,), chunk_size=min(n, 64), progress=False)
         unstable = np.asarray(m.unstable, bool)
         stats = {}

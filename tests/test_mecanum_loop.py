@@ -24,9 +24,8 @@ def _traj(key, loop):                 # module level, the loop an argument: one 
 
 def short_runs(case, keys, **kw):
     """Trajectories (numpy, leading seed axis) of ``keys`` on ``case`` at N_SHORT over SHORT s."""
-    from experiments.mecanum import uniform_dtypes
     loop = mec.mecanum_loop(case, N_SHORT, kw.pop("dp", 0.0), horizon_s=SHORT, full=True, **kw)
-    return montecarlo.run_batched(_traj, keys, args=(uniform_dtypes(loop),), chunk_size=CHUNK, progress=False)
+    return montecarlo.run_batched(_traj, keys, args=(montecarlo.uniform_dtypes(loop),), chunk_size=CHUNK, progress=False)
 
 
 def test_seed_is_bit_identical_alone_and_in_a_batch_of_100():
@@ -39,10 +38,10 @@ def test_seed_is_bit_identical_alone_and_in_a_batch_of_100():
 
 
 def test_noise_free_nominal_loop_tracks_the_path():
-    from experiments.mecanum import run_seed, uniform_dtypes     # the grid experiment's program for N = 1
+    from experiments.mecanum import run_seed     # the grid experiment's program for N = 1
     loop = mec.mecanum_loop("SR", 1, 0.0, path="turn180", noise=MecanumNoise().scaled(0.0))
     m = jax.tree.map(lambda a: a[0], montecarlo.run_batched(run_seed, jax.random.PRNGKey(0)[None],
-                                                            args=(uniform_dtypes(loop),), chunk_size=CHUNK,
+                                                            args=(montecarlo.uniform_dtypes(loop),), chunk_size=CHUNK,
                                                             progress=False))
     assert not bool(m.unstable)
     assert float(m.J1) < 0.03          # mean distance to the path, m
@@ -56,7 +55,6 @@ def test_every_case_dp_h_and_max_silence_of_one_N_share_one_compiled_program():
     """The grid experiment's premise: the case, DP, h and max_silence are leaves, so loops of
     one N (passed as arguments, uniform dtypes) trace once; another N traces again. (Traced,
     not compiled: jit compiles one program per trace, and the compilations are the cost.)"""
-    from experiments.mecanum import uniform_dtypes
     traces = []
 
     @jax.jit
@@ -69,9 +67,9 @@ def test_every_case_dp_h_and_max_silence_of_one_N_share_one_compiled_program():
     loops = [mec.mecanum_loop(c, 2, dp, **kw) for c in mec.CASES for dp in (0.0, 0.4)]
     loops += [mec.mecanum_loop("DRHE", 2, 0.2, h=7, max_silence=3, **kw)]
     for loop in loops:
-        run.trace(uniform_dtypes(loop), key)
+        run.trace(montecarlo.uniform_dtypes(loop), key)
     assert len(traces) == 1
-    run.trace(uniform_dtypes(mec.mecanum_loop("DR", 5, 0.0, **kw)), key)
+    run.trace(montecarlo.uniform_dtypes(mec.mecanum_loop("DR", 5, 0.0, **kw)), key)
     assert len(traces) == 2
 
 
@@ -111,12 +109,11 @@ def test_transmissions_J4_ordering():
 
 def test_paper_qualitative_stability_at_N6_DP02():
     """Acceptance: at N = 6, DP = 0.2 SR is unstable (most runs) while DRH is stable."""
-    from experiments.mecanum import uniform_dtypes
     keys = montecarlo.seed_keys(0, 16)
     res = {}
     for case in ("SR", "DRH"):                 # one program for both (the case is a leaf)
         loop = mec.mecanum_loop(case, 6, 0.2)
-        res[case] = montecarlo.run_batched(_unstable, keys, args=(uniform_dtypes(loop),), chunk_size=16,
+        res[case] = montecarlo.run_batched(_unstable, keys, args=(montecarlo.uniform_dtypes(loop),), chunk_size=16,
                                            progress=False)
     assert res["SR"].mean() > 0.5
     assert res["DRH"].mean() == 0.0
