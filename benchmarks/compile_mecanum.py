@@ -49,7 +49,7 @@ def programs(seeds: int):
     out = []
     for name in ("SR nominal", "DRHE"):
         loop = loops[name]
-        arg = exp.uniform_dtypes(exp.with_positions(loop) if record_paths else loop)
+        arg = montecarlo.uniform_dtypes(exp.with_positions(loop) if record_paths else loop)
         out.append((f"{name} N={loop.N}", jax.jit(jax.vmap(fn, in_axes=(0, None))), (keys, arg)))
     return out
 
