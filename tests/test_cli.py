@@ -332,3 +332,17 @@ def test_no_cache_keeps_no_compiled_programs_beside_the_results(tmp_path, monkey
 def test_a_builtin_function_is_not_an_experiment(spec, fragment, tmp_path, capsys):
     assert run(["run", spec, "--out", str(tmp_path)]) == 2
     assert_one_line_error(capsys, fragment)
+
+
+def test_startup_imports_no_design_or_plotting_library():
+    """``import jaxnc`` and the built-in experiments' registry (what every ``jaxnc`` command
+    and every worker process pays) import neither python-control, scipy.signal nor
+    matplotlib: the design functions and figures import them when they are called."""
+    import subprocess
+    import sys
+    code = ("import sys, jaxnc, jaxnc.schemes.diffdrive, jaxnc.schemes.hdd\n"
+            "from jaxnc.experiment import load_builtin; load_builtin()\n"
+            "print(sorted(m for m in ('control', 'scipy.signal', 'matplotlib') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout

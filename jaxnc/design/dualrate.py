@@ -28,14 +28,16 @@ powers of z (python-control's), normalised so that the denominator is monic.
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-import control
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import check_int, check_positive
+
+if TYPE_CHECKING:
+    import control
 
 __all__ = [
     "pi_controller", "closed_loop", "c2d_zoh", "DualRateDesign", "dualrate_design",
@@ -46,6 +48,12 @@ __all__ = [
 _TRIM_RTOL = 1e-10
 
 
+def _control():
+    """python-control, imported on first use."""
+    import control
+    return control
+
+
 def _trim(p) -> np.ndarray:
     p = np.atleast_1d(np.asarray(p, np.float64))
     scale = np.max(np.abs(p)) if p.size else 0.0
@@ -54,7 +62,7 @@ def _trim(p) -> np.ndarray:
 
 
 def _num_den(sys) -> tuple[np.ndarray, np.ndarray]:
-    num, den = control.tfdata(sys)
+    num, den = _control().tfdata(sys)
     return _trim(num[0][0]), _trim(den[0][0])
 
 
@@ -65,14 +73,14 @@ def _monic(num, den) -> tuple[np.ndarray, np.ndarray]:
 
 def _tf(num, den, dt=None) -> control.TransferFunction:
     num, den = _monic(num, den)
-    return control.tf(num, den) if dt is None else control.tf(num, den, dt)
+    return _control().tf(num, den) if dt is None else _control().tf(num, den, dt)
 
 
 def pi_controller(Kp: float, Ti: float) -> control.TransferFunction:
     """Continuous PI of eq. (27): C(s) = Kp (1 + 1/(Ti s)) = Kp (Ti s + 1) / (Ti s)."""
     check_positive("Kp", Kp)
     check_positive("Ti", Ti)
-    return control.tf([Kp * Ti, Kp], [Ti, 0.0])
+    return _control().tf([Kp * Ti, Kp], [Ti, 0.0])
 
 
 def closed_loop(Gp: control.TransferFunction, C: control.TransferFunction) -> control.TransferFunction:
@@ -87,7 +95,7 @@ def closed_loop(Gp: control.TransferFunction, C: control.TransferFunction) -> co
 def c2d_zoh(sys: control.TransferFunction, Ts: float) -> control.TransferFunction:
     """ZOH discretisation at period Ts (python-control ``sample_system``), monic denominator."""
     check_positive("Ts", Ts)
-    num, den = _num_den(control.sample_system(sys, Ts, method="zoh"))
+    num, den = _num_den(_control().sample_system(sys, Ts, method="zoh"))
     return _tf(num, den, Ts)
 
 
@@ -150,7 +158,7 @@ def single_rate_pi(Kp: float, Ti: float, Ts: float) -> control.TransferFunction:
     check_positive("Kp", Kp)
     check_positive("Ti", Ti)
     check_positive("Ts", Ts)
-    return control.tf([Kp, Kp * (Ts / Ti - 1.0)], [1.0, -1.0], Ts)
+    return _control().tf([Kp, Kp * (Ts / Ti - 1.0)], [1.0, -1.0], Ts)
 
 
 # ----------------------------------------------------------------------------- runtime (JAX)
@@ -176,7 +184,7 @@ class DiscreteSS:
         num, den = _num_den(sys)
         if len(num) > len(den):
             raise ValueError("DiscreteSS.from_tf: the transfer function is improper")
-        ss = control.tf2ss(_tf(num, den, sys.dt))
+        ss = _control().tf2ss(_tf(num, den, sys.dt))
         f = lambda a: np.asarray(a, np.float32)
         return DiscreteSS(A=f(ss.A), B=f(ss.B).reshape(-1), C=f(ss.C).reshape(-1), D=f(ss.D).reshape(()))
 

@@ -25,7 +25,6 @@ import functools
 import math
 from typing import NamedTuple
 
-import control
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -99,6 +98,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
     if scenario in "ab":
         pi = DiscreteSS.from_tf(single_rate_pi(Kp, Ti, ns * T))
     else:
+        import control
         Gp = control.tf([float(plant.K)], [float(plant.tau), 1.0])
         pi = DualRateController.from_design(dualrate_design(Gp, pi_controller(Kp, Ti), T, N))
     ctrl = nc.PursuitPI(path, plant, pi, v_ref=v_ref, lad=lad, end_tol=END_TOL, assumed_delay=assumed_delay, ns=ns,
