@@ -115,6 +115,8 @@ class Luenberger(AbstractEstimator):
     mis-shaped L or mean0, or an unknown ``inputs``.
     """
 
+    by_stamp = True
+
     model: Any
     L: Any
     mean0: Any = None
@@ -191,6 +193,8 @@ class SteadyStateKF(AbstractEstimator):
     shape, Q not PSD or R not PD, a mis-shaped mean0, or (checked at the slow period N = 1
     when built) no stabilising Riccati solution (from :func:`~jaxnc.estimators.steady_state.dlqe`).
     """
+
+    by_stamp = True
 
     model: Any
     Q: Any

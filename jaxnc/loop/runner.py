@@ -301,6 +301,14 @@ class Loop:
             if hi is not None and link.capacity < ring(hi):
                 raise ValueError(f"Loop.{name}.capacity must be >= {ring(hi)} for delays up to {hi} fast periods "
                                  f"with N={self.N}, got {link.capacity}")
+            late = -(-lo // self.N)         # slow periods the earliest packet is late when read
+            if name == "uplink" and self.estimator.by_stamp and late > self.estimator.lookback:
+                raise ValueError(
+                    f"Loop.estimator ({type(self.estimator).__name__}) uses a measurement at most "
+                    f"{self.estimator.lookback} slow periods late (by its time stamp), but Loop.uplink delays every "
+                    f"packet at least {lo} fast periods (N={self.N}), so each is read {late} slow periods late "
+                    f"and the estimator would never correct: use EKF(buffer>={late}) or UKF(buffer>={late}), or "
+                    f"an estimator that takes the newest arrival (Passthrough)")
             if hi is None and link.tau_max is None:     # allowed, and visible: an unbounded law's tail is lost
                 warnings.warn(f"Loop.{name}: the delay model {type(link.delay).__name__} has no bound and the link "
                               f"no tau_max, so a packet still in flight when its slot in the ring of {link.capacity} "
