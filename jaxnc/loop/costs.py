@@ -77,8 +77,9 @@ class Tracking:
             raise ValueError(f"Tracking.index must be an int >= 0 or a tuple of distinct ints >= 0, got {self.index!r}")
         object.__setattr__(self, "index", tuple(idx))
         if self.reference.dim not in (1, len(self.index)):
-            raise ValueError(f"Tracking.reference must have 1 or {len(self.index)} channels (len(index)), "
-                             f"got {self.reference.dim}")
+            c = len(self.index)
+            want = "1 channel" if c == 1 else f"1 or {c} channels"
+            raise ValueError(f"Tracking.reference must have {want} (len(index) = {c}), got {self.reference.dim}")
         check_range("Tracking.settling_threshold", self.settling_threshold, 0.0, 1.0, low_open=True, high_open=True)
         check_int("Tracking.window", self.window, 1)
 

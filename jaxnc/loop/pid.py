@@ -145,7 +145,8 @@ class PID(AbstractController):
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
             raise ValueError("PID.u_min must be <= u_max")
         if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
-            raise ValueError(f"PID.reference must have 1 or {n} channels (len(index)), got {self.reference.dim}")
+            want = "1 channel" if n == 1 else f"1 or {n} channels"
+            raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
 
     @property
     def channels(self) -> int:
