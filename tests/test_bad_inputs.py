@@ -536,6 +536,9 @@ LOOP_FIT = [
                        N=2, steps=10), "each is read 1 slow periods late and the estimator would never correct"),
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=1),
                        uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 0.5, 0.5]))), "use EKF(buffer>=2)"),
+    # a tau_max below the delay law's minimum: every packet discarded, nothing ever received
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.2, phi=0.01), tau_max=0.1)),
+     "Loop.uplink.tau_max (0.1 s, 1 fast periods of T=0.1 s) is below every delay"),
     # an index beyond the estimate: a gather under jit would clamp it to the last component
     (lambda: _fit_loop(controller=nc.PID(Kp=1.0, index=2)),
      "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),

@@ -289,6 +289,11 @@ class Loop:
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
             # the downlink at every fast instant (it needs C N > d)
             reach = ring if name == "uplink" else (lambda d: -(-(d + 1) // self.N))
+            if hi is not None and hi < lo:      # tau_max below the delay law's minimum
+                raise ValueError(f"Loop.{name}.tau_max ({float(link.tau_max):g} s, {hi} fast periods of "
+                                 f"T={float(self.T):g} s) is below every delay its model "
+                                 f"{type(link.delay).__name__} draws (at least {lo} fast periods), so every packet "
+                                 f"would be discarded: raise tau_max or shorten the delays")
             if link.capacity is None:       # sized here: the smallest ring the delay bounds allow
                 size = max(2, reach(lo), ring(hi) if hi is not None else 2,
                            self.estimator.lookback + 1 if name == "uplink" else 1)
