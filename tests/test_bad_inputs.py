@@ -532,10 +532,13 @@ LOOP_FIT = [
     (lambda: _fit_loop(estimator=nc.SteadyStateKF(_FIT_DETECTABLE, Q=[1.0, 1.0], R=np.eye(1)),
                        uplink=nc.Link(delay=nc.PmfDelay([0.0, 1.0]))),
      "Loop.estimator (SteadyStateKF) uses a measurement at most 0 slow periods late"),
-    (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_PLANT, L=[[0.5], [0.1]]), uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 1.0])),
+    (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_DETECTABLE, L=[[0.5], [0.1]]), uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 1.0])),
                        N=2, steps=10), "each is read 1 slow periods late and the estimator would never correct"),
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=1),
                        uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 0.5, 0.5]))), "use EKF(buffer>=2)"),
+    # an observer gain whose error matrix is not Schur at the loop's N (e.g. designed for another N)
+    (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_DETECTABLE, L=[[0.0], [0.0]])),
+     "Luenberger.L: A_N - L C of the slow-period system (N=1, A_N = A^1) has spectral radius 1 >= 1"),
     # a tau_max below the delay law's minimum: every packet discarded, nothing ever received
     (lambda: _fit_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.2, phi=0.01), tau_max=0.1)),
      "Loop.uplink.tau_max (0.1 s, 1 fast periods of T=0.1 s) is below every delay"),
