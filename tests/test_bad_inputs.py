@@ -542,6 +542,8 @@ LOOP_FIT = [
     # a tau_max below the delay law's minimum: every packet discarded, nothing ever received
     (lambda: _fit_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.2, phi=0.01), tau_max=0.1)),
      "Loop.uplink.tau_max (0.1 s, 1 fast periods of T=0.1 s) is below every delay"),
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 1.0]), tau_max=0.15)),    # 1.5 T keeps 1 period
+     "Loop.uplink.tau_max (0.15 s, 1 fast periods of T=0.1 s) is below every delay its model PmfDelay draws (at least 2"),
     # an index beyond the estimate: a gather under jit would clamp it to the last component
     (lambda: _fit_loop(controller=nc.PID(Kp=1.0, index=2)),
      "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),

@@ -32,7 +32,7 @@ from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstim
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
-from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_delay_bounds
+from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_delay_bounds, steps_within
 from jaxnc.prng import unrolled
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
@@ -289,8 +289,14 @@ class Loop:
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
             # the downlink at every fast instant (it needs C N > d)
             reach = ring if name == "uplink" else (lambda d: -(-(d + 1) // self.N))
-            if hi is not None and hi < lo:      # tau_max below the delay law's minimum
-                raise ValueError(f"Loop.{name}.tau_max ({float(link.tau_max):g} s, {hi} fast periods of "
+            if link.delay.in_steps and link.tau_max is not None and concrete(link.tau_max):
+                with jax.ensure_compile_time_eval():     # the draws' own limit (floor, not the ring's ceil)
+                    kept = int(steps_within(link.tau_max, self.T))
+                top = kept if hi is None else min(hi, kept)
+            else:
+                top = hi                        # the longest delay a delivered packet can have
+            if top is not None and top < lo:    # tau_max below the delay law's minimum
+                raise ValueError(f"Loop.{name}.tau_max ({float(link.tau_max):g} s, {top} fast periods of "
                                  f"T={float(self.T):g} s) is below every delay its model "
                                  f"{type(link.delay).__name__} draws (at least {lo} fast periods), so every packet "
                                  f"would be discarded: raise tau_max or shorten the delays")
