@@ -544,6 +544,13 @@ LOOP_FIT = [
      "Loop.uplink.tau_max (0.1 s, 1 fast periods of T=0.1 s) is below every delay"),
     (lambda: _fit_loop(uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 1.0]), tau_max=0.15)),    # 1.5 T keeps 1 period
      "Loop.uplink.tau_max (0.15 s, 1 fast periods of T=0.1 s) is below every delay its model PmfDelay draws (at least 2"),
+    # a limit's numbers longer than the signal they limit
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.HoldLast(), (nc.Saturation(-1.0, 1.0), nc.RateLimit(1.0, initial=[0.0, 0.0])))),
+     "LimitedActuator.limits[1] (RateLimit).initial must be a number or have 1 entries (one per plant input), got shape (2,)"),
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.HoldLast(), nc.Saturation([-1.0, -2.0], [1.0, 2.0]))),
+     "LimitedActuator.limits[0] (Saturation).low must be a number or have 1 entries"),
+    (lambda: _fit_loop(plant=nc.LimitedSensor(_FIT_PLANT, nc.Quantizer([0.1, 0.1]))),
+     "LimitedSensor.limits[0] (Quantizer).interval must be a number or have 1 entries (one per measurement)"),
     # an index beyond the estimate: a gather under jit would clamp it to the last component
     (lambda: _fit_loop(controller=nc.PID(Kp=1.0, index=2)),
      "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),
