@@ -6,6 +6,7 @@ import numpy as np
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo
+from jaxnc import results as results_mod
 
 
 def summary(metrics, tracking, channels):
@@ -22,9 +23,20 @@ def summary(metrics, tracking, channels):
     return out
 
 
+def per_seed(metrics, tracking, channels):
+    """{field: float[S]}: the loop's Metrics and each tracked channel's TrackingMetrics per
+    seed (``channels``: {name suffix: column}; the cost only if the loop has one), what :func:`jaxnc.results.save_per_seed` stores."""
+    out = {k: np.asarray(v) for k, v in metrics._asdict().items()
+           if not (k.startswith("cost") and np.all(np.isnan(v)))}        # a loop without a cost: no cost field
+    for suffix, i in channels.items():
+        out.update({f"{k}{suffix}": np.asarray(v)[:, i] for k, v in tracking._asdict().items()})
+    return out
+
+
 def run_study(name, title, loop, tracking, channels, settings, *, seeds, out, progress):
     """Run ``seeds`` seeds of ``loop`` from ``settings["seed"]``, print the :func:`summary`
-    (mean +- 95 % interval) under ``title`` and save it to ``out/results.json``."""
+    (mean +- 95 % interval) under ``title`` and save it to ``out/results.json``, the per-seed
+    metrics to ``out/seeds.npz`` (:func:`per_seed`; ``jaxnc.load(out)`` reads them)."""
     t0 = time.time()
     m, tm = montecarlo.run_batched(nc.run_tracking, montecarlo.seed_keys(settings["seed"], seeds),
                                    args=(loop, tracking), chunk_size=min(seeds, 1024), progress=progress, desc=name)
@@ -32,6 +44,7 @@ def run_study(name, title, loop, tracking, channels, settings, *, seeds, out, pr
     print(f"{title}, {seeds} seeds:")
     for key, s in results.items():
         print(f"  {key:18s} {s.mean:.4g} +- {s.ci95:.2g} (95 %), not finite or unstable {s.unstable_fraction:.1%}")
+    results_mod.save_per_seed(out, {name: per_seed(m, tm, channels)}, experiment=name)    # jaxnc.load(out)
     montecarlo.save_results(out / "results.json", experiment=name, config=dict(settings, seeds=seeds),
                             results=results, wall_time_s=time.time() - t0)
     return results

@@ -122,6 +122,19 @@ def check_int(name, v, low, high=None):
         raise ValueError(f"{name} must be an integer in [{low}, {hi}, got {v!r}")
 
 
+def check_components(name, index, size: int, what: str):
+    """The static component indices ``index`` (a tuple of ints) pick entries of a vector of
+    ``size`` (static: a traced array's shape), named ``what`` in words. Indexing with an
+    array of indices out of range would not fail under jit: XLA clamps them to the last
+    entry, silently reading another component.
+
+    Raises: ValueError naming ``name``, the allowed range and ``what``."""
+    bad = [i for i in index if not 0 <= i < size]
+    if bad:
+        raise ValueError(f"{name} must pick components in [0, {size - 1}] of {what} ({size} entries), "
+                         f"got {tuple(index)}")
+
+
 def concrete(*values) -> bool:
     """True when every leaf of ``values`` is a concrete number or array (not a tracer, nor a
     placeholder that jax puts in a pytree while unflattening): validation may look at them."""

@@ -500,6 +500,8 @@ def describe(metrics, run_ndim: int = 0) -> str:
     if ndims != {run_ndim + 1} or len({a.shape[0] for a in arrays.values()}) != 1 or run_ndim > 1:
         return plain
     n = next(iter(arrays.values())).shape[0]
+    if n == 0:                              # run_batched on no keys
+        return f"{name} over 0 runs"
     unstable = arrays["unstable"].astype(bool) if "unstable" in arrays and arrays["unstable"].ndim == 1 \
         else np.zeros(n, bool)
     columns = {}

@@ -12,6 +12,7 @@ import pytest
 
 from jaxnc import loop as nc
 from jaxnc import montecarlo, wifi
+from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.schemes import diffdrive, mecanum
@@ -470,6 +471,7 @@ def _fit_discrete(**kw):
                                  output_dim=1), **kw})
 
 
+_FIT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.1)
 _FIT_MODEL3 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=np.eye(2), T=0.1)       # two outputs
 
 
@@ -525,6 +527,35 @@ LOOP_FIT = [
     (lambda: nc.TruncatedExponential(eta=0.0, phi=[0.1, 0.1], tau_max=0.5), "TruncatedExponential.phi must be a single"),
     (lambda: nc.Link(tau_max=[0.1, 0.2]), "Link.tau_max must be a single number"),
     (lambda: nc.Petc(max_silence=[1, 2]), "Petc.max_silence"),
+    # an estimator that reads a measurement only by its time stamp, behind a link that delays every
+    # packet beyond its window: it would never correct (it used to run open loop without a word)
+    (lambda: _fit_loop(estimator=nc.SteadyStateKF(_FIT_DETECTABLE, Q=[1.0, 1.0], R=np.eye(1)),
+                       uplink=nc.Link(delay=nc.PmfDelay([0.0, 1.0]))),
+     "Loop.estimator (SteadyStateKF) uses a measurement at most 0 slow periods late"),
+    (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_DETECTABLE, L=[[0.5], [0.1]]), uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 1.0])),
+                       N=2, steps=10), "each is read 1 slow periods late and the estimator would never correct"),
+    (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=1),
+                       uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 0.5, 0.5]))), "use EKF(buffer>=2)"),
+    # an observer gain whose error matrix is not Schur at the loop's N (e.g. designed for another N)
+    (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_DETECTABLE, L=[[0.0], [0.0]])),
+     "Luenberger.L: A_N - L C of the slow-period system (N=1, A_N = A^1) has spectral radius 1 >= 1"),
+    # a tau_max below the delay law's minimum: every packet discarded, nothing ever received
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.2, phi=0.01), tau_max=0.1)),
+     "Loop.uplink.tau_max (0.1 s, 1 fast periods of T=0.1 s) is below every delay"),
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 1.0]), tau_max=0.15)),    # 1.5 T keeps 1 period
+     "Loop.uplink.tau_max (0.15 s, 1 fast periods of T=0.1 s) is below every delay its model PmfDelay draws (at least 2"),
+    # a limit's numbers longer than the signal they limit
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.HoldLast(), (nc.Saturation(-1.0, 1.0), nc.RateLimit(1.0, initial=[0.0, 0.0])))),
+     "LimitedActuator.limits[1] (RateLimit).initial must be a number or have 1 entries (one per plant input), got shape (2,)"),
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.HoldLast(), nc.Saturation([-1.0, -2.0], [1.0, 2.0]))),
+     "LimitedActuator.limits[0] (Saturation).low must be a number or have 1 entries"),
+    (lambda: _fit_loop(plant=nc.LimitedSensor(_FIT_PLANT, nc.Quantizer([0.1, 0.1]))),
+     "LimitedSensor.limits[0] (Quantizer).interval must be a number or have 1 entries (one per measurement)"),
+    # an index beyond the estimate: a gather under jit would clamp it to the last component
+    (lambda: _fit_loop(controller=nc.PID(Kp=1.0, index=2)),
+     "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),
+    (lambda: nc.Tracking(nc_refs.Step(1.0), index=(0, 4)).metrics(jnp.zeros((10, 2)), 0.1),
+     "Tracking.index must pick components in [0, 1] of the state x (2 entries), got (0, 4)"),
     # records
     (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
     (lambda: nc.Record(estimator=3), "Record.estimator must be"),

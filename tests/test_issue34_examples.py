@@ -13,6 +13,7 @@ sys.path.insert(0, str(ROOT))
 
 from examples import thermal_pid as th  # noqa: E402
 from examples import two_axis_observer as ta  # noqa: E402
+import jaxnc  # noqa: E402
 from jaxnc import loop as nc  # noqa: E402
 from jaxnc import montecarlo  # noqa: E402
 from jaxnc.cli import run_cli  # noqa: E402
@@ -33,11 +34,13 @@ def _cli(tmp_path, monkeypatch, capsys, name):
     out = tmp_path / name
     assert run_cli(["run", f"examples.{name}:experiment", "--seeds", "1000", "--out", str(out), "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    return montecarlo.load_results(out / "results.json")["results"], printed
+    return montecarlo.load_results(out / "results.json")["results"], printed, out
 
 
 def test_thermal_pid_runs_1000_seeds_from_the_command_line(tmp_path, monkeypatch, capsys):
-    r, printed = _cli(tmp_path, monkeypatch, capsys, "thermal_pid")
+    r, printed, out = _cli(tmp_path, monkeypatch, capsys, "thermal_pid")
+    ds = jaxnc.load(out)              # the per-seed metrics (the folder used to hold only the summary)
+    assert ds.sizes["seed"] == 1000 and float(ds.ise.mean()) == pytest.approx(r["ise"]["mean"], rel=1e-6)
     assert "overshoot_pct" in printed and "settling_time_s" in printed and "ise" in printed
     assert r["ise"]["n"] == 1000 and r["ise"]["unstable_fraction"] == 0
     assert r["overshoot_pct"]["mean"] < 5.0                    # setpoint weight b < 1, anti-windup
@@ -48,7 +51,7 @@ def test_thermal_pid_runs_1000_seeds_from_the_command_line(tmp_path, monkeypatch
 
 
 def test_two_axis_observer_runs_1000_seeds_from_the_command_line(tmp_path, monkeypatch, capsys):
-    r, printed = _cli(tmp_path, monkeypatch, capsys, "two_axis_observer")
+    r, printed, _ = _cli(tmp_path, monkeypatch, capsys, "two_axis_observer")
     assert "settling_time_s_x" in printed
     for axis in "xy":
         assert r[f"ise_{axis}"]["n"] == 1000 and r[f"ise_{axis}"]["unstable_fraction"] == 0

@@ -280,7 +280,7 @@ def test_a_link_whose_minimum_delay_outlives_its_ring_is_refused():
     late = nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.0), capacity=2)
     with pytest.raises(ValueError, match="Loop.uplink.capacity must be >= 6: every packet is delayed at least 5"):
         _lti_loop(uplink=late)
-    _lti_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.0), capacity=6))   # fits
+    _lti_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.0), capacity=6), buffer=5)   # fits
 
 
 def test_a_user_delay_model_declares_its_bounds_and_the_ring_is_checked():
@@ -297,7 +297,7 @@ def test_a_user_delay_model_declares_its_bounds_and_the_ring_is_checked():
 
     with pytest.raises(ValueError, match="Loop.uplink.capacity must be >= 4"):
         _lti_loop(uplink=nc.Link(delay=Fixed(3), capacity=2))
-    loop = _lti_loop(uplink=nc.Link(delay=Fixed(3), capacity=4))
+    loop = _lti_loop(uplink=nc.Link(delay=Fixed(3), capacity=4), buffer=3)     # a window that reaches them
     tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
     assert float(jnp.sum(tr.recv_sc)) == loop.steps - 3          # every packet arrives 3 instants late
 
@@ -446,7 +446,7 @@ def test_a_link_without_capacity_is_sized_by_its_loop():
     np.testing.assert_array_equal(np.asarray(a.x), np.asarray(b.x))
     assert _lti_loop(buffer=5).uplink.capacity == 6                          # the EKF's window + 1
     late = nc.Link(delay=nc.ShiftedExponential(eta=0.5, phi=0.01), tau_max=0.8)   # T = 0.1: 5..8 periods
-    assert _lti_loop(uplink=late).uplink.capacity == 9
+    assert _lti_loop(uplink=late, buffer=5).uplink.capacity == 9
     with pytest.raises(ValueError, match="Link.capacity is None: a Loop sizes it"):
         nc.Link().init(jnp.zeros(2))
 

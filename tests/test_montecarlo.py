@@ -83,6 +83,9 @@ def test_run_batched_progress_and_empty(capsys):
     assert out.shape == (5,)
     empty = mc.run_batched(_walk, mc.seed_keys(0, 0), progress=False)
     assert empty["path"].shape == (0, 20)
+    from jaxnc.loop import Metrics
+    z = np.zeros((0,), np.float32)
+    assert repr(Metrics(z, z, z, z, z.astype(bool))) == "Metrics over 0 runs"    # printing no runs used to raise
     with pytest.raises(ValueError):
         mc.run_batched(_normal_sum, mc.seed_keys(0, 3), chunk_size=0, progress=False)
 

@@ -89,10 +89,18 @@ def test_ukf_equals_the_kalman_filter_on_a_linear_model_with_losses(N):
 
 
 def test_a_late_measurement_is_not_used():
+    """No late-measurement buffer: with half the packets one period late the filter equals
+    the one that lost exactly those; a link that delays every packet is refused when the
+    loop is built (the filter would never correct: it used to run open loop silently)."""
     sskf = nc.SteadyStateKF(_plant(), Q=Q, R=R)
-    late = nc.Link(delay=nc.PmfDelay([0.0, 1.0]), capacity=2)             # each packet one period late
-    xhat, _, tr = _xhat(_loop(sskf, uplink=late, steps=20))
-    assert np.all(xhat == 0) and float(np.sum(tr.recv_sc)) == 19     # x̂_0 = 0 and u = -K x̂ = 0: stays 0
+    half = _loop(sskf, uplink=nc.Link(delay=nc.PmfDelay([0.5, 0.5]), capacity=2), steps=20)
+    late = np.asarray(nc.draw(half, jax.random.PRNGKey(0)).uplink.delay) != 0
+    lost = _loop(sskf, uplink=nc.Link(loss=nc.TraceLoss(late), capacity=2), steps=20)
+    (a, _, ta), (b, _, tb) = _xhat(half), _xhat(lost)
+    assert 0 < late.sum() < 20 and float(np.sum(ta.recv_sc)) > float(np.sum(tb.recv_sc))
+    np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match=r"SteadyStateKF\) uses a measurement at most 0 slow periods late.*never correct"):
+        _loop(sskf, uplink=nc.Link(delay=nc.PmfDelay([0.0, 1.0]), capacity=2), steps=20)
 
 
 @pytest.mark.parametrize("build, field", [

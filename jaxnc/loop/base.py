@@ -308,6 +308,13 @@ class AbstractEstimator(abc.ABC):
     #: least ``lookback + 1`` packets in the ring
     lookback: ClassVar[int] = 0
 
+    #: True for an estimator that uses a measurement only by its time stamp and at most
+    #: ``lookback`` slow periods late (:meth:`Inbox.packet`; declared: the ``EKF``, ``UKF``,
+    #: ``Luenberger``, ``SteadyStateKF``): a ``Loop`` whose uplink delays every packet longer
+    #: than that (it would never correct) raises when it is built. False: it uses whatever
+    #: arrives (``Inbox.newest``)
+    by_stamp: ClassVar[bool] = False
+
     @abc.abstractmethod
     def init(self, ctx):
         """State before the first instant; ``ctx`` (:class:`jaxnc.loop.runner.Context`)

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnc import tracking as _tr
-from jaxnc._validate import check_instance, check_int, check_range
+from jaxnc._validate import check_components, check_instance, check_int, check_range
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
@@ -59,7 +59,8 @@ class Tracking:
       settling_threshold: static, relative band of the settling time, in (0, 1).
       window: static int >= 1, samples averaged for the steady-state error.
 
-    Raises: ValueError naming the field.
+    Raises: ValueError naming the field; :meth:`signals` (so :meth:`metrics` and
+    :func:`run_tracking`, at their first trace) when ``index`` is beyond the state x.
     """
 
     reference: Any
@@ -76,13 +77,15 @@ class Tracking:
             raise ValueError(f"Tracking.index must be an int >= 0 or a tuple of distinct ints >= 0, got {self.index!r}")
         object.__setattr__(self, "index", tuple(idx))
         if self.reference.dim not in (1, len(self.index)):
-            raise ValueError(f"Tracking.reference must have 1 or {len(self.index)} channels (len(index)), "
-                             f"got {self.reference.dim}")
+            c = len(self.index)
+            want = "1 channel" if c == 1 else f"1 or {c} channels"
+            raise ValueError(f"Tracking.reference must have {want} (len(index) = {c}), got {self.reference.dim}")
         check_range("Tracking.settling_threshold", self.settling_threshold, 0.0, 1.0, low_open=True, high_open=True)
         check_int("Tracking.window", self.window, 1)
 
     def signals(self, x, T):
         """(y float[K, c], r float[K, c]) for the state trajectory x float[K, n] at period T."""
+        check_components("Tracking.index", self.index, x.shape[1], "the state x")
         y = x[:, jnp.asarray(self.index)]
         r = evaluate(self.reference, x.shape[0], T).astype(y.dtype)
         return y, jnp.broadcast_to(r, y.shape)

@@ -87,6 +87,8 @@ class EKF(AbstractEstimator):
         be an :class:`~jaxnc.loop.AbstractLiftedPlant`).
     """
 
+    by_stamp = True
+
     model: Any
     Q: Any
     R: Any

@@ -24,6 +24,7 @@ Every number (bounds, widths, interval, rates) is a differentiable leaf.
 from __future__ import annotations
 
 import abc
+import dataclasses
 from typing import Any, NamedTuple
 
 import jax
@@ -160,6 +161,19 @@ def _check_limits(owner, limits, *, stateless=False):
     return tuple(limits)
 
 
+def _check_sizes(owner, limits, dim: int, what: str):
+    """Each limit's numbers are one value or one per entry of the ``dim``-vector it limits
+    (static shapes; a traced field is not checked). Raises ValueError naming the field: a
+    longer vector would otherwise broadcast the signal to its length, or fail inside JAX."""
+    for i, lim in enumerate(limits):
+        for f in dataclasses.fields(lim):
+            v = getattr(lim, f.name)
+            if v is None or not concrete(v) or np.shape(v) in ((), (1,), (dim,)):
+                continue
+            raise ValueError(f"{owner}.limits[{i}] ({type(lim).__name__}).{f.name} must be a number or have {dim} "
+                             f"entries ({what}), got shape {np.shape(v)}")
+
+
 def _apply(limits, states, s):
     out = []
     for lim, st in zip(limits, states):
@@ -197,6 +211,9 @@ class LimitedActuator(AbstractActuator):
         return self.actuator.horizon
 
     def init(self, ctx):
+        """The inner actuator's state and the limits'. Raises ValueError when a limit's numbers
+        are neither one value nor one per plant input."""
+        _check_sizes("LimitedActuator", self.limits, ctx.input_dim, "one per plant input")
         return self.actuator.init(ctx), tuple(lim.init(ctx.input_dim, ctx.T) for lim in self.limits)
 
     def receive(self, state, inbox):
@@ -231,4 +248,6 @@ class LimitedSensor(AbstractWrappedPlant):
         object.__setattr__(self, "limits", _check_limits("LimitedSensor", self.limits, stateless=True))
 
     def measure(self, x, v):
-        return _apply(self.limits, tuple(() for _ in self.limits), self.plant.measure(x, v))[1]
+        z = self.plant.measure(x, v)
+        _check_sizes("LimitedSensor", self.limits, jnp.shape(z)[-1], "one per measurement")
+        return _apply(self.limits, tuple(() for _ in self.limits), z)[1]

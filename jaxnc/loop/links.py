@@ -48,7 +48,7 @@ from jaxnc.network import late, quantise_delay
 
 __all__ = ["Link", "LinkDraws", "LinkState", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay",
            "ShiftedExponential", "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel",
-           "truncated_exponential", "draw_link", "link_delay_bounds", "NEVER"]
+           "truncated_exponential", "draw_link", "link_delay_bounds", "steps_within", "NEVER"]
 
 NEVER = 2**30          # arrival instant of a packet that never arrives
 _F32 = jnp.float32
@@ -456,6 +456,13 @@ def link_delay_bounds(link: Link, T: float):
     return lo, hi
 
 
+def steps_within(tau_max, T):
+    """The longest delay in whole fast periods of T seconds that ``tau_max`` keeps, for a
+    delay model drawn in periods (``in_steps``): floor(tau_max / T), compared in periods, not
+    float32 seconds (d T can round above tau_max = d T), float32."""
+    return jnp.floor(jnp.asarray(tau_max, _F32) / jnp.asarray(T, _F32) * (1 + 2.0**-21))
+
+
 def draw_link(link: Link, key, n: int, T) -> LinkDraws:
     """Before the run: the delays (fast periods of T seconds) of the packets of ``n`` slow
     instants over ``link``; -1 when lost or later than ``tau_max`` (n static)."""
@@ -465,10 +472,7 @@ def draw_link(link: Link, key, n: int, T) -> LinkDraws:
     bad = lost | (steps < 0)
     if link.tau_max is not None:
         if link.delay.in_steps:
-            # delays drawn in whole fast periods: compare periods, not float32 seconds
-            # (d * T can round above tau_max = d * T)
-            limit = jnp.floor(jnp.asarray(link.tau_max, _F32) / jnp.asarray(T, _F32) * (1 + 2.0**-21))
-            bad = bad | (steps > limit)
+            bad = bad | (steps > steps_within(link.tau_max, T))
         else:
             bad = bad | late(seconds, link.tau_max)
     if link.reliable_first:

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, fields_concrete
+from jaxnc._validate import array_fields, check_finite, check_given, check_instance, concrete, fields_concrete
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import dlqe, luenberger_step
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
@@ -115,6 +115,8 @@ class Luenberger(AbstractEstimator):
     mis-shaped L or mean0, or an unknown ``inputs``.
     """
 
+    by_stamp = True
+
     model: Any
     L: Any
     mean0: Any = None
@@ -131,6 +133,16 @@ class Luenberger(AbstractEstimator):
             raise ValueError(f"Luenberger.L must be {n}x{p} (state x output), got shape {np.shape(self.L)}")
 
     def init(self, ctx) -> LuenbergerState:
+        """x̂_0. Raises ValueError (when the model and L are concrete, e.g. as a ``Loop`` is
+        built) if A_N - L C, the error's matrix with a measurement at every instant, is not
+        Schur: the estimate would not converge even with every measurement."""
+        if concrete(self.model.A, self.model.C, self.L):
+            A_N = np.linalg.matrix_power(np.asarray(self.model.A, float), ctx.N)
+            rho = float(np.max(np.abs(np.linalg.eigvals(A_N - np.asarray(self.L, float) @ np.asarray(self.model.C, float)))))
+            if rho >= 1.0:
+                raise ValueError(f"Luenberger.L: A_N - L C of the slow-period system (N={ctx.N}, A_N = A^{ctx.N}) has "
+                                 f"spectral radius {rho:.4g} >= 1, so the estimate would not converge; design L for "
+                                 f"A_N (slow_system(A, B, N)), e.g. A_N M with M from stationary_gain")
         x = jnp.asarray(self.mean0, jnp.float32)
         return LuenbergerState(x, jnp.asarray(self.model.C, jnp.float32) @ x, jnp.zeros((), jnp.int32))
 
@@ -191,6 +203,8 @@ class SteadyStateKF(AbstractEstimator):
     shape, Q not PSD or R not PD, a mis-shaped mean0, or (checked at the slow period N = 1
     when built) no stabilising Riccati solution (from :func:`~jaxnc.estimators.steady_state.dlqe`).
     """
+
+    by_stamp = True
 
     model: Any
     Q: Any

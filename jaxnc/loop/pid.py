@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_bool, check_given, check_instance, check_range
+from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -92,7 +92,8 @@ class PID(AbstractController):
       ValueError: naming the field, for a non-finite gain, Tf or Kb < 0, u_min > u_max,
         a reference that is not a :mod:`jaxnc.references` object, an index that is not
         a non-negative int or tuple of distinct ones, gains whose channel count differs
-        from ``len(index)``, or an unknown ``anti_windup``.
+        from ``len(index)``, or an unknown ``anti_windup``; when a ``Loop`` is built
+        (its fit check traces one step), an index beyond the estimator's estimate.
     """
 
     Kp: Any = 0.0
@@ -144,7 +145,8 @@ class PID(AbstractController):
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
             raise ValueError("PID.u_min must be <= u_max")
         if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
-            raise ValueError(f"PID.reference must have 1 or {n} channels (len(index)), got {self.reference.dim}")
+            want = "1 channel" if n == 1 else f"1 or {n} channels"
+            raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
 
     @property
     def channels(self) -> int:
@@ -161,7 +163,9 @@ class PID(AbstractController):
         return self.u_min is not None or self.u_max is not None
 
     def step(self, state: PIDState, xhat, fresh, k, ctx):
-        y = jnp.asarray(xhat)[jnp.asarray(self.index)]
+        xhat = jnp.asarray(xhat)
+        check_components("PID.index", self.index, xhat.shape[-1], "the estimator's estimate")
+        y = xhat[jnp.asarray(self.index)]
         h = ctx.N * ctx.T
         if self.hold:
             h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(jnp.float32)

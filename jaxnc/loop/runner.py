@@ -32,7 +32,7 @@ from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstim
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
-from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_delay_bounds
+from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_delay_bounds, steps_within
 from jaxnc.prng import unrolled
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
@@ -289,6 +289,17 @@ class Loop:
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
             # the downlink at every fast instant (it needs C N > d)
             reach = ring if name == "uplink" else (lambda d: -(-(d + 1) // self.N))
+            if link.delay.in_steps and link.tau_max is not None and concrete(link.tau_max):
+                with jax.ensure_compile_time_eval():     # the draws' own limit (floor, not the ring's ceil)
+                    kept = int(steps_within(link.tau_max, self.T))
+                top = kept if hi is None else min(hi, kept)
+            else:
+                top = hi                        # the longest delay a delivered packet can have
+            if top is not None and top < lo:    # tau_max below the delay law's minimum
+                raise ValueError(f"Loop.{name}.tau_max ({float(link.tau_max):g} s, {top} fast periods of "
+                                 f"T={float(self.T):g} s) is below every delay its model "
+                                 f"{type(link.delay).__name__} draws (at least {lo} fast periods), so every packet "
+                                 f"would be discarded: raise tau_max or shorten the delays")
             if link.capacity is None:       # sized here: the smallest ring the delay bounds allow
                 size = max(2, reach(lo), ring(hi) if hi is not None else 2,
                            self.estimator.lookback + 1 if name == "uplink" else 1)
@@ -301,6 +312,14 @@ class Loop:
             if hi is not None and link.capacity < ring(hi):
                 raise ValueError(f"Loop.{name}.capacity must be >= {ring(hi)} for delays up to {hi} fast periods "
                                  f"with N={self.N}, got {link.capacity}")
+            late = -(-lo // self.N)         # slow periods the earliest packet is late when read
+            if name == "uplink" and self.estimator.by_stamp and late > self.estimator.lookback:
+                raise ValueError(
+                    f"Loop.estimator ({type(self.estimator).__name__}) uses a measurement at most "
+                    f"{self.estimator.lookback} slow periods late (by its time stamp), but Loop.uplink delays every "
+                    f"packet at least {lo} fast periods (N={self.N}), so each is read {late} slow periods late "
+                    f"and the estimator would never correct: use EKF(buffer>={late}) or UKF(buffer>={late}), or "
+                    f"an estimator that takes the newest arrival (Passthrough)")
             if hi is None and link.tau_max is None:     # allowed, and visible: an unbounded law's tail is lost
                 warnings.warn(f"Loop.{name}: the delay model {type(link.delay).__name__} has no bound and the link "
                               f"no tau_max, so a packet still in flight when its slot in the ring of {link.capacity} "
