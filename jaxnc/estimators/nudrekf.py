@@ -106,6 +106,7 @@ class NudrekfEstimator(AbstractEstimator):
     jacobian_grad: bool = _static(True)
     structure: EKFStructure | None = _static(None)
     inputs = "believed"
+    by_stamp = True
 
     def init(self, ctx) -> NudrekfState:
         g = Gaussian(jnp.asarray(self.mean0, jnp.float32), jnp.asarray(self.cov0, jnp.float32))
@@ -115,12 +116,14 @@ class NudrekfEstimator(AbstractEstimator):
         """Correct with the measurement of instant k (weight 0: keep the belief); the
         estimate is the corrected mean with the weight of the measurement.
 
-        The uplink has no delay (seed 000 lumps the round trip on the downlink): the
-        measurement of instant k is in slot k mod C of the ring, with the weight
+        The measurement of instant k is in slot k mod C of the ring, with the weight
         beta_k (1 - lost_k), which carries the trigger's straight-through gradient also
-        when the sensor stays silent (``Inbox.new`` is 0 without a gradient there)."""
+        when the sensor stays silent (``Inbox.new`` is 0 without a gradient there); a
+        packet sent but not delivered by instant k (a delayed uplink; seed 000's has no
+        delay, it lumps the round trip on the downlink) weighs 0: it is not used late."""
         slot = jnp.mod(k, inbox.stamp.shape[0])
-        z, w = jax.tree.map(lambda a: a[slot], inbox.data), inbox.weight[slot]
+        late = (inbox.stamp[slot] >= 0) & ~inbox.arrived[slot]      # sent, not delivered yet
+        z, w = jax.tree.map(lambda a: a[slot], inbox.data), jnp.where(late, 0.0, inbox.weight[slot])
         corrected = nudrekf_correct(self.model, state.belief, z, self.R, jacobian_grad=self.jacobian_grad,
                                     structure=self.structure)
         belief = blend(w, corrected, state.belief)
