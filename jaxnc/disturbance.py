@@ -31,12 +31,6 @@ from jaxnc._validate import check_positive, check_range
 __all__ = ["Dob", "DobState", "dob_design", "dob_init", "dob_output", "dob_update", "rigid_nominal"]
 
 
-def _signal():
-    """scipy.signal, imported on first use."""
-    import scipy.signal
-    return scipy.signal
-
-
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Dob:
@@ -53,13 +47,15 @@ class DobState(NamedTuple):
 
 def rigid_nominal(Ts: float):
     """ZOH of 7.153e6/(s^2 + 502.7 s + 1.011e6): (num, den) in z (numerator b1 z + b0)."""
+    import scipy.signal
     from jaxnc.plants.hdd import RIGID_DEN, RIGID_NUM
-    num, den, _ = _signal().cont2discrete(([RIGID_NUM], list(RIGID_DEN)), Ts, method="zoh")
+    num, den, _ = scipy.signal.cont2discrete(([RIGID_NUM], list(RIGID_DEN)), Ts, method="zoh")
     return np.trim_zeros(np.ravel(num), "f"), np.ravel(den)
 
 
 def dob_design(Ts: float, f_q_hz: float = 1000.0, dtype=jnp.float32) -> Dob:
     """The inverse-model DOB described in the module docstring, cut-off f_q_hz."""
+    import scipy.signal
     check_positive("Ts", Ts)
     check_range("f_q_hz", f_q_hz, 0.0, 0.5 / Ts, low_open=True, high_open=True)
     num, den = rigid_nominal(Ts)
@@ -69,8 +65,8 @@ def dob_design(Ts: float, f_q_hz: float = 1000.0, dtype=jnp.float32) -> Dob:
     # D1 = -Q z^-1 ;  D2 = Q z^-1 Gn^-1 = Q (z^2 + a1 z + a0) / (g z^2)   (positive powers of z)
     d1n, d1d = -Qn, np.polymul(Qd, [1.0, 0.0])
     d2n, d2d = np.polymul(Qn, den) / g, np.polymul(Qd, [1.0, 0.0, 0.0])
-    A1, B1, C1, D1 = _signal().tf2ss(d1n, d1d)
-    A2, B2, C2, D2 = _signal().tf2ss(d2n, d2d)
+    A1, B1, C1, D1 = scipy.signal.tf2ss(d1n, d1d)
+    A2, B2, C2, D2 = scipy.signal.tf2ss(d2n, d2d)
     n1, n2 = A1.shape[0], A2.shape[0]
     A = np.zeros((n1 + n2, n1 + n2))
     A[:n1, :n1], A[n1:, n1:] = A1, A2

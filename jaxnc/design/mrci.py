@@ -35,12 +35,6 @@ __all__ = ["Mode", "MrciDesign", "Mrci", "MrciState", "partial_fractions", "deco
            "computation_saving", "mrci_init", "mrci_step"]
 
 
-def _signal():
-    """scipy.signal, imported on first use."""
-    import scipy.signal
-    return scipy.signal
-
-
 @dataclasses.dataclass(frozen=True)
 class Mode:
     """One partial-fraction mode in state-space form (numpy), with its pole(s)."""
@@ -62,8 +56,9 @@ class Mode:
 
     def tf(self) -> tuple[np.ndarray, np.ndarray]:
         """(num, den), polynomials in the mode's own shift variable (z, or z^m after slow_rate)."""
-        num, den = _signal().ss2tf(self.A, self.B.reshape(-1, 1), self.C.reshape(1, -1),
-                                      np.array([[self.D]]))
+        import scipy.signal
+        num, den = scipy.signal.ss2tf(self.A, self.B.reshape(-1, 1), self.C.reshape(1, -1),
+                                         np.array([[self.D]]))
         return np.real_if_close(num[0]), np.real_if_close(den)
 
 
@@ -74,11 +69,12 @@ def partial_fractions(num, den, *, tol: float = 1e-8) -> tuple[list[Mode], float
     p, conj(p) gives the real block with characteristic polynomial z^2 - 2 Re(p) z + |p|^2
     in controllable canonical form.
     """
+    import scipy.signal
     num = np.trim_zeros(np.atleast_1d(np.asarray(num, float)), "f")
     den = np.trim_zeros(np.atleast_1d(np.asarray(den, float)), "f")
     if len(num) > len(den):
         raise ValueError(f"controller must be proper: numerator degree {len(num) - 1} > denominator degree {len(den) - 1}")
-    r, p, k = _signal().residue(num, den)
+    r, p, k = scipy.signal.residue(num, den)
     for i in range(len(p)):
         for j in range(i + 1, len(p)):
             if abs(p[i] - p[j]) < 1e-6 * max(1.0, abs(p[i])):
