@@ -113,10 +113,27 @@ class Step(AbstractReference):
     def dim(self) -> int:
         return int(np.shape(self.amplitude)[0])
 
+    def applied(self, t, T) -> jax.Array:
+        """Whether the step is applied at the fast instant ``t`` (int scalar, may be traced):
+        t T >= time to within 1e-4 T, bool[p]. The rule of :meth:`at` and :meth:`onset`."""
+        a = jnp.asarray(self.amplitude)
+        return _time(t, T, a.dtype) >= jnp.asarray(self.time, a.dtype) - _TIME_TOL * jnp.asarray(T, a.dtype)
+
+    def onset(self, steps: int, T) -> jax.Array:
+        """The step's instant in a run of ``steps`` fast instants: the first t in
+        [0, steps) at which it is :meth:`applied`, ``steps`` where it is not applied within
+        the run; int32[p]. ``steps`` is a static int >= 1; ``time`` may be traced.
+
+        Raises:
+          ValueError: ``steps`` < 1.
+        """
+        check_int("Step.onset: steps", steps, 1)
+        on = jax.vmap(self.applied, in_axes=(0, None))(jnp.arange(steps, dtype=jnp.int32), T)   # bool[steps, p]
+        return jnp.where(jnp.any(on, axis=0), jnp.argmax(on, axis=0), steps).astype(jnp.int32)
+
     def at(self, t, T):
         a = jnp.asarray(self.amplitude)
-        on = _time(t, T, a.dtype) >= jnp.asarray(self.time, a.dtype) - _TIME_TOL * jnp.asarray(T, a.dtype)
-        return jnp.asarray(self.initial, a.dtype) + jnp.where(on, a, jnp.zeros_like(a))
+        return jnp.asarray(self.initial, a.dtype) + jnp.where(self.applied(t, T), a, jnp.zeros_like(a))
 
 
 @checked_pytree

@@ -31,12 +31,6 @@ def _signal(name, e):
     return e
 
 
-def _times(e, T):
-    """t_k = k T, shaped to broadcast against ``e`` (float[K] or float[K, 1])."""
-    t = jnp.arange(e.shape[0], dtype=e.dtype) * jnp.asarray(T, e.dtype)
-    return t if e.ndim == 1 else t[:, None]
-
-
 def ise(e, T) -> jax.Array:
     """Integral of the squared error, ISE = sum_k e_k^2 T (rectangle rule).
 
@@ -60,13 +54,32 @@ def iae(e, T) -> jax.Array:
     return jnp.sum(jnp.abs(e), axis=0) * jnp.asarray(T, e.dtype)
 
 
-def itae(e, T) -> jax.Array:
-    """Integral of the time-weighted absolute error, ITAE = sum_k t_k |e_k| T, t_k = k T.
+def itae(e, T, *, start=0) -> jax.Array:
+    """Integral of the time-weighted absolute error, ITAE = sum_k (t_k - t_s)_+ |e_k| T,
+    t_k = k T, with time counted from sample ``start`` (t_s = start T; the samples before
+    it weigh 0): the textbook ITAE of a step applied at t_s. The default ``start = 0`` is
+    sum_k t_k |e_k| T.
 
-    Args and Returns as :func:`ise`.
+    Args:
+      e, T: as :func:`ise`.
+      start: int scalar, or int[p] for a float[K, p] ``e`` (one per channel); may be traced.
+
+    Returns:
+      float[] or float[p] (per channel).
+
+    Raises:
+      ValueError: ``start`` not an integer scalar or int[p].
     """
     e = _signal("itae: e", e)
-    return jnp.sum(_times(e, T) * jnp.abs(e), axis=0) * jnp.asarray(T, e.dtype)
+    s = jnp.asarray(start)
+    if not jnp.issubdtype(s.dtype, jnp.integer) or s.ndim > e.ndim - 1 or (s.ndim == 1 and s.shape[0] != e.shape[1]):
+        want = "an int" if e.ndim == 1 else f"an int or int[{e.shape[1]}]"
+        raise ValueError(f"itae: start must be {want}, got {s.dtype}{list(s.shape)}")
+    k = jnp.arange(e.shape[0])
+    if e.ndim == 2:
+        k, s = k[:, None], jnp.broadcast_to(s, e.shape[1:])[None, :]
+    t = jnp.maximum(k - s, 0).astype(e.dtype) * jnp.asarray(T, e.dtype)
+    return jnp.sum(t * jnp.abs(e), axis=0) * jnp.asarray(T, e.dtype)
 
 
 def steady_state_error(e, *, window: int = 1) -> jax.Array:

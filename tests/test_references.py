@@ -32,6 +32,20 @@ def test_step():
     assert _run(rf.Step(1.0)).shape == (K, 1)
 
 
+def test_step_onset_is_where_at_switches():
+    """Step.onset: the first instant at which ``at`` gives the stepped value (a time on a
+    sample instant included), per channel; ``steps`` when the step comes after the run."""
+    ref = rf.Step(amplitude=1.0, time=[0.0, 0.5, 0.52, 3.0, 20.0])
+    onset = np.asarray(jax.jit(ref.onset, static_argnums=0)(K, T))
+    r = _run(ref)
+    want = [int(np.argmax(r[:, j] > 0)) if np.any(r[:, j] > 0) else K for j in range(5)]
+    assert onset.tolist() == want == [0, 10, 11, 60, K]
+    # a traced step time
+    times = jnp.asarray([[0.5], [1.0]])
+    got = jax.jit(jax.vmap(lambda t: rf.Step(jnp.ones(1), t).onset(K, T)))(times)
+    assert np.asarray(got).tolist() == [[10], [20]]
+
+
 def test_ramp_and_sine():
     r = _run(rf.Ramp(slope=[1.0, -0.5], time=1.0, initial=2.0))
     want = 2.0 + np.array([1.0, -0.5]) * np.maximum(TIMES - 1.0, 0.0)[:, None]
@@ -88,6 +102,7 @@ def test_leaves_are_differentiable_and_vmappable():
     (lambda: rf.Recorded(np.zeros((0, 2))), "at least one row"),
     (lambda: rf.Ramp("fast"), "Ramp.slope"),
     (lambda: rf.evaluate(rf.Step(1.0), 0, T), "steps"),
+    (lambda: rf.Step(1.0).onset(0, T), "Step.onset: steps"),
 ])
 def test_bad_inputs(build, match):
     with pytest.raises(ValueError, match=match):

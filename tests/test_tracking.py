@@ -31,6 +31,25 @@ def test_integral_criteria_closed_form():
         np.testing.assert_allclose(float(jax.jit(tr.itae)(jnp.asarray(e[:, 0]), T)), want_itae[0], rtol=1e-12)
 
 
+def test_itae_counts_time_from_start():
+    """ITAE with start = s per channel: sum_k (k - s)_+ T |e_k| T; e = c a^(k - s) from s on
+    gives the geometric closed form over the K - s samples, and the samples before s weigh 0."""
+    with jax.enable_x64(True):
+        K, T, a = 60, 0.05, 0.9
+        c, s = np.array([1.5, -0.4]), np.array([0, 25])
+        k = np.arange(K)[:, None]
+        e = np.where(k >= s[None, :], c[None, :] * a ** np.maximum(k - s[None, :], 0), 7.0)    # 7 before s
+        got = jax.jit(lambda e, s: tr.itae(e, T, start=s))(jnp.asarray(e), jnp.asarray(s))
+        L = K - s
+        want = T ** 2 * np.abs(c) * a * (1 - L * a ** (L - 1) + (L - 1) * a ** L) / (1 - a) ** 2
+        np.testing.assert_allclose(np.asarray(got), want, rtol=1e-12)
+        np.testing.assert_allclose(float(tr.itae(jnp.asarray(e[:, 1]), T, start=25)), want[1], rtol=1e-12)
+        with pytest.raises(ValueError, match="itae: start"):
+            tr.itae(jnp.asarray(e), T, start=1.5)
+        with pytest.raises(ValueError, match="itae: start"):
+            tr.itae(jnp.asarray(e), T, start=jnp.zeros(3, jnp.int32))
+
+
 def test_integral_criteria_gradient():
     with jax.enable_x64(True):
         e = jnp.asarray(np.random.default_rng(0).normal(size=20))

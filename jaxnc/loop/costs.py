@@ -3,14 +3,27 @@
 :class:`Tracking` names what is tracked: state components ``index`` of the true state x
 (``Trajectory.x``, sampled at every fast instant t, time t T) against a
 :mod:`jaxnc.references` reference r. Its :meth:`Tracking.metrics` applies
-:mod:`jaxnc.tracking` to e_t = r_t - x_t[index]:
+:mod:`jaxnc.tracking` to e_t = r_t - x_t[index] and to y = x[:, index], measured from
+the step instant k0 of each channel (:meth:`Tracking.step_instant`): for a
+:class:`~jaxnc.references.Step` the first fast instant at which it is applied
+(:meth:`Step.onset <jaxnc.references.Step.onset>`, the rule of ``Step.at``), for every
+other reference (Ramp, Sine, PiecewiseLinear, Recorded: no step instant) the first
+sample, k0 = 0:
 
-* ``ise``, ``iae``, ``itae``: :func:`jaxnc.tracking.ise` / ``iae`` / ``itae`` of e;
+* ``ise``, ``iae``: :func:`jaxnc.tracking.ise` / ``iae`` of e over the whole run;
+* ``itae``: :func:`jaxnc.tracking.itae` of e with time counted from k0,
+  sum_t (t - k0)_+ T |e_t| T (the samples before the step weigh 0);
 * ``overshoot`` (%), ``rise_time``, ``settling_time`` (s): :func:`jaxnc.tracking.step_info`
-  of y = x[:, index] measured from its first sample y_0 to the reference's final value
-  r_{K-1} (python-control's ``step_info`` with ``yfinal`` = the setpoint);
+  of the samples y_{k0}, ..., y_{K-1}, times counted from k0 T, measured from
+  y_initial = y_{k0} (the response at the step's instant) to the reference's final value
+  r_{K-1} (python-control's ``step_info`` of the post-step data with ``yfinal`` = the
+  setpoint); what y does before k0 does not enter them;
 * ``steady_state_error``: :func:`jaxnc.tracking.steady_state_error` of e over the last
   ``window`` samples.
+
+A ``Step`` not applied within the run (``time`` after the last instant) has no step
+response: its channels' ``itae``, ``overshoot``, ``rise_time`` and ``settling_time`` are
+nan.
 
 :func:`run_tracking` is the per-seed function for
 ``jaxnc.montecarlo.run_batched(run_tracking, keys, args=(loop, tracking))``: the loop's
@@ -28,7 +41,7 @@ from jaxnc._validate import check_components, check_instance, check_int, check_r
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
-from jaxnc.references import AbstractReference, evaluate
+from jaxnc.references import AbstractReference, Step, evaluate
 
 __all__ = ["Tracking", "TrackingMetrics", "run_tracking"]
 
@@ -52,6 +65,10 @@ class TrackingMetrics(NamedTuple):
 @_dataclass
 class Tracking:
     """State components ``index`` of the true state tracking ``reference`` (module docstring).
+
+    The step metrics (``overshoot``, ``rise_time``, ``settling_time``, ``itae``) are measured
+    from :meth:`step_instant`: a ``Step``'s instant (per channel when its ``time`` is a
+    vector), the run's first sample for the other references.
 
     Attributes:
       reference: a :class:`jaxnc.references.AbstractReference` with 1 or c channels.
@@ -90,13 +107,30 @@ class Tracking:
         r = evaluate(self.reference, x.shape[0], T).astype(y.dtype)
         return y, jnp.broadcast_to(r, y.shape)
 
+    def step_instant(self, steps: int, T) -> jax.Array:
+        """k0, int32[c]: the fast instant of each channel from which the step metrics are
+        measured in a run of ``steps`` instants at period T (module docstring): the
+        reference's :meth:`~jaxnc.references.Step.onset` for a ``Step`` (``steps`` when it
+        is not applied within the run), 0 for any other reference."""
+        c = len(self.index)
+        if isinstance(self.reference, Step):
+            return jnp.broadcast_to(self.reference.onset(steps, T), (c,))
+        return jnp.zeros((c,), jnp.int32)
+
     def metrics(self, x, T) -> TrackingMetrics:
         """:class:`TrackingMetrics` of x float[K, n] sampled at period T (module docstring)."""
         y, r = self.signals(x, T)
         e = r - y
-        info = _tr.step_info(y, T, y_final=r[-1], y_initial=y[0], reference=r[-1],
-                             settling_threshold=self.settling_threshold)
-        return TrackingMetrics(_tr.ise(e, T), _tr.iae(e, T), _tr.itae(e, T), info.overshoot, info.rise_time,
+        K = y.shape[0]
+        k0 = self.step_instant(K, T)
+        # the samples from k0 on, the last one repeated to length K: step_info's characteristics
+        # of this are those of y[k0:] (the repeats change no first crossing, extremum or band exit)
+        post = jnp.take_along_axis(y, jnp.minimum(jnp.arange(K)[:, None] + k0[None, :], K - 1), axis=0)
+        stepped = k0 < K
+        info = _tr.step_info(post, T, y_final=jnp.where(stepped, r[-1], jnp.nan), y_initial=post[0],
+                             reference=r[-1], settling_threshold=self.settling_threshold)
+        itae = jnp.where(stepped, _tr.itae(e, T, start=k0), jnp.nan)
+        return TrackingMetrics(_tr.ise(e, T), _tr.iae(e, T), itae, info.overshoot, info.rise_time,
                                info.settling_time, _tr.steady_state_error(e, window=self.window))
 
 
