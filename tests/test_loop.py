@@ -492,3 +492,23 @@ def test_remat_keeps_the_forward_run_and_the_gradient():
     assert count(remat) == count(plain) + 1
     with pytest.raises(ValueError, match="Loop.remat"):
         dataclasses.replace(loop, remat=1)
+
+
+def _luenberger_loop():
+    plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
+    return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(nc.Bernoulli(0.3)),
+                   estimator=nc.Luenberger(plant, L=np.array([[0.6], [0.8]]), mean0=np.zeros(2)),
+                   controller=nc.StateFeedback(K2), downlink=nc.Link(), actuator=nc.HoldLast(), steps=40, T=0.1)
+
+
+@pytest.mark.parametrize("build", [lambda: _lti_loop(uplink=nc.Link(nc.Bernoulli(0.3)), buffer=1), _luenberger_loop])
+def test_a_loop_built_under_x64_from_float64_numbers_runs_as_in_float32(build):
+    # the runner works in float32; an EKF's Q, R, mean0, cov0 or a Luenberger gain given as
+    # numpy float64 used to make the filter's state float64 under jax_enable_x64, a scan
+    # carry type error inside tracing
+    ref = nc.simulate(build(), jax.random.PRNGKey(4))
+    with jax.enable_x64(True):
+        tr = nc.simulate(build(), jax.random.PRNGKey(4))
+        assert tr.xhat.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(tr.xhat), np.asarray(ref.xhat))
+    np.testing.assert_array_equal(np.asarray(tr.x), np.asarray(ref.x))
