@@ -17,7 +17,7 @@ and write in, that the seeds' keys fit in the memory available, and that the fol
 not hold the results of another experiment, or finished results of other settings that
 this run would overwrite (:func:`jaxnc.results.claim`, which then records the run in
 ``OUT/run.json``; a sweep's cells, named by their whole configuration, are kept apart
-instead). A run of an experiment that is not a sweep holds ``OUT/.run.lock`` while it runs,
+instead). A run of an experiment that is not a sweep holds a lock on ``OUT`` while it runs,
 so a second run into the same folder meanwhile is refused.
 
 :func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
@@ -196,10 +196,10 @@ def _sole_writer(out: pathlib.Path, exp, distributed: bool):
     from jaxnc.sweep import folder_lock
     with contextlib.ExitStack() as stack:
         try:
-            stack.enter_context(folder_lock(out, ".run.lock", wait=False))
+            stack.enter_context(folder_lock(out, wait=False))
         except BlockingIOError:
-            raise ConfigError(f"--out: {out} is being written by another jaxnc run right now (it holds "
-                              f"{out / '.run.lock'}); choose another folder, or wait for that run to end") from None
+            raise ConfigError(f"--out: {out} is being written by another jaxnc run right now (it holds a lock "
+                              f"on the folder); choose another folder, or wait for that run to end") from None
         yield
 
 

@@ -151,11 +151,13 @@ def assembly_lock(folder) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def folder_lock(folder, name: str, *, wait: bool = True) -> Iterator[None]:
-    """Hold an exclusive lock on ``folder/name`` (``fcntl.flock``, released when the block
-    ends or the process dies; no lock where fcntl does not exist). ``wait=False``: raise
+def folder_lock(folder, name: str | None = None, *, wait: bool = True) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder/name``, or on the folder itself when ``name`` is
+    None (nothing is written in it) (``fcntl.flock``, released when the block ends or the
+    process dies; no lock where fcntl does not exist). ``wait=False``: raise
     :class:`BlockingIOError` at once when another process (or another open of the file)
     holds it."""
+    import os
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     try:
@@ -163,9 +165,15 @@ def folder_lock(folder, name: str, *, wait: bool = True) -> Iterator[None]:
     except ImportError:                      # not POSIX
         yield
         return
-    with open(folder / name, "a") as fh:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    if name is None:
+        fd = os.open(folder, os.O_RDONLY)
+    else:
+        fd = os.open(folder / name, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         try:
             yield
         finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
