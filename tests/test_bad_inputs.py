@@ -104,6 +104,8 @@ PYTHON_API = [
     (lambda: nc.Periodic(every=0), "Periodic.every must be an integer in [1"),
     (lambda: nc.PacketActuator(horizon=0), "PacketActuator.horizon must be an integer in [1"),
     (lambda: nc.PacketActuator(on_exhausted="last"), "PacketActuator.on_exhausted must be one of hold, zero"),
+    (lambda: nc.PacketActuator(late="keep"), "PacketActuator.late must be one of drop, apply"),
+    (lambda: nc.PacketActuator(on_exhausted="zero", late="apply"), "PacketActuator.late='apply' needs on_exhausted='hold'"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0, 0.0]]), "LTI.C must have 2 columns"),
     (lambda: nc.LTI(A=np.ones((2, 3)), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be square"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[1.0]), "LTI.x0 must have 2 entries"),
