@@ -497,6 +497,11 @@ LOOP_FIT = [
     (lambda: _fit_loop(T=0.05), "Loop.T (0.05 s) must equal the plant's step period (LTI.step_period = 0.1 s)"),
     (lambda: _fit_loop(plant=nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_fit_f, h=_fit_h, input_dim=1, noise_dim=2,
                                        output_dim=1, T=0.02)), "must equal the plant's step period"),
+    # a zero strategy whose packets do not cover the slow period: u = 0 between its actions
+    (lambda: _fit_loop(actuator=nc.ZeroOrder(), N=2, steps=100),
+     "Loop.actuator: on_exhausted='zero' (ZeroOrder) plays a packet's 1 action(s) for 1 fast period(s)"),
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.ZeroOrder(), nc.Saturation(-1.0, 1.0)), N=3, steps=99),
+     "the plant would get zero in 2 of the 3 fast periods of every slow period"),
     # a model inside a part steps one fast period too: sampled at another period it ran silently
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT_05, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))),
      "Loop.T (0.1 s) must equal the estimator.model's step period (LTI.step_period = 0.05 s)"),

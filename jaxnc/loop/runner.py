@@ -289,6 +289,13 @@ class Loop:
         if isinstance(self.actuator.horizon, int) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
+        inner = self.actuator.actuator if isinstance(self.actuator, LimitedActuator) else self.actuator
+        if isinstance(inner, PacketActuator) and inner.on_exhausted == "zero" and inner.horizon < self.N:
+            raise ValueError(f"Loop.actuator: on_exhausted='zero' (ZeroOrder) plays a packet's {inner.horizon} "
+                             f"action(s) for {inner.horizon} fast period(s) and then applies zero, so with N={self.N} "
+                             f"the plant would get zero in {self.N - inner.horizon} of the {self.N} fast periods of "
+                             f"every slow period, lost packet or not: use HoldLast(), or packets of N or more actions "
+                             f"(Predictive(horizon>={self.N}))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
             lo, hi = link_delay_bounds(link, self.T)
