@@ -17,7 +17,8 @@ and write in, that the seeds' keys fit in the memory available, and that the fol
 not hold the results of another experiment, or finished results of other settings that
 this run would overwrite (:func:`jaxnc.results.claim`, which then records the run in
 ``OUT/run.json``; a sweep's cells, named by their whole configuration, are kept apart
-instead).
+instead). A run of an experiment that is not a sweep holds a lock on ``OUT`` while it runs,
+so a second run into the same folder meanwhile is refused.
 
 :func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
 ends by raising ``SystemExit(code)``: 0 on success, 2 for a bad command line or setting
@@ -170,6 +171,42 @@ def _run(args) -> int:
     except montecarlo.MemoryBudgetError as e:
         raise ConfigError(f"--seeds {seeds}: {e}") from None
     out = _writable_out(args.out, exp.name)
+    with _sole_writer(out, exp, args.distributed):
+        done = _claim_and_run(args, exp, settings, seeds, out, cpu_devices, run_kw)
+    if done is None:
+        return 0
+    if args.shard is None and isinstance(done, dict) and done.get("complete") is False:
+        sys.stdout.flush()
+        sys.stderr.write(f"{PROG}: error: {exp.name} ended with cells missing, so its tables were not written "
+                         f"(above); run the same command again to compute them\n")
+        return INCOMPLETE
+    return 0
+
+
+@contextlib.contextmanager
+def _sole_writer(out: pathlib.Path, exp, distributed: bool):
+    """Hold ``out``'s run lock while one run of an experiment that writes whole-folder results
+    (not a sweep's cells, which shards write together; not ``--distributed``, whose processes
+    may share the folder) claims it and runs: a second run into the same folder meanwhile is
+    refused, instead of both passing the claim and the later one overwriting (or mixing its
+    files with) the other's."""
+    if exp.keeps_cells or distributed:
+        yield
+        return
+    from jaxnc.sweep import folder_lock
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(folder_lock(out, wait=False))
+        except BlockingIOError:
+            raise ConfigError(f"--out: {out} is being written by another jaxnc run right now (it holds a lock "
+                              f"on the folder); choose another folder, or wait for that run to end") from None
+        yield
+
+
+def _claim_and_run(args, exp, settings, seeds, out, cpu_devices, run_kw):
+    """Claim ``out`` (:func:`jaxnc.results.claim`) and run ``exp``; its results, or None on a
+    process other than 0 of a distributed run."""
+    from jaxnc import montecarlo
     from jaxnc import results
     try:
         other = results.claim(out, exp.name, settings, seeds, keeps_cells=exp.keeps_cells)
@@ -198,16 +235,11 @@ def _run(args) -> int:
             # files); the tables and progress bars are process 0's
             with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
                 exp.run(settings, seeds=seeds, out=out, progress=False, **run_kw)
-            return 0
+            return None
         done = exp.run(settings, seeds=seeds, out=out, progress=args.progress, **run_kw)
     except montecarlo.MemoryBudgetError as e:
         raise ConfigError(f"--seeds {seeds}: {e}") from None
-    if args.shard is None and isinstance(done, dict) and done.get("complete") is False:
-        sys.stdout.flush()
-        sys.stderr.write(f"{PROG}: error: {exp.name} ended with cells missing, so its tables were not written "
-                         f"(above); run the same command again to compute them\n")
-        return INCOMPLETE
-    return 0
+    return done
 
 
 def _writable_out(text: str | None, name: str) -> pathlib.Path:

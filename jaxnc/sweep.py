@@ -27,7 +27,7 @@ import re
 from typing import Callable, Iterator, Sequence
 
 __all__ = ["Shard", "parse_shard", "config_hash", "cell_path", "load_cell", "save_cell", "missing_report",
-           "assembly_lock"]
+           "assembly_lock", "folder_lock"]
 
 _SHARD_RE = re.compile(r"\s*([0-9]+)\s*/\s*([0-9]+)\s*\Z")
 
@@ -143,9 +143,21 @@ def missing_report(cells: Sequence, missing: Sequence, shard: Shard | None, desc
 
 @contextlib.contextmanager
 def assembly_lock(folder) -> Iterator[None]:
-    """Hold an exclusive lock on ``folder/.assemble.lock`` (``fcntl.flock``; no lock where
-    fcntl does not exist), so two shards finishing together write the tables one after
-    the other, never interleaved."""
+    """Hold an exclusive lock on ``folder/.assemble.lock`` (:func:`folder_lock`, waiting for
+    it), so two shards finishing together write the tables one after the other, never
+    interleaved."""
+    with folder_lock(folder, ".assemble.lock"):
+        yield
+
+
+@contextlib.contextmanager
+def folder_lock(folder, name: str | None = None, *, wait: bool = True) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder/name``, or on the folder itself when ``name`` is
+    None (nothing is written in it) (``fcntl.flock``, released when the block ends or the
+    process dies; no lock where fcntl does not exist). ``wait=False``: raise
+    :class:`BlockingIOError` at once when another process (or another open of the file)
+    holds it."""
+    import os
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     try:
@@ -153,9 +165,15 @@ def assembly_lock(folder) -> Iterator[None]:
     except ImportError:                      # not POSIX
         yield
         return
-    with open(folder / ".assemble.lock", "a") as fh:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+    if name is None:
+        fd = os.open(folder, os.O_RDONLY)
+    else:
+        fd = os.open(folder / name, os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         try:
             yield
         finally:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)

@@ -104,6 +104,8 @@ PYTHON_API = [
     (lambda: nc.Periodic(every=0), "Periodic.every must be an integer in [1"),
     (lambda: nc.PacketActuator(horizon=0), "PacketActuator.horizon must be an integer in [1"),
     (lambda: nc.PacketActuator(on_exhausted="last"), "PacketActuator.on_exhausted must be one of hold, zero"),
+    (lambda: nc.PacketActuator(late="keep"), "PacketActuator.late must be one of drop, apply"),
+    (lambda: nc.PacketActuator(on_exhausted="zero", late="apply"), "PacketActuator.late='apply' needs on_exhausted='hold'"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0, 0.0]]), "LTI.C must have 2 columns"),
     (lambda: nc.LTI(A=np.ones((2, 3)), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be square"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[1.0]), "LTI.x0 must have 2 entries"),
@@ -472,6 +474,7 @@ def _fit_discrete(**kw):
 
 
 _FIT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.1)
+_FIT_PLANT_05 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.05)     # sampled at another period
 _FIT_MODEL3 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=np.eye(2), T=0.1)       # two outputs
 
 
@@ -494,6 +497,19 @@ LOOP_FIT = [
     (lambda: _fit_loop(T=0.05), "Loop.T (0.05 s) must equal the plant's step period (LTI.step_period = 0.1 s)"),
     (lambda: _fit_loop(plant=nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_fit_f, h=_fit_h, input_dim=1, noise_dim=2,
                                        output_dim=1, T=0.02)), "must equal the plant's step period"),
+    # a zero strategy whose packets do not cover the slow period: u = 0 between its actions
+    (lambda: _fit_loop(actuator=nc.ZeroOrder(), N=2, steps=100),
+     "Loop.actuator: on_exhausted='zero' (ZeroOrder) plays a packet's 1 action(s) for 1 fast period(s)"),
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.ZeroOrder(), nc.Saturation(-1.0, 1.0)), N=3, steps=99),
+     "the plant would get zero in 2 of the 3 fast periods of every slow period"),
+    # a model inside a part steps one fast period too: sampled at another period it ran silently
+    (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT_05, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))),
+     "Loop.T (0.1 s) must equal the estimator.model's step period (LTI.step_period = 0.05 s)"),
+    (lambda: _fit_loop(estimator=nc.UKF(_FIT_PLANT_05, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))),
+     "must equal the estimator.model's step period"),
+    (lambda: _fit_loop(controller=nc.Predictive(nc.StateFeedback(K=[[1.0, 0.5]]), _FIT_PLANT_05, horizon=2),
+                       actuator=nc.PacketActuator(horizon=2)),
+     "Loop.T (0.1 s) must equal the controller.model's step period (LTI.step_period = 0.05 s)"),
     # a state that is not a vector, dynamics of the wrong type
     (lambda: _fit_discrete(x0=[[0.0], [1.0]]), "Discrete.x0 must be a vector"),
     (lambda: _fit_discrete(f=_fit_f_int), "f(x, u, w) must return float32 values"),

@@ -66,15 +66,34 @@ def quits():
     sys.exit(0)
 '''
 
+NESTED_MODULE = '''
+from jaxnc.experiment import Experiment
+from mymod import OPTIONS, _runner
+
+CODES = []
+
+
+def run(settings, *, seeds, out, progress):
+    from jaxnc import cli
+    if settings["mode"] == "a":       # while this run runs, a second one into the same folder
+        CODES.append(cli.run_cli(["run", "nested:experiment", "--seeds", str(seeds), "--out", str(out),
+                                  "--set", "mode=b", "--no-progress"]))
+    return _runner("nested")(settings, seeds=seeds, out=out, progress=progress)
+
+
+experiment = Experiment("nested", "starts a second run into its own folder", OPTIONS, run)
+'''
+
 MODULES = {
     "mymod": USER_MODULE,
+    "nested": NESTED_MODULE,
     "noexp": "X = 1\n",
     "brokendep": "import no_such_dependency_xyz\n",
     "badname": "from json import no_such_name\n",
     "userpkg/__init__.py": "",
     "userpkg/study.py": "from mymod import experiment\n",
 }
-NAMES = {"mymod", "noexp", "brokendep", "badname", "userpkg", "no_such_dependency_xyz"}
+NAMES = {"mymod", "nested", "noexp", "brokendep", "badname", "userpkg", "no_such_dependency_xyz"}
 
 
 @pytest.fixture(autouse=True)
@@ -116,6 +135,22 @@ def test_runs_user_experiment(user_dir, capsys):
     assert results == {"total": 7.5, "mode": "b", "progress": False}
     assert sys.path[0] == str(user_dir)                  # the cwd was put in front
     assert "user-study" not in ex.REGISTRY               # nothing is registered
+
+
+def test_a_second_run_into_a_folder_being_written_is_refused(user_dir, capsys):
+    # both used to pass the folder's claim (no results.json yet) and the later one's files
+    # replaced, or mixed with, the other's, both exiting 0
+    out = user_dir / "o"
+    assert cli.run_cli(["run", "nested:experiment", "--seeds", "3", "--out", str(out), "--no-progress"]) == 0
+    import nested
+    assert nested.CODES == [2]
+    err = capsys.readouterr().err
+    assert "--out" in err and "is being written by another jaxnc run" in err, err
+    _, config, _ = load(out / "results.json")
+    assert config == {"gain": 1.0, "mode": "a", "seeds": 3}
+    # the lock ends with the run: the same command again runs
+    assert cli.run_cli(["run", "mymod:experiment", "--seeds", "3", "--out", str(user_dir / "p"), "--no-progress"]) == 0
+    assert cli.run_cli(["run", "mymod:experiment", "--seeds", "3", "--out", str(user_dir / "p"), "--no-progress"]) == 0
 
 
 def test_default_out_and_settings(user_dir):

@@ -492,3 +492,64 @@ def test_remat_keeps_the_forward_run_and_the_gradient():
     assert count(remat) == count(plain) + 1
     with pytest.raises(ValueError, match="Loop.remat"):
         dataclasses.replace(loop, remat=1)
+
+
+def _luenberger_loop():
+    plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.05], T=0.1)
+    return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(nc.Bernoulli(0.3)),
+                   estimator=nc.Luenberger(plant, L=np.array([[0.6], [0.8]]), mean0=np.zeros(2)),
+                   controller=nc.StateFeedback(K2), downlink=nc.Link(), actuator=nc.HoldLast(), steps=40, T=0.1)
+
+
+@pytest.mark.parametrize("build", [lambda: _lti_loop(uplink=nc.Link(nc.Bernoulli(0.3)), buffer=1), _luenberger_loop])
+def test_a_loop_built_under_x64_from_float64_numbers_runs_as_in_float32(build):
+    # the runner works in float32; an EKF's Q, R, mean0, cov0 or a Luenberger gain given as
+    # numpy float64 used to make the filter's state float64 under jax_enable_x64, a scan
+    # carry type error inside tracing
+    ref = nc.simulate(build(), jax.random.PRNGKey(4))
+    with jax.enable_x64(True):
+        tr = nc.simulate(build(), jax.random.PRNGKey(4))
+        assert tr.xhat.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(tr.xhat), np.asarray(ref.xhat))
+    np.testing.assert_array_equal(np.asarray(tr.x), np.asarray(ref.x))
+
+
+def _hold_last_reference(loop, d, K):
+    """A float64 hold-last actuator written from its docstring: at each fast instant the
+    newest packet by stamp among those arriving now (newer than every one delivered before:
+    the link's order "newest") is applied and held; 0 before the first."""
+    A, B, C = (np.asarray(m, float) for m in (loop.plant.A, loop.plant.B, loop.plant.C))
+    N, S = loop.N, loop.steps // loop.N
+    w, v, dd = np.asarray(d.w, float), np.asarray(d.v, float), np.asarray(d.downlink.delay)
+    x, u, flying, last, xs, us = np.asarray(loop.plant.x0, float), np.zeros(1), [], -1, [], []
+    for k in range(S):
+        z = C @ x + v[k]
+        if dd[k] >= 0:
+            flying.append((k * N + dd[k], k * N, -K @ z))
+        for j in range(N):
+            t = k * N + j
+            now = [p for p in flying if p[0] <= t and p[1] > last]
+            flying = [p for p in flying if p[0] > t]
+            if now:
+                _, last, u = max(now, key=lambda p: p[1])
+            xs.append(x.copy())
+            us.append(u.copy())
+            x = A @ x + B @ u + w[k, j]
+    return np.array(xs), np.array(us)
+
+
+@pytest.mark.parametrize("N, pmf", [(1, [0.0, 1.0]), (2, [0.4, 0.3, 0.3]), (3, [0.2, 0.2, 0.2, 0.2, 0.2])])
+def test_hold_last_applies_a_delayed_action_on_arrival(N, pmf):
+    # it used to apply only an action that arrived at the instant it was stamped: over a
+    # downlink delaying every packet the plant got u = 0 throughout while recv_ca counted them
+    K = np.array([[2.0]])
+    plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.01], T=0.1)
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.StateFeedback(K), downlink=nc.Link(nc.Bernoulli(0.2), nc.PmfDelay(pmf)),
+                   actuator=nc.HoldLast(), N=N, steps=60 * N, T=0.1)
+    key = jax.random.PRNGKey(11)
+    tr = nc.simulate(loop, key)
+    xs, us = _hold_last_reference(loop, nc.draw(loop, key), K)
+    assert np.abs(us).max() > 0.5
+    np.testing.assert_allclose(np.asarray(tr.u), us, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)

@@ -4,8 +4,12 @@
 At fast instant t it applies, of the packets whose stamp is <= t, the newest: its action
 ``data[t - stamp]``. When that packet is exhausted (t - stamp >= H) or none has arrived,
 it holds the last action it applied (``on_exhausted="hold"``, seed 001 eq. 4) or applies
-zero (``"zero"``). A packet of one action (H = 1) stamped with the instant it is sent
-makes the plain hold-last actuator (:func:`HoldLast`); a packet of H future actions is
+zero (``"zero"``). A packet that arrives after all its actions are due (a one-action
+packet delayed by a fast period or more) is then never applied (``late="drop"``, the
+time-stamped actuator of seeds 000 and 001); with ``late="apply"`` its last action is
+applied from its arrival and held. A packet of one action (H = 1) stamped with the
+instant it is sent, ``late="apply"``, makes the plain hold-last actuator
+(:func:`HoldLast`: the newest action received, applied on arrival, however late); a packet of H future actions is
 packet-based control (seeds 000, 003, 004); a capacity > 1 keeps packets stamped for the
 future (seed 001's commands stamped k + lead) until their time comes.
 """
@@ -52,17 +56,26 @@ class PacketActuator(AbstractActuator):
       horizon: static H, actions per packet (must equal the controller's).
       capacity: static B >= 1, packets kept.
       on_exhausted: static, ``"hold"`` or ``"zero"``.
+      late: static, ``"drop"`` (a packet that arrives after all its actions are due is not
+        applied) or ``"apply"`` (its last action is applied from its arrival; needs
+        ``on_exhausted="hold"``).
     """
 
     horizon: int = _static(1)
     capacity: int = _static(1)
     on_exhausted: str = _static("hold")
+    late: str = _static("drop")
 
     def __post_init__(self):
         check_int("PacketActuator.horizon", self.horizon, 1, 1_000_000)
         check_int("PacketActuator.capacity", self.capacity, 1, 10_000)
         if self.on_exhausted not in ("hold", "zero"):
             raise ValueError(f"PacketActuator.on_exhausted must be one of hold, zero, got {self.on_exhausted!r}")
+        if self.late not in ("drop", "apply"):
+            raise ValueError(f"PacketActuator.late must be one of drop, apply, got {self.late!r}")
+        if self.late == "apply" and self.on_exhausted != "hold":
+            raise ValueError("PacketActuator.late='apply' needs on_exhausted='hold' (a late packet's last action "
+                             "is held)")
 
     def init(self, ctx) -> ActuatorState:
         m = ctx.input_dim
@@ -83,13 +96,16 @@ class PacketActuator(AbstractActuator):
         live = valid[j] & (idx < self.horizon)
         u_pkt = state.u[j, jnp.clip(idx, 0, self.horizon - 1)]
         fallback = state.last if self.on_exhausted == "hold" else jnp.zeros_like(state.last)
+        if self.late == "apply":        # the newest packet's last action: a late one's too
+            fallback = jnp.where(valid[j], state.u[j, self.horizon - 1], fallback)
         u = jnp.where(live, u_pkt, fallback)
         return state._replace(last=u), u
 
 
 def HoldLast(capacity: int = 1) -> PacketActuator:
-    """Applies the newest received action and holds it (packets of one action)."""
-    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="hold")
+    """Applies the newest received action (by time stamp) from its arrival, however late,
+    and holds it (packets of one action; ``late="apply"``)."""
+    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="hold", late="apply")
 
 
 def ZeroOrder(capacity: int = 1) -> PacketActuator:

@@ -146,6 +146,8 @@ class EKF(AbstractEstimator):
             raise ValueError("EKF.R must be positive definite")
         if Q.ndim == 1 and Q.min() < 0:
             raise ValueError("EKF.Q's variances must be >= 0")
+        for name, M in (("Q", Q), ("R", R), ("mean0", m0), ("cov0", P0)):   # the state's dtype, also under x64
+            object.__setattr__(self, name, M)
 
     @property
     def lookback(self) -> int:

@@ -129,8 +129,10 @@ class Luenberger(AbstractEstimator):
         check_finite("Luenberger.L", self.L)
         array_fields(self, "L", "mean0")
         _check_vector("Luenberger", "mean0", self.mean0, n)
-        if fields_concrete(self) and np.shape(self.L) != (n, p):
-            raise ValueError(f"Luenberger.L must be {n}x{p} (state x output), got shape {np.shape(self.L)}")
+        if fields_concrete(self):
+            if np.shape(self.L) != (n, p):
+                raise ValueError(f"Luenberger.L must be {n}x{p} (state x output), got shape {np.shape(self.L)}")
+            object.__setattr__(self, "L", np.asarray(self.L, np.float32))     # the state's dtype, also under x64
 
     def init(self, ctx) -> LuenbergerState:
         """x̂_0. Raises ValueError (when the model and L are concrete, e.g. as a ``Loop`` is

@@ -263,11 +263,18 @@ class Loop:
             object.__setattr__(self, "T", float(self.T))        # a numpy scalar: a plain float (static)
         if isinstance(self.T, bool) or not (isinstance(self.T, (int, float)) and np.isfinite(self.T) and self.T > 0):
             raise ValueError(f"Loop.T must be a number > 0 (seconds), got {self.T!r}")
-        plant_T = self.plant.step_period
-        if plant_T is not None and concrete(plant_T) and np.ndim(plant_T) == 0 \
-                and abs(float(plant_T) - float(self.T)) > 1e-6 * float(self.T):      # float32 rounding
-            raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the plant's step period "
-                             f"({type(self.plant).__name__}.step_period = {float(plant_T):g} s)")
+        models = [("plant", self.plant)] + [        # the parts' models step one fast period too
+            (role + jax.tree_util.keystr(path), part)
+            for role in ("estimator", "controller")
+            for path, part in jax.tree_util.tree_flatten_with_path(
+                getattr(self, role), is_leaf=lambda v: isinstance(v, AbstractPlant))[0]
+            if isinstance(part, AbstractPlant)]
+        for where, model in models:
+            model_T = model.step_period
+            if model_T is not None and concrete(model_T) and np.ndim(model_T) == 0 \
+                    and abs(float(model_T) - float(self.T)) > 1e-6 * float(self.T):      # float32 rounding
+                raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the {where}'s step period "
+                                 f"({type(model).__name__}.step_period = {float(model_T):g} s)")
         if self.cost is not None and not ({"x", "u"} <= set(self.record.signals)):
             raise ValueError(f"Loop.cost needs the signals x and u recorded, but Loop.record keeps only "
                              f"{self.record.signals}: add them, or set cost=None")
@@ -282,6 +289,13 @@ class Loop:
         if isinstance(self.actuator.horizon, int) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
+        inner = self.actuator.actuator if isinstance(self.actuator, LimitedActuator) else self.actuator
+        if isinstance(inner, PacketActuator) and inner.on_exhausted == "zero" and inner.horizon < self.N:
+            raise ValueError(f"Loop.actuator: on_exhausted='zero' (ZeroOrder) plays a packet's {inner.horizon} "
+                             f"action(s) for {inner.horizon} fast period(s) and then applies zero, so with N={self.N} "
+                             f"the plant would get zero in {self.N - inner.horizon} of the {self.N} fast periods of "
+                             f"every slow period, lost packet or not: use HoldLast(), or packets of N or more actions "
+                             f"(Predictive(horizon>={self.N}))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
             lo, hi = link_delay_bounds(link, self.T)
