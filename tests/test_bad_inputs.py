@@ -105,6 +105,7 @@ PYTHON_API = [
     (lambda: nc.PacketActuator(horizon=0), "PacketActuator.horizon must be an integer in [1"),
     (lambda: nc.PacketActuator(on_exhausted="last"), "PacketActuator.on_exhausted must be one of hold, zero"),
     (lambda: nc.PacketActuator(late="keep"), "PacketActuator.late must be one of drop, apply"),
+    (lambda: nc.PacketActuator(span="slow"), "PacketActuator.span must be one of fast, period"),
     (lambda: nc.PacketActuator(on_exhausted="zero", late="apply"), "PacketActuator.late='apply' needs on_exhausted='hold'"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0, 0.0]]), "LTI.C must have 2 columns"),
     (lambda: nc.LTI(A=np.ones((2, 3)), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be square"),
@@ -498,9 +499,10 @@ LOOP_FIT = [
     (lambda: _fit_loop(plant=nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_fit_f, h=_fit_h, input_dim=1, noise_dim=2,
                                        output_dim=1, T=0.02)), "must equal the plant's step period"),
     # a zero strategy whose packets do not cover the slow period: u = 0 between its actions
-    (lambda: _fit_loop(actuator=nc.ZeroOrder(), N=2, steps=100),
-     "Loop.actuator: on_exhausted='zero' (ZeroOrder) plays a packet's 1 action(s) for 1 fast period(s)"),
-    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.ZeroOrder(), nc.Saturation(-1.0, 1.0)), N=3, steps=99),
+    (lambda: _fit_loop(actuator=nc.PacketActuator(on_exhausted="zero"), N=2, steps=100),
+     "Loop.actuator: on_exhausted='zero' with span='fast' plays a packet's 1 action(s) for 1 fast period(s)"),
+    (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.PacketActuator(on_exhausted="zero"), nc.Saturation(-1.0, 1.0)),
+                       N=3, steps=99),
      "the plant would get zero in 2 of the 3 fast periods of every slow period"),
     # a model inside a part steps one fast period too: sampled at another period it ran silently
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT_05, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))),

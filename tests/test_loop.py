@@ -553,3 +553,51 @@ def test_hold_last_applies_a_delayed_action_on_arrival(N, pmf):
     assert np.abs(us).max() > 0.5
     np.testing.assert_allclose(np.asarray(tr.u), us, atol=1e-5)
     np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)
+
+
+def _zero_strategy_reference(loop, d, K):
+    """A float64 zero-strategy actuator written from ZeroOrder's docstring: the newest
+    delivered packet (stamp kN, newer than every one delivered before) is applied from its
+    arrival while kN <= t < (k + 1) N; zero otherwise."""
+    A, B, C = (np.asarray(m, float) for m in (loop.plant.A, loop.plant.B, loop.plant.C))
+    N, S = loop.N, loop.steps // loop.N
+    w, v, dd = np.asarray(d.w, float), np.asarray(d.v, float), np.asarray(d.downlink.delay)
+    x, flying, cur, xs, us = np.asarray(loop.plant.x0, float), [], None, [], []
+    for k in range(S):
+        z = C @ x + v[k]
+        if dd[k] >= 0:
+            flying.append((k * N + dd[k], k * N, -K @ z))
+        for j in range(N):
+            t = k * N + j
+            now = [p for p in flying if p[0] <= t and (cur is None or p[1] > cur[0])]
+            flying = [p for p in flying if p[0] > t]
+            if now:
+                _, s, a = max(now, key=lambda p: p[1])
+                cur = (s, a)
+            u = cur[1] if cur is not None and cur[0] <= t < cur[0] + N else np.zeros(1)
+            xs.append(x.copy())
+            us.append(u.copy())
+            x = A @ x + B @ u + w[k, j]
+    return np.array(xs), np.array(us)
+
+
+@pytest.mark.parametrize("N, pmf", [(1, [0.5, 0.5]), (2, [0.4, 0.3, 0.3]), (4, [0.3, 0.3, 0.2, 0.1, 0.1, 0.0])])
+def test_zero_order_applies_each_action_over_its_period_and_zero_when_it_is_missing(N, pmf):
+    # ZeroOrder used to apply each action for one fast period and zero in the N - 1 others,
+    # on a perfect network too
+    K = np.array([[2.0]])
+    plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.01], T=0.1)
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.StateFeedback(K), downlink=nc.Link(nc.Bernoulli(0.2), nc.PmfDelay(pmf)),
+                   actuator=nc.ZeroOrder(), N=N, steps=60 * N, T=0.1)
+    key = jax.random.PRNGKey(12)
+    tr = nc.simulate(loop, key)
+    xs, us = _zero_strategy_reference(loop, nc.draw(loop, key), K)
+    u = np.asarray(tr.u)
+    assert np.abs(us).max() > 0.5 and np.mean(us == 0) > 0.05     # both actions and zeros occur
+    np.testing.assert_allclose(u, us, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)
+    # a perfect downlink: every fast period of every slow period gets its period's action
+    ideal = dataclasses.replace(loop, downlink=nc.Link())
+    u_ideal = np.asarray(nc.simulate(ideal, key).u).reshape(-1, N)
+    assert np.all(u_ideal[:, :1] != 0) and np.all(u_ideal == u_ideal[:, :1])

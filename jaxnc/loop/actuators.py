@@ -4,7 +4,10 @@
 At fast instant t it applies, of the packets whose stamp is <= t, the newest: its action
 ``data[t - stamp]``. When that packet is exhausted (t - stamp >= H) or none has arrived,
 it holds the last action it applied (``on_exhausted="hold"``, seed 001 eq. 4) or applies
-zero (``"zero"``). A packet that arrives after all its actions are due (a one-action
+zero (``"zero"``). Each action lasts one fast period (``span="fast"``: action i of a packet
+stamped s is due at t = s + i) or one period of the loop, N fast periods (``span="period"``:
+due for s + i N <= t < s + (i + 1) N), the zero strategy's action over the controller's
+period (:func:`ZeroOrder`). A packet that arrives after all its actions are due (a one-action
 packet delayed by a fast period or more) is then never applied (``late="drop"``, the
 time-stamped actuator of seeds 000 and 001); with ``late="apply"`` its last action is
 applied from its arrival and held. A packet of one action (H = 1) stamped with the
@@ -15,7 +18,7 @@ future (seed 001's commands stamped k + lead) until their time comes.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +39,7 @@ class ActuatorState(NamedTuple):
     u: jax.Array         # float[B, H, m] actions of the buffered packets
     stamp: jax.Array     # int32[B] their stamps (_EMPTY: free slot)
     last: jax.Array      # float[m] the last action applied
+    period: Any = ()     # int32: fast periods an action lasts (span="period"; () with span="fast")
 
 
 def install(state: ActuatorState, actions, stamp, w) -> ActuatorState:
@@ -59,12 +63,15 @@ class PacketActuator(AbstractActuator):
       late: static, ``"drop"`` (a packet that arrives after all its actions are due is not
         applied) or ``"apply"`` (its last action is applied from its arrival; needs
         ``on_exhausted="hold"``).
+      span: static, how long each action lasts: ``"fast"`` (one fast period) or
+        ``"period"`` (the loop's period, N fast periods: ``Context.N``).
     """
 
     horizon: int = _static(1)
     capacity: int = _static(1)
     on_exhausted: str = _static("hold")
     late: str = _static("drop")
+    span: str = _static("fast")
 
     def __post_init__(self):
         check_int("PacketActuator.horizon", self.horizon, 1, 1_000_000)
@@ -76,11 +83,14 @@ class PacketActuator(AbstractActuator):
         if self.late == "apply" and self.on_exhausted != "hold":
             raise ValueError("PacketActuator.late='apply' needs on_exhausted='hold' (a late packet's last action "
                              "is held)")
+        if self.span not in ("fast", "period"):
+            raise ValueError(f"PacketActuator.span must be one of fast, period, got {self.span!r}")
 
     def init(self, ctx) -> ActuatorState:
         m = ctx.input_dim
         return ActuatorState(jnp.zeros((self.capacity, self.horizon, m), jnp.float32),
-                             jnp.full((self.capacity,), _EMPTY, jnp.int32), jnp.zeros((m,), jnp.float32))
+                             jnp.full((self.capacity,), _EMPTY, jnp.int32), jnp.zeros((m,), jnp.float32),
+                             jnp.asarray(ctx.N, jnp.int32) if self.span == "period" else ())
 
     def receive(self, state: ActuatorState, inbox: Inbox) -> ActuatorState:
         C = inbox.stamp.shape[0]
@@ -93,6 +103,8 @@ class PacketActuator(AbstractActuator):
         key = jnp.where(valid, state.stamp, _EMPTY)
         j = jnp.argmax(key)
         idx = t - state.stamp[j]
+        if self.span == "period":
+            idx = idx // state.period
         live = valid[j] & (idx < self.horizon)
         u_pkt = state.u[j, jnp.clip(idx, 0, self.horizon - 1)]
         fallback = state.last if self.on_exhausted == "hold" else jnp.zeros_like(state.last)
@@ -109,5 +121,8 @@ def HoldLast(capacity: int = 1) -> PacketActuator:
 
 
 def ZeroOrder(capacity: int = 1) -> PacketActuator:
-    """Applies a received action for one period only, zero otherwise (the zero strategy)."""
-    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="zero")
+    """The zero strategy: the action of the controller's packet stamped kN is applied over
+    its period, kN <= t < (k + 1) N, from its arrival; zero in a period whose packet was
+    lost or arrives after the period (packets of one action; ``span="period"``,
+    ``on_exhausted="zero"``)."""
+    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="zero", span="period")

@@ -290,11 +290,13 @@ class Loop:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
         inner = self.actuator.actuator if isinstance(self.actuator, LimitedActuator) else self.actuator
-        if isinstance(inner, PacketActuator) and inner.on_exhausted == "zero" and inner.horizon < self.N:
-            raise ValueError(f"Loop.actuator: on_exhausted='zero' (ZeroOrder) plays a packet's {inner.horizon} "
+        if isinstance(inner, PacketActuator) and inner.on_exhausted == "zero" and inner.span == "fast" \
+                and inner.horizon < self.N:
+            raise ValueError(f"Loop.actuator: on_exhausted='zero' with span='fast' plays a packet's {inner.horizon} "
                              f"action(s) for {inner.horizon} fast period(s) and then applies zero, so with N={self.N} "
                              f"the plant would get zero in {self.N - inner.horizon} of the {self.N} fast periods of "
-                             f"every slow period, lost packet or not: use HoldLast(), or packets of N or more actions "
+                             f"every slow period, lost packet or not: use ZeroOrder() (span='period': each action "
+                             f"over the loop's period), HoldLast(), or packets of N or more actions "
                              f"(Predictive(horizon>={self.N}))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
