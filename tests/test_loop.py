@@ -514,51 +514,13 @@ def test_a_loop_built_under_x64_from_float64_numbers_runs_as_in_float32(build):
     np.testing.assert_array_equal(np.asarray(tr.x), np.asarray(ref.x))
 
 
-def _hold_last_reference(loop, d, K):
-    """A float64 hold-last actuator written from its docstring: at each fast instant the
-    newest packet by stamp among those arriving now (newer than every one delivered before:
-    the link's order "newest") is applied and held; 0 before the first."""
-    A, B, C = (np.asarray(m, float) for m in (loop.plant.A, loop.plant.B, loop.plant.C))
-    N, S = loop.N, loop.steps // loop.N
-    w, v, dd = np.asarray(d.w, float), np.asarray(d.v, float), np.asarray(d.downlink.delay)
-    x, u, flying, last, xs, us = np.asarray(loop.plant.x0, float), np.zeros(1), [], -1, [], []
-    for k in range(S):
-        z = C @ x + v[k]
-        if dd[k] >= 0:
-            flying.append((k * N + dd[k], k * N, -K @ z))
-        for j in range(N):
-            t = k * N + j
-            now = [p for p in flying if p[0] <= t and p[1] > last]
-            flying = [p for p in flying if p[0] > t]
-            if now:
-                _, last, u = max(now, key=lambda p: p[1])
-            xs.append(x.copy())
-            us.append(u.copy())
-            x = A @ x + B @ u + w[k, j]
-    return np.array(xs), np.array(us)
-
-
-@pytest.mark.parametrize("N, pmf", [(1, [0.0, 1.0]), (2, [0.4, 0.3, 0.3]), (3, [0.2, 0.2, 0.2, 0.2, 0.2])])
-def test_hold_last_applies_a_delayed_action_on_arrival(N, pmf):
-    # it used to apply only an action that arrived at the instant it was stamped: over a
-    # downlink delaying every packet the plant got u = 0 throughout while recv_ca counted them
-    K = np.array([[2.0]])
-    plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.01], T=0.1)
-    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
-                   controller=nc.StateFeedback(K), downlink=nc.Link(nc.Bernoulli(0.2), nc.PmfDelay(pmf)),
-                   actuator=nc.HoldLast(), N=N, steps=60 * N, T=0.1)
-    key = jax.random.PRNGKey(11)
-    tr = nc.simulate(loop, key)
-    xs, us = _hold_last_reference(loop, nc.draw(loop, key), K)
-    assert np.abs(us).max() > 0.5
-    np.testing.assert_allclose(np.asarray(tr.u), us, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)
-
-
-def _zero_strategy_reference(loop, d, K):
-    """A float64 zero-strategy actuator written from ZeroOrder's docstring: the newest
-    delivered packet (stamp kN, newer than every one delivered before) is applied from its
-    arrival while kN <= t < (k + 1) N; zero otherwise."""
+def _actuator_reference(loop, d, K, zero: bool):
+    """A float64 actuator of one-action packets written from the docstrings: at each fast
+    instant the newest packet by stamp among those arriving now (newer than every one
+    delivered before: the link's order "newest") becomes current. Hold-last
+    (``zero=False``) applies the current action from then on; the zero strategy
+    (``zero=True``, ZeroOrder) applies it while its stamp kN <= t < (k + 1) N, zero
+    otherwise. 0 before the first."""
     A, B, C = (np.asarray(m, float) for m in (loop.plant.A, loop.plant.B, loop.plant.C))
     N, S = loop.N, loop.steps // loop.N
     w, v, dd = np.asarray(d.w, float), np.asarray(d.v, float), np.asarray(d.downlink.delay)
@@ -574,25 +536,41 @@ def _zero_strategy_reference(loop, d, K):
             if now:
                 _, s, a = max(now, key=lambda p: p[1])
                 cur = (s, a)
-            u = cur[1] if cur is not None and cur[0] <= t < cur[0] + N else np.zeros(1)
+            due = cur is not None and (not zero or t < cur[0] + N)
+            u = cur[1] if due else np.zeros(1)
             xs.append(x.copy())
             us.append(u.copy())
             x = A @ x + B @ u + w[k, j]
     return np.array(xs), np.array(us)
 
 
-@pytest.mark.parametrize("N, pmf", [(1, [0.5, 0.5]), (2, [0.4, 0.3, 0.3]), (4, [0.3, 0.3, 0.2, 0.1, 0.1, 0.0])])
-def test_zero_order_applies_each_action_over_its_period_and_zero_when_it_is_missing(N, pmf):
-    # ZeroOrder used to apply each action for one fast period and zero in the N - 1 others,
-    # on a perfect network too
+def _downlink_run(actuator, N, pmf, seed, zero):
+    """A 2-state servo under StateFeedback over a lossy (20 %) downlink delaying by ``pmf``
+    fast periods: the run and the float64 reference's (x, u)."""
     K = np.array([[2.0]])
     plant = nc.LTI(A=A2, B=B2, C=C2, x0=[1.0, 0.0], w_std=[0.01, 0.02], v_std=[0.01], T=0.1)
     loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
                    controller=nc.StateFeedback(K), downlink=nc.Link(nc.Bernoulli(0.2), nc.PmfDelay(pmf)),
-                   actuator=nc.ZeroOrder(), N=N, steps=60 * N, T=0.1)
-    key = jax.random.PRNGKey(12)
-    tr = nc.simulate(loop, key)
-    xs, us = _zero_strategy_reference(loop, nc.draw(loop, key), K)
+                   actuator=actuator, N=N, steps=60 * N, T=0.1)
+    key = jax.random.PRNGKey(seed)
+    return loop, key, nc.simulate(loop, key), _actuator_reference(loop, nc.draw(loop, key), K, zero)
+
+
+@pytest.mark.parametrize("N, pmf", [(1, [0.0, 1.0]), (2, [0.4, 0.3, 0.3]), (3, [0.2, 0.2, 0.2, 0.2, 0.2])])
+def test_hold_last_applies_a_delayed_action_on_arrival(N, pmf):
+    # it used to apply only an action that arrived at the instant it was stamped: over a
+    # downlink delaying every packet the plant got u = 0 throughout while recv_ca counted them
+    _, _, tr, (xs, us) = _downlink_run(nc.HoldLast(), N, pmf, 11, zero=False)
+    assert np.abs(us).max() > 0.5
+    np.testing.assert_allclose(np.asarray(tr.u), us, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)
+
+
+@pytest.mark.parametrize("N, pmf", [(1, [0.5, 0.5]), (2, [0.4, 0.3, 0.3]), (4, [0.3, 0.3, 0.2, 0.1, 0.1, 0.0])])
+def test_zero_order_applies_each_action_over_its_period_and_zero_when_it_is_missing(N, pmf):
+    # ZeroOrder used to apply each action for one fast period and zero in the N - 1 others,
+    # on a perfect network too
+    loop, key, tr, (xs, us) = _downlink_run(nc.ZeroOrder(), N, pmf, 12, zero=True)
     u = np.asarray(tr.u)
     assert np.abs(us).max() > 0.5 and np.mean(us == 0) > 0.05     # both actions and zeros occur
     np.testing.assert_allclose(u, us, atol=1e-5)
