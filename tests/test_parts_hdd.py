@@ -16,11 +16,12 @@ W_STD, V_STD = np.array([0.01, 0.02]), 0.05
 CTX = jl.Context(N=1, steps=10, T=1.0, state_dim=2, input_dim=1, output_dim=1)
 
 
-def _numre_loop(steps=80, p_loss=0.5, inputs="believed", N=1):
+def _numre_loop(steps=80, p_loss=0.5, inputs="believed", N=1, delay=None):
     plant = jl.LTI(A=A2, B=B2[:, None], C=C2[None], x0=[1.0, 0.0], w_std=W_STD, v_std=[V_STD], T=0.1)
     est = jl.Numre.design(A2, B2, np.eye(2), C2, np.diag(W_STD ** 2), V_STD ** 2, steps, cov0=np.eye(2),
                           mean0=[0.5, 0.0], inputs=inputs)
-    return jl.Loop(plant=plant, trigger=jl.Periodic(), uplink=jl.Link(jl.Bernoulli(p_loss)), estimator=est,
+    uplink = jl.Link(jl.Bernoulli(p_loss)) if delay is None else jl.Link(jl.Bernoulli(p_loss), delay)
+    return jl.Loop(plant=plant, trigger=jl.Periodic(), uplink=uplink, estimator=est,
                    controller=jl.StateFeedback([[3.0, 1.5]]), downlink=jl.Link(), actuator=jl.HoldLast(),
                    N=N, steps=steps, T=0.1)
 
@@ -58,6 +59,12 @@ def test_numre_validation():
         jl.Numre.design(A2, B2, np.eye(2), C2, np.eye(2), 1.0, 5, cov0=np.eye(2), inputs="both")
     with pytest.raises(ValueError, match="Loop.N = 1"):
         _numre_loop(steps=20, N=2)
+    # the newest arrival is taken as the measurement of its arrival instant: a delayed one
+    # used to be corrected with silently (the filter's gain and innovation for the wrong instant)
+    for delay in (jl.PmfDelay([0.5, 0.5]), jl.PmfDelay([0.0, 0.0, 1.0])):
+        with pytest.raises(ValueError, match=r"Loop.estimator \(Numre\) takes the newest arrival .* must not delay"):
+            _numre_loop(steps=20, delay=delay)
+    _numre_loop(steps=20, delay=jl.PmfDelay([1.0]))       # a law that never delays is allowed
 
 
 @jl.pytree_dataclass

@@ -315,6 +315,11 @@ class AbstractEstimator(abc.ABC):
     #: arrives (``Inbox.newest``)
     by_stamp: ClassVar[bool] = False
 
+    #: True for an estimator that takes the newest delivered measurement as the one of the
+    #: instant it arrives (declared: :class:`~jaxnc.loop.Numre`, built for links without
+    #: delay): a ``Loop`` whose uplink can delay a packet raises when it is built
+    undelayed_uplink: ClassVar[bool] = False
+
     @abc.abstractmethod
     def init(self, ctx):
         """State before the first instant; ``ctx`` (:class:`jaxnc.loop.runner.Context`)

@@ -14,12 +14,13 @@ that predicts every period and corrects only at arrivals. The kernels (tables of
 We(N), the gain, the correction) are :mod:`jaxnc.estimators.numre`.
 
 The correction takes the newest delivered measurement as y_k of the arrival instant k
-(links without delay, as in the paper), and the loop's slow period must be the model's
-period (``Loop.N = 1``).
+(links without delay, as in the paper: declared ``undelayed_uplink``, so a ``Loop`` whose
+uplink can delay a packet raises when it is built), and the loop's slow period must be the
+model's period (``Loop.N = 1``).
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -65,6 +66,8 @@ class Numre(AbstractEstimator):
     mean0: Any
     cov0: Any
     inputs: str = _static("believed")
+
+    undelayed_uplink: ClassVar[bool] = True
 
     def __post_init__(self):
         check_choice("Numre.inputs", self.inputs, ("believed", "applied"))

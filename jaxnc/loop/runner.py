@@ -336,6 +336,13 @@ class Loop:
                     f"packet at least {lo} fast periods (N={self.N}), so each is read {late} slow periods late "
                     f"and the estimator would never correct: use EKF(buffer>={late}) or UKF(buffer>={late}), or "
                     f"an estimator that takes the newest arrival (Passthrough)")
+            if name == "uplink" and self.estimator.undelayed_uplink and (hi is None or hi > 0):
+                raise ValueError(
+                    f"Loop.estimator ({type(self.estimator).__name__}) takes the newest arrival as the measurement "
+                    f"of the instant it arrives, so its uplink must not delay, but Loop.uplink's "
+                    f"{type(link.delay).__name__} delays packets up to "
+                    f"{'an unbounded number of' if hi is None else hi} fast periods: use NoDelay, or an estimator "
+                    f"that uses time stamps (EKF(buffer=...), UKF(buffer=...))")
             if hi is None and link.tau_max is None:     # allowed, and visible: an unbounded law's tail is lost
                 warnings.warn(f"Loop.{name}: the delay model {type(link.delay).__name__} has no bound and the link "
                               f"no tau_max, so a packet still in flight when its slot in the ring of {link.capacity} "
