@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -72,7 +72,14 @@ def _time(t, T, dtype):
 
 
 class AbstractReference(abc.ABC):
-    """A reference signal r: fast instant -> float[p]."""
+    """A reference signal r: fast instant -> float[p].
+
+    ``settles`` (class attribute, declared): the reference ends at a value it holds (a
+    setpoint: ``Step``, ``PiecewiseLinear``, ``Recorded``), so a response's step
+    characteristics toward its final value mean something; ``Ramp`` and ``Sine`` declare
+    False (their last sample is wherever the run happens to stop)."""
+
+    settles: ClassVar[bool] = True
 
     @abc.abstractmethod
     def at(self, t, T) -> jax.Array:
@@ -139,13 +146,15 @@ class Step(AbstractReference):
 @checked_pytree
 @dataclasses.dataclass(frozen=True)
 class Ramp(AbstractReference):
-    """r(t) = initial + slope * max(t T - time, 0).
+    """r(t) = initial + slope * max(t T - time, 0). Does not settle (``settles`` False).
 
     Attributes:
       slope: float[p] (or scalar), units per second.
       time: float[p] (or scalar), the ramp's start in seconds (>= 0).
       initial: float[p] (or scalar), the value before the ramp.
     """
+
+    settles: ClassVar[bool] = False
 
     slope: Any
     time: Any = 0.0
@@ -167,7 +176,7 @@ class Ramp(AbstractReference):
 @checked_pytree
 @dataclasses.dataclass(frozen=True)
 class Sine(AbstractReference):
-    """r(t) = offset + amplitude * sin(2 pi frequency t T + phase).
+    """r(t) = offset + amplitude * sin(2 pi frequency t T + phase). Does not settle (``settles`` False).
 
     Attributes:
       amplitude: float[p] (or scalar).
@@ -175,6 +184,8 @@ class Sine(AbstractReference):
       phase: float[p] (or scalar), in radians.
       offset: float[p] (or scalar).
     """
+
+    settles: ClassVar[bool] = False
 
     amplitude: Any
     frequency: Any

@@ -21,6 +21,11 @@ sample, k0 = 0:
 * ``steady_state_error``: :func:`jaxnc.tracking.steady_state_error` of e over the last
   ``window`` samples.
 
+A reference that does not settle (``AbstractReference.settles`` False: ``Ramp``, ``Sine``)
+has no final value to step to: its ``overshoot``, ``rise_time`` and ``settling_time`` are
+nan (measured toward r's last sample they changed with where the run stops); ISE, IAE,
+ITAE and the steady-state error are as above.
+
 A ``Step`` not applied within the run (``time`` after the last instant) has no step
 response: its channels' ``itae``, ``overshoot``, ``rise_time`` and ``settling_time`` are
 nan.
@@ -130,8 +135,11 @@ class Tracking:
         info = _tr.step_info(post, T, y_final=jnp.where(stepped, r[-1], jnp.nan), y_initial=post[0],
                              reference=r[-1], settling_threshold=self.settling_threshold)
         itae = jnp.where(stepped, _tr.itae(e, T, start=k0), jnp.nan)
-        return TrackingMetrics(_tr.ise(e, T), _tr.iae(e, T), itae, info.overshoot, info.rise_time,
-                               info.settling_time, _tr.steady_state_error(e, window=self.window))
+        overshoot, rise, settling = info.overshoot, info.rise_time, info.settling_time
+        if not self.reference.settles:          # no final value to step to: nan, not r's last sample
+            overshoot, rise, settling = (jnp.full_like(v, jnp.nan) for v in (overshoot, rise, settling))
+        return TrackingMetrics(_tr.ise(e, T), _tr.iae(e, T), itae, overshoot, rise,
+                               settling, _tr.steady_state_error(e, window=self.window))
 
 
 def run_tracking(key, loop, tracking: Tracking):
