@@ -504,6 +504,15 @@ LOOP_FIT = [
     (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.PacketActuator(on_exhausted="zero"), nc.Saturation(-1.0, 1.0)),
                        N=3, steps=99),
      "the plant would get zero in 2 of the 3 fast periods of every slow period"),
+    # packets stamped ahead (LeadFeedback) into an actuator too small to hold one until it is due:
+    # each was replaced before its stamp and the plant got u = 0 throughout
+    (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5]], _FIT_PLANT, lead=2)),
+     "Loop.actuator.capacity must be >= 3: LeadFeedback stamps its packets 2 fast period(s) ahead"),
+    (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5]], _FIT_PLANT, lead=3),
+                       actuator=nc.LimitedActuator(nc.ZeroOrder(capacity=2), nc.Saturation(-1.0, 1.0)),
+                       downlink=nc.Link(delay=nc.PmfDelay([0.0, 1.0]))),
+     "Loop.actuator.capacity must be >= 3: LeadFeedback stamps its packets 3 fast period(s) ahead and the downlink "
+     "delays them at least 1"),
     # a model inside a part steps one fast period too: sampled at another period it ran silently
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT_05, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))),
      "Loop.T (0.1 s) must equal the estimator.model's step period (LTI.step_period = 0.05 s)"),

@@ -187,6 +187,34 @@ def test_lead_feedback_predicts_along_its_plan_and_stamps_ahead():
                                np.asarray(law.step((), xhat, 1.0, jnp.int32(0), ctx)[1].data), rtol=1e-6)
 
 
+@pytest.mark.parametrize("actuator", ["hold_last", "zero_order", "packet"])
+def test_lead_feedback_in_a_loop_applies_each_command_at_its_stamp(actuator):
+    """A scalar loop x+ = 1.1 x + u + w, LeadFeedback(lead=2) over perfect links into an
+    actuator of lead + 1 packets: the plant gets the command stamped t at t (zero before),
+    as a float64 loop of the docstring's equations (with one-packet actuators it got 0 throughout)."""
+    a, K, lead, steps = 1.1, 0.5, 2, 30
+    plant = nc.LTI([[a]], [[1.0]], [[1.0]], x0=[1.0], w_std=[0.05], v_std=[0.0], T=0.1)
+    act = {"hold_last": nc.HoldLast(capacity=3), "zero_order": nc.ZeroOrder(capacity=3),
+           "packet": nc.PacketActuator(capacity=3)}[actuator]
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.LeadFeedback([[K]], plant, lead=lead), downlink=nc.Link(), actuator=act,
+                   T=0.1, steps=steps, record=True)
+    key = jax.random.PRNGKey(1)
+    traj = jax.jit(nc.simulate)(loop, key)
+    w = np.asarray(nc.draw(loop, key).w, np.float64).reshape(steps, -1)[:, 0]
+    x, plan, due, us = 1.0, [0.0] * lead, {}, []
+    for k in range(steps):
+        xp = x
+        for u_j in plan:
+            xp = a * xp + u_j
+        due[k + lead] = -K * xp
+        plan = plan[1:] + [due[k + lead]]
+        us.append(due.get(k, 0.0))
+        x = a * x + us[-1] + w[k]
+    np.testing.assert_allclose(np.asarray(traj.u)[:, 0], us, atol=1e-6)
+    assert np.count_nonzero(us) == steps - lead
+
+
 def test_lead_feedback_validates():
     m = _lti()
     with pytest.raises(ValueError, match="LeadFeedback.lead"):

@@ -26,7 +26,7 @@ period T):
    if delivered at once), over the period.
 
 Optional behaviour is declared, never discovered: by class attributes (``inputs``,
-``horizon``, ``keeps_copy``, ``in_steps``, ``freeze``). A controller that declares
+``horizon``, ``stamps_ahead``, ``keeps_copy``, ``in_steps``, ``freeze``). A controller that declares
 ``keeps_copy`` keeps the sender's copy of what it sent in its own state and says, with
 ``sent(state)``, which actions that copy applies over the period (seed 000's prediction
 chains); otherwise the runner keeps that copy for it (the actuator role fed the
@@ -347,6 +347,12 @@ class AbstractController(abc.ABC):
     #: int: number of fast actions per packet (static; a dataclass field or property may
     #: override it)
     horizon = 1
+
+    #: int (declared): fast periods by which its packets' stamps lead the instant they are
+    #: computed at (a static int; a field or property may override it, e.g. ``LeadFeedback``'s
+    #: ``lead``). A Loop checks that a :class:`~jaxnc.loop.PacketActuator` keeps enough
+    #: packets to hold one until its stamp is due.
+    stamps_ahead = 0
 
     #: bool (declared): the controller keeps the sender's copy of what it sent (the
     #: actuator its packets drive, fed them at once) in its own state, and :meth:`sent`

@@ -56,6 +56,11 @@ class LeadFeedback(AbstractController):
 
     horizon = 1
 
+    @property
+    def stamps_ahead(self) -> int:
+        """Its packets are stamped ``lead`` periods (N = 1: fast periods) ahead."""
+        return self.lead
+
     def __post_init__(self):
         check_given("LeadFeedback.K", self.K, "a gain matrix (m x n)")
         check_finite("LeadFeedback.K", self.K)

@@ -298,6 +298,17 @@ class Loop:
                              f"every slow period, lost packet or not: use ZeroOrder() (span='period': each action "
                              f"over the loop's period), HoldLast(), or packets of N or more actions "
                              f"(Predictive(horizon>={self.N}))")
+        ahead = int(self.controller.stamps_ahead)
+        if isinstance(inner, PacketActuator) and ahead > 0:
+            lo = max(0, int(link_delay_bounds(self.downlink, self.T)[0]))
+            need = ahead + 1 - min(lo, ahead)   # a packet arriving lo after it is computed waits ahead - lo
+            if inner.capacity < need:
+                raise ValueError(f"Loop.actuator.capacity must be >= {need}: {type(self.controller).__name__} stamps "
+                                 f"its packets {ahead} fast period(s) ahead and the downlink delays them at least "
+                                 f"{lo}, so a packet waits up to {ahead - min(lo, ahead)} fast period(s) for its "
+                                 f"stamp while newer ones arrive; with capacity {inner.capacity} each is replaced "
+                                 f"before it is due and the plant never gets it (e.g. HoldLast(capacity={need}) "
+                                 f"or PacketActuator(capacity={need}))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
             lo, hi = link_delay_bounds(link, self.T)
