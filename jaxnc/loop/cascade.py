@@ -1,15 +1,16 @@
 """A packet of actions from a stateful law along a model's prediction, computed on arrival
 (seed 003 eq. 14-15, section 3.2.4).
 
-At an arrival (``fresh``) at instant k the controller runs the prediction cascade from the
-estimate x(k|k): for l = 0..H-1,
+At an arrival (``fresh``) at fast instant k (the slow instant's, k = j N) the controller runs
+the prediction cascade from the estimate x(k|k), one action per fast period (A, B the
+model over one fast period): for l = 0..H-1,
 
     u_{k+l} = law(s_{k+l}, k + l, x(k+l|k)),   x(k+l+1|k) = A x(k+l|k) + B u_{k+l},
 
 and sends the packet {u_k, ..., u_{k+H-1}} stamped k (the actuator plays it by time
 stamp, :class:`~jaxnc.loop.PacketActuator` of horizon H). The law's state is part of the
-cascade: at the next arrival, N = k' - k periods later, the law restarts from the state
-s_{k+N} its last cascade reached at that instant (s_{k+H} for N >= H), so a law with
+cascade: at the next arrival, k' - k fast periods later, the law restarts from the state
+s_{k'} its last cascade reached at that instant (s_{k+H} for k' - k >= H), so a law with
 memory (an integrator, an interlaced multi-rate controller, a disturbance observer)
 continues as if it had run every period on the predictions. Without an arrival it
 computes nothing, sends nothing and keeps its state (the paper's control side works only
@@ -82,13 +83,13 @@ class Cascade(AbstractController):
 
     def step(self, state: CascadeState, xhat, fresh, k, ctx):
         H = self.horizon
-        N = jnp.clip(k - state.k_last, 1, H)
-        s0 = jax.tree.map(lambda a: a[N], state.law)
+        played = jnp.clip((k - state.k_last) * ctx.N, 1, H)     # actions of the last packet played since
+        s0 = jax.tree.map(lambda a: a[played], state.law)
         n = xhat.shape[0]
         A = jnp.eye(n, dtype=xhat.dtype) if self.A is None else self.A
         B = jnp.zeros((n,), xhat.dtype) if self.A is None else self.B
         # H + 1 steps: the last one only gives the law's state after the packet's last action
-        us, ss, aux = cascade(self.law.step, A, B, xhat, s0, k, H + 1)
+        us, ss, aux = cascade(self.law.step, A, B, xhat, s0, k * ctx.N, H + 1)
         new = CascadeState(ss, jnp.asarray(k, jnp.int32), jax.tree.map(lambda a: a[0], aux),
                            jnp.asarray(k - state.k_last, jnp.int32))
         kept = state._replace(gap=jnp.zeros((), jnp.int32))
