@@ -445,6 +445,17 @@ def _fit_loop(**kw):
     return nc.Loop(**{**base, **kw})
 
 
+@nc.pytree_dataclass
+class _FitLaw:
+    """A Cascade law (a pytree): u = -x[0], no state."""
+
+    def init(self):
+        return jnp.zeros((), jnp.float32)
+
+    def step(self, s, k, x):
+        return -x[0], s, k
+
+
 def _fit_f_int(x, u, w):
     return (x > 0).astype(jnp.int32)
 
@@ -504,6 +515,16 @@ LOOP_FIT = [
     (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.PacketActuator(on_exhausted="zero"), nc.Saturation(-1.0, 1.0)),
                        N=3, steps=99),
      "the plant would get zero in 2 of the 3 fast periods of every slow period"),
+    # a prediction model or gain that does not fit the estimate: refused naming the field (it failed
+    # inside the controller's trace with jax's message, or, for a NaN model, ran)
+    (lambda: _fit_loop(controller=nc.Cascade(_FitLaw(), np.eye(3), np.ones(3), horizon=2),
+                       actuator=nc.PacketActuator(horizon=2)), "Loop.controller.A has shape (3, 3)"),
+    (lambda: _fit_loop(controller=nc.Cascade(_FitLaw(), np.eye(2), np.ones((2, 1)), horizon=2),
+                       actuator=nc.PacketActuator(horizon=2)), "Loop.controller.B has shape (2, 1)"),
+    (lambda: nc.Cascade(_FitLaw(), np.eye(2), horizon=2), "Cascade.B must be a vector"),
+    (lambda: nc.Cascade(_FitLaw(), np.full((2, 2), np.nan), np.ones(2), horizon=2), "Cascade.A must be finite"),
+    (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5, 0.2]], _FIT_PLANT, lead=0)),
+     "Loop.controller.K has shape (1, 3)"),
     # packets stamped ahead (LeadFeedback) into an actuator too small to hold one until it is due:
     # each was replaced before its stamp and the plant got u = 0 throughout
     (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5]], _FIT_PLANT, lead=2)),

@@ -28,7 +28,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_int
+from jaxnc._validate import check_finite, check_given, check_int
 from jaxnc.controllers.prediction import predict_periods
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
@@ -61,6 +61,8 @@ class Cascade(AbstractController):
     with send = fresh (a controller-side trigger, ``Loop.controller_trigger``, may gate it).
     """
 
+    field_shapes = {"A": (("estimate", "estimate"),), "B": (("estimate",),)}
+
     law: Any
     A: Any = None
     B: Any = None
@@ -68,6 +70,10 @@ class Cascade(AbstractController):
 
     def __post_init__(self):
         check_int("Cascade.horizon", self.horizon, 1, 1_000_000)
+        if self.A is not None:
+            check_given("Cascade.B", self.B, "a vector float[n] (the single input's column) when A is given")
+            check_finite("Cascade.A", self.A)
+            check_finite("Cascade.B", self.B)
         for n in ("init", "step"):
             if not callable(getattr(self.law, n, None)):
                 raise ValueError(f"Cascade.law must have init() and step(s, k, x) -> (u, s_next, aux), "

@@ -54,6 +54,8 @@ class LeadFeedback(AbstractController):
     u_max: Any = None
     lead: int = _static(2)
 
+    field_shapes = {"K": (("input", "estimate"),), "u_max": ((), ("input",))}
+
     horizon = 1
 
     @property
