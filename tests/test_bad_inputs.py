@@ -456,6 +456,13 @@ class _FitLaw:
         return -x[0], s, k
 
 
+class _PlainLaw(_FitLaw):
+    """The same law as a plain Python object (one leaf that is not an array)."""
+
+    def __init__(self):
+        pass
+
+
 def _fit_f_int(x, u, w):
     return (x > 0).astype(jnp.int32)
 
@@ -522,6 +529,9 @@ LOOP_FIT = [
     (lambda: _fit_loop(controller=nc.Cascade(_FitLaw(), np.eye(2), np.ones((2, 1)), horizon=2),
                        actuator=nc.PacketActuator(horizon=2)), "Loop.controller.B has shape (2, 1)"),
     (lambda: nc.Cascade(_FitLaw(), np.eye(2), horizon=2), "Cascade.B must be a vector"),
+    # a part holding a plain Python object (a law that is not a pytree) skipped every fit check
+    (lambda: _fit_loop(controller=nc.Cascade(_PlainLaw(), np.eye(3), np.ones(3), horizon=2),
+                       actuator=nc.PacketActuator(horizon=2)), "Loop.controller.A has shape (3, 3)"),
     (lambda: nc.Cascade(_FitLaw(), np.full((2, 2), np.nan), np.ones(2), horizon=2), "Cascade.A must be finite"),
     (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5, 0.2]], _FIT_PLANT, lead=0)),
      "Loop.controller.K has shape (1, 3)"),

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import (array_fields, check_bool, check_callable, check_finite, check_given, check_instance,
-                             check_int, check_range, concrete, fields_concrete)
+                             check_int, check_range, concrete)
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractMonitor, AbstractPlant,
                              AbstractTrigger, Inbox)
@@ -359,8 +359,8 @@ class Loop:
                               f"no tau_max, so a packet still in flight when its slot in the ring of {link.capacity} "
                               f"is reused (delayed about {link.capacity - 1} slow periods or more) is lost; set "
                               f"tau_max or a larger capacity to decide", UserWarning, stacklevel=3)
-        if fields_concrete(self):
-            self._check_dims()
+        if not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(self)):
+            self._check_dims()      # also with leaves that are not arrays (a plain-object law)
 
     def _check_dims(self):
         """The roles fit together (:func:`_check_fit`), once per loop structure."""
