@@ -766,7 +766,8 @@ class Metrics(NamedTuple):
     """Per-run summaries."""
 
     cost: jax.Array       # Loop.cost of the run (inf when failed; nan when the loop has no cost)
-    cost_raw: jax.Array   # the same without the failure mask (finite: the plant is frozen at failure)
+    cost_raw: jax.Array   # the same without the failure mask (the plant frozen at failure: finite unless that
+    #                       state's cost overflows float32, a divergence with no Monitor bounds)
     rate_sc: jax.Array    # sensor transmissions per slow period
     rate_ca: jax.Array    # controller transmissions per slow period
     unstable: jax.Array   # bool: the run failed
