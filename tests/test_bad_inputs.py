@@ -535,6 +535,9 @@ LOOP_FIT = [
     (lambda: nc.Cascade(_FitLaw(), np.full((2, 2), np.nan), np.ones(2), horizon=2), "Cascade.A must be finite"),
     (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5, 0.2]], _FIT_PLANT, lead=0)),
      "Loop.controller.K has shape (1, 3)"),
+    # a reference of another width than the state failed inside the controller's trace (jax's broadcast message)
+    (lambda: nc.LeadFeedback([[1.0, 0.5]], _FIT_PLANT, nc_refs.Step([1.0, 0.0, 0.0]), lead=0),
+     "LeadFeedback.reference must have n = 2 channels (one per state, K's columns), got 3"),
     (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5]], nc.LTI([[1.0]], [[1.0]], [[1.0]], T=0.1), lead=1),
                        actuator=nc.HoldLast(capacity=2)),
      "Loop.controller.model has state_dim=1; it predicts the estimator's estimate, which has 2 entries"),

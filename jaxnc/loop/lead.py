@@ -11,9 +11,11 @@ from __future__ import annotations
 from typing import Any
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxnc.controllers.prediction import predict_periods
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, check_range
+from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, check_range,
+                             concrete)
 from jaxnc.loop.base import AbstractController, AbstractPlant, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -74,6 +76,10 @@ class LeadFeedback(AbstractController):
             check_range("LeadFeedback.u_max", self.u_max, 0.0, None, low_open=True)
         check_int("LeadFeedback.lead", self.lead, 0, 1000)
         array_fields(self, "K", "u_max")
+        if self.reference is not None and concrete(self.K) and np.ndim(self.K) == 2 \
+                and self.reference.dim != np.shape(self.K)[1]:
+            raise ValueError(f"LeadFeedback.reference must have n = {np.shape(self.K)[1]} channels (one per state, "
+                             f"K's columns), got {self.reference.dim}")
 
     def init(self, ctx):
         if ctx.N != 1:
