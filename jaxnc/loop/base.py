@@ -354,6 +354,11 @@ class AbstractController(abc.ABC):
     #: packets to hold one until its stamp is due.
     stamps_ahead = 0
 
+    #: str or None (declared): the name of the field holding the model the controller
+    #: predicts its estimate with (``Predictive``, ``LeadFeedback``: ``"model"``); a Loop
+    #: checks that its state size is the estimate's.
+    prediction_model: ClassVar[str | None] = None
+
     #: bool (declared): the controller keeps the sender's copy of what it sent (the
     #: actuator its packets drive, fed them at once) in its own state, and :meth:`sent`
     #: gives the actions that copy applies over the period; an estimator with

@@ -13,7 +13,7 @@ A controller runs at every slow instant; its packet carries the stamp kN.
 """
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -106,6 +106,8 @@ class Predictive(AbstractController):
     law: Any
     model: Any
     horizon: int = _static(1)
+
+    prediction_model: ClassVar[str] = "model"
 
     def __post_init__(self):
         if not callable(getattr(self.law, "action", None)):

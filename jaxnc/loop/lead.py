@@ -8,7 +8,7 @@ packets the command is applied at its step if it arrived by then (seed 001 eq. 4
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import jax.numpy as jnp
 import numpy as np
@@ -59,6 +59,8 @@ class LeadFeedback(AbstractController):
     field_shapes = {"K": (("input", "estimate"),), "u_max": ((), ("input",))}
 
     horizon = 1
+
+    prediction_model: ClassVar[str] = "model"
 
     @property
     def stamps_ahead(self) -> int:

@@ -473,9 +473,10 @@ def _check_fit(loop: Loop) -> None:
     shapes = _shapes(xhat)
     if isinstance(xhat, jax.ShapeDtypeStruct) and xhat.ndim == 1:
         _check_field_shapes("Loop.controller", loop.controller, dict(dims, estimate=xhat.shape[0]))
-        model = getattr(loop.controller, "model", None)         # Predictive, LeadFeedback: predicts the estimate
+        name = loop.controller.prediction_model                 # declared (Predictive, LeadFeedback: "model")
+        model = getattr(loop.controller, name) if name is not None else None
         if isinstance(model, AbstractPlant) and isinstance(model.state_dim, int) and model.state_dim != xhat.shape[0]:
-            raise ValueError(f"Loop.controller.model has state_dim={model.state_dim}; it predicts the estimator's "
+            raise ValueError(f"Loop.controller.{name} has state_dim={model.state_dim}; it predicts the estimator's "
                              f"estimate, which has {xhat.shape[0]} entries")
     c0 = _stage("Loop.controller", "cannot build its state", lambda: loop.controller.init(ctx))
     c1, pkt, send_ca = _stage("Loop.controller", f"cannot act on the estimator's estimate {shapes}",
