@@ -45,7 +45,7 @@ import jaxnc.loop as jl
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
-from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, objective_total, paired_ci, param_paths,
+from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, param_paths, point_objective,
                          set_paths, successive_halving, tune_loop)
 
 LOOPS = ("drhe", "drhe-safe", "hdd", "cartpole")
@@ -250,9 +250,7 @@ def study(problem: Problem, *, check_seeds: int, steps: int, batch: int, seed: i
 
 def _per_seed(problem: Problem) -> Callable:
     """``f(point, key)``: the objective of one run at ``point`` ({path: value}), hard triggers."""
-    def f(point, key):
-        return objective_total(problem.objective(problem.run(set_paths(problem.loop, point), key)))
-    return f
+    return point_objective(problem.loop, problem.objective, problem.run)
 
 
 def _point(names: dict, values: dict) -> dict:

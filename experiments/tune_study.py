@@ -63,7 +63,7 @@ from jaxnc import montecarlo
 from jaxnc.cache import compile_clock
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.report import markdown_table
-from jaxnc.tune import (Interval, Positive, evaluate, get_path, mean_ci, objective_total, paired_ci, param_paths,
+from jaxnc.tune import (Interval, Positive, evaluate, get_path, mean_ci, paired_ci, param_paths, point_objective,
                         random_points, search, set_paths, tune_loop)
 
 PROBLEMS = ("hdd", "cartpole", "hdd-grid")
@@ -170,11 +170,8 @@ BUILDERS = {"hdd": _hdd, "cartpole": _cartpole, "hdd-grid": _hdd_grid}
 
 def _per_seed(problem: Problem, names: dict) -> Callable:
     """``per_seed(point, key)``: the objective of one run at ``point`` ({name: value},
-    every path of a tied name written), hard triggers (the configurations' temperature is 0)."""
-    def per_seed(point, key):
-        cfg = set_paths(problem.config, {p: point[n] for n in point for p in names[n]})
-        return objective_total(problem.objective(problem.run(cfg, key)))
-    return per_seed
+    every path of a tied name written), hard triggers."""
+    return point_objective(problem.config, problem.objective, problem.run, names)
 
 
 def _finite_mean(v) -> float:

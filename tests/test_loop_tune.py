@@ -280,6 +280,19 @@ def test_objective_total_sums_a_pair_and_keeps_a_scalar():
     assert objective_total((1.5, 2.0)) == 3.5 and objective_total(4.0) == 4.0
 
 
+def test_point_objective_sets_paths_or_tied_names_and_sums_a_pair():
+    """point_objective is objective_total(objective(run(cfg with the point, key))): a path
+    point, a tied name (both of its paths set), a (smooth, jump) pair summed."""
+    from jaxnc.tune import point_objective
+    key = jax.random.PRNGKey(3)
+    pair = lambda m: (m, 2.0 * m)
+    f = point_objective(_Pair(), pair, _pair_run)
+    want = 3.0 * _pair_run(_Pair(b=0.5, a=4.0), key)
+    np.testing.assert_allclose(float(f({"b": 0.5, "a": 4.0}, key)), float(want), rtol=1e-6)
+    g = point_objective(_Pair(), lambda m: m, _pair_run, {"a=b": ("a", "b")})
+    np.testing.assert_allclose(float(g({"a=b": 2.0}, key)), float(_pair_run(_Pair(b=2.0, a=2.0), key)), rtol=1e-6)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class _Pair:

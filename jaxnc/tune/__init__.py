@@ -27,7 +27,7 @@ from jaxnc.tune.gradient import Interval, Positive, TuneHistory, TuneResult, Unc
 from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.jump import corrected_grad, corrected_supported
 from jaxnc.tune.loop_tune import (LoopTuneResult, check_loop, get_path, has_temperature, mc_mean, param_paths,
-                                  set_paths, tune_loop, with_temperature)
+                                  point_objective, set_paths, tune_loop, with_temperature)
 from jaxnc.tune.search import (SearchResult, evaluate, grid, halving_schedule, mean_ci, paired_ci, random_points,
                               search, successive_halving)
 
@@ -39,6 +39,6 @@ __all__ = [
     "SearchResult", "evaluate", "grid", "halving_schedule", "mean_ci", "paired_ci", "random_points", "search",
     "successive_halving",
     "GradientCheck", "gradient_check", "objective_total", "corrected_grad", "corrected_supported",
-    "LoopTuneResult", "get_path", "mc_mean", "set_paths", "tune_loop",
+    "LoopTuneResult", "get_path", "mc_mean", "point_objective", "set_paths", "tune_loop",
     "check_loop", "with_temperature", "has_temperature", "param_paths",
 ]

@@ -261,6 +261,21 @@ def param_paths(params) -> dict:
     return {_name(k): ((k,) if isinstance(k, str) else tuple(k)) for k in params}
 
 
+def point_objective(loop, objective: Callable, run: Callable, names: dict | None = None) -> Callable:
+    """``f(point, key, temp=0.0)``: the objective of one run of ``loop`` with ``point``'s
+    values set, ``objective_total(objective(run(loop', key)))`` (float32 scalar).
+
+    ``point`` is ``{path: value}``, or ``{name: value}`` when ``names`` (``{name: paths}``,
+    as :func:`param_paths` returns) is given: a tied name sets each of its paths. ``temp``
+    is every trigger's temperature (:func:`with_temperature`): 0, the default, simulates
+    hard triggers. The one per-seed objective of :func:`tune_loop`'s search stages and of
+    the tuning studies' searches and evaluations."""
+    def f(point, key, temp=jnp.float32(0.0)):
+        values = point if names is None else {p: point[n] for n in point for p in names[n]}
+        return objective_total(objective(run(with_temperature(set_paths(loop, values), temp), key)))
+    return f
+
+
 def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     """The numeric value at ``path``; ValueError when it names a part (a configuration
     object: name one of its fields) or a field that holds None or no number."""
@@ -791,8 +806,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         spent = time.perf_counter() - t0 - stages.get("evaluation", (0.0,))[0]
         return max(max_seconds - spent, 1e-3)
 
-    def per_seed(point, key, temp=jnp.float32(0.0)):
-        return objective(run(with_temperature(set_paths(loop, point), temp), key))
+    per_seed = point_objective(loop, objective, run)
 
     # the start's evaluation first (fresh seeds, so its values are those it would have at the
     # end): an objective that is NaN at the start is refused before the budget is spent
