@@ -440,9 +440,31 @@ def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
     return jax.lax.fori_loop(0, steps, body, (P0, jnp.asarray(jnp.inf, Q.dtype)))
 
 
+def _system(fn: str, A, C=None, Q=None, R=None) -> tuple:
+    """(A, C, Q, R) as float64 2-D arrays (a scalar is 1 x 1), checked to fit: A n x n,
+    C p x n, Q n x n, R p x p. ValueError naming the argument otherwise."""
+    A = np.atleast_2d(np.asarray(A, np.float64))
+    n = A.shape[0]
+    if A.ndim != 2 or A.shape != (n, n):
+        raise ValueError(f"{fn}: A must be a square matrix (n x n), got shape {A.shape}")
+    if C is None:
+        return (A,)
+    C, Q, R = (np.atleast_2d(np.asarray(a, np.float64)) for a in (C, Q, R))
+    if C.ndim != 2 or C.shape[1] != n:
+        raise ValueError(f"{fn}: C must be p x n with n = {n} (A's size), got shape {C.shape}")
+    p = C.shape[0]
+    if Q.shape != (n, n):
+        raise ValueError(f"{fn}: Q must be n x n = {n} x {n} (A's size), got shape {Q.shape}")
+    if R.shape != (p, p):
+        raise ValueError(f"{fn}: R must be p x p = {p} x {p} (C's rows), got shape {R.shape}")
+    return A, C, Q, R
+
+
 def lambda_min(A) -> float:
-    """Lower bound on the critical arrival rate, 1 - 1/max|eig(A)|^2 (0 for a stable A)."""
-    rho = float(np.max(np.abs(np.linalg.eigvals(np.asarray(A, np.float64)))))
+    """Lower bound on the critical arrival rate, 1 - 1/max|eig(A)|^2 (0 for a stable A).
+    ``A`` float[n, n] (a scalar is 1 x 1); ValueError when it is not square."""
+    (A,) = _system("lambda_min", A)
+    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
     return max(0.0, 1.0 - 1.0 / rho ** 2)
 
 
@@ -451,8 +473,20 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     converges (it is monotone, so it converges iff the MARE has a solution). Bisection on
     [lambda_min, 1] to ``tol`` in float64 NumPy, an analysis-time computation. Near the
     threshold the iteration slows down, so the value is an upper estimate within ``tol``
-    plus the effect of the finite ``steps``."""
-    A, C, Q, R = (np.atleast_2d(np.asarray(a, np.float64)) for a in (A, C, Q, R))
+    plus the effect of the finite ``steps``. As in Sinopoli et al. (2004), (A, Q^1/2) is
+    taken controllable: a mode the noise does not excite stays known exactly from P = 0.
+
+    Args:
+      A: float[n, n]; C: float[p, n]; Q: float[n, n]; R: float[p, p] (scalars are 1 x 1).
+    Returns:
+      0.0 when the iteration converges without any measurement (lam = 0: A's noisy modes are
+      stable); ``inf`` when it does not converge even with every measurement (lam = 1: an
+      unstable or marginal mode that the noise excites and C does not see, i.e. (A, C) not
+      detectable): no arrival rate bounds the error covariance.
+    Raises:
+      ValueError: the matrices do not fit (naming which), ``tol`` <= 0.
+    """
+    A, C, Q, R = _system("lambda_max", A, C, Q, R)
     check_positive("lambda_max.tol", tol)
 
     def converges(lam):
@@ -469,6 +503,10 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
             P = Pn
         return False
 
+    if converges(0.0):
+        return 0.0
+    if not converges(1.0):
+        return float("inf")
     lo, hi = lambda_min(A), 1.0
     if converges(lo + 1e-12) and lo > 0:
         return lo

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxnc import loop as nc
-from jaxnc import montecarlo, wifi
+from jaxnc import montecarlo, stability, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
@@ -192,6 +192,11 @@ PYTHON_API = [
     (lambda: _loop(controller=nc.StateFeedback(K=[[1.0, 0.0, 0.0]])), "Loop.controller.K has shape (1, 3)"),
     (lambda: _loop(N=2.0, steps=10), "Loop.N must be an integer"),
     (lambda: _loop(N=2, steps=7), "Loop.steps must be a multiple of N=2"),
+    # intermittent observations' critical rate (jaxnc.stability)
+    (lambda: stability.lambda_min(np.ones((2, 3))), "lambda_min: A must be a square matrix"),
+    (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0, 0.0]], np.eye(2), [[1.0]]), "lambda_max: C must be p x n with n = 2"),
+    (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(3), [[1.0]]), "lambda_max: Q must be n x n = 2 x 2"),
+    (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(2), np.eye(2)), "lambda_max: R must be p x p = 1 x 1"),
 ]
 
 

@@ -217,6 +217,16 @@ def test_critical_rate_bounds():
     assert st.lambda_max(A3, [[1.0, 1.0]], np.eye(2), [[1.0]], tol=tol) > st.lambda_min(A3) + 0.1
 
 
+def test_critical_rate_is_zero_for_a_stable_plant_and_infinite_for_an_undetectable_one():
+    """Stable A: every arrival rate, lambda_max = 0 (it read about tol). An unstable or
+    marginal mode the noise excites and C does not see: no rate <= 1 bounds the covariance
+    (the Kalman filter's own Riccati iteration diverges), lambda_max = inf (it read 1.0)."""
+    assert st.lambda_max(np.diag([0.5, 0.3]), [[1.0, 0.0]], np.eye(2), [[1.0]]) == 0.0
+    assert st.lambda_max(np.diag([1.5, 0.5]), [[0.0, 1.0]], np.eye(2), [[1.0]]) == np.inf
+    assert st.lambda_max(1.0, 0.0, 1.0, 1.0) == np.inf          # an unobserved random walk
+    assert st.lambda_min(1.3) == pytest.approx(1 - 1 / 1.69)     # a scalar is 1 x 1, as in lambda_max
+
+
 def test_random_riccati_scalar_closed_form():
     """R = 0, C = 1: P resets to Q on arrival, so E[P] -> Q / (1 - (1 - lam) a^2)."""
     with jax.enable_x64(True):
