@@ -53,6 +53,17 @@ def test_round_trip_bounds_hold_for_the_draws():
     assert fixed.bounds(T) == (0, 0)
 
 
+def test_round_trip_loses_a_packet_lost_in_either_direction():
+    """A part whose draw is negative (a recorded loss) loses the packet; the others are the
+    quantised sum (they were all delivered: a lost packet's 0 s were added as a delay)."""
+    fw, bk = nc.TraceDelay(steps=[-1, 2, -1, 0, 1]), nc.TraceDelay(steps=[3, -1, -1, 0, 2])
+    steps, seconds = nc.RoundTrip(fw, bk).sample(jax.random.PRNGKey(0), 5, T)
+    np.testing.assert_array_equal(np.asarray(steps), [-1, -1, -1, 0, 3])
+    np.testing.assert_allclose(np.asarray(seconds), [0.0, 0.0, 0.0, 0.0, 3 * T], rtol=1e-6)
+    steps, _ = nc.RoundTrip(fw, nc.ShiftedExponential(0.0, 0.0)).sample(jax.random.PRNGKey(0), 5, T)
+    np.testing.assert_array_equal(np.asarray(steps), [-1, 2, -1, 0, 1])
+
+
 def test_round_trip_refuses_a_non_delay_model():
     with pytest.raises(ValueError, match="RoundTrip.back"):
         nc.RoundTrip(nc.NoDelay(), 0.02)

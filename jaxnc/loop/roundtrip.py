@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 
 from jaxnc._validate import check_instance
 from jaxnc.loop.base import AbstractDelay
@@ -33,7 +34,9 @@ class RoundTrip(AbstractDelay):
 
     ``sample(key, n, T)`` returns ``(steps int32[n], seconds float32[n])`` with
     ``seconds = forward_seconds + back_seconds`` and ``steps = ceil(seconds / T)``; the
-    two directions use ``split(key)``'s two keys.
+    two directions use ``split(key)``'s two keys. A packet lost in either direction (a
+    part's steps negative: :class:`~jaxnc.loop.TraceDelay`, :class:`~jaxnc.loop.WifiModel`)
+    is lost: steps -1, seconds 0.
 
     Raises:
       ValueError: when ``forward`` or ``back`` is not a delay model.
@@ -57,7 +60,8 @@ class RoundTrip(AbstractDelay):
 
     def sample(self, key, n: int, T):
         kf, kb = jax.random.split(key)
-        _, sf = self.forward.sample(kf, n, T)
-        _, sb = self.back.sample(kb, n, T)
-        tau = sf + sb
-        return quantise_delay(tau, T), tau
+        df, sf = self.forward.sample(kf, n, T)
+        db, sb = self.back.sample(kb, n, T)
+        lost = (df < 0) | (db < 0)
+        tau = jnp.where(lost, 0.0, sf + sb)
+        return jnp.where(lost, -1, quantise_delay(tau, T)).astype(jnp.int32), tau
