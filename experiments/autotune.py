@@ -36,7 +36,7 @@ from jaxnc import metrics, montecarlo
 from jaxnc.design.dualrate import DiscreteSS
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import diffdrive as dd
 from jaxnc.schemes import mecanum as mec
 from jaxnc.tune import (Interval, Positive, evaluate, grid, halving_schedule, mean_ci, paired_ci, relax_trigger, search,
@@ -297,10 +297,7 @@ def _plot_mecanum(loop, paper, results, histories, front, key0, out: Path):
     ax.set_xlabel("iteration")
     ax.set_ylabel("mean objective over the step's seeds")
     ax.legend()
-    fig.tight_layout()
-    f1 = out / "objective.png"
-    fig.savefig(f1, dpi=120)
-    plt.close(fig)
+    f1 = save_figure(fig, out / "objective.png", dpi=120)
 
     fig, ax = plt.subplots(figsize=(6, 4.5))
     style = {"paper": ("k", "s"), "grid": ("tab:blue", "^"), "tuned": ("tab:red", "o")}
@@ -317,10 +314,7 @@ def _plot_mecanum(loop, paper, results, histories, front, key0, out: Path):
     ax.set_ylabel("J1' / J1 nominal")
     ax.set_title("Pareto front, hard triggers, fresh seeds")
     ax.legend()
-    fig.tight_layout()
-    f2 = out / "pareto.png"
-    fig.savefig(f2, dpi=120)
-    plt.close(fig)
+    f2 = save_figure(fig, out / "pareto.png", dpi=120)
 
     fig, ax = plt.subplots(figsize=(7, 5))
     ref = np.asarray(loop.monitor.path.points)
@@ -339,10 +333,7 @@ def _plot_mecanum(loop, paper, results, histories, front, key0, out: Path):
     ax.set_xlabel("X (m)")
     ax.set_ylabel("Y (m)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    f3 = out / "paths.png"
-    fig.savefig(f3, dpi=120)
-    plt.close(fig)
+    f3 = save_figure(fig, out / "paths.png", dpi=120)
     return f1, f2, f3
 
 
@@ -435,9 +426,7 @@ def run_pi(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> d
     ax.plot(tr.history.objective)
     ax.set_xlabel("iteration")
     ax.set_ylabel("J1 (mm), mean over the step's seeds")
-    fig.tight_layout()
-    fig.savefig(out / "objective.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "objective.png", dpi=120)
     wall = time.perf_counter() - t_start
     results = {"table": tab, "summary": summ, "simulations": sims,
                "history": {"objective": tr.history.objective.tolist(),

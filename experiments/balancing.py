@@ -33,7 +33,7 @@ import numpy as np
 from jaxnc import loop as nc
 from jaxnc import montecarlo, wifi, results as per_seed
 from jaxnc.experiment import ConfigError, Experiment, Option, register
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.plants.balancing import TILT_SENSORS, Balancing
 from jaxnc.schemes import balancing as bal
 
@@ -134,10 +134,7 @@ def fig7(loops: dict, key, out: Path, sevs) -> Path:
         axes[1, j].set_xlabel("t (s)")
         axes[0, j].legend(fontsize=8)
         axes[1, j].legend(fontsize=8)
-    fig.tight_layout()
-    f = out / "fig7_time_responses.png"
-    fig.savefig(f, dpi=120)
-    plt.close(fig)
+    f = save_figure(fig, out / "fig7_time_responses.png", dpi=120)
     return f
 
 
@@ -171,10 +168,7 @@ def fig5(key, out: Path) -> tuple[Path, dict]:
     ax.set_xlim(0, FIG5_MAX_DELAY)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    f = out / "fig5_loopback_cdf.png"
-    fig.savefig(f, dpi=120)
-    plt.close(fig)
+    f = save_figure(fig, out / "fig5_loopback_cdf.png", dpi=120)
     rows = ["delay_steps," + ",".join(data)]
     rows += [f"{k}," + ",".join(f"{v['cdf'][k]:.6f}" for v in data.values()) for k in d]
     (out / "fig5_loopback_cdf.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
@@ -333,10 +327,7 @@ def fig_sweep(out: Path, axes: dict) -> Path:
         ax[0, j].legend(fontsize=8)
     n = next(iter(axes.values()))["points"][0]["model"]["n"]
     fig.suptitle(f"seed 001 severity sweep: one network parameter at a time, {n} seeds per point", fontsize=10)
-    fig.tight_layout()
-    f = Path(out) / "fig_sweep.png"
-    fig.savefig(f, dpi=120)
-    plt.close(fig)
+    f = save_figure(fig, Path(out) / "fig_sweep.png", dpi=120)
     return f
 
 

@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 
 from jaxnc import __version__, loop as nc, montecarlo, results as per_seed, sweep
 from jaxnc.experiment import ConfigError, Experiment, Option, register
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import diffdrive as dd
 
 PAPER_TABLE2 = {   # Table 2: J1 (mm, sum over NT instants), J2 (mm), J3 (s)
@@ -138,10 +138,7 @@ def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
     np.atleast_1d(axes)[0].set_ylabel("y (m)")
-    fig.tight_layout()
-    f1 = out / "paths.png"
-    fig.savefig(f1, dpi=120)
-    plt.close(fig)
+    f1 = save_figure(fig, out / "paths.png", dpi=120)
 
     fig, axes = plt.subplots(1, 2 if "e (F=0.45)" in trajs else 1, figsize=(10, 3.4), squeeze=False)
     for ax, name in zip(axes[0], [k for k in ("e", "e (F=0.45)") if k in trajs]):
@@ -153,10 +150,7 @@ def plot_paths(loops: dict, key, out: Path) -> tuple[Path, Path]:
         ax.set_title(f"control signal, scenario {name}")
         ax.set_xlabel("t (s)")
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    f2 = out / "control.png"
-    fig.savefig(f2, dpi=120)
-    plt.close(fig)
+    f2 = save_figure(fig, out / "control.png", dpi=120)
     return f1, f2
 
 
@@ -310,10 +304,7 @@ def _write_sensitivity(settings: dict, seeds: int, out: Path, grid: list, t0: fl
     axes[1, 0].set_ylabel("J1 / J1(a)")
     axes[0, -1].legend(fontsize=8)
     fig.suptitle("dotted: the paper's ratios; grey band: within 5 % of a", fontsize=9)
-    fig.tight_layout()
-    f1 = out / "sensitivity.png"
-    fig.savefig(f1, dpi=120)
-    plt.close(fig)
+    f1 = save_figure(fig, out / "sensitivity.png", dpi=120)
     wall = time.perf_counter() - t0
     montecarlo.save_results(out / "results.json", experiment="diffdrive-sensitivity",
                             config={"settings": settings, "seeds": seeds, "paper_ratios_J1": paper},

@@ -25,7 +25,7 @@ import jaxnc.loop as jl
 from jaxnc import __version__, montecarlo, results as per_seed, sweep
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.plants import hdd as hdd_plant
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import hdd
 from jaxnc.tune import set_paths
 
@@ -123,10 +123,7 @@ def plot_case(loop, traj, out: Path, case: int) -> Path:
     ax[2].set_xlabel("time (ms)")
     ax[2].legend(fontsize=7, loc="upper right")
     fig.suptitle(f"Case {case}: {CASE_NAMES[case]} (seed 0)")
-    fig.tight_layout()
-    f = out / f"case{case}.png"
-    fig.savefig(f, dpi=120)
-    plt.close(fig)
+    f = save_figure(fig, out / f"case{case}.png", dpi=120)
     return f
 
 
@@ -165,10 +162,7 @@ def plot_disturbance_n(loop, traj, out: Path, case: int) -> Path:
     ax[2].set_yscale("log")
     fig.suptitle(f"Fig. {fig_no}: Case {case} ({CASE_NAMES[case]}), disturbance estimate and multiplicity N\n"
                  f"seed 0: N_max = {int(N.max())}, {int(beta.sum())} arrivals, h = {loop.actuator.horizon - 1}", fontsize=10)
-    fig.tight_layout()
-    f = out / f"fig{fig_no}_case{case}_disturbance_N.png"
-    fig.savefig(f, dpi=120)
-    plt.close(fig)
+    f = save_figure(fig, out / f"fig{fig_no}_case{case}_disturbance_N.png", dpi=120)
     return f
 
 
@@ -187,10 +181,7 @@ def plot_bode(out: Path, reading: str) -> Path:
     ax[1].set_ylabel("phase (deg)")
     ax[1].set_xlabel("frequency (Hz)")
     fig.suptitle("10th-order HDD plant (eq. 30-31), T = 20 us")
-    fig.tight_layout()
-    p = out / "plant_bode.png"
-    fig.savefig(p, dpi=120)
-    plt.close(fig)
+    p = save_figure(fig, out / "plant_bode.png", dpi=120)
     return p
 
 
@@ -286,10 +277,7 @@ def plot_gpi(ts, tc, res, out: Path, imin) -> Path:
     ax2.set_ylabel("log10 delta_s = sigma_s")
     ax2.legend(fontsize=8)
     fig.suptitle("GPI = 0.45 Uc + 0.45 Ua + 0.1 NE (Fig. 5)")
-    fig.tight_layout()
-    p = out / "gpi_surface.png"
-    fig.savefig(p, dpi=120)
-    plt.close(fig)
+    p = save_figure(fig, out / "gpi_surface.png", dpi=120)
     return p
 
 

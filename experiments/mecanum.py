@@ -23,7 +23,7 @@ from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS, Path as RefPath
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import mecanum as mec
 
 CASE_CHOICES = (*mec.CASES, "all")
@@ -202,10 +202,7 @@ def plot_paths(loops: dict, key, out: Path, title: str, paths: dict | None = Non
     ax.set_aspect("equal")
     ax.set_title(title)
     ax.legend(fontsize=8, loc="best")
-    fig.tight_layout()
-    f = out / "paths.png"
-    fig.savefig(f, dpi=130)
-    plt.close(fig)
+    f = save_figure(fig, out / "paths.png", dpi=130)
     return f
 
 

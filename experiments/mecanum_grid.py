@@ -47,7 +47,7 @@ from jaxnc import montecarlo, results as per_seed, sweep
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import mecanum as mec
 
 from .mecanum import UNSTABLE_CELL, horizon, run_seed
@@ -457,9 +457,7 @@ def heatmaps(out: Path, results: dict, p: str) -> Path:
                 ax.set_ylabel("DP")
         fig.colorbar(im, ax=axes[r, :].tolist(), shrink=0.9, label=f"{j} (grey: unstable)")
     fig.suptitle(f"Seed 000, {p}: cost indexes over (N, DP) (Figs 7-10; normalised to nominal SR)")
-    f = out / f"fig_{p}.png"
-    fig.savefig(f, dpi=110)
-    plt.close(fig)
+    f = save_figure(fig, out / f"fig_{p}.png", dpi=110, tight=False)
     return f
 
 

@@ -43,7 +43,7 @@ from jaxnc import montecarlo, results as per_seed, sweep
 from jaxnc.controllers.path_following import LOOKAHEAD
 from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS, get_path, scaled
-from jaxnc.report import fmt, markdown_table
+from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import mecanum as mec
 
 from .mecanum import UNSTABLE_CELL, horizon, plot_paths, run_seed, true_plant
@@ -281,10 +281,7 @@ def fig15_16(out: Path, results: dict, settings: dict) -> Path:
     axes[0].legend(fontsize=7, ncol=2)
     fig.suptitle(f"Seed 000 section 5 on the {settings['plant']} plant (Figs. 15-16): lines ours, "
                  "open markers the paper's Tables 5-6; solid DRH, dashed DRHE", fontsize=10)
-    fig.tight_layout()
-    f = Path(out) / "fig15_16.png"
-    fig.savefig(f, dpi=120)
-    plt.close(fig)
+    f = save_figure(fig, Path(out) / "fig15_16.png", dpi=120)
     return f
 
 

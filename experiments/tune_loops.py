@@ -44,7 +44,7 @@ import numpy as np
 import jaxnc.loop as jl
 from jaxnc import montecarlo
 from jaxnc.experiment import ConfigError, Experiment, Option, register
-from jaxnc.report import markdown_table
+from jaxnc.report import markdown_table, save_figure
 from jaxnc.tune import (Positive, check_loop, get_path, mean_ci, paired_ci, param_paths, point_objective,
                          set_paths, successive_halving, tune_loop)
 
@@ -411,10 +411,7 @@ def plot(results: list[dict], out: Path) -> Path:
             ax.set_ylabel(names[1])
         ax.set_title(f"{res['loop']}: {res['verdict']}", fontsize=9)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    p = out / "tune_loops.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
+    p = save_figure(fig, out / "tune_loops.png", dpi=110)
     return p
 
 

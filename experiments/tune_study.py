@@ -62,7 +62,7 @@ import jaxnc.loop as jl
 from jaxnc import montecarlo
 from jaxnc.cache import compile_clock
 from jaxnc.experiment import ConfigError, Experiment, Option, register
-from jaxnc.report import markdown_table
+from jaxnc.report import markdown_table, save_figure
 from jaxnc.tune import (Interval, Positive, evaluate, get_path, mean_ci, paired_ci, param_paths, point_objective,
                         random_points, search, set_paths, tune_loop)
 
@@ -490,10 +490,7 @@ def plot(results: list[dict], out: Path) -> Path:
                       f"{res['eval']['seeds']})", fontsize=8)
         ax.set_title(res["loop"], fontsize=10)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    p = out / "tune_study.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
+    p = save_figure(fig, out / "tune_study.png", dpi=110)
     return p
 
 

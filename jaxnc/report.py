@@ -24,3 +24,18 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     line = lambda r: "| " + " | ".join(c.rjust(w) for c, w in zip(r, widths)) + " |"
     sep = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
     return "\n".join([line(header), sep, *(line(r) for r in cells)])
+
+
+def save_figure(fig, path, *, dpi: int = 120, tight: bool = True):
+    """Write the matplotlib figure ``fig`` to ``path`` (its format from the suffix) at
+    ``dpi``, after ``fig.tight_layout()`` when ``tight``, and close it (a long sweep does
+    not accumulate open figures). Returns ``path`` as a :class:`pathlib.Path`."""
+    from pathlib import Path
+
+    import matplotlib.pyplot as plt
+    path = Path(path)
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path

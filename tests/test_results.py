@@ -223,3 +223,19 @@ def test_per_seed_file_names_its_experiment(tmp_path):
     with pytest.raises(ValueError, match="mixes the files of two experiments: results.json is 'hdd''s, "
                                          "seeds.npz 'toy''s"):
         jaxnc.load(tmp_path)
+
+
+def test_save_figure_writes_the_file_at_its_dpi_and_closes_the_figure(tmp_path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    from jaxnc.report import save_figure
+    fig, ax = plt.subplots(figsize=(2, 1))
+    ax.plot([0, 1], [1, 0])
+    n_open = len(plt.get_fignums())
+    p = save_figure(fig, str(tmp_path / "a.png"), dpi=50)
+    assert p == tmp_path / "a.png" and p.is_file()
+    assert Image.open(p).size == (100, 50)                  # 2 x 1 inches at 50 dpi
+    assert len(plt.get_fignums()) == n_open - 1
