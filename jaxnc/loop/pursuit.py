@@ -14,7 +14,8 @@ sensing instant kNT, from the estimate xi_k,
    :func:`jaxnc.controllers.prediction.predict_periods`): steps 1-2 and the model's lifted
    map (:meth:`~jaxnc.loop.AbstractLiftedPlant.period`) iterated in open loop,
    giving the estimates (xi_{k|k}, ..., xi_{k+h|k}) and the actions of periods k .. k+h
-   (packet-based control). The local side does not measure the delay (section 1: "the
+   (packet-based control); the prediction saturates the commands at ``model.u_max`` only
+   (the limits of a :class:`~jaxnc.loop.LimitedActuator` are not in it). The local side does not measure the delay (section 1: "the
    time-varying network-induced delay is not required to be measured"): in period k it
    assumes the actuator plays the actions u_{k|k-1} of its previous packet for a fixed
    ``assumed_delay`` seconds, then u_{k|k} (0: the new actions from kNT, the paper's

@@ -48,7 +48,10 @@ class DiffDrive(AbstractLiftedPlant):
     Attributes:
       x0: float[5], the initial state (at rest: wheel speeds 0).
       r: wheel radius, m; b: half the wheel track, m; K, tau: the motor, eq. (26);
-        u_max: command saturation.
+        u_max: command saturation, applied inside :meth:`dynamics` and the lifted models
+        (``Trajectory.u`` records the command before it; a
+        :class:`~jaxnc.loop.LimitedActuator`'s ``Saturation`` is recorded, but a controller's
+        prediction with this model does not see it).
       F: the noise factor of section 5.1, scaling the standard deviations at F = 1:
         ``wheel`` (n1, rad/s per T), ``enc`` (rad/s), ``cam`` (m), ``imu`` (rad).
       T: static, the actuation period, s; sub: static, fine steps per T.
