@@ -108,7 +108,7 @@ def dlqe(A, G, C, Q, R, *, iterations: int = 60):
         if not rho < 1.0 - _SCHUR_MARGIN:
             raise ValueError("dlqe: no stabilising solution of the Riccati equation (spectral radius of "
                              f"A - L C is {rho:.8g}, not below 1 - {_SCHUR_MARGIN:g}): (A, C) must be detectable "
-                             "and (A, G Q^1/2) stabilisable")
+                             "and (A, G Q^1/2) stabilisable, with no mode they leave within 1e-5 of the unit circle")
     return L, P, E
 
 
