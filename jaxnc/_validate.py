@@ -154,6 +154,15 @@ def fields_concrete(obj) -> bool:
                       if not f.metadata.get("static", False)))
 
 
+def scalar_fields(obj, *names) -> None:
+    """The named fields of a dataclass are single numbers where they are concrete (None and
+    tracers are not checked): ValueError naming ``Class.field`` and the shape given."""
+    for n in names:
+        v = getattr(obj, n)
+        if v is not None and concrete(v) and np.ndim(v) != 0:
+            raise ValueError(f"{type(obj).__name__}.{n} must be a single number, got shape {np.shape(v)}")
+
+
 def array_fields(obj, *names) -> None:
     """Turn the named fields of a frozen dataclass that are Python sequences (lists,
     tuples of numbers) into float32 arrays, so that they are one pytree leaf each."""

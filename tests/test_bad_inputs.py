@@ -14,6 +14,8 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo, stability, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
+from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
+from jaxnc.paths import from_waypoints
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.schemes import diffdrive, mecanum
 
@@ -67,6 +69,18 @@ _PLANT = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]])
 _G = Gaussian(jnp.zeros(2), jnp.eye(2))
 _F = lambda x, u, w: x + w            # noqa: E731
 _H = lambda x, v: x[:1] + v           # noqa: E731
+
+
+def _pursuit(pi=None, ns=1, path=None, **kw):
+    pi = DiscreteSS.from_tf(single_rate_pi(6.0, 0.12, ns * 0.1)) if pi is None else pi
+    path = diffdrive.four_right_angles() if path is None else path
+    return nc.PursuitPI(path, nc.DiffDrive(), pi, ns=ns, **kw)
+
+
+def _dual_rate(T, N):
+    import control
+    return DualRateController.from_design(dualrate_design(control.tf([0.1276], [0.1235, 1.0]), pi_controller(6.0, 0.12),
+                                                          T, N))
 
 
 def _loop(**kw):
@@ -197,6 +211,20 @@ PYTHON_API = [
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0, 0.0]], np.eye(2), [[1.0]]), "lambda_max: C must be p x n with n = 2"),
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(3), [[1.0]]), "lambda_max: Q must be n x n = 2 x 2"),
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(2), np.eye(2)), "lambda_max: R must be p x p = 1 x 1"),
+    # the differential-drive robot's and the pursuit's numbers are single numbers (a vector failed
+    # inside the trace with jax's message, or, for K, tau, u_max and assumed_delay, ran)
+    (lambda: nc.DiffDrive(r=[0.028, 0.03]), "DiffDrive.r must be a single number, got shape (2,)"),
+    (lambda: _pursuit(v_ref=[0.1, 0.2]), "PursuitPI.v_ref must be a single number, got shape (2,)"),
+    (lambda: _pursuit(assumed_delay=np.array([0.0, 0.05])), "PursuitPI.assumed_delay must be a single number"),
+    # a PI discretised at another period than the pursuit runs it at ran without a word
+    (lambda: _pursuit(pi=DiscreteSS.from_tf(single_rate_pi(6.0, 0.12, 0.2))),
+     "PursuitPI.pi was discretised at 0.2 s but runs every 0.1 s"),
+    (lambda: _pursuit(pi=_dual_rate(T=0.05, N=2), ns=2), "PursuitPI.pi.G1 was discretised at 0.1 s but runs every 0.2 s"),
+    # a progress search shorter than the arc travelled per sensing period: the progress fell behind the robot
+    # and it tracked a target behind the look-ahead point without a word
+    (lambda: _pursuit(path=from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.001), v_ref=0.5),
+     "PursuitPI.window (40 path points, 0.039 m of progress per sensing period at the path's spacing 0.001 m) must "
+     "cover the arc the robot travels in one sensing period at v_ref (0.05 m"),
 ]
 
 
@@ -500,6 +528,14 @@ def _fit_discrete(**kw):
 _FIT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.1)
 _FIT_PLANT_05 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.05)     # sampled at another period
 _FIT_MODEL3 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=np.eye(2), T=0.1)       # two outputs
+_FIT_OSCILLATOR = nc.LTI.from_continuous([[0.0, 1.0], [-(2 * np.pi) ** 2, 0.0]], [[0.0], [1.0]], [[1.0, 0.0]], 0.1)
+
+
+def _pursuit_loop(N):
+    ctrl = _pursuit()
+    return nc.Loop(plant=nc.DiffDrive(), trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                   controller=ctrl, downlink=nc.Link(), actuator=nc.PacketActuator(horizon=ctrl.horizon), N=N,
+                   steps=4 * N, T=0.01)
 
 
 def _fit_cost_vector(x, u):
@@ -625,6 +661,15 @@ LOOP_FIT = [
      "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),
     (lambda: nc.Tracking(nc_refs.Step(1.0), index=(0, 4)).metrics(jnp.zeros((10, 2)), 0.1),
      "Tracking.index must pick components in [0, 1] of the state x (2 entries), got (0, 4)"),
+    # a controller built for another slow period than the loop's N (PursuitPI: ns T of sub fast periods each)
+    # ran: its PI and pure pursuit every N fast periods, its packets of ns * sub actions
+    (lambda: _pursuit_loop(N=20), "Loop.N (20) must equal the fast periods per slow period the controller is built "
+                                  "for (PursuitPI.period_steps = 10)"),
+    # a steady-state Kalman filter whose slow-period system is not detectable at the loop's N (an oscillation
+    # sampled every half period): its velocity estimate ran with an RMS error of the velocity's own size
+    (lambda: _fit_loop(plant=_FIT_OSCILLATOR, estimator=nc.SteadyStateKF(_FIT_OSCILLATOR, Q=[1e-4, 1e-4], R=[[1e-4]]),
+                       N=5, steps=10), "SteadyStateKF at the loop's N=5 (the slow-period system A_N = A^5): dlqe: no "
+                                       "stabilising solution"),
     # records
     (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
     (lambda: nc.Record(estimator=3), "Record.estimator must be"),

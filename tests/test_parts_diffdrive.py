@@ -301,3 +301,44 @@ def test_truncated_exponential_delay_law():
     r = tau / T                                   # ceil up to float32 rounding: r <= steps < r + 1
     assert np.all(steps >= r - 1e-4) and np.all(steps < r + 1)
     assert model.bounds(T) == (8, 17)
+
+
+def _circle_loop(R, sat=None, u_max=100.0, w_max=15.0, seconds=40.0):
+    th = np.linspace(-np.pi / 2, -np.pi / 2 + 6 * np.pi, 12001)            # three laps, from (0, 0) heading +x
+    path = from_waypoints(np.stack([R * np.cos(th), R + R * np.sin(th)], 1), "circle", ds=0.005)
+    plant = nc.DiffDrive(u_max=u_max)
+    ctrl = nc.PursuitPI(path, plant, DiscreteSS.from_tf(single_rate_pi(6.0, 0.12, 0.1)), v_ref=0.14, lad=0.12,
+                        w_max=w_max)
+    act = nc.PacketActuator(horizon=ctrl.horizon, on_exhausted="hold")
+    return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0), controller=ctrl,
+                   downlink=nc.Link(), actuator=act if sat is None else nc.LimitedActuator(act, sat), N=10,
+                   steps=int(seconds * 100), T=0.01, record=("x",))
+
+
+@pytest.mark.parametrize("limit", ["none", "actuator", "plant", "w_max"])
+def test_pursuit_on_a_circle_reaches_the_closed_form_steady_circle(limit):
+    """Pure pursuit with an arc-length look-ahead lad on a circle of radius R (noise-free,
+    integral PI): the steady path is a concentric circle r' where the pursuit's curvature
+    kappa(r') = 2 (r' - R cos a) / (R^2 + r'^2 - 2 R r' cos a), a = lad / R, turns the wheel
+    speeds into that circle, r' = b (w_r + w_l) / (w_r - w_l) with w_l = v (1 - b kappa) / r.
+    Unsaturated: r' = R, w = (v +- b v / R) / r. With the right wheel limited to w_r (its
+    command saturated at 40, w_r = K 40; or its reference clipped at w_max = 5) the steady
+    circle is outside, 9.46 mm and 11.56 mm; the saturation in a LimitedActuator and in
+    DiffDrive.u_max give the same circle."""
+    from scipy.optimize import brentq
+    R, lad, v, b, r = 0.5, 0.12, 0.14, 0.06, 0.028
+    kw = {"none": {}, "actuator": dict(sat=nc.Saturation(-40.0, 40.0)), "plant": dict(u_max=40.0),
+          "w_max": dict(w_max=5.0)}[limit]
+    x = np.asarray(nc.simulate(_circle_loop(R, **kw), jax.random.PRNGKey(0)).x)[-500:]     # the last 5 s
+    radius = np.hypot(x[:, 2], x[:, 3] - R)
+    if limit == "none":
+        np.testing.assert_allclose(x[-1, :2], [(v + b * v / R) / r, (v - b * v / R) / r], rtol=1e-5)
+        assert np.abs(radius - R).max() < 1e-5
+        return
+    a = lad / R
+    kappa = lambda rr: 2 * (rr - R * math.cos(a)) / (R * R + rr * rr - 2 * R * rr * math.cos(a))
+    w_r = 5.0 if limit == "w_max" else K_MOTOR * 40.0
+    w_l = lambda rr: v * (1 - b * kappa(rr)) / r
+    r_ss = brentq(lambda rr: rr - b * (w_r + w_l(rr)) / (w_r - w_l(rr)), R, 2 * R)
+    assert abs(radius.mean() - r_ss) < 5e-5, (radius.mean() - R, r_ss - R)     # 9.4577 vs 9.4583 mm
+    np.testing.assert_allclose(x[-1, :2], [w_r, w_l(r_ss)], rtol=2e-3)

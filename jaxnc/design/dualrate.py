@@ -170,14 +170,17 @@ class DiscreteSS:
     """x' = A x + B e, y = C x + D e (single input, single output), float32 leaves.
 
     Built from a proper discrete transfer function by :meth:`from_tf` (controllable
-    canonical form of ``scipy.signal.tf2ss`` via python-control).  ``step`` works on a
-    batch of independent channels (e.g. the two wheels): ``x[..., n]``, ``e[...]``.
+    canonical form of ``scipy.signal.tf2ss`` via python-control), which keeps its sampling
+    period as ``dt`` (static, seconds; None: not known), so that a part running it can check
+    it runs at that period.  ``step`` works on a batch of independent channels (e.g. the
+    two wheels): ``x[..., n]``, ``e[...]``.
     """
 
     A: jax.Array
     B: jax.Array
     C: jax.Array
     D: jax.Array
+    dt: float | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     @staticmethod
     def from_tf(sys: control.TransferFunction) -> "DiscreteSS":
@@ -186,7 +189,8 @@ class DiscreteSS:
             raise ValueError("DiscreteSS.from_tf: the transfer function is improper")
         ss = _control().tf2ss(_tf(num, den, sys.dt))
         f = lambda a: np.asarray(a, np.float32)
-        return DiscreteSS(A=f(ss.A), B=f(ss.B).reshape(-1), C=f(ss.C).reshape(-1), D=f(ss.D).reshape(()))
+        dt = None if sys.dt in (None, True) else float(sys.dt)
+        return DiscreteSS(A=f(ss.A), B=f(ss.B).reshape(-1), C=f(ss.C).reshape(-1), D=f(ss.D).reshape(()), dt=dt)
 
     @property
     def order(self) -> int:

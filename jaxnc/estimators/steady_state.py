@@ -48,6 +48,10 @@ def _sda(A, G, H, iterations):
     return jax.lax.fori_loop(0, iterations, body, (A, G, H))[2]
 
 
+#: the margin below 1 of a Schur spectral radius (:func:`dlqe`): float32 rounding moves a mode on the unit circle
+_SCHUR_MARGIN = 1e-5
+
+
 def dlqe(A, G, C, Q, R, *, iterations: int = 60):
     """Stationary Kalman gain: python-control's ``L, P, E = dlqe(A, G, C, Q, R)``.
 
@@ -76,7 +80,10 @@ def dlqe(A, G, C, Q, R, *, iterations: int = 60):
     Raises:
       ValueError: shapes that do not match, Q not PSD or R not PD (when concrete), and,
         when every input is concrete, no stabilising solution (A - L C not Schur: (A, C)
-        must be detectable and (A, G Q^1/2) stabilisable).
+        must be detectable and (A, G Q^1/2) stabilisable). Schur means a spectral radius
+        below 1 - 1e-5: in float32 an undetectable mode on the unit circle (an oscillation
+        sampled at a multiple of its half period) comes out at 0.99999994, and its
+        covariance grows to float32's rounding instead of converging.
     """
     check_int("dlqe: iterations", iterations, 1, 10_000)
     A = _matrix("A", A)
@@ -98,9 +105,10 @@ def dlqe(A, G, C, Q, R, *, iterations: int = 60):
     E = jnp.linalg.eigvals(A - L @ C)
     if concrete(A, G, C, Q, R):
         rho = float(np.max(np.abs(np.asarray(E)))) if np.all(np.isfinite(np.asarray(P))) else np.inf
-        if not rho < 1.0:
+        if not rho < 1.0 - _SCHUR_MARGIN:
             raise ValueError("dlqe: no stabilising solution of the Riccati equation (spectral radius of "
-                             f"A - L C is {rho:g}): (A, C) must be detectable and (A, G Q^1/2) stabilisable")
+                             f"A - L C is {rho:.8g}, not below 1 - {_SCHUR_MARGIN:g}): (A, C) must be detectable "
+                             "and (A, G Q^1/2) stabilisable, with no mode they leave within 1e-5 of the unit circle")
     return L, P, E
 
 

@@ -26,7 +26,7 @@ period T):
    if delivered at once), over the period.
 
 Optional behaviour is declared, never discovered: by class attributes (``inputs``,
-``horizon``, ``stamps_ahead``, ``keeps_copy``, ``in_steps``, ``freeze``). A controller that declares
+``horizon``, ``stamps_ahead``, ``period_steps``, ``keeps_copy``, ``in_steps``, ``freeze``). A controller that declares
 ``keeps_copy`` keeps the sender's copy of what it sent in its own state and says, with
 ``sent(state)``, which actions that copy applies over the period (seed 000's prediction
 chains); otherwise the runner keeps that copy for it (the actuator role fed the
@@ -353,6 +353,12 @@ class AbstractController(abc.ABC):
     #: ``lead``). A Loop checks that a :class:`~jaxnc.loop.PacketActuator` keeps enough
     #: packets to hold one until its stamp is due.
     stamps_ahead = 0
+
+    #: int or None (declared): the fast periods per slow period the controller is built for
+    #: (a static int; a field or property may override it, e.g. ``PursuitPI``'s ``ns *
+    #: model.sub``, whose PI and packets assume that period). A Loop checks that its N equals
+    #: it. None: any N.
+    period_steps = None
 
     #: str or None (declared): the name of the field holding the model the controller
     #: predicts its estimate with (``Predictive``, ``LeadFeedback``: ``"model"``); a Loop

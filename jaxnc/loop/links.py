@@ -40,7 +40,7 @@ import numpy as np
 
 from jaxnc import wifi
 from jaxnc._validate import (array_fields, check_bool, check_given, check_instance, check_int, check_nonneg,
-                             check_range, concrete)
+                             check_range, concrete, scalar_fields)
 from jaxnc.loop.base import AbstractDelay, AbstractLoss, Inbox
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -54,12 +54,8 @@ NEVER = 2**30          # arrival instant of a packet that never arrives
 _F32 = jnp.float32
 
 
-def _scalars(obj, *names):
-    """The named fields are single numbers (a model draws one value per packet from them)."""
-    for n in names:
-        v = getattr(obj, n)
-        if v is not None and concrete(v) and np.ndim(v) != 0:
-            raise ValueError(f"{type(obj).__name__}.{n} must be a single number, got shape {np.shape(v)}")
+# a model draws one value per packet from its numbers: they are single numbers
+_scalars = scalar_fields
 
 
 # ----------------------------------------------------------------------------- loss models

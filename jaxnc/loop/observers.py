@@ -202,8 +202,9 @@ class SteadyStateKF(AbstractEstimator):
       inputs: static, ``"believed"`` or ``"applied"``.
 
     Raises: ValueError naming the field for a model that is not an LTI, Q, R of the wrong
-    shape, Q not PSD or R not PD, a mis-shaped mean0, or (checked at the slow period N = 1
-    when built) no stabilising Riccati solution (from :func:`~jaxnc.estimators.steady_state.dlqe`).
+    shape, Q not PSD or R not PD, a mis-shaped mean0, or no stabilising Riccati solution
+    (from :func:`~jaxnc.estimators.steady_state.dlqe`; checked at N = 1 when built and at
+    the loop's N when a ``Loop`` is built, :meth:`init`).
     """
 
     by_stamp = True
@@ -227,6 +228,18 @@ class SteadyStateKF(AbstractEstimator):
                 raise ValueError(f"SteadyStateKF: {e}") from None
 
     def init(self, ctx) -> SteadyStateKFState:
+        """The prior mean0 and the stationary gain at the loop's N. Raises ValueError (when
+        its numbers are concrete, e.g. as a ``Loop`` is built) if the slow-period system at
+        that N has no stabilising Riccati solution, e.g. (A^N, C) not detectable where (A, C)
+        is (an oscillation sampled at a multiple of its half period): the gain would be
+        computed from a covariance that does not converge."""
+        if ctx.N != 1 and fields_concrete(self):       # N = 1 is checked when built
+            with jax.ensure_compile_time_eval():
+                try:
+                    stationary_gain(self, ctx.N)
+                except ValueError as e:
+                    raise ValueError(f"SteadyStateKF at the loop's N={ctx.N} (the slow-period system A_N = "
+                                     f"A^{ctx.N}): {e}") from None
         M, _ = stationary_gain(self, ctx.N)
         return SteadyStateKFState(jnp.asarray(self.mean0, jnp.float32), M.astype(jnp.float32),
                                   jnp.zeros((), jnp.int32))

@@ -14,7 +14,8 @@ sensing instant kNT, from the estimate xi_k,
    :func:`jaxnc.controllers.prediction.predict_periods`): steps 1-2 and the model's lifted
    map (:meth:`~jaxnc.loop.AbstractLiftedPlant.period`) iterated in open loop,
    giving the estimates (xi_{k|k}, ..., xi_{k+h|k}) and the actions of periods k .. k+h
-   (packet-based control). The local side does not measure the delay (section 1: "the
+   (packet-based control); the prediction saturates the commands at ``model.u_max`` only
+   (the limits of a :class:`~jaxnc.loop.LimitedActuator` are not in it). The local side does not measure the delay (section 1: "the
    time-varying network-induced delay is not required to be measured"): in period k it
    assumes the actuator plays the actions u_{k|k-1} of its previous packet for a fixed
    ``assumed_delay`` seconds, then u_{k|k} (0: the new actions from kNT, the paper's
@@ -27,12 +28,13 @@ controller sends zeros: the robot stops.
 """
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_instance, check_int, check_nonneg, check_positive
+from jaxnc._validate import check_instance, check_int, check_nonneg, check_positive, concrete, scalar_fields
 from jaxnc.controllers.prediction import predict_periods
 from jaxnc.controllers.pure_pursuit import pure_pursuit_curvature
 from jaxnc.design.dualrate import DiscreteSS, DualRateController
@@ -58,6 +60,18 @@ class PursuitState(NamedTuple):
     stop: jax.Array     # bool: the end was reached; the motors get zero
 
 
+def _check_pi_period(pi, ns: int, T: float) -> None:
+    """The PI's sampling periods (``DiscreteSS.dt``, kept by ``from_tf``; None: not known)
+    are those it runs at: a single-rate PI once per sensing period ns T, a dual-rate one's
+    G1 at ns T and G2 at T."""
+    parts = [("pi", pi, ns * T)] if isinstance(pi, DiscreteSS) else [("pi.G1", pi.G1, ns * T), ("pi.G2", pi.G2, T)]
+    for name, g, runs in parts:
+        if g.dt is not None and abs(g.dt - runs) > 1e-6 * runs:
+            raise ValueError(f"PursuitPI.{name} was discretised at {g.dt:g} s but runs every {runs:g} s "
+                             f"(ns={ns} periods T={T:g} s per sensing period): "
+                             f"design it at {runs:g} s")
+
+
 @_dataclass
 class PursuitPI(AbstractController):
     """Pure pursuit, wheel-speed PI and the h-step-ahead prediction stage (module docstring).
@@ -65,15 +79,21 @@ class PursuitPI(AbstractController):
     Attributes:
       path: the :class:`~jaxnc.paths.Path` to follow.
       model: the :class:`~jaxnc.loop.vehicles.DiffDrive` (eq. 20 and the lifted model).
-      pi: a DiscreteSS (single rate) or a DualRateController (its N must equal ``ns``).
+      pi: a DiscreteSS (single rate, discretised at ns T) or a DualRateController (its N must
+        equal ``ns``; G1 at ns T, G2 at T), e.g. ``DiscreteSS.from_tf(single_rate_pi(Kp, Ti, ns * T))``.
       v_ref: m/s; lad: the look-ahead distance, m; w_max: wheel-speed reference limit, rad/s;
         end_tol: m; assumed_delay: s, in [0, ns T].
-      ns: static, actuation periods T per sensing period; h: static >= 0, periods
-        predicted beyond the current one; window: static, the progress search window.
+      ns: static, actuation periods T per sensing period (a Loop's N must be ``ns * model.sub``,
+        :attr:`period_steps`); h: static >= 0, periods
+        predicted beyond the current one; window: static, the progress search window in path
+        points: (window - 1) times the path's spacing must cover v_ref ns T, the arc travelled
+        in one sensing period.
 
     Raises:
-      ValueError: a bad type, a non-positive speed or distance, ``pi``'s N != ns, an
-        ``assumed_delay`` outside [0, ns T].
+      ValueError: a bad type, a non-positive speed or distance, a number that is not a single
+        number, ``pi``'s N != ns, a ``pi``
+        discretised at another period than it runs at (its ``dt``), an ``assumed_delay``
+        outside [0, ns T], a ``window`` too short for the path's spacing at ``v_ref``.
     """
 
     path: Path
@@ -95,11 +115,13 @@ class PursuitPI(AbstractController):
                        "a DiscreteSS (single rate) or a DualRateController (jaxnc.design.dualrate)")
         for n in ("v_ref", "lad", "w_max", "end_tol"):
             check_positive(f"PursuitPI.{n}", getattr(self, n))
+        scalar_fields(self, "v_ref", "lad", "w_max", "end_tol", "assumed_delay")
         check_int("PursuitPI.ns", self.ns, 1, 1000)
         check_int("PursuitPI.h", self.h, 0, 1000)
         check_int("PursuitPI.window", self.window, 1, 100_000)
         if isinstance(self.pi, DualRateController) and self.pi.N != self.ns:
             raise ValueError(f"PursuitPI.pi's N ({self.pi.N}) must equal ns ({self.ns})")
+        _check_pi_period(self.pi, self.ns, self.model.T)
         check_nonneg("PursuitPI.assumed_delay", self.assumed_delay)
         try:
             if float(self.assumed_delay) > self.ns * self.model.T:
@@ -107,10 +129,24 @@ class PursuitPI(AbstractController):
                                  f"sensing period), got {float(self.assumed_delay):g}")
         except TypeError:
             pass
+        if concrete(self.path.s, self.v_ref):
+            spacing, run = float(self.path.spacing), float(self.v_ref) * self.ns * self.model.T
+            if (self.window - 1) * spacing < run:
+                raise ValueError(f"PursuitPI.window ({self.window} path points, {(self.window - 1) * spacing:.4g} m "
+                                 f"of progress per sensing period at the path's spacing {spacing:.4g} m) must cover "
+                                 f"the arc the robot travels in one sensing period at v_ref ({run:.4g} m = v_ref ns "
+                                 f"T), or its progress falls behind the robot: use window >= "
+                                 f"{math.ceil(run / spacing) + 1} or a coarser path")
 
     @property
     def horizon(self) -> int:
         return self.ns * self.model.sub * (self.h + 1)
+
+    @property
+    def period_steps(self) -> int:
+        """The sensing period NT in fast periods, ``ns * model.sub``: the loop's N
+        (:attr:`~jaxnc.loop.AbstractController.period_steps`)."""
+        return self.ns * self.model.sub
 
     def init(self, ctx) -> PursuitState:
         z = jnp.zeros((self.ns, 2), jnp.float32)

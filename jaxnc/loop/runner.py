@@ -289,6 +289,10 @@ class Loop:
         if isinstance(self.actuator.horizon, int) and self.actuator.horizon != H:
             raise ValueError(f"Loop.actuator.horizon ({self.actuator.horizon}) must equal the controller's "
                              f"horizon ({H})")
+        P = self.controller.period_steps
+        if P is not None and int(P) != self.N:
+            raise ValueError(f"Loop.N ({self.N}) must equal the fast periods per slow period the controller is built "
+                             f"for ({type(self.controller).__name__}.period_steps = {int(P)})")
         inner = self.actuator.actuator if isinstance(self.actuator, LimitedActuator) else self.actuator
         if isinstance(inner, PacketActuator) and inner.on_exhausted == "zero" and inner.span == "fast" \
                 and inner.horizon < self.N:

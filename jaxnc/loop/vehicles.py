@@ -27,7 +27,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import array_fields, check_choice, check_int, check_nonneg, check_positive
+from jaxnc._validate import array_fields, check_choice, check_int, check_nonneg, check_positive, scalar_fields
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.base import AbstractLiftedPlant
@@ -48,15 +48,19 @@ class DiffDrive(AbstractLiftedPlant):
     Attributes:
       x0: float[5], the initial state (at rest: wheel speeds 0).
       r: wheel radius, m; b: half the wheel track, m; K, tau: the motor, eq. (26);
-        u_max: command saturation.
+        u_max: command saturation, applied inside :meth:`dynamics` and the lifted models
+        (``Trajectory.u`` records the command before it; a
+        :class:`~jaxnc.loop.LimitedActuator`'s ``Saturation`` is recorded, but a controller's
+        prediction with this model does not see it).
       F: the noise factor of section 5.1, scaling the standard deviations at F = 1:
         ``wheel`` (n1, rad/s per T), ``enc`` (rad/s), ``cam`` (m), ``imu`` (rad).
       T: static, the actuation period, s; sub: static, fine steps per T.
       lifted: static, the slow-period model of :meth:`period` (:data:`LIFTED_MODELS`).
 
     Raises:
-      ValueError: a non-positive physical parameter, a negative noise, ``sub`` outside
-        [1, 1000], an unknown ``lifted``.
+      ValueError: a non-positive physical parameter, a negative noise, a number that is not a
+        single number (both wheels share r, K, tau and u_max), ``sub`` outside [1, 1000], an
+        unknown ``lifted``.
     """
 
     x0: Any = (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -84,6 +88,7 @@ class DiffDrive(AbstractLiftedPlant):
             check_positive(f"DiffDrive.{name}", getattr(self, name))
         for name in ("F", "wheel", "enc", "cam", "imu"):
             check_nonneg(f"DiffDrive.{name}", getattr(self, name))
+        scalar_fields(self, "r", "b", "K", "tau", "u_max", "F", "wheel", "enc", "cam", "imu")
         check_int("DiffDrive.sub", self.sub, 1, 1000)
         object.__setattr__(self, "lifted", check_choice("DiffDrive.lifted", self.lifted, LIFTED_MODELS))
         array_fields(self, "x0")

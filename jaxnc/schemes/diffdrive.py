@@ -101,8 +101,10 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
         import control
         Gp = control.tf([float(plant.K)], [float(plant.tau), 1.0])
         pi = DualRateController.from_design(dualrate_design(Gp, pi_controller(Kp, Ti), T, N))
+    # the progress search covers the arc travelled in a sensing period (40 points unless that is short of it)
+    window = max(40, math.ceil(v_ref * ns * T / float(path.spacing)) + 2)
     ctrl = nc.PursuitPI(path, plant, pi, v_ref=v_ref, lad=lad, end_tol=END_TOL, assumed_delay=assumed_delay, ns=ns,
-                        h=h if scenario == "e" else 0)
+                        h=h if scenario == "e" else 0, window=window)
     if scenario == "e":
         # the true measurement noise (floored so that F = 0 stays well-conditioned) and wheel noise
         # lifted to NT (eq. 7), plus a margin for the model's error (3 mm, 0.01 rad per NT: ours)
