@@ -72,6 +72,25 @@ class Option:
             raise ValueError(f"Option {self.name!r}: a choice option needs choices")
         if self.low is not None and self.high is not None and self.low > self.high:
             raise ValueError(f"Option {self.name!r}: low > high")
+        if not self._valid(self.default):
+            raise ValueError(f"Option {self.name!r}: default {self.default!r} must be {self.range_text()} "
+                             f"(the value a run without --set {self.name}=... uses)")
+
+    def _valid(self, value) -> bool:
+        """Whether ``value`` is a value of this option, as :meth:`parse` returns them (the
+        default must be one: a run without ``--set`` uses it unchecked)."""
+        def number(x, integer):
+            if isinstance(x, bool) or not isinstance(x, (int, float) if not integer else int):
+                return False
+            return math.isfinite(x) and self._in_range(x)
+        if self.kind in ("int", "float"):
+            return number(value, self.kind == "int")
+        if self.kind in ("floats", "ints"):
+            return (isinstance(value, (tuple, list)) and len(value) > 0
+                    and all(number(v, self.kind == "ints") for v in value))
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        return value in self.choices
 
     # -- descriptions used in messages and by `jaxnc list`
     def range_text(self) -> str:

@@ -75,21 +75,37 @@ def _fields(metrics) -> dict[str, np.ndarray]:
     return {str(k): np.asarray(v) for k, v in metrics.items()}
 
 
+def _dims(dims, where: str) -> tuple[str, ...]:
+    """``dims`` as a tuple of distinct names; ValueError naming ``where`` for a single
+    string (``"case"`` would be four dimensions c, a, s, e) or names that are not strings."""
+    if isinstance(dims, str) or not isinstance(dims, Sequence) or not dims \
+            or not all(isinstance(d, str) and d for d in dims) or len(set(dims)) != len(dims):
+        raise ValueError(f"{where}: dims must be a non-empty sequence of distinct dimension names, e.g. "
+                         f"('case',) or ('p', 'delta'), got {dims!r}")
+    return tuple(dims)
+
+
+def _key(key, dims: tuple, where: str, what: str = "run") -> tuple:
+    """A run's coordinates as a tuple with one label per dimension (a single label for one
+    dimension); ValueError naming ``where`` otherwise."""
+    key = key if isinstance(key, tuple) else (key,)
+    if len(key) != len(dims):
+        raise ValueError(f"{where}: {what} {key!r} has {len(key)} coordinates, dims are {dims}")
+    return tuple(_coord_value(v) for v in key)
+
+
 def _stack(runs: Mapping[tuple, Mapping], dims: Sequence[str]):
     """{coords: metrics} -> (coords per dim, {name: array (*dims, seed)}, present mask).
 
     Coordinates are listed per dimension in order of first appearance; a combination with
     no run has NaN metrics, ``unstable`` True and ``present`` False."""
-    dims = tuple(dims)
+    dims = _dims(dims, "save_per_seed")
     if not runs:
         raise ValueError("save_per_seed: no runs")
     coords = {d: [] for d in dims}
     rows = {}
     for key, metrics in runs.items():
-        key = key if isinstance(key, tuple) else (key,)
-        if len(key) != len(dims):
-            raise ValueError(f"save_per_seed: run {key!r} has {len(key)} coordinates, dims are {dims}")
-        key = tuple(_coord_value(v) for v in key)
+        key = _key(key, dims, "save_per_seed")
         for d, v in zip(dims, key):
             if v not in coords[d]:
                 coords[d].append(v)
@@ -153,10 +169,24 @@ def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, exp
 
 def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -> dict:
     """The ``results["per_seed"]`` entry of a grid: ``{"dims", "cells": [[*coords, file]]}``,
-    each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``."""
+    each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``.
+
+    ``cells`` maps a cell's coordinates (a tuple with one label per entry of ``dims``, or a
+    single label for one dimension) to its file inside ``folder``. Raises ValueError (naming
+    ``per_seed_index`` and the cell) for dims that are not a sequence of names, a cell with
+    another number of coordinates, or a file outside ``folder``: checked here, when the
+    index is written, rather than by :func:`load` after the sweep."""
     folder = pathlib.Path(folder)
-    rows = [[*(_coord_value(v) for v in key), pathlib.Path(f).relative_to(folder).as_posix()]
-            for key, f in cells.items()]
+    dims = _dims(dims, "per_seed_index")
+    rows = []
+    for key, f in cells.items():
+        key = _key(key, dims, "per_seed_index", "cell")
+        try:
+            rel = pathlib.Path(f).relative_to(folder).as_posix()
+        except ValueError:
+            raise ValueError(f"per_seed_index: the file of cell {key!r}, {f}, must be inside the folder "
+                             f"{folder}") from None
+        rows.append([*key, rel])
     return {"format": FORMAT, "dims": list(dims), "cells": rows}
 
 

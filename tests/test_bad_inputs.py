@@ -14,6 +14,7 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
+from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.schemes import diffdrive, mecanum
 
@@ -192,6 +193,12 @@ PYTHON_API = [
     (lambda: _loop(controller=nc.StateFeedback(K=[[1.0, 0.0, 0.0]])), "Loop.controller.K has shape (1, 3)"),
     (lambda: _loop(N=2.0, steps=10), "Loop.N must be an integer"),
     (lambda: _loop(N=2, steps=7), "Loop.steps must be a multiple of N=2"),
+    # an experiment's default outside its own range ran unchecked (a run without --set uses it)
+    (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
+    (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
+    (lambda: _Option("ps", "floats", 0.3, "ps", low=0.0, high=1.0),
+     "Option 'ps': default 0.3 must be a comma-separated list of numbers in [0, 1]"),
+    (lambda: _Option("c", "choice", "x", "c", choices=("a", "b")), "Option 'c': default 'x' must be one of a, b"),
 ]
 
 
@@ -261,6 +268,7 @@ def test_results_file_errors_name_the_file(tmp_path):
 
 # ----------------------------------------------------------------------------- files, folders, memory (issue 33)
 
+from jaxnc import results as _results  # noqa: E402
 from jaxnc import sweep as _sweep  # noqa: E402
 
 _GIB = 2 ** 30
@@ -417,6 +425,17 @@ FILES_API = [
     (lambda: _sweep.cell_path("/tmp", "", {}), "cell_path: name must be a non-empty file name"),
     (lambda: _sweep.cell_path("/tmp", "a/b", {}), "cell_path: name must be a non-empty file name"),
     (lambda: _sweep.config_hash({"f": object()}), "config_hash: a configuration value of type object"),
+    # a sweep's per-seed index: dims as one string (four dimensions c, a, s, e), a cell with the wrong
+    # number of coordinates (it was written, and jaxnc.load refused the folder after the sweep) or a file
+    # outside the folder (pathlib's message)
+    (lambda: _results.per_seed_index("/tmp/o", {"a": "/tmp/o/a.npz"}, "case"),
+     "per_seed_index: dims must be a non-empty sequence of distinct dimension names"),
+    (lambda: _results.save_per_seed("/tmp/o", {"a": {"unstable": np.zeros(2, bool)}}, "case"),
+     "save_per_seed: dims must be a non-empty sequence of distinct dimension names"),
+    (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/o/a.npz"}, ("p", "delta")),
+     "per_seed_index: cell (0.1,) has 1 coordinates, dims are ('p', 'delta')"),
+    (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/x.npz"}, ("p",)),
+     "per_seed_index: the file of cell (0.1,), /tmp/x.npz, must be inside the folder /tmp/o"),
 ]
 
 
