@@ -32,6 +32,7 @@ Writing needs only numpy; reading needs xarray (and pandas), imported when first
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import zipfile
@@ -39,7 +40,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "save_per_seed", "per_seed_index", "claim",
+__all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "config_of", "save_per_seed", "per_seed_index", "claim",
            "folder_owner", "load", "summary", "to_pandas"]
 
 PER_SEED_FILE = "seeds.npz"
@@ -55,6 +56,49 @@ _CELL_DIRS = ("cells", "points")
 class FolderError(ValueError):
     """A results folder that holds the results of another experiment, or of other
     settings where they would be overwritten (:func:`claim`)."""
+
+
+def config_of(obj, special=None, _where: str = "config"):
+    """A JSON value that describes ``obj`` whole: what a results file's ``config`` or a sweep
+    cell's configuration (:func:`jaxnc.sweep.cell_path`, :func:`jaxnc.sweep.load_cell`) holds so
+    that a change anywhere in a loop makes another configuration (a stored cell of the old
+    loop is then not reused).
+
+    A dataclass (a :class:`jaxnc.loop.Loop` and every part in it) becomes ``{"type": its class
+    name, field: ...}`` over all its fields, static ones included; a mapping a dict with string
+    keys; a tuple or list a list; a number, numpy or jax array (concrete) a number or nested
+    lists of numbers; a string, bool or None itself; a callable (a plant's ``f``, a cost
+    function) its module and qualified name (its code is not read: an edited function body
+    with the same name is the same configuration). ``special(obj)``, when given, is tried
+    first on every object and returns a description, or None to fall through (e.g. a path by
+    its name instead of its points).
+
+    Raises TypeError naming where in ``obj`` a value is that none of these describe."""
+    if special is not None:
+        made = special(obj)
+        if made is not None:
+            return made
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {"type": type(obj).__qualname__}
+        for f in dataclasses.fields(obj):
+            out[f.name] = config_of(getattr(obj, f.name), special, f"{_where}.{f.name}")
+        return out
+    if isinstance(obj, Mapping):
+        return {str(k): config_of(v, special, f"{_where}[{k!r}]") for k, v in obj.items()}
+    if isinstance(obj, (tuple, list)):
+        return [config_of(v, special, f"{_where}[{i}]") for i, v in enumerate(obj)]
+    if callable(obj) and not hasattr(obj, "__array__"):
+        return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', type(obj).__qualname__)}"
+    try:
+        a = np.asarray(obj)
+    except Exception:                       # noqa: BLE001 - a tracer or another object: named below
+        a = None
+    if a is None or a.dtype.kind not in "biuf":
+        raise TypeError(f"config_of: {_where} of type {type(obj).__name__} is not a number, array, string, "
+                        f"dataclass, mapping, sequence or function")
+    return a.tolist()
 
 
 def _coord_value(v):
