@@ -471,7 +471,9 @@ def summary(ds):
     variables ``<metric>`` (the mean; inf if no run is stable), ``<metric>_ci95``,
     ``<metric>_std``, ``<metric>_n_stable``, and ``n``, ``unstable_fraction``; the
     other dimensions are kept. Boolean metrics other than ``unstable`` are averaged over
-    all seeds (the fraction of runs where they hold)."""
+    all seeds (the fraction of runs where they hold). A combination no run computed
+    (``present`` False) has ``n`` and the ``_n_stable`` counts 0 and every other statistic
+    nan."""
     xr = _xarray()
     from jaxnc.montecarlo import summarize
 
@@ -494,7 +496,12 @@ def summary(ds):
     out["n"] = xr.full_like(unstable.isel(seed=0, drop=True), ds.sizes["seed"], dtype=int)
     out["unstable_fraction"] = unstable.astype(float).mean("seed")
     if "present" in ds:
-        out["present"] = ds["present"]
+        # a combination no run computed has no runs (summarize's rule for none: nan), not
+        # every run unstable: its stored fill (NaN metrics, unstable True) is not data
+        present = ds["present"]
+        out = {k: (v.where(present, 0) if k == "n" or k.endswith("_n_stable") else v.where(present))
+               for k, v in out.items()}
+        out["present"] = present
     return xr.Dataset(out, attrs=ds.attrs)
 
 

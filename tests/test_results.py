@@ -72,6 +72,27 @@ def test_missing_combinations_are_nan_and_marked(tmp_path):
         runs[("y", 2)]["J1"], runs[("y", 2)]["unstable"]).mean
 
 
+def test_a_combination_never_run_has_no_statistics(tmp_path):
+    """The summary of a grid's combination that no run computed (a sweep that skips one; the
+    seed-000 grid at N = 1 holds only nominal SR) is no runs: n 0 and nan statistics. It used
+    to read as every run failed: n the seed count, unstable_fraction 1.0, the means inf."""
+    runs = {("x", 1): _metrics(3), ("y", 2): _metrics(3, 1.0)}
+    runs[("x", 1)]["ok"] = np.array([True, False, True])
+    runs[("y", 2)]["ok"] = np.array([True, True, True])
+    results.save_per_seed(tmp_path, runs, dims=("p", "N"))
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
+    s = jaxnc.load(tmp_path).jaxnc.summary()
+    absent = s.sel(p="x", N=2)
+    assert int(absent["n"]) == 0 and not bool(absent["present"])
+    for name in ("J1", "J1_ci95", "J1_std", "tx", "unstable_fraction", "ok"):
+        assert np.isnan(float(absent[name])), name
+    assert int(absent["J1_n_stable"]) == 0
+    here = s.sel(p="x", N=1)
+    ref = montecarlo.summarize(runs[("x", 1)]["J1"], runs[("x", 1)]["unstable"])
+    assert int(here["n"]) == 3 and float(here["J1"]) == ref.mean and float(here["unstable_fraction"]) == 1 / 3
+    assert float(here["ok"]) == 2 / 3
+
+
 def test_old_and_damaged_folders_give_errors_naming_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "results.json"))):
         jaxnc.load(tmp_path)
