@@ -213,6 +213,22 @@ class Experiment:
     keeps_cells: bool = False
 
     def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name.strip() or any(c in self.name for c in "/\\"):
+            raise ValueError(f"Experiment.name must be a non-empty name without / or \\ (the default --out is "
+                             f"results/NAME), got {self.name!r}")
+        if not isinstance(self.options, (tuple, list)):
+            raise ValueError(f"Experiment {self.name!r}: options must be a tuple of jaxnc.experiment.Option, "
+                             f"got {type(self.options).__name__}")
+        for i, o in enumerate(self.options):
+            if not isinstance(o, Option):
+                raise ValueError(f"Experiment {self.name!r}: options[{i}] must be a jaxnc.experiment.Option, "
+                                 f"got {o!r}")
+        if not callable(self.run):
+            raise ValueError(f"Experiment {self.name!r}: run must be a function run(settings, *, seeds, out, "
+                             f"progress), got {self.run!r}")
+        if self.check is not None and not callable(self.check):
+            raise ValueError(f"Experiment {self.name!r}: check must be a function check(settings) or None, "
+                             f"got {self.check!r}")
         names = [o.name for o in self.options]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:

@@ -14,6 +14,7 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
+from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.schemes import diffdrive, mecanum
@@ -199,6 +200,11 @@ PYTHON_API = [
     (lambda: _Option("ps", "floats", 0.3, "ps", low=0.0, high=1.0),
      "Option 'ps': default 0.3 must be a comma-separated list of numbers in [0, 1]"),
     (lambda: _Option("c", "choice", "x", "c", choices=("a", "b")), "Option 'c': default 'x' must be one of a, b"),
+    # an Experiment of a user's module: a plain tuple for an option failed with AttributeError, a run that
+    # is not a function only when `jaxnc run` called it, a name with / made --out's default results/a/b
+    (lambda: _Experiment("x", "d", (("a", "int", 1),), run=print), "Experiment 'x': options[0] must be a jaxnc"),
+    (lambda: _Experiment("x", "d", (), run=None), "Experiment 'x': run must be a function"),
+    (lambda: _Experiment("a/b", "d", (), run=print), "Experiment.name must be a non-empty name without /"),
 ]
 
 
