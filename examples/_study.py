@@ -35,7 +35,8 @@ def per_seed(metrics, tracking, channels):
 
 def run_study(name, title, loop, tracking, channels, settings, *, seeds, out, progress):
     """Run ``seeds`` seeds of ``loop`` from ``settings["seed"]``, print the :func:`summary`
-    (mean +- 95 % interval) under ``title`` and save it to ``out/results.json``, the per-seed
+    (mean +- 95 % interval) under ``title`` and save it to ``out/results.json`` (with the settings and
+    the whole loop, :func:`jaxnc.results.config_of`), the per-seed
     metrics to ``out/seeds.npz`` (:func:`per_seed`; ``jaxnc.load(out)`` reads them)."""
     t0 = time.time()
     m, tm = montecarlo.run_batched(nc.run_tracking, montecarlo.seed_keys(settings["seed"], seeds),
@@ -45,6 +46,7 @@ def run_study(name, title, loop, tracking, channels, settings, *, seeds, out, pr
     for key, s in results.items():
         print(f"  {key:18s} {s.mean:.4g} +- {s.ci95:.2g} (95 %), not finite or unstable {s.unstable_fraction:.1%}")
     results_mod.save_per_seed(out, {name: per_seed(m, tm, channels)}, experiment=name)    # jaxnc.load(out)
-    montecarlo.save_results(out / "results.json", experiment=name, config=dict(settings, seeds=seeds),
+    montecarlo.save_results(out / "results.json", experiment=name,      # the loop that made them, whole
+                            config=dict(settings, seeds=seeds, loop=results_mod.config_of(loop)),
                             results=results, wall_time_s=time.time() - t0)
     return results

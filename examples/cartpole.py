@@ -59,7 +59,7 @@ def cost_of_log_delta(loop):
 
 def _run_experiment(settings, *, seeds, out, progress):
     import time
-    from jaxnc import montecarlo
+    from jaxnc import montecarlo, results as results_mod
     t0 = time.time()
     loop = cartpole(delta=settings["delta"], p_loss=settings["p_loss"])
     m = montecarlo.run_batched(nc.run_seed, montecarlo.seed_keys(settings["seed"], seeds), args=(loop,),
@@ -71,7 +71,8 @@ def _run_experiment(settings, *, seeds, out, progress):
     print(f"  cost        {cost.mean:.4f} +- {cost.ci95:.4f} (95 %), unstable {cost.unstable_fraction:.1%}")
     print(f"  sensor rate {rate.mean:.3f} packets per period (of 1)")
     results = {"cost": cost, "sensor_rate": rate}
-    montecarlo.save_results(out / "results.json", experiment="cartpole", config=dict(settings, seeds=seeds),
+    montecarlo.save_results(out / "results.json", experiment="cartpole",        # the loop that made them, whole
+                            config=dict(settings, seeds=seeds, loop=results_mod.config_of(loop)),
                             results=results, wall_time_s=time.time() - t0)
     return results
 

@@ -97,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-cache", dest="cache", action="store_false",
                    help="do not use the persistent compilation cache")
     r.add_argument("--shard", default=None, metavar="I/N",
-                   help="sweeps (mecanum-grid, hdd-gpi, diffdrive-sensitivity): compute only shard I of N "
+                   help="sweeps (mecanum-grid, hdd-gpi, diffdrive-sensitivity; your own experiment whose run "
+                        "takes shard=): compute only shard I of N "
                         "(0 <= I < N) of the cells into the shared --out folder; the run that finds every "
                         "cell present writes the tables (README: 'Sweeps across machines')")
     r.add_argument("--distributed", action="store_true",
@@ -157,7 +158,8 @@ def _run(args) -> int:
         from jaxnc.sweep import parse_shard
         if "shard" not in inspect.signature(exp.run).parameters:
             raise ConfigError(f"--shard: experiment {exp.name!r} is not a sweep (its run takes no shard); "
-                              f"sweeps: mecanum-grid, hdd-gpi, diffdrive-sensitivity")
+                              f"sweeps: mecanum-grid, hdd-gpi, diffdrive-sensitivity, and an experiment of your own "
+                              f"whose run takes shard= (docs/build_your_own_loop.md, 'A sweep of your own')")
         try:
             run_kw["shard"] = parse_shard(args.shard)
         except ValueError as e:

@@ -72,6 +72,25 @@ class Option:
             raise ValueError(f"Option {self.name!r}: a choice option needs choices")
         if self.low is not None and self.high is not None and self.low > self.high:
             raise ValueError(f"Option {self.name!r}: low > high")
+        if not self._valid(self.default):
+            raise ValueError(f"Option {self.name!r}: default {self.default!r} must be {self.range_text()} "
+                             f"(the value a run without --set {self.name}=... uses)")
+
+    def _valid(self, value) -> bool:
+        """Whether ``value`` is a value of this option, as :meth:`parse` returns them (the
+        default must be one: a run without ``--set`` uses it unchecked)."""
+        def number(x, integer):
+            if isinstance(x, bool) or not isinstance(x, (int, float) if not integer else int):
+                return False
+            return math.isfinite(x) and self._in_range(x)
+        if self.kind in ("int", "float"):
+            return number(value, self.kind == "int")
+        if self.kind in ("floats", "ints"):
+            return (isinstance(value, (tuple, list)) and len(value) > 0
+                    and all(number(v, self.kind == "ints") for v in value))
+        if self.kind == "bool":
+            return isinstance(value, bool)
+        return value in self.choices
 
     # -- descriptions used in messages and by `jaxnc list`
     def range_text(self) -> str:
@@ -194,6 +213,22 @@ class Experiment:
     keeps_cells: bool = False
 
     def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name.strip() or any(c in self.name for c in "/\\"):
+            raise ValueError(f"Experiment.name must be a non-empty name without / or \\ (the default --out is "
+                             f"results/NAME), got {self.name!r}")
+        if not isinstance(self.options, (tuple, list)):
+            raise ValueError(f"Experiment {self.name!r}: options must be a tuple of jaxnc.experiment.Option, "
+                             f"got {type(self.options).__name__}")
+        for i, o in enumerate(self.options):
+            if not isinstance(o, Option):
+                raise ValueError(f"Experiment {self.name!r}: options[{i}] must be a jaxnc.experiment.Option, "
+                                 f"got {o!r}")
+        if not callable(self.run):
+            raise ValueError(f"Experiment {self.name!r}: run must be a function run(settings, *, seeds, out, "
+                             f"progress), got {self.run!r}")
+        if self.check is not None and not callable(self.check):
+            raise ValueError(f"Experiment {self.name!r}: check must be a function check(settings) or None, "
+                             f"got {self.check!r}")
         names = [o.name for o in self.options]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:

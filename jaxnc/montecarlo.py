@@ -479,7 +479,12 @@ def describe(metrics, run_ndim: int = 0) -> str:
     the stable runs (:func:`summarize`, with the tuple's ``unstable`` field when it has one)
     and how many runs were left out (unstable or not finite: a settling time that is nan
     because the run never settled is left out and counted); a boolean field as the fraction
-    of runs where it holds. One run: the values. Anything else (traced values inside
+    of runs where it holds. A field with no run to average (every run unstable, or its value
+    not finite in the others) shows no mean: ``inf`` where its value is +inf in every run (a
+    divergent cost, ``Metrics.cost`` of failed runs: the papers' ∞), else ``–``, with how many
+    runs failed and how many were not finite (:func:`summarize`'s mean there is inf, which
+    for a transmission rate or a finite cost would be a number no run had). One run: the
+    values. Anything else (traced values inside
     ``jit``, other shapes): the tuple's plain repr. A field whose stable runs are too skewed
     for their normal interval (:func:`seeds_for_normal_interval` above their count and above
     56, i.e. |skewness| > 1, so that a small symmetric batch is not flagged) says so on its
@@ -517,6 +522,13 @@ def describe(metrics, run_ndim: int = 0) -> str:
         elif a.dtype.kind in "fiu":
             bad = unstable if k != "unstable" else np.zeros(n, bool)
             sm = summarize(a, bad)
+            if sm.n_stable == 0:            # nothing to average: say why, not summarize's inf
+                failed = int(np.count_nonzero(bad))
+                why = (f"no stable run: all {n} failed" if failed == n
+                       else f"no run to average: {failed} failed, {n - failed} not finite")
+                shown = "inf" if np.all(np.isposinf(a)) else "\u2013"
+                lines.append(f"  {label:<{w}}  {shown} ({why})")
+                continue
             left = f" ({n - sm.n_stable} left out: unstable or not finite)" if sm.n_stable < n else ""
             need = seeds_for_normal_interval(a[~bad])
             skew = (f" [skewed: the interval needs about {need} runs (Cochran's rule), not {sm.n_stable}]"

@@ -32,6 +32,7 @@ Writing needs only numpy; reading needs xarray (and pandas), imported when first
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import zipfile
@@ -39,7 +40,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "save_per_seed", "per_seed_index", "claim",
+__all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "config_of", "save_per_seed", "per_seed_index", "claim",
            "folder_owner", "load", "summary", "to_pandas"]
 
 PER_SEED_FILE = "seeds.npz"
@@ -55,6 +56,49 @@ _CELL_DIRS = ("cells", "points")
 class FolderError(ValueError):
     """A results folder that holds the results of another experiment, or of other
     settings where they would be overwritten (:func:`claim`)."""
+
+
+def config_of(obj, special=None, _where: str = "config"):
+    """A JSON value that describes ``obj`` whole: what a results file's ``config`` or a sweep
+    cell's configuration (:func:`jaxnc.sweep.cell_path`, :func:`jaxnc.sweep.load_cell`) holds so
+    that a change anywhere in a loop makes another configuration (a stored cell of the old
+    loop is then not reused).
+
+    A dataclass (a :class:`jaxnc.loop.Loop` and every part in it) becomes ``{"type": its class
+    name, field: ...}`` over all its fields, static ones included; a mapping a dict with string
+    keys; a tuple or list a list; a number, numpy or jax array (concrete) a number or nested
+    lists of numbers; a string, bool or None itself; a callable (a plant's ``f``, a cost
+    function) its module and qualified name (its code is not read: an edited function body
+    with the same name is the same configuration). ``special(obj)``, when given, is tried
+    first on every object and returns a description, or None to fall through (e.g. a path by
+    its name instead of its points).
+
+    Raises TypeError naming where in ``obj`` a value is that none of these describe."""
+    if special is not None:
+        made = special(obj)
+        if made is not None:
+            return made
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        out = {"type": type(obj).__qualname__}
+        for f in dataclasses.fields(obj):
+            out[f.name] = config_of(getattr(obj, f.name), special, f"{_where}.{f.name}")
+        return out
+    if isinstance(obj, Mapping):
+        return {str(k): config_of(v, special, f"{_where}[{k!r}]") for k, v in obj.items()}
+    if isinstance(obj, (tuple, list)):
+        return [config_of(v, special, f"{_where}[{i}]") for i, v in enumerate(obj)]
+    if callable(obj) and not hasattr(obj, "__array__"):
+        return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', type(obj).__qualname__)}"
+    try:
+        a = np.asarray(obj)
+    except Exception:                       # noqa: BLE001 - a tracer or another object: named below
+        a = None
+    if a is None or a.dtype.kind not in "biuf":
+        raise TypeError(f"config_of: {_where} of type {type(obj).__name__} is not a number, array, string, "
+                        f"dataclass, mapping, sequence or function")
+    return a.tolist()
 
 
 def _coord_value(v):
@@ -75,21 +119,37 @@ def _fields(metrics) -> dict[str, np.ndarray]:
     return {str(k): np.asarray(v) for k, v in metrics.items()}
 
 
+def _dims(dims, where: str) -> tuple[str, ...]:
+    """``dims`` as a tuple of distinct names; ValueError naming ``where`` for a single
+    string (``"case"`` would be four dimensions c, a, s, e) or names that are not strings."""
+    if isinstance(dims, str) or not isinstance(dims, Sequence) or not dims \
+            or not all(isinstance(d, str) and d for d in dims) or len(set(dims)) != len(dims):
+        raise ValueError(f"{where}: dims must be a non-empty sequence of distinct dimension names, e.g. "
+                         f"('case',) or ('p', 'delta'), got {dims!r}")
+    return tuple(dims)
+
+
+def _key(key, dims: tuple, where: str, what: str = "run") -> tuple:
+    """A run's coordinates as a tuple with one label per dimension (a single label for one
+    dimension); ValueError naming ``where`` otherwise."""
+    key = key if isinstance(key, tuple) else (key,)
+    if len(key) != len(dims):
+        raise ValueError(f"{where}: {what} {key!r} has {len(key)} coordinates, dims are {dims}")
+    return tuple(_coord_value(v) for v in key)
+
+
 def _stack(runs: Mapping[tuple, Mapping], dims: Sequence[str]):
     """{coords: metrics} -> (coords per dim, {name: array (*dims, seed)}, present mask).
 
     Coordinates are listed per dimension in order of first appearance; a combination with
     no run has NaN metrics, ``unstable`` True and ``present`` False."""
-    dims = tuple(dims)
+    dims = _dims(dims, "save_per_seed")
     if not runs:
         raise ValueError("save_per_seed: no runs")
     coords = {d: [] for d in dims}
     rows = {}
     for key, metrics in runs.items():
-        key = key if isinstance(key, tuple) else (key,)
-        if len(key) != len(dims):
-            raise ValueError(f"save_per_seed: run {key!r} has {len(key)} coordinates, dims are {dims}")
-        key = tuple(_coord_value(v) for v in key)
+        key = _key(key, dims, "save_per_seed")
         for d, v in zip(dims, key):
             if v not in coords[d]:
                 coords[d].append(v)
@@ -153,10 +213,24 @@ def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, exp
 
 def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -> dict:
     """The ``results["per_seed"]`` entry of a grid: ``{"dims", "cells": [[*coords, file]]}``,
-    each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``."""
+    each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``.
+
+    ``cells`` maps a cell's coordinates (a tuple with one label per entry of ``dims``, or a
+    single label for one dimension) to its file inside ``folder``. Raises ValueError (naming
+    ``per_seed_index`` and the cell) for dims that are not a sequence of names, a cell with
+    another number of coordinates, or a file outside ``folder``: checked here, when the
+    index is written, rather than by :func:`load` after the sweep."""
     folder = pathlib.Path(folder)
-    rows = [[*(_coord_value(v) for v in key), pathlib.Path(f).relative_to(folder).as_posix()]
-            for key, f in cells.items()]
+    dims = _dims(dims, "per_seed_index")
+    rows = []
+    for key, f in cells.items():
+        key = _key(key, dims, "per_seed_index", "cell")
+        try:
+            rel = pathlib.Path(f).relative_to(folder).as_posix()
+        except ValueError:
+            raise ValueError(f"per_seed_index: the file of cell {key!r}, {f}, must be inside the folder "
+                             f"{folder}") from None
+        rows.append([*key, rel])
     return {"format": FORMAT, "dims": list(dims), "cells": rows}
 
 
@@ -397,7 +471,9 @@ def summary(ds):
     variables ``<metric>`` (the mean; inf if no run is stable), ``<metric>_ci95``,
     ``<metric>_std``, ``<metric>_n_stable``, and ``n``, ``unstable_fraction``; the
     other dimensions are kept. Boolean metrics other than ``unstable`` are averaged over
-    all seeds (the fraction of runs where they hold)."""
+    all seeds (the fraction of runs where they hold). A combination no run computed
+    (``present`` False) has ``n`` and the ``_n_stable`` counts 0 and every other statistic
+    nan."""
     xr = _xarray()
     from jaxnc.montecarlo import summarize
 
@@ -420,7 +496,12 @@ def summary(ds):
     out["n"] = xr.full_like(unstable.isel(seed=0, drop=True), ds.sizes["seed"], dtype=int)
     out["unstable_fraction"] = unstable.astype(float).mean("seed")
     if "present" in ds:
-        out["present"] = ds["present"]
+        # a combination no run computed has no runs (summarize's rule for none: nan), not
+        # every run unstable: its stored fill (NaN metrics, unstable True) is not data
+        present = ds["present"]
+        out = {k: (v.where(present, 0) if k == "n" or k.endswith("_n_stable") else v.where(present))
+               for k, v in out.items()}
+        out["present"] = present
     return xr.Dataset(out, attrs=ds.attrs)
 
 

@@ -16,6 +16,8 @@ from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
+from jaxnc.experiment import Experiment as _Experiment
+from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.schemes import diffdrive, mecanum
 
@@ -225,6 +227,17 @@ PYTHON_API = [
     (lambda: _pursuit(path=from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.001), v_ref=0.5),
      "PursuitPI.window (40 path points, 0.039 m of progress per sensing period at the path's spacing 0.001 m) must "
      "cover the arc the robot travels in one sensing period at v_ref (0.05 m"),
+    # an experiment's default outside its own range ran unchecked (a run without --set uses it)
+    (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
+    (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
+    (lambda: _Option("ps", "floats", 0.3, "ps", low=0.0, high=1.0),
+     "Option 'ps': default 0.3 must be a comma-separated list of numbers in [0, 1]"),
+    (lambda: _Option("c", "choice", "x", "c", choices=("a", "b")), "Option 'c': default 'x' must be one of a, b"),
+    # an Experiment of a user's module: a plain tuple for an option failed with AttributeError, a run that
+    # is not a function only when `jaxnc run` called it, a name with / made --out's default results/a/b
+    (lambda: _Experiment("x", "d", (("a", "int", 1),), run=print), "Experiment 'x': options[0] must be a jaxnc"),
+    (lambda: _Experiment("x", "d", (), run=None), "Experiment 'x': run must be a function"),
+    (lambda: _Experiment("a/b", "d", (), run=print), "Experiment.name must be a non-empty name without /"),
 ]
 
 
@@ -294,6 +307,7 @@ def test_results_file_errors_name_the_file(tmp_path):
 
 # ----------------------------------------------------------------------------- files, folders, memory (issue 33)
 
+from jaxnc import results as _results  # noqa: E402
 from jaxnc import sweep as _sweep  # noqa: E402
 
 _GIB = 2 ** 30
@@ -450,6 +464,17 @@ FILES_API = [
     (lambda: _sweep.cell_path("/tmp", "", {}), "cell_path: name must be a non-empty file name"),
     (lambda: _sweep.cell_path("/tmp", "a/b", {}), "cell_path: name must be a non-empty file name"),
     (lambda: _sweep.config_hash({"f": object()}), "config_hash: a configuration value of type object"),
+    # a sweep's per-seed index: dims as one string (four dimensions c, a, s, e), a cell with the wrong
+    # number of coordinates (it was written, and jaxnc.load refused the folder after the sweep) or a file
+    # outside the folder (pathlib's message)
+    (lambda: _results.per_seed_index("/tmp/o", {"a": "/tmp/o/a.npz"}, "case"),
+     "per_seed_index: dims must be a non-empty sequence of distinct dimension names"),
+    (lambda: _results.save_per_seed("/tmp/o", {"a": {"unstable": np.zeros(2, bool)}}, "case"),
+     "save_per_seed: dims must be a non-empty sequence of distinct dimension names"),
+    (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/o/a.npz"}, ("p", "delta")),
+     "per_seed_index: cell (0.1,) has 1 coordinates, dims are ('p', 'delta')"),
+    (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/x.npz"}, ("p",)),
+     "per_seed_index: the file of cell (0.1,), /tmp/x.npz, must be inside the folder /tmp/o"),
 ]
 
 

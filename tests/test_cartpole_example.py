@@ -83,6 +83,9 @@ def test_cli_runs_the_example_and_rejects_a_bad_module(tmp_path, monkeypatch, ca
                     "--set", "delta=0.0001"]) == 0
     doc = montecarlo.load_results(out / "results.json")
     assert doc["config"]["delta"] == pytest.approx(1e-4) and doc["config"]["seeds"] == 16
+    loop = doc["config"]["loop"]                  # the configuration that made the results, whole
+    assert loop["type"] == "Loop" and loop["trigger"]["delta"] == pytest.approx(1e-4)
+    assert loop["uplink"]["loss"] == {"type": "Bernoulli", "p": pytest.approx(0.3)} and loop["steps"] == cp.STEPS
     capsys.readouterr()
     assert run_cli(["run", "examples.nope:experiment", "--seeds", "4", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -110,3 +110,43 @@ def test_refuses_a_non_path_and_a_position_beyond_the_state():
         nc.PathMonitor(np.zeros((5, 2)))
     with pytest.raises(ValueError, match="PathMonitor.xy"):
         nc.PathMonitor(LINE, xy=1).init(CTX)
+
+
+@nc.pytree_dataclass
+class _BandCount(nc.AbstractMonitor):
+    """A user's monitor with state: counts the fast periods after which |x0| > band, fails
+    when |x0| > bound, complete once the count reaches `enough` (freeze: the declared default)."""
+    band: float = 0.5
+    bound: float = 1.0
+    enough: int = nc.static_field(6)
+
+    def init(self, ctx):
+        return jnp.zeros((), jnp.int32)
+
+    def step(self, count, x, u, t):
+        count = count + (jnp.abs(x[0]) > self.band).astype(jnp.int32)
+        return count, jnp.abs(x[0]) > self.bound, count >= self.enough
+
+
+def _count(monitor, state):
+    return state
+
+
+def test_a_freezing_monitor_stops_once_the_run_failed():
+    """x+ = 1.2 x from x0 = 0.1 without control: x_t = 0.1 1.2^t exceeds the band 0.5 from t = 9
+    and the bound 1 at t = 13 (fail_step 13; the plant is frozen at x_12 = 0.892). The monitor's
+    count reaches 5 (t = 9..13) and must stay there: after the failure the runner used to step it
+    on a state the frozen plant never had (a step from x_12 each period), so the count kept
+    growing (to 1 + steps - 9) and the run was marked complete at step 14, after its failure."""
+    plant = nc.LTI(A=[[1.2]], B=[[0.0]], C=[[1.0]], x0=[0.1], T=0.1)
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                   controller=nc.StateFeedback(np.zeros((1, 1))), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   monitor=_BandCount(), N=1, steps=30, T=0.1, record=nc.Record(signals=("x",), monitor=_count))
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
+    t = np.arange(30)
+    x = 0.1 * 1.2 ** np.minimum(t, 12)                      # frozen at the last good state from t = 13 on
+    np.testing.assert_allclose(np.asarray(tr.x)[:, 0], x, rtol=1e-5)
+    assert (bool(tr.failed), int(tr.fail_step)) == (True, 13)
+    count = np.cumsum(0.1 * 1.2 ** (t + 1) > 0.5)           # after fast period t: the state x_{t+1}
+    np.testing.assert_array_equal(np.asarray(tr.parts["monitor"]), np.minimum(count, 5))
+    assert (bool(tr.done), int(tr.done_step)) == (False, 30)

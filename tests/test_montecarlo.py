@@ -263,6 +263,28 @@ def test_describe_flags_a_field_too_skewed_for_its_interval():
     assert all("skewed" not in ln for ln in lines[2:])
 
 
+def test_describe_shows_no_mean_where_every_run_failed():
+    """A batch where every run failed: the cost (inf in every failed run) prints inf, the
+    transmission rates and a finite cost_raw print a dash with the count of failed runs,
+    not summarize's inf (a rate no run had); a loop without a cost (nan, no failure) is
+    counted as not finite."""
+    from jaxnc.loop.runner import Metrics
+    n = 64
+    m = Metrics(jnp.full(n, jnp.inf), jnp.linspace(1.0, 2.0, n), jnp.full(n, 0.5), jnp.full(n, 0.25),
+                jnp.ones(n, bool))
+    lines = repr(m).splitlines()
+    assert lines[1].split() == ["cost", "inf", "(no", "stable", "run:", "all", "64", "failed)"]
+    for ln, name in zip(lines[2:5], ("cost_raw", "rate_sc", "rate_ca")):
+        assert ln.split() == [name, "\u2013", "(no", "stable", "run:", "all", "64", "failed)"]
+    assert "inf" not in "".join(lines[2:5])
+    half = Metrics(jnp.full(n, jnp.nan), jnp.full(n, jnp.nan), jnp.full(n, 0.5), jnp.full(n, 0.25),
+                   jnp.arange(n) < 10)
+    lines = repr(half).splitlines()
+    assert lines[1].split() == ["cost", "\u2013", "(no", "run", "to", "average:", "10", "failed,", "54", "not",
+                                "finite)"]
+    assert lines[3].split()[:2] == ["rate_sc", "0.5"] and "(10 left out" in lines[3]
+
+
 def test_tracking_metrics_print_per_channel_and_count_runs_that_never_settled():
     """TrackingMetrics (float[c] per run): a batch prints one line per field and channel,
     a nan settling time (never settled) is left out and counted; one run prints its values."""

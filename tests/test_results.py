@@ -1,4 +1,5 @@
 """jaxnc.load: per-seed metrics as an xarray.Dataset whose means are the printed tables."""
+import dataclasses
 import json
 import math
 import re
@@ -69,6 +70,27 @@ def test_missing_combinations_are_nan_and_marked(tmp_path):
     assert np.isnan(ds["J1"].sel(p="x", N=2)).all() and ds["unstable"].sel(p="x", N=2).all()
     assert float(ds.jaxnc.summary()["J1"].sel(p="y", N=2)) == montecarlo.summarize(
         runs[("y", 2)]["J1"], runs[("y", 2)]["unstable"]).mean
+
+
+def test_a_combination_never_run_has_no_statistics(tmp_path):
+    """The summary of a grid's combination that no run computed (a sweep that skips one; the
+    seed-000 grid at N = 1 holds only nominal SR) is no runs: n 0 and nan statistics. It used
+    to read as every run failed: n the seed count, unstable_fraction 1.0, the means inf."""
+    runs = {("x", 1): _metrics(3), ("y", 2): _metrics(3, 1.0)}
+    runs[("x", 1)]["ok"] = np.array([True, False, True])
+    runs[("y", 2)]["ok"] = np.array([True, True, True])
+    results.save_per_seed(tmp_path, runs, dims=("p", "N"))
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
+    s = jaxnc.load(tmp_path).jaxnc.summary()
+    absent = s.sel(p="x", N=2)
+    assert int(absent["n"]) == 0 and not bool(absent["present"])
+    for name in ("J1", "J1_ci95", "J1_std", "tx", "unstable_fraction", "ok"):
+        assert np.isnan(float(absent[name])), name
+    assert int(absent["J1_n_stable"]) == 0
+    here = s.sel(p="x", N=1)
+    ref = montecarlo.summarize(runs[("x", 1)]["J1"], runs[("x", 1)]["unstable"])
+    assert int(here["n"]) == 3 and float(here["J1"]) == ref.mean and float(here["unstable_fraction"]) == 1 / 3
+    assert float(here["ok"]) == 2 / 3
 
 
 def test_old_and_damaged_folders_give_errors_naming_the_file(tmp_path):
@@ -239,3 +261,45 @@ def test_save_figure_writes_the_file_at_its_dpi_and_closes_the_figure(tmp_path):
     assert p == tmp_path / "a.png" and p.is_file()
     assert Image.open(p).size == (100, 50)                  # 2 x 1 inches at 50 dpi
     assert len(plt.get_fignums()) == n_open - 1
+def _servo_loop(p=0.3, delta=0.01, N=2, w=0.01):
+    from jaxnc import loop as nc
+    plant = nc.LTI(A=[[1.0, 0.1], [0.0, 1.0]], B=[[0.005], [0.1]], C=[[1.0, 0.0]], x0=[1.0, 0.0],
+                   w_std=[w, 0.02], v_std=[0.05], T=0.1)
+    ekf = nc.EKF(plant, Q=np.diag([0.01, 0.02]) ** 2, R=np.eye(1) * 0.05**2, mean0=[0.0, 0.0], cov0=np.eye(2))
+    return nc.Loop(plant=plant, trigger=nc.Petc(delta=delta), uplink=nc.Link(nc.Bernoulli(p)), estimator=ekf,
+                   controller=nc.StateFeedback(np.asarray([[3.0, 1.5]])), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   cost=nc.Quadratic(Q=[1.0, 0.1], R=[0.01]), N=N, steps=40, T=0.1)
+
+
+def test_config_of_a_loop_names_every_leaf_so_a_changed_loop_is_another_cell(tmp_path):
+    """results.config_of(loop) is JSON with every part's type and fields (static ones too): equal
+    loops give one sweep cell file, and a change to any leaf (the process noise, a loss
+    probability, the threshold), a static field (N) or a part's type gives another, so a user
+    sweep whose cell configuration holds it does not reuse a cell of the old loop (one whose
+    configuration held only its grid values reused it: a cost of 0.051 reported for a loop
+    with three times the noise, whose cost is 0.111)."""
+    from jaxnc import loop as nc
+    from jaxnc import sweep
+    base = results.config_of(_servo_loop())
+    text = json.dumps(base, allow_nan=False)
+    assert json.loads(text) == base and base["type"] == "Loop"
+    assert base["uplink"]["loss"] == {"type": "Bernoulli", "p": pytest.approx(0.3)}
+    assert base["trigger"]["delta"] == pytest.approx(0.01) and base["N"] == 2 and base["steps"] == 40
+    assert base["plant"]["w_std"] == pytest.approx([0.01, 0.02])
+    cell = lambda cfg: sweep.cell_path(tmp_path, "c", {"loop": cfg, "seeds": 64})
+    assert cell(results.config_of(_servo_loop())) == cell(base)
+    changed = [_servo_loop(w=0.03), _servo_loop(p=0.31), _servo_loop(delta=0.02), _servo_loop(N=4),
+               dataclasses.replace(_servo_loop(), trigger=nc.Periodic())]
+    paths = {cell(results.config_of(v)) for v in changed}
+    assert len(paths) == len(changed) and cell(base) not in paths
+    sweep.save_cell(cell(base), {"config": {"loop": base, "seeds": 64}})
+    assert sweep.load_cell(cell(base), {"loop": results.config_of(_servo_loop()), "seeds": 64}) is not None
+    assert sweep.load_cell(cell(base), {"loop": results.config_of(_servo_loop(w=0.03)), "seeds": 64}) is None
+    assert results.config_of(np.sin).endswith("sin") and results.config_of({"f": (1, np.float32(2))}) == {"f": [1, 2.0]}
+    with pytest.raises(TypeError, match=r"config_of: config\.x of type object"):
+        results.config_of(_Holder(object()))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Holder:
+    x: object

@@ -422,7 +422,9 @@ class AbstractMonitor(abc.ABC):
     along a path) and have it recorded with ``Record(monitor=fn)``.
 
     ``freeze`` (declared): once failed, the runner holds the plant at its last good state,
-    so divergence stays data (finite numbers and a flag) rather than NaN."""
+    so divergence stays data (finite numbers and a flag) rather than NaN, and stops the
+    monitor with it: its state is held and the run is not marked complete after its failure
+    (without ``freeze`` the plant runs on and the monitor keeps watching it)."""
 
     field_shapes: ClassVar[dict] = {}
     freeze = True

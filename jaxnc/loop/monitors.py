@@ -53,7 +53,8 @@ class PathMonitor(AbstractMonitor):
       xy: static, the index of the position's first coordinate in the state vector.
       window: static, path points searched per check (more than the plant moves between two).
       every: static, fast periods per check (>= 1; default 1, every fast period).
-      freeze: static; hold the plant at its last good state once failed (default False).
+      freeze: static; hold the plant, and this monitor's progress, distance and completion,
+        at their last good values once failed (default False: both run on).
 
     Raises:
       ValueError: naming the field, for a value outside its range.

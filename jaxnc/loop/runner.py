@@ -120,7 +120,8 @@ class Record:
 class Monitor(AbstractMonitor):
     """Failure detection, no state: non-finite state, or |x_i| > bounds_i for any i (bounds
     float[n], inf where unbounded; None: only non-finite); never complete. ``freeze``
-    (static): hold the plant at its last good state once failed."""
+    (static): hold the plant at its last good state once failed (and stop the monitor:
+    :class:`~jaxnc.loop.AbstractMonitor`)."""
 
     field_shapes: ClassVar[dict] = {"bounds": ((), ("state",))}
 
@@ -605,9 +606,10 @@ class Trajectory(NamedTuple):
     sent_ca: jax.Array    # float[S] controller transmissions
     recv_ca: jax.Array    # float[K] a packet reached the actuator
     failed: jax.Array     # bool
-    fail_step: jax.Array  # int32: first failed fast instant (K if never)
+    fail_step: jax.Array  # int32: first failed fast instant (K if never; K too for a failure in the last
+    #                       fast period: count failures with `failed`, not fail_step < K)
     done: jax.Array       # bool: the monitor found the run complete
-    done_step: jax.Array  # int32: first fast instant after which it was complete (K if never)
+    done_step: jax.Array  # int32: first fast instant after which it was complete (K if never; see fail_step)
     tx_sc: jax.Array      # float: sensor transmissions in the run
     tx_ca: jax.Array      # float: controller transmissions in the run
     parts: Any = ()       # dict role -> what Record's function of that role kept ("plant" [K, ...],
@@ -716,7 +718,14 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             u_ok = jnp.all(jnp.isfinite(u))
             u = jnp.where(u_ok, u, jnp.zeros_like(u))        # a diverged controller counts as a failure
             x_new = plant.dynamics(x, u, w_t)
-            mon, bad, complete = loop.monitor.step(mon, plant.state_vector(x_new), u, t)
+            mon_new, bad, complete = loop.monitor.step(mon, plant.state_vector(x_new), u, t)
+            if loop.monitor.freeze:
+                # once failed the plant is held, so x_new is a state it never has: the monitor
+                # stops with it (its state held, no completion after the failure)
+                mon = jax.tree.map(lambda a, b: jnp.where(failed, a, b), mon, mon_new)
+                complete = complete & ~failed
+            else:
+                mon = mon_new
             bad = bad | ~u_ok
             fail_step = jnp.where(bad & ~failed, t + 1, fail_step)
             failed = failed | bad
