@@ -724,7 +724,7 @@ def _tune_loop_fixture(delta=1e-3, cost=True):
 
 
 def _tuning_cases():
-    from jaxnc.tune import Interval, Positive, check_loop, tune_loop
+    from jaxnc.tune import Interval, Positive, Unconstrained, check_loop, tune_loop
     return [
         (lambda: tune_loop(_tune_loop_fixture(), {"uplink.loss.p": Interval(0.3, 0.9)}),
          "the start of 'uplink.loss.p' must be inside the open interval (0.3, 0.9)"),
@@ -738,10 +738,21 @@ def _tuning_cases():
         (lambda: tune_loop(_tune_loop_fixture(), {"controller.u_max": Positive()}),
          "'controller.u_max' is None in this loop"),
         (lambda: check_loop(_tune_loop_fixture(), ["controller_trigger"]), "'controller_trigger' is None in this loop"),
+        # a point or a search value of another shape, or one the part refuses: it failed inside the trace
+        (lambda: check_loop(_tune_loop_fixture(), {"controller.K": Unconstrained()}, at={"controller.K": [1.0, 2.0, 3.0]}),
+         "at['controller.K'] has shape (3,), the parameter 'controller.K' has shape (1, 2)"),
+        (lambda: tune_loop(_tune_loop_fixture(), {"trigger.delta": Positive()},
+                           search={"controller.K": [[[1.0, 2.0, 3.0]], [[3.0, 1.5, 0.0]]]}),
+         "search['controller.K'] value [[1.0, 2.0, 3.0]] has shape (1, 3), the leaf 'controller.K' has shape (1, 2)"),
+        (lambda: tune_loop(_tune_loop_fixture(), {"controller.K": Unconstrained()},
+                           search={"controller.K": [[1.0, 2.0, 3.0], [3.0, 1.5, 0.0]]}),
+         "search['controller.K'] value [1.0, 2.0, 3.0] has shape (3,), the leaf 'controller.K' has shape (1, 2)"),
+        (lambda: tune_loop(_tune_loop_fixture(), {"trigger.delta": Positive()}, search={"uplink.loss.p": [0.5, 1.5]}),
+         "search['uplink.loss.p'] value 1.5: Bernoulli.p must be in [0, 1)"),
     ]
 
 
-@pytest.mark.parametrize("i", range(7))
+@pytest.mark.parametrize("i", range(11))
 def test_tuning_inputs_are_refused_naming_the_parameter(i):
     call, fragment = _tuning_cases()[i]
     with pytest.raises(ValueError) as e:

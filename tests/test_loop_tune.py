@@ -510,6 +510,20 @@ def test_tune_loops_compilations_are_bounded_and_do_not_grow_with_steps(estimato
     assert "compiling" in r9.summary()
 
 
+@pytest.mark.parametrize("estimator", ["auto", "richardson"])
+def test_auto_and_richardson_compile_the_same_programs_for_2_and_12_steps(estimator):
+    """A user counted 12 compilations in a 12-step tune_loop: the first call's small eager
+    programs (key folding, the constraints' transforms), compiled once per process whatever
+    the number of steps, not one program per step. With the check ("auto") and the
+    extrapolated score the count is the same for 2 and 12 steps."""
+    kw = dict(estimator=estimator, check_seeds=16, check_max_seeds=16)
+    _compilations(steps=2, **kw)                           # the small eager programs, once per process
+    r2, r12 = _compilations(steps=2, **kw), _compilations(steps=12, **kw)
+    assert r2.n_compilations == r12.n_compilations, (r2.stages, r12.stages)
+    assert r12.stages["gradient"][2] <= 1, r12.stages
+    assert len(r12.tune.history.objective) == 12
+
+
 def test_evaluation_is_optional_and_does_not_change_the_tuned_point():
     a = _compilations(steps=3, estimator="score")
     b = _compilations(steps=3, estimator="score", evaluate=False)

@@ -165,6 +165,9 @@ def test_tune_loop_with_the_corrected_estimator_improves_a_sluggish_gain():
                   learning_rate=0.1, eval_seeds=256, progress=False)
     assert r.estimator == "corrected"
     assert r.paired_diff[0] + r.paired_diff[1] < 0, r.summary()
+    # one program for the 20 steps (a per-step recompilation would count at least 20; the
+    # first call in a process adds about 11 small eager programs)
+    assert r.stages["gradient"][2] < 20, r.stages
 
 
 # ---------------------------------------------------------------------------- a 2-state servo

@@ -293,6 +293,30 @@ def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     return a
 
 
+def _search_value(loop, key: str, paths: tuple, v):
+    """``v``, a candidate of ``search[key]``, as the search's points hold it: a static value
+    as given, a dynamic one as float32 of the leaf's shape (a number is broadcast to it), so
+    that one program serves every candidate. ValueError naming ``search[key]`` when ``v``
+    is not numbers, has another shape, or is refused by the part that holds it (its own
+    check, run on the host when the loop is built with ``v``: a range, a channel count)."""
+    out = v
+    if not all(is_static(loop, p) for p in paths):
+        a = np.asarray(v)
+        if a.dtype.kind not in "biuf":
+            raise ValueError(f"tune_loop: search[{key!r}] value {v!r} must be a number or an array of numbers")
+        shape = np.shape(get_path(loop, paths[0]))
+        try:
+            out = np.broadcast_to(a.astype(np.float32), shape).copy()
+        except ValueError:
+            raise ValueError(f"tune_loop: search[{key!r}] value {v!r} has shape {a.shape}, the leaf {paths[0]!r} "
+                             f"has shape {shape}: give values of that shape, or numbers") from None
+    try:
+        set_paths(loop, {p: out for p in paths})
+    except ValueError as e:
+        raise ValueError(f"tune_loop: search[{key!r}] value {v!r}: {e}") from None
+    return out
+
+
 def _check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
     """ValueError naming ``what`` when ``value`` is outside ``constraint``'s domain (nothing
     is moved to the edge: the tuner would start somewhere the user did not ask for)."""
@@ -368,7 +392,17 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
         unknown = [k for k in at if k not in spec.paths]
         if unknown:
             raise ValueError(f"the point names {unknown}, which are not among the parameters {list(spec.paths)}")
-        init.update({k: np.broadcast_to(np.asarray(v, np.float32), init[k].shape).copy() for k, v in at.items()})
+        for k, v in at.items():
+            a = np.asarray(v, np.float32)
+            try:
+                init[k] = np.broadcast_to(a, init[k].shape).copy()
+            except ValueError:
+                raise ValueError(f"check_loop: at[{k!r}] has shape {a.shape}, the parameter {k!r} has shape "
+                                 f"{init[k].shape}: give a value of that shape, or a number") from None
+        try:                                            # the parts' own checks, on the host
+            _set(loop, spec, init)
+        except ValueError as e:
+            raise ValueError(f"check_loop: at: {e}") from None
     raw0 = unconstrain(init, spec.constraints)
     flat0, unravel = ravel_pytree(raw0)
 
@@ -594,7 +628,8 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
 
     Raises:
       ValueError: as :func:`tune_loop`, fewer than 2 seeds, max_seeds below seeds,
-        non-positive steps.
+        non-positive steps, an ``at`` value of another shape than its parameter (a number
+        is broadcast to it), outside its constraint or refused by the part that holds it.
     """
     spec = _prepare("check_loop", loop, params, objective, run)
     if not spec.paths:
@@ -726,9 +761,11 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
       ValueError: a path that does not exist, names a part (a configuration object) or a
         field that is None, a static leaf in ``params``, tied paths that start unequal, a
         start (or a searched start) outside its constraint (0 under ``Positive()``, a
-        value outside its ``Interval``: nothing is moved to the edge), a budget below one
-        step, ``search_budget`` below one seed per candidate and round or without a
-        search, a non-scalar objective, the default objective on a Loop without a cost,
+        value outside its ``Interval``: nothing is moved to the edge), a search value that
+        is not numbers, has another shape than its leaf (a number is broadcast to it) or is
+        refused by the part that holds it (checked on the host, naming ``search[key]``), a
+        budget below one step, ``search_budget`` below one seed per candidate and round or
+        without a search, a non-scalar objective, the default objective on a Loop without a cost,
         an objective that is NaN at the start on some evaluation seed (checked on the
         evaluation's fresh seeds before the budget is spent), an unknown estimator or
         constraint, a learning rate that is not > 0 or a pair of them, a ``max_seconds``,
@@ -760,6 +797,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
             for v in vals:
                 _check_in_constraint("tune_loop", f"search[{key!r}] value {v!r}: the start of {key!r}",
                                     spec.constraints[key], v)
+        search[key] = [_search_value(loop, key, search_paths[key], v) for v in vals]
     if search_budget is not None:
         if not search:
             raise ValueError("tune_loop: search_budget is given without a search")
@@ -827,9 +865,9 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         names = list(search)
         combos = np.array(np.meshgrid(*[np.arange(len(search[n])) for n in names], indexing="ij")).reshape(
             len(names), -1).T.tolist()
-        # a point sets every path of each searched key (dynamic values as float32, so one program serves all)
-        val = lambda n, i: search[n][i] if all(is_static(loop, p) for p in search_paths[n]) else np.float32(search[n][i])
-        points = [{p: val(n, i) for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
+        # a point sets every path of each searched key (dynamic values as float32 of the leaf's shape,
+        # _search_value: one program serves all)
+        points = [{p: search[n][i] for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
         budget = 16 * len(points) if search_budget is None else search_budget
         rounds = max(1, int(np.ceil(np.log2(len(points)))))
         if budget < rounds * len(points):
