@@ -129,7 +129,7 @@ class PursuitPI(AbstractController):
                                  f"sensing period), got {float(self.assumed_delay):g}")
         except TypeError:
             pass
-        if concrete(self.path.s, self.v_ref):
+        if concrete(self.path.s, self.path.spacing, self.v_ref, self.model.T):
             spacing, run = float(self.path.spacing), float(self.v_ref) * self.ns * self.model.T
             if (self.window - 1) * spacing < run:
                 raise ValueError(f"PursuitPI.window ({self.window} path points, {(self.window - 1) * spacing:.4g} m "
