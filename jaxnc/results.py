@@ -68,8 +68,11 @@ def config_of(obj, special=None, _where: str = "config"):
     name, field: ...}`` over all its fields, static ones included; a mapping a dict with string
     keys; a tuple or list a list; a number, numpy or jax array (concrete) a number or nested
     lists of numbers; a string, bool or None itself; a callable (a plant's ``f``, a cost
-    function) its module and qualified name (its code is not read: an edited function body
-    with the same name is the same configuration). ``special(obj)``, when given, is tried
+    function) its module and qualified name, and for a Python function also a hash of its
+    code (:func:`_code_hash`: an edited body, another lambda of the same module) and the
+    values it closes over, its defaults and the module-level numbers, strings and arrays it
+    reads (a changed constant); a ``functools.partial`` its function, arguments and keywords;
+    a bound method its object and function. ``special(obj)``, when given, is tried
     first on every object and returns a description, or None to fall through (e.g. a path by
     its name instead of its points).
 
@@ -90,7 +93,7 @@ def config_of(obj, special=None, _where: str = "config"):
     if isinstance(obj, (tuple, list)):
         return [config_of(v, special, f"{_where}[{i}]") for i, v in enumerate(obj)]
     if callable(obj) and not hasattr(obj, "__array__"):
-        return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', type(obj).__qualname__)}"
+        return _function_config(obj, special, _where)
     try:
         a = np.asarray(obj)
     except Exception:                       # noqa: BLE001 - a tracer or another object: named below
@@ -99,6 +102,100 @@ def config_of(obj, special=None, _where: str = "config"):
         raise TypeError(f"config_of: {_where} of type {type(obj).__name__} is not a number, array, string, "
                         f"dataclass, mapping, sequence or function")
     return a.tolist()
+
+
+def _code_hash(code) -> str:
+    """A hex digest of a code object's bytecode, constants (nested code objects by their own
+    digest) and names: equal for the same source compiled twice, different after an edit."""
+    import hashlib
+    import types
+    h = hashlib.sha256()
+    h.update(code.co_code)
+    for c in code.co_consts:
+        h.update((_code_hash(c) if isinstance(c, types.CodeType) else repr(c)).encode())
+    h.update(repr((code.co_names, code.co_varnames, code.co_freevars)).encode())
+    return h.hexdigest()[:16]
+
+
+def _global_names(code) -> set:
+    """Every global name a code object (and the code nested in it) reads."""
+    import types
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            names |= _global_names(c)
+    return names
+
+
+def _function_config(fn, special, where, _seen=None):
+    """:func:`config_of` of a callable (see there)."""
+    import functools
+    import types
+    seen = set() if _seen is None else _seen
+    if isinstance(fn, functools.partial):
+        return {"partial": _function_config(fn.func, special, f"{where}.func", seen),
+                "args": [_value_config(a, special, f"{where}.args[{i}]", seen) for i, a in enumerate(fn.args)],
+                "keywords": {k: _value_config(v, special, f"{where}.keywords[{k!r}]", seen)
+                             for k, v in sorted(fn.keywords.items())}}
+    if isinstance(fn, types.MethodType):
+        return {"method": _function_config(fn.__func__, special, f"{where}.__func__", seen),
+                "self": _value_config(fn.__self__, special, f"{where}.__self__", seen)}
+    inner = getattr(fn, "__wrapped__", None)            # jax.jit, functools.wraps
+    name = f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', type(fn).__qualname__)}"
+    if inner is not None and callable(inner) and not isinstance(fn, types.FunctionType):
+        return _function_config(inner, special, where, seen)
+    if not isinstance(fn, types.FunctionType):
+        return name                                      # a builtin, ufunc or other compiled callable
+    if id(fn) in seen:
+        return name                                      # a function that refers to itself
+    seen = seen | {id(fn)}
+    code = fn.__code__
+    out = {"function": name, "code": _code_hash(code)}
+    if fn.__closure__:
+        out["closure"] = {v: _value_config(c.cell_contents, special, f"{where}.<closure {v}>", seen)
+                          for v, c in zip(code.co_freevars, fn.__closure__) if _has_contents(c)}
+    if fn.__defaults__:
+        out["defaults"] = [_value_config(d, special, f"{where}.<default {i}>", seen)
+                           for i, d in enumerate(fn.__defaults__)]
+    if fn.__kwdefaults__:
+        out["kwdefaults"] = {k: _value_config(v, special, f"{where}.<default {k}>", seen)
+                             for k, v in sorted(fn.__kwdefaults__.items())}
+    reads = {}
+    for g in sorted(_global_names(code)):
+        v = fn.__globals__.get(g, None)
+        if isinstance(v, (bool, int, float, str, complex, np.ndarray, np.generic)) or type(v).__module__.startswith("jax"):
+            if callable(v):
+                continue
+            try:
+                reads[g] = _value_config(v, special, f"{where}.<global {g}>", seen)
+            except TypeError:
+                continue
+        elif isinstance(v, types.FunctionType) and v.__module__ == fn.__module__:
+            reads[g] = _function_config(v, special, f"{where}.<global {g}>", seen)
+    if reads:
+        out["globals"] = reads
+    return out
+
+
+def _has_contents(cell) -> bool:
+    try:
+        cell.cell_contents
+    except ValueError:                                   # an empty cell (a name not yet bound)
+        return False
+    return True
+
+
+def _value_config(v, special, where, seen):
+    """:func:`config_of` of a value met inside a function (a closure, default or global):
+    a function there keeps the set of functions already being described (no endless
+    recursion), and a value none of :func:`config_of`'s kinds describe is named by its type
+    (its contents cannot be compared)."""
+    if callable(v) and not hasattr(v, "__array__") and not (dataclasses.is_dataclass(v) and not isinstance(v, type)):
+        return _function_config(v, special, where, seen)
+    try:
+        return config_of(v, special, where)
+    except TypeError:
+        return f"<{type(v).__module__}.{type(v).__qualname__}>"
 
 
 def _coord_value(v):

@@ -303,3 +303,47 @@ def test_config_of_a_loop_names_every_leaf_so_a_changed_loop_is_another_cell(tmp
 @dataclasses.dataclass(frozen=True)
 class _Holder:
     x: object
+
+
+_GAIN = 2.0
+
+
+def _cost_global(x):
+    return _GAIN * x
+
+
+def test_config_of_a_function_tells_an_edited_body_a_closure_a_partial_and_a_read_constant_apart(tmp_path):
+    """config_of describes a Python function by its name *and* its code, the values it closes
+    over, its defaults and the module constants it reads, so a sweep cell of a loop whose cost
+    or dynamics function changed is not reused. Before, only the qualified name was kept: two
+    lambdas of one module, two closures of one factory (gains 1 and 2), two
+    ``functools.partial`` of one function and a function whose module constant changed each
+    gave one configuration, so a stored result of the other function was returned."""
+    import functools
+    global _GAIN
+    f1 = lambda x: x ** 2                                   # noqa: E731
+    f2 = lambda x: 2.0 * x ** 2                             # noqa: E731
+    assert results.config_of(f1) != results.config_of(f2)
+    assert results.config_of(f1) == results.config_of(f1)
+
+    def make(k):
+        return lambda x: k * x
+    assert results.config_of(make(1.0)) != results.config_of(make(2.0))
+    assert results.config_of(make(1.0)) == results.config_of(make(1.0))
+    assert results.config_of(make(np.ones(2)))["closure"]["k"] == [1.0, 1.0]
+    pw = functools.partial(np.power, 2.0)
+    assert results.config_of(functools.partial(pow, exp=2)) != results.config_of(functools.partial(pow, exp=3))
+    assert results.config_of(pw)["partial"].endswith("power")
+    before = results.config_of(_cost_global)
+    assert before["globals"] == {"_GAIN": 2.0}
+    _GAIN = 3.0
+    try:
+        assert results.config_of(_cost_global) != before
+    finally:
+        _GAIN = 2.0
+    assert results.config_of(_cost_global) == before
+    assert json.loads(json.dumps(results.config_of(make(object())))) == results.config_of(make(object()))
+
+    def rec(n):                                             # refers to itself: no endless recursion
+        return 1 if n <= 0 else rec(n - 1)
+    assert results.config_of(rec)["closure"]["rec"].endswith("rec")
