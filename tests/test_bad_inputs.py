@@ -668,7 +668,9 @@ LOOP_FIT = [
                        uplink=nc.Link(delay=nc.PmfDelay([0.0, 0.0, 0.5, 0.5]))), "use EKF(buffer>=2)"),
     # an observer gain whose error matrix is not Schur at the loop's N (e.g. designed for another N)
     (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_DETECTABLE, L=[[0.0], [0.0]])),
-     "Luenberger.L: A_N - L C of the slow-period system (N=1, A_N = A^1) has spectral radius 1 >= 1"),
+     "Luenberger.L: A_N - L C of the slow-period system (N=1, A_N = A^1) has spectral radius 1, not below 1 - 1e-05"),
+    (lambda: _fit_loop(estimator=nc.Luenberger(_FIT_DETECTABLE, L=[[1e-6], [0.0]])),     # a mode at 1 - 1e-6
+     "has spectral radius 0.999999, not below 1 - 1e-05 (as dlqe)"),
     # a tau_max below the delay law's minimum: every packet discarded, nothing ever received
     (lambda: _fit_loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.2, phi=0.01), tau_max=0.1)),
      "Loop.uplink.tau_max (0.1 s, 1 fast periods of T=0.1 s) is below every delay"),

@@ -39,7 +39,7 @@ import numpy as np
 
 from jaxnc._validate import array_fields, check_finite, check_given, check_instance, concrete, fields_concrete
 from jaxnc.estimators.ekf import Gaussian
-from jaxnc.estimators.steady_state import dlqe, luenberger_step
+from jaxnc.estimators.steady_state import _SCHUR_MARGIN, dlqe, luenberger_step
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -136,14 +136,17 @@ class Luenberger(AbstractEstimator):
 
     def init(self, ctx) -> LuenbergerState:
         """x̂_0. Raises ValueError (when the model and L are concrete, e.g. as a ``Loop`` is
-        built) if A_N - L C, the error's matrix with a measurement at every instant, is not
-        Schur: the estimate would not converge even with every measurement."""
+        built) if A_N - L C, the error's matrix with a measurement at every instant, has a
+        spectral radius not below 1 - 1e-5 (the margin of :func:`dlqe`): the estimate would not
+        converge even with every measurement (a mode within 1e-5 of the unit circle does not
+        decay in float32)."""
         if concrete(self.model.A, self.model.C, self.L):
             A_N = np.linalg.matrix_power(np.asarray(self.model.A, float), ctx.N)
             rho = float(np.max(np.abs(np.linalg.eigvals(A_N - np.asarray(self.L, float) @ np.asarray(self.model.C, float)))))
-            if rho >= 1.0:
+            if not rho < 1.0 - _SCHUR_MARGIN:
                 raise ValueError(f"Luenberger.L: A_N - L C of the slow-period system (N={ctx.N}, A_N = A^{ctx.N}) has "
-                                 f"spectral radius {rho:.4g} >= 1, so the estimate would not converge; design L for "
+                                 f"spectral radius {rho:.8g}, not below 1 - {_SCHUR_MARGIN:g} (as dlqe), so the "
+                                 f"estimate would not converge in float32; design L for "
                                  f"A_N (slow_system(A, B, N)), e.g. A_N M with M from stationary_gain")
         x = jnp.asarray(self.mean0, jnp.float32)
         return LuenbergerState(x, jnp.asarray(self.model.C, jnp.float32) @ x, jnp.zeros((), jnp.int32))
