@@ -342,10 +342,11 @@ def _plot_mecanum(loop, paper, results, histories, front, key0, out: Path):
 
 def pi_ss(Kp, Ki, Ts) -> DiscreteSS:
     """Eq. (30)-(31) as a state space, differentiable in the gains:
-    G_r(z) = Kp (z - 1 + Ts/Ti)/(z - 1) = Kp + Ki Ts / (z - 1), Ki = Kp / Ti."""
+    G_r(z) = Kp (z - 1 + Ts/Ti)/(z - 1) = Kp + Ki Ts / (z - 1), Ki = Kp / Ti, with its period
+    ``dt = Ts`` (a concrete number) so that a loop checks it runs at Ts."""
     one = jnp.ones((1, 1), jnp.float32)
     return DiscreteSS(A=one, B=jnp.ones((1,), jnp.float32), C=jnp.reshape(Ki * Ts, (1,)).astype(jnp.float32),
-                      D=jnp.asarray(Kp, jnp.float32))
+                      D=jnp.asarray(Kp, jnp.float32), dt=float(Ts))
 
 
 def with_pi(loop, Kp, Ki):

@@ -257,6 +257,7 @@ def test_pi_state_space_matches_the_paper_design():
         ours = pi_ss(6.0, 50.0, Ts)
         for f in ("A", "B", "C", "D"):
             np.testing.assert_allclose(getattr(ours, f), getattr(ref, f), rtol=1e-6)
+        assert ours.dt == ref.dt == Ts            # its period, which a PursuitPI loop checks
 
 
 def test_experiment_options_are_validated_before_tracing():

@@ -239,11 +239,12 @@ class SteadyStateKF(AbstractEstimator):
         if ctx.N != 1 and fields_concrete(self):       # N = 1 is checked when built
             with jax.ensure_compile_time_eval():
                 try:
-                    stationary_gain(self, ctx.N)
+                    M, _ = stationary_gain(self, ctx.N)
                 except ValueError as e:
                     raise ValueError(f"SteadyStateKF at the loop's N={ctx.N} (the slow-period system A_N = "
                                      f"A^{ctx.N}): {e}") from None
-        M, _ = stationary_gain(self, ctx.N)
+        else:
+            M, _ = stationary_gain(self, ctx.N)
         return SteadyStateKFState(jnp.asarray(self.mean0, jnp.float32), M.astype(jnp.float32),
                                   jnp.zeros((), jnp.int32))
 
