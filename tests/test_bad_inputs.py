@@ -616,6 +616,12 @@ LOOP_FIT = [
                        downlink=nc.Link(delay=nc.PmfDelay([0.0, 1.0]))),
      "Loop.actuator.capacity must be >= 3: LeadFeedback stamps its packets 3 fast period(s) ahead and the downlink "
      "delays them at least 1"),
+    # packets stamped ahead over a downlink whose delays vary, delivered newest-only: two arriving
+    # together lost the older one, still due (the plant held the previous action)
+    (lambda: _fit_loop(controller=nc.LeadFeedback([[1.0, 0.5]], _FIT_PLANT, lead=2), actuator=nc.HoldLast(capacity=3),
+                       downlink=nc.Link(delay=nc.PmfDelay([0.5, 0.5]))),
+     "Loop.downlink.order must be 'all': LeadFeedback stamps its packets 2 fast period(s) ahead and the downlink "
+     "delays them 0 to 1 fast periods"),
     # a model inside a part steps one fast period too: sampled at another period it ran silently
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT_05, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2))),
      "Loop.T (0.1 s) must equal the estimator.model's step period (LTI.step_period = 0.05 s)"),

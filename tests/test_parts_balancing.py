@@ -187,18 +187,23 @@ def test_lead_feedback_predicts_along_its_plan_and_stamps_ahead():
                                np.asarray(law.step((), xhat, 1.0, jnp.int32(0), ctx)[1].data), rtol=1e-6)
 
 
-@pytest.mark.parametrize("actuator", ["hold_last", "zero_order", "packet"])
-def test_lead_feedback_in_a_loop_applies_each_command_at_its_stamp(actuator):
+@pytest.mark.parametrize("actuator,jitter", [("hold_last", False), ("zero_order", False), ("packet", False),
+                                             ("hold_last", True)])
+def test_lead_feedback_in_a_loop_applies_each_command_at_its_stamp(actuator, jitter):
     """A scalar loop x+ = 1.1 x + u + w, LeadFeedback(lead=2) over perfect links into an
     actuator of lead + 1 packets: the plant gets the command stamped t at t (zero before),
-    as a float64 loop of the docstring's equations (with one-packet actuators it got 0 throughout)."""
+    as a float64 loop of the docstring's equations (with one-packet actuators it got 0 throughout).
+    The same over a downlink whose delays vary from 0 to 2 fast periods (every packet still
+    arrives by its stamp) with ``order="all"``: with the default ``"newest"``, two packets
+    arriving together lost the older, still-due one (the plant held the previous action), a
+    loop now refused (tests/test_bad_inputs.py)."""
     a, K, lead, steps = 1.1, 0.5, 2, 30
     plant = nc.LTI([[a]], [[1.0]], [[1.0]], x0=[1.0], w_std=[0.05], v_std=[0.0], T=0.1)
     act = {"hold_last": nc.HoldLast(capacity=3), "zero_order": nc.ZeroOrder(capacity=3),
            "packet": nc.PacketActuator(capacity=3)}[actuator]
     loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
-                   controller=nc.LeadFeedback([[K]], plant, lead=lead), downlink=nc.Link(), actuator=act,
-                   T=0.1, steps=steps, record=True)
+                   controller=nc.LeadFeedback([[K]], plant, lead=lead), actuator=act, T=0.1, steps=steps, record=True,
+                   downlink=nc.Link(delay=nc.PmfDelay([0.4, 0.3, 0.3]), order="all") if jitter else nc.Link())
     key = jax.random.PRNGKey(1)
     traj = jax.jit(nc.simulate)(loop, key)
     w = np.asarray(nc.draw(loop, key).w, np.float64).reshape(steps, -1)[:, 0]

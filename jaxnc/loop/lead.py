@@ -46,6 +46,11 @@ class LeadFeedback(AbstractController):
       u_max: float[m] or scalar > 0, or None (no saturation).
       lead: static int in [0, 1000].
 
+    In a :class:`~jaxnc.loop.Loop` its actuator must hold ``lead + 1`` packets and, when the
+    downlink's delays vary by a fast period or more, the downlink must deliver every packet
+    (``Link(order="all")``): newest-only delivery drops an older packet that arrives with a
+    newer one although its action is still due (both refused when the loop is built).
+
     Raises:
       ValueError: a field out of range (naming it); at trace time, a loop with N != 1.
     """

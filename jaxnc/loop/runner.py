@@ -314,6 +314,16 @@ class Loop:
                                  f"stamp while newer ones arrive; with capacity {inner.capacity} each is replaced "
                                  f"before it is due and the plant never gets it (e.g. HoldLast(capacity={need}) "
                                  f"or PacketActuator(capacity={need}))")
+        if isinstance(inner, PacketActuator) and ahead > 0 and self.downlink.order != "all":
+            lo, hi = link_delay_bounds(self.downlink, self.T)
+            lo = max(0, int(lo))
+            if hi is None or int(hi) - lo >= self.N:
+                spread = f"{lo} to {int(hi)}" if hi is not None else f"{lo} or more (no bound)"
+                raise ValueError(f"Loop.downlink.order must be 'all': {type(self.controller).__name__} stamps its "
+                                 f"packets {ahead} fast period(s) ahead and the downlink delays them {spread} fast "
+                                 f"periods, so two packets can arrive in one instant or out of order; "
+                                 f"order={self.downlink.order!r} delivers only the newest of them, and the older "
+                                 f"one's action, still due, would never be applied (use Link(..., order='all'))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
             lo, hi = link_delay_bounds(link, self.T)
