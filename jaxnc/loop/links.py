@@ -21,6 +21,14 @@ Ordering policies (``order``):
   every arrival replaces what it holds, even a packet older than one delivered before;
   of several arriving together, the newest (:func:`jaxnc.wifi.newest_arrival`).
 
+The order decides what is *delivered* at an instant (``Inbox.new``): what an actuator,
+``DirtyDerivative`` or ``ArrivalHold`` takes, and the ``recv_sc``/``recv_ca`` signals. A
+time-stamped estimator (``EKF``, ``UKF``, ``SteadyStateKF``, ``Luenberger``: ``by_stamp``)
+reads the packet of the stamp it wants from the ring once it has *arrived*
+(``Inbox.packet``), whatever the order: behind an ``"newest"`` uplink an ``EKF(buffer>=1)``
+still uses a measurement that arrived after a newer one, although ``recv_sc`` does not
+count it (use ``order="all"`` to count every arrival).
+
 Loss models: :class:`NoLoss`, :class:`Bernoulli` (seed 000 eq. 5),
 :class:`GilbertElliott` (bursts), :class:`TraceLoss` (recorded). Delay models:
 :class:`NoDelay`, :class:`ShiftedExponential` (seed 000 eq. 7),

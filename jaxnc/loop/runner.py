@@ -612,7 +612,9 @@ class Trajectory(NamedTuple):
     z: jax.Array          # float[S, p] measurement
     xhat: jax.Array       # float[S, n] the estimate the controller used
     sent_sc: jax.Array    # float[S] sensor transmissions
-    recv_sc: jax.Array    # float[S] the controller received something
+    recv_sc: jax.Array    # float[S] the controller received something: a packet delivered at that instant
+    #                       by the uplink's order (a time-stamped estimator also reads packets the order
+    #                       did not deliver, Link's docstring: use order="all" to count them all)
     sent_ca: jax.Array    # float[S] controller transmissions
     recv_ca: jax.Array    # float[K] a packet reached the actuator
     failed: jax.Array     # bool
