@@ -293,6 +293,17 @@ def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     return a
 
 
+def _leaf_shaped(a: np.ndarray, shape: tuple, what: str, leaf: str) -> np.ndarray:
+    """``a`` as float32 of ``shape`` (a number broadcast to it); ValueError naming ``what``
+    and ``leaf`` when it does not broadcast."""
+    a = a.astype(np.float32)
+    try:
+        return np.broadcast_to(a, shape).copy()
+    except ValueError:
+        raise ValueError(f"{what} has shape {a.shape}, {leaf} has shape {shape}: give a value of that shape, "
+                         f"or a number") from None
+
+
 def _search_value(loop, key: str, paths: tuple, v):
     """``v``, a candidate of ``search[key]``, as the search's points hold it: a static value
     as given, a dynamic one as float32 of the leaf's shape (a number is broadcast to it), so
@@ -304,12 +315,8 @@ def _search_value(loop, key: str, paths: tuple, v):
         a = np.asarray(v)
         if a.dtype.kind not in "biuf":
             raise ValueError(f"tune_loop: search[{key!r}] value {v!r} must be a number or an array of numbers")
-        shape = np.shape(get_path(loop, paths[0]))
-        try:
-            out = np.broadcast_to(a.astype(np.float32), shape).copy()
-        except ValueError:
-            raise ValueError(f"tune_loop: search[{key!r}] value {v!r} has shape {a.shape}, the leaf {paths[0]!r} "
-                             f"has shape {shape}: give values of that shape, or numbers") from None
+        out = _leaf_shaped(a, np.shape(get_path(loop, paths[0])),
+                           f"tune_loop: search[{key!r}] value {v!r}", f"the leaf {paths[0]!r}")
     try:
         set_paths(loop, {p: out for p in paths})
     except ValueError as e:
@@ -393,12 +400,7 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
         if unknown:
             raise ValueError(f"the point names {unknown}, which are not among the parameters {list(spec.paths)}")
         for k, v in at.items():
-            a = np.asarray(v, np.float32)
-            try:
-                init[k] = np.broadcast_to(a, init[k].shape).copy()
-            except ValueError:
-                raise ValueError(f"check_loop: at[{k!r}] has shape {a.shape}, the parameter {k!r} has shape "
-                                 f"{init[k].shape}: give a value of that shape, or a number") from None
+            init[k] = _leaf_shaped(np.asarray(v), init[k].shape, f"check_loop: at[{k!r}]", f"the parameter {k!r}")
         try:                                            # the parts' own checks, on the host
             _set(loop, spec, init)
         except ValueError as e:
