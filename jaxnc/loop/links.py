@@ -129,6 +129,9 @@ class TraceLoss(AbstractLoss):
         _trace("TraceLoss.lost", self, "lost", "a 1-D array of booleans (True = lost) or 0/1",
                lambda a: a.dtype.kind == "b" or bool(np.all((a == 0) | (a == 1))), bool)
 
+    def packets(self):
+        return int(np.shape(self.lost)[0])
+
     def sample(self, key, n: int):
         lost = jnp.asarray(self.lost, bool)
         if lost.shape[0] < n:
@@ -276,13 +279,17 @@ class TraceDelay(AbstractDelay):
 
     def __post_init__(self):
         _trace("TraceDelay.steps", self, "steps", "a 1-D array of integer delays in fast periods (negative = lost)",
-               lambda a: bool(np.all(a == np.round(a)) and np.all(np.abs(a) < 2**31)), np.int32)
+               lambda a: a.dtype.kind != "b" and bool(np.all(a == np.round(a)) and np.all(np.abs(a) < 2**31)),
+               np.int32)
 
     def bounds(self, T):
         if not concrete(self.steps):
             return 0, None
         ok = np.asarray(self.steps)[np.asarray(self.steps) >= 0]
         return (int(ok.min()), int(ok.max())) if ok.size else (0, 0)
+
+    def packets(self):
+        return int(np.shape(self.steps)[0])
 
     def sample(self, key, n: int, T):
         d = jnp.asarray(self.steps, jnp.int32)

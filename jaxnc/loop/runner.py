@@ -316,6 +316,13 @@ class Loop:
                                  f"or PacketActuator(capacity={need}))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
+            for role in ("loss", "delay"):       # a recorded trace must cover the run's slow instants
+                have = getattr(link, role).packets()
+                if have is not None and have < self.steps // self.N:
+                    raise ValueError(f"Loop.{name}.{role} ({type(getattr(link, role)).__name__}) holds {have} "
+                                     f"packets, but the run sends one per slow instant: {self.steps // self.N} "
+                                     f"(steps={self.steps} / N={self.N}); give a trace of at least that many "
+                                     f"entries or shorten the run")
             lo, hi = link_delay_bounds(link, self.T)
             ring = lambda d: -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
