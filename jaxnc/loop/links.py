@@ -361,7 +361,9 @@ class Link:
       delay: a delay model (default :class:`NoDelay`).
       tau_max: seconds; later packets are discarded (None: never).
       reliable_first: static; the packet of the first slow instant is never lost or late
-        (a start-up handshake).
+        (a start-up handshake): it keeps its drawn delay, or, where the delay model itself
+        marks it lost (a :class:`TraceDelay`'s negative entry, :class:`WifiModel`'s loss), the
+        model's shortest delay (``bounds(T)[0]``).
       order: static, ``"newest"``, ``"all"`` or ``"arrival"`` (module docstring).
       capacity: static ring length C (transmissions remembered), >= 1; None (the default):
         sized by the :class:`~jaxnc.loop.Loop` that holds the link, the smallest ring that
@@ -479,5 +481,9 @@ def draw_link(link: Link, key, n: int, T) -> LinkDraws:
         else:
             bad = bad | late(seconds, link.tau_max)
     if link.reliable_first:
-        bad = bad & (jnp.arange(n) > 0)
+        first = jnp.arange(n) == 0
+        bad = bad & ~first
+        # a model that marks the first packet lost itself (a trace's -1, the Wi-Fi channel's loss) has no
+        # delay for it: the handshake's packet takes the model's shortest delay
+        steps = jnp.where(first & (steps < 0), max(int(link.delay.bounds(T)[0] or 0), 0), steps)
     return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))
