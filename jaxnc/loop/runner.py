@@ -617,9 +617,9 @@ class Trajectory(NamedTuple):
     #                       fast period: count failures with `failed`, not fail_step < K)
     done: jax.Array       # bool: the monitor found the run complete
     done_step: jax.Array  # int32: first fast instant after which it was complete (K if never; see fail_step)
-    tx_sc: jax.Array      # float: sensor transmissions in the run, up to its failure: in the slow periods
-    #                       through the one where it failed (live_periods), as the monitor stops there
-    tx_ca: jax.Array      # float: controller transmissions in the run, up to its failure (as tx_sc)
+    tx_sc: jax.Array      # float: sensor transmissions in the whole run (sum of sent_sc, after a failure too:
+    #                       the held plant's; Metrics.rate_sc stops at the failure, live_periods)
+    tx_ca: jax.Array      # float: controller transmissions in the whole run (sum of sent_ca; as tx_sc)
     parts: Any = ()       # dict role -> what Record's function of that role kept ("plant" [K, ...],
     #                       "estimator" [S, ...], "controller" [S, ...], "actuator" [K, ...], "monitor" [K, ...])
     final_plant: Any = ()   # the plant's state at the end of the run
@@ -772,11 +772,6 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     fast_rows = lambda tree: jax.tree.map(lambda a: a.reshape(K, *a.shape[2:]), tree)   # [S, N, ...] -> [K, ...]
     empty = jnp.zeros((0,), jnp.float32)
 
-    # a failed run's transmissions count up to its failure (the slow period it failed in included):
-    # after it the plant is held (or, freeze False, the run is over all the same) and the sends
-    # of a frozen state are no part of the run (the monitor stops there too)
-    live = (jnp.arange(S, dtype=jnp.int32) < live_periods(final.failed, final.fail_step, N, S)).astype(jnp.float32)
-
     def pick(name, fast=False):
         v = o[name]
         if not _wanted(loop.record, name) or (isinstance(v, tuple) and not v):
@@ -787,7 +782,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         x=pick("x", True), u=pick("u", True), z=pick("z"), xhat=pick("xhat"), sent_sc=o["sent_sc"],
         recv_sc=pick("recv_sc"), sent_ca=o["sent_ca"], recv_ca=pick("recv_ca", True),
         failed=final.failed, fail_step=final.fail_step, done=final.done, done_step=final.done_step,
-        tx_sc=jnp.sum(o["sent_sc"] * live), tx_ca=jnp.sum(o["sent_ca"] * live),
+        tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
         parts={r: fast_rows(o[r]) if r in ("plant", "actuator", "monitor") else o[r] for r in PARTS
                if getattr(rec, r) is not None},
         final_plant=final.x)
@@ -799,8 +794,8 @@ class Metrics(NamedTuple):
     cost: jax.Array       # Loop.cost of the run (inf when failed; nan when the loop has no cost)
     cost_raw: jax.Array   # the same without the failure mask (the plant frozen at failure: finite unless that
     #                       state's cost overflows float32, a divergence with no Monitor bounds)
-    rate_sc: jax.Array    # sensor transmissions per slow period of the run (a failed run: of the periods up to
-    #                       its failure, live_periods; Trajectory.tx_sc)
+    rate_sc: jax.Array    # sensor transmissions per slow period of the run (a failed run: in and per the periods
+    #                       up to its failure, live_periods)
     rate_ca: jax.Array    # controller transmissions per slow period (as rate_sc)
     unstable: jax.Array   # bool: the run failed
 
@@ -818,16 +813,21 @@ def live_periods(failed, fail_step, N: int, S: int):
 
 def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
     """Metrics of one recorded run: the cost (inf when the run failed; ``cost_raw`` without
-    that mask) and the transmissions per slow period, ``tx / live_periods``: a failed run's
-    rates are those of its periods up to the failure, as its counts (:class:`Trajectory`)."""
+    that mask) and the transmissions per slow period: a failed run's rates count and divide
+    by its slow periods up to and including the one it failed in (:func:`live_periods`; after
+    it the plant is held and its sends are no part of the run, as the monitor stops there),
+    not :class:`Trajectory`'s whole-run ``tx_sc`` / ``tx_ca``."""
     S = loop.steps // loop.N
     if loop.cost is not None and _wanted(loop.record, "x") and _wanted(loop.record, "u"):
         raw = loop.cost(traj.x, traj.u)
     else:
         raw = jnp.asarray(jnp.nan, jnp.float32)
     cost = jnp.where(traj.failed, jnp.inf, raw)
-    lived = live_periods(traj.failed, traj.fail_step, loop.N, S).astype(jnp.float32)
-    return Metrics(cost, raw, traj.tx_sc / lived, traj.tx_ca / lived, traj.failed)
+    lived = live_periods(traj.failed, traj.fail_step, loop.N, S)
+    live = (jnp.arange(S, dtype=jnp.int32) < lived).astype(jnp.float32)
+    lived = lived.astype(jnp.float32)
+    return Metrics(cost, raw, jnp.sum(traj.sent_sc * live) / lived, jnp.sum(traj.sent_ca * live) / lived,
+                   traj.failed)
 
 
 def run(loop: Loop, key, *, metrics=evaluate, **context):
