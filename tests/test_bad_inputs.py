@@ -710,6 +710,10 @@ LOOP_FIT = [
      "Loop.downlink.loss (TraceLoss) holds 40 packets, but the run sends one per slow instant: 50"),
     (lambda: _fit_loop(downlink=nc.Link(delay=nc.RoundTrip(nc.ShiftedExponential(0.0, 0.01), nc.TraceDelay([0] * 9)))),
      "Loop.downlink.delay (RoundTrip) holds 9 packets"),
+    # a Wi-Fi delay law whose shortest delay outlives the filter's window (declared bound 0 before: accepted,
+    # and the EKF never corrected, x̂ 0 throughout, as PmfDelay with the same law is refused)
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.WifiModel(wifi.WifiChannel(delay_pmf=[0.0, 0.0, 0.0, 1.0])))),
+     "Loop.estimator (EKF) uses a measurement at most 0 slow periods late"),
     # records
     (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
     (lambda: nc.Record(estimator=3), "Record.estimator must be"),

@@ -313,7 +313,13 @@ class WifiModel(AbstractDelay):
         check_instance("WifiModel.channel", self.channel, wifi.WifiChannel, "a jaxnc.wifi.WifiChannel")
 
     def bounds(self, T):
-        return 0, int(self.channel.max_delay)
+        """(lo, hi): the delay law's first and last possible delays (its first and last
+        nonzero entries when concrete, else 0 and ``max_delay``), as :class:`PmfDelay`'s."""
+        pmf = self.channel.delay_pmf
+        if not concrete(pmf):
+            return 0, int(self.channel.max_delay)
+        nz = np.flatnonzero(np.asarray(pmf) > 0)
+        return int(nz[0]), int(nz[-1])
 
     def sample(self, key, n: int, T):
         d = wifi.sample_trace(key, self.channel, n)
