@@ -366,8 +366,19 @@ def delay_cdf(trace, max_delay: int) -> np.ndarray:
 
 
 def write_trace(path, trace) -> None:
-    """Write a one-way trace as CSV: header ``step,delay``, one row per packet, empty delay = lost."""
-    t = np.asarray(trace).astype(np.int64).ravel()
+    """Write a one-way trace as CSV: header ``step,delay``, one row per packet, empty delay = lost.
+
+    Raises:
+      ValueError: ``trace`` is not a 1-D array of integer delays (a batch of traces [B, n]
+        was written as one trace of B n packets, a delay of 1.7 steps as 1), before the file
+        is opened.
+    """
+    a = np.asarray(trace)
+    if a.ndim != 1 or a.dtype.kind not in "iuf" or (a.dtype.kind == "f" and not np.all(a == np.round(a))):
+        raise ValueError(f"write_trace: trace must be a 1-D array of integer delays in steps (negative = lost), "
+                         f"got an array of {a.dtype} of shape {a.shape}"
+                         + ("" if a.ndim != 1 or a.dtype.kind not in "f" else " with non-integer delays"))
+    t = a.astype(np.int64)
     path = os.fspath(path)
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)

@@ -483,6 +483,10 @@ FILES_API = [
      "per_seed_index: cell (0.1,) has 1 coordinates, dims are ('p', 'delta')"),
     (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/x.npz"}, ("p",)),
      "per_seed_index: the file of cell (0.1,), /tmp/x.npz, must be inside the folder /tmp/o"),
+    # a batch of Wi-Fi traces written as one (ravelled: B n packets in one file), a delay of 1.7 steps as 1
+    (lambda: wifi.write_trace("/nonexistent-dir/t.csv", np.zeros((2, 5), np.int32)),
+     "write_trace: trace must be a 1-D array of integer delays in steps"),
+    (lambda: wifi.write_trace("/nonexistent-dir/t.csv", np.array([1.7, 2.0])), "with non-integer delays"),
 ]
 
 
