@@ -503,6 +503,7 @@ def summary(ds):
         out = {k: (v.where(present, 0) if k == "n" or k.endswith("_n_stable") else v.where(present))
                for k, v in out.items()}
         out["present"] = present
+    out = {k: (v.astype(int) if k.endswith("_n_stable") else v) for k, v in out.items()}   # counts (float from stats)
     return xr.Dataset(out, attrs=ds.attrs)
 
 

@@ -108,6 +108,7 @@ def test_summary_without_a_stable_run_is_nan_for_a_rate_and_inf_for_a_divergent_
     assert math.isnan(df.loc["failed", "rate"]) and df.loc["failed", "rate_n_stable"] == 0
     assert df.loc["failed", "cost"] == math.inf and df.loc["failed", "cost_n_stable"] == 0
     assert df.loc["failed", "unstable_fraction"] == 1.0 and df.loc["failed", "n"] == 2
+    assert df["rate_n_stable"].dtype.kind == "i" and df.loc["ok", "rate_n_stable"] == 2      # counts as integers
     assert df.loc["ok", "rate"] == pytest.approx(0.375) and df.loc["ok", "cost"] == pytest.approx(2.0)
 
 
