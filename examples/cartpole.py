@@ -71,6 +71,7 @@ def _run_experiment(settings, *, seeds, out, progress):
     print(f"  cost        {cost.mean:.4f} +- {cost.ci95:.4f} (95 %), unstable {cost.unstable_fraction:.1%}")
     print(f"  sensor rate {rate.mean:.3f} packets per period (of 1)")
     results = {"cost": cost, "sensor_rate": rate}
+    results_mod.save_per_seed(out, {"cartpole": m}, experiment="cartpole")   # per seed, for jaxnc.load(out)
     montecarlo.save_results(out / "results.json", experiment="cartpole",        # the loop that made them, whole
                             config=dict(settings, seeds=seeds, loop=results_mod.config_of(loop)),
                             results=results, wall_time_s=time.time() - t0)

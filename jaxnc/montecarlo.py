@@ -447,8 +447,12 @@ def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
     """Summary of ``values`` (one per run) over the runs where ``unstable`` is false.
 
     A run whose value is not finite (nan/inf) counts as unstable too.  Unstable runs are
-    reported through ``unstable_fraction`` and never raise; if every run is unstable the
-    mean is ``inf``.  With no runs at all, mean and ``unstable_fraction`` are ``nan``.
+    reported through ``unstable_fraction`` and never raise.  With no run to average
+    (``n_stable`` 0) the mean is ``inf`` where the value is +inf in every run (a divergent
+    cost: the papers' ∞ for an unstable cell) and ``nan`` otherwise (a rate or a finite cost
+    of failed runs has no mean; ``inf`` there would be a number no run had), as
+    :func:`describe` shows them (``inf`` / ``–``).  With no runs at all, mean and
+    ``unstable_fraction`` are ``nan``.
     """
     v = np.asarray(values, dtype=np.float64)
     u = np.asarray(unstable)
@@ -462,7 +466,10 @@ def summarize(values: np.ndarray, unstable: np.ndarray) -> Summary:
     nan = float("nan")
     if n == 0:
         return Summary(mean=nan, ci95=nan, std=nan, n=0, n_stable=0, unstable_fraction=nan)
-    mean, ci95 = mean_ci(good) if k else (math.inf, nan)
+    if k:
+        mean, ci95 = mean_ci(good)
+    else:
+        mean, ci95 = (math.inf if bool(np.all(np.isposinf(v))) else nan), nan
     std = float(np.std(good, ddof=1)) if k >= 2 else nan
     return Summary(mean=mean, ci95=ci95, std=std, n=n, n_stable=k,
                    unstable_fraction=(n - k) / n)
@@ -482,8 +489,7 @@ def describe(metrics, run_ndim: int = 0) -> str:
     of runs where it holds. A field with no run to average (every run unstable, or its value
     not finite in the others) shows no mean: ``inf`` where its value is +inf in every run (a
     divergent cost, ``Metrics.cost`` of failed runs: the papers' ∞), else ``–``, with how many
-    runs failed and how many were not finite (:func:`summarize`'s mean there is inf, which
-    for a transmission rate or a finite cost would be a number no run had). One run: the
+    runs failed and how many were not finite (:func:`summarize`'s mean there: inf or nan). One run: the
     values. Anything else (traced values inside
     ``jit``, other shapes): the tuple's plain repr. A field whose stable runs are too skewed
     for their normal interval (:func:`seeds_for_normal_interval` above their count and above
@@ -522,7 +528,7 @@ def describe(metrics, run_ndim: int = 0) -> str:
         elif a.dtype.kind in "fiu":
             bad = unstable if k != "unstable" else np.zeros(n, bool)
             sm = summarize(a, bad)
-            if sm.n_stable == 0:            # nothing to average: say why, not summarize's inf
+            if sm.n_stable == 0:            # nothing to average: say why
                 failed = int(np.count_nonzero(bad))
                 why = (f"no stable run: all {n} failed" if failed == n
                        else f"no run to average: {failed} failed, {n - failed} not finite")

@@ -565,7 +565,8 @@ _STATS = ("mean", "ci95", "std", "n_stable")
 def summary(ds):
     """Each numeric per-seed metric reduced over ``seed`` as the printed tables do
     (:func:`jaxnc.montecarlo.summarize` over the runs that are not ``unstable``):
-    variables ``<metric>`` (the mean; inf if no run is stable), ``<metric>_ci95``,
+    variables ``<metric>`` (the mean; with no stable run, ``<metric>_n_stable`` 0 and the
+    mean inf where the metric is +inf in every run, a divergent cost, else nan), ``<metric>_ci95``,
     ``<metric>_std``, ``<metric>_n_stable``, and ``n``, ``unstable_fraction``; the
     other dimensions are kept. Boolean metrics other than ``unstable`` are averaged over
     all seeds (the fraction of runs where they hold). A combination no run computed
@@ -599,6 +600,7 @@ def summary(ds):
         out = {k: (v.where(present, 0) if k == "n" or k.endswith("_n_stable") else v.where(present))
                for k, v in out.items()}
         out["present"] = present
+    out = {k: (v.astype(int) if k.endswith("_n_stable") else v) for k, v in out.items()}   # counts (float from stats)
     return xr.Dataset(out, attrs=ds.attrs)
 
 

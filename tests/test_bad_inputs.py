@@ -142,6 +142,14 @@ PYTHON_API = [
     (lambda: wifi.sample_trace(_KEY, wifi.NOMINAL, -1), "sample_trace: n must be an integer in [0, inf)"),
     (lambda: wifi.WifiChannel(p_gb="0.1"), "WifiChannel.p_gb must be a number"),
     (lambda: wifi.WifiChannel(gap_min=2.5), "WifiChannel.gap_min must be an integer"),
+    # newuser8: a jax-array delay law was not checked (sampled renormalised, read raw by
+    # delivery_probability); vector or missing probabilities passed; a negative window gave numbers
+    (lambda: wifi.WifiChannel(delay_pmf=jnp.array([0.5, 0.6])), "WifiChannel.delay_pmf must sum to 1"),
+    (lambda: wifi.WifiChannel(delay_pmf=jnp.array([-0.5, 1.5])), "WifiChannel.delay_pmf must be in [0, 1]"),
+    (lambda: wifi.WifiChannel(p_gb=[0.1, 0.2]), "WifiChannel.p_gb must be a single number"),
+    (lambda: wifi.WifiChannel(loss_bad=None), "WifiChannel.loss_bad must be a single number"),
+    (lambda: wifi.window_per(np.zeros(10), -3), "window_per: window must be an integer in [1, 10]"),
+    (lambda: nc.TraceDelay(steps=[True, False]), "TraceDelay.steps must be a 1-D array of integer delays"),
     # the papers' configurations
     (lambda: mecanum.mecanum_loop(dp="0.5"), "dp must be a number"),
     (lambda: mecanum.mecanum_loop(horizon_s=-5), "horizon_s must be in (0, inf)"),
@@ -475,6 +483,10 @@ FILES_API = [
      "per_seed_index: cell (0.1,) has 1 coordinates, dims are ('p', 'delta')"),
     (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/x.npz"}, ("p",)),
      "per_seed_index: the file of cell (0.1,), /tmp/x.npz, must be inside the folder /tmp/o"),
+    # a batch of Wi-Fi traces written as one (ravelled: B n packets in one file), a delay of 1.7 steps as 1
+    (lambda: wifi.write_trace("/nonexistent-dir/t.csv", np.zeros((2, 5), np.int32)),
+     "write_trace: trace must be a 1-D array of integer delays in steps"),
+    (lambda: wifi.write_trace("/nonexistent-dir/t.csv", np.array([1.7, 2.0])), "with non-integer delays"),
 ]
 
 
@@ -703,6 +715,17 @@ LOOP_FIT = [
     (lambda: _fit_loop(plant=_FIT_OSCILLATOR, estimator=nc.SteadyStateKF(_FIT_OSCILLATOR, Q=[1e-4, 1e-4], R=[[1e-4]]),
                        N=5, steps=10), "SteadyStateKF at the loop's N=5 (the slow-period system A_N = A^5): dlqe: no "
                                        "stabilising solution"),
+    # recorded traces shorter than the run (newuser8: refused only when the run was traced)
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.TraceDelay([1] * 99))),
+     "Loop.uplink.delay (TraceDelay) holds 99 packets, but the run sends one per slow instant: 100"),
+    (lambda: _fit_loop(downlink=nc.Link(loss=nc.TraceLoss([0] * 40)), N=2),
+     "Loop.downlink.loss (TraceLoss) holds 40 packets, but the run sends one per slow instant: 50"),
+    (lambda: _fit_loop(downlink=nc.Link(delay=nc.RoundTrip(nc.ShiftedExponential(0.0, 0.01), nc.TraceDelay([0] * 9)))),
+     "Loop.downlink.delay (RoundTrip) holds 9 packets"),
+    # a Wi-Fi delay law whose shortest delay outlives the filter's window (declared bound 0 before: accepted,
+    # and the EKF never corrected, x̂ 0 throughout, as PmfDelay with the same law is refused)
+    (lambda: _fit_loop(uplink=nc.Link(delay=nc.WifiModel(wifi.WifiChannel(delay_pmf=[0.0, 0.0, 0.0, 1.0])))),
+     "Loop.estimator (EKF) uses a measurement at most 0 slow periods late"),
     # records
     (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
     (lambda: nc.Record(estimator=3), "Record.estimator must be"),

@@ -6,6 +6,8 @@ import sys
 import numpy as np
 import pytest
 
+import jaxnc
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -86,6 +88,10 @@ def test_cli_runs_the_example_and_rejects_a_bad_module(tmp_path, monkeypatch, ca
     loop = doc["config"]["loop"]                  # the configuration that made the results, whole
     assert loop["type"] == "Loop" and loop["trigger"]["delta"] == pytest.approx(1e-4)
     assert loop["uplink"]["loss"] == {"type": "Bernoulli", "p": pytest.approx(0.3)} and loop["steps"] == cp.STEPS
+    # the folder loads as a run's per-seed metrics (it held only results.json: jaxnc.load refused it)
+    df = jaxnc.load(out).jaxnc.to_pandas()
+    assert df.loc["cartpole", "cost"] == pytest.approx(doc["results"]["cost"]["mean"], rel=1e-12)
+    assert df.loc["cartpole", "n"] == 16
     capsys.readouterr()
     assert run_cli(["run", "examples.nope:experiment", "--seeds", "4", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -10,7 +10,7 @@ import pytest
 import scipy.linalg
 
 from jaxnc import loop as nc
-from jaxnc import montecarlo
+from jaxnc import montecarlo, wifi
 from jaxnc.loop.actuators import install
 from jaxnc.loop.links import LinkDraws
 
@@ -131,6 +131,19 @@ def test_delays_quantised_up_and_late_packets_discarded():
     np.testing.assert_array_equal(d, expect)
     first = nc.draw_link(nc.Link(nc.Bernoulli(0.9), reliable_first=True), key, 50, T).delay
     assert int(first[0]) == 0 and np.mean(np.asarray(first[1:]) < 0) > 0.7
+
+
+def test_reliable_first_holds_when_the_delay_model_loses_the_first_packet():
+    """reliable_first: the first packet is never lost, also where the delay model marks it lost
+    itself (a trace's -1, the Wi-Fi channel's loss); it used to keep the model's -1 (lost)."""
+    key = jax.random.PRNGKey(0)
+    d = nc.draw_link(nc.Link(delay=nc.TraceDelay([-1, 3, -1]), reliable_first=True), key, 3, 0.1).delay
+    assert np.asarray(d).tolist() == [3, 3, -1]           # the trace's shortest delay, 3 periods
+    blackout = wifi.WifiChannel(p_gb=1.0, p_bg=1e-6, loss_good=1.0, loss_bad=1.0)
+    d = nc.draw_link(nc.Link(delay=nc.WifiModel(blackout), reliable_first=True), key, 4, 0.1).delay
+    assert np.asarray(d).tolist() == [1, -1, -1, -1]        # the default law's only delay, 1 step
+    d = nc.draw_link(nc.Link(delay=nc.TraceDelay([5, 1]), tau_max=0.2, reliable_first=True), key, 2, 0.1).delay
+    assert np.asarray(d).tolist() == [5, 1]                # late, delivered all the same
 
 
 def test_gilbert_elliott_stationary_loss():

@@ -150,3 +150,31 @@ def test_a_freezing_monitor_stops_once_the_run_failed():
     count = np.cumsum(0.1 * 1.2 ** (t + 1) > 0.5)           # after fast period t: the state x_{t+1}
     np.testing.assert_array_equal(np.asarray(tr.parts["monitor"]), np.minimum(count, 5))
     assert (bool(tr.done), int(tr.done_step)) == (False, 30)
+
+
+def test_a_failed_runs_transmissions_and_rates_stop_at_the_failure():
+    """x+ = 1.2 x from 0.1, N = 2, Monitor(bounds=[1]): the state leaves the bound after fast period 12
+    (fail_step 13), in slow period 6, so the run lived 7 of its 15 slow periods. A PETC sensor (no
+    noise) sends at k = 0, 2, 4, 6 while x grows and nothing once the plant is held: 4 sends in 7
+    periods, rate 4/7. The rates used to count the 8 periods of the frozen plant (4/15 = 0.267, and
+    15 controller sends for 7 periods lived); Trajectory's tx_sc/tx_ca stay the whole run's counts
+    (as its records); a run that does not fail is unchanged (15 periods)."""
+    plant = nc.LTI(A=[[1.2]], B=[[0.0]], C=[[1.0]], x0=[0.1], T=0.1)
+
+    def loop(bound):
+        return nc.Loop(plant=plant, trigger=nc.Petc(sigma=0.1), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                       controller=nc.StateFeedback(np.zeros((1, 1))), downlink=nc.Link(), actuator=nc.HoldLast(),
+                       monitor=nc.Monitor(bounds=[bound]), N=2, steps=30, T=0.1)
+
+    lp = loop(1.0)
+    tr = jax.jit(nc.simulate)(lp, jax.random.PRNGKey(0))
+    assert (bool(tr.failed), int(tr.fail_step)) == (True, 13)
+    np.testing.assert_array_equal(np.asarray(tr.sent_sc)[:7], [1, 0, 1, 0, 1, 0, 1])
+    m = nc.evaluate(lp, tr)
+    assert float(m.rate_sc) == pytest.approx(4 / 7) and float(m.rate_ca) == 1.0 and bool(m.unstable)
+    assert (float(tr.tx_sc), float(tr.tx_ca)) == (4.0, 15.0)             # the record: the whole run
+    assert int(nc.live_periods(tr.failed, tr.fail_step, 2, 15)) == 7
+    ok = jax.jit(nc.simulate)(loop(1e6), jax.random.PRNGKey(0))          # never fails: every period counts
+    assert not bool(ok.failed) and int(nc.live_periods(ok.failed, ok.fail_step, 2, 15)) == 15
+    assert float(ok.tx_ca) == 15.0 and float(nc.evaluate(loop(1e6), ok).rate_ca) == 1.0
+    assert float(nc.evaluate(loop(1e6), ok).rate_sc) == pytest.approx(float(np.sum(ok.sent_sc)) / 15)

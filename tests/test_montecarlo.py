@@ -173,10 +173,17 @@ def test_summarize_excludes_unstable():
     assert set(d) == {"mean", "ci95", "std", "n", "n_stable", "unstable_fraction"}
 
 
-def test_summarize_all_unstable_is_inf():
+def test_summarize_without_a_stable_run_is_inf_only_for_a_divergent_cost():
+    """No stable run: inf only where the value is +inf in every run (the papers' ∞ for a
+    failed run's cost), else nan (describe's '–'): a rate of failed runs, 1.0 here, used to
+    summarise as inf, a number no run had."""
     s = mc.summarize(np.ones(4), np.ones(4, bool))
-    assert s.mean == math.inf and s.n_stable == 0 and s.unstable_fraction == 1.0
+    assert math.isnan(s.mean) and s.n_stable == 0 and s.unstable_fraction == 1.0
     assert math.isnan(s.ci95)
+    s = mc.summarize(np.full(4, np.inf), np.ones(4, bool))
+    assert s.mean == math.inf and s.n_stable == 0 and math.isnan(s.ci95)
+    s = mc.summarize(np.array([np.inf, 2.0]), np.ones(2, bool))
+    assert math.isnan(s.mean) and s.n_stable == 0
 
 
 def test_summarize_nonfinite_counts_as_unstable():

@@ -93,6 +93,25 @@ def test_a_combination_never_run_has_no_statistics(tmp_path):
     assert float(here["ok"]) == 2 / 3
 
 
+def test_summary_without_a_stable_run_is_nan_for_a_rate_and_inf_for_a_divergent_cost(tmp_path):
+    """A case where every run failed: the rate has no mean (nan, n_stable 0), as describe's
+    '–'; a cost that is +inf in every failed run is the papers' ∞. to_pandas used to give
+    inf for the rate too, a number no run had."""
+    runs = {"ok": {"rate": np.array([0.5, 0.25], np.float32), "cost": np.array([1.0, 3.0], np.float32),
+                   "unstable": np.array([False, False])},
+            "failed": {"rate": np.array([0.5, 0.75], np.float32), "cost": np.full(2, np.inf, np.float32),
+                       "unstable": np.array([True, True])}}
+    results.save_per_seed(tmp_path, runs, dims=("case",))
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"seeds": 2}, results={},
+                            wall_time_s=0.0)
+    df = jaxnc.load(tmp_path).jaxnc.to_pandas()
+    assert math.isnan(df.loc["failed", "rate"]) and df.loc["failed", "rate_n_stable"] == 0
+    assert df.loc["failed", "cost"] == math.inf and df.loc["failed", "cost_n_stable"] == 0
+    assert df.loc["failed", "unstable_fraction"] == 1.0 and df.loc["failed", "n"] == 2
+    assert df["rate_n_stable"].dtype.kind == "i" and df.loc["ok", "rate_n_stable"] == 2      # counts as integers
+    assert df.loc["ok", "rate"] == pytest.approx(0.375) and df.loc["ok", "cost"] == pytest.approx(2.0)
+
+
 def test_old_and_damaged_folders_give_errors_naming_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "results.json"))):
         jaxnc.load(tmp_path)

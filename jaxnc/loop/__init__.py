@@ -28,7 +28,7 @@ from jaxnc.loop.plants import LTI, Continuous, Discrete, rk4
 from jaxnc.loop.roundtrip import RoundTrip
 from jaxnc.loop.monitors import PathMonitor, PathMonitorState, path_distance
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
-                               Record, Trajectory, draw, evaluate, run, run_seed, simulate)
+                               Record, Trajectory, draw, evaluate, live_periods, run, run_seed, simulate)
 from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
 from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF
 from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
@@ -36,7 +36,7 @@ from jaxnc.loop.pursuit import PursuitPI, PursuitState
 from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
 
 __all__ = [
-    "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
+    "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "live_periods", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
     "Quadratic", "FunctionCost", "Context", "STREAMS", "SIGNALS", "PARTS",
     "AbstractPlant", "AbstractInitial", "AbstractWrappedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
     "AbstractMonitor", "AbstractLoss",

@@ -446,6 +446,12 @@ class AbstractLoss(abc.ABC):
     def sample(self, key, n: int):
         """bool[n]: whether the packet of each of ``n`` slow instants is lost (n static)."""
 
+    def packets(self):
+        """The most packets the model can draw (a recorded trace's length; a
+        :class:`~jaxnc.loop.Loop` refuses a run with more slow instants when it is built), or
+        None: any number (the default)."""
+        return None
+
 
 class AbstractDelay(abc.ABC):
     """A delay model of a :class:`~jaxnc.loop.links.Link` (drawn before the run).
@@ -464,3 +470,9 @@ class AbstractDelay(abc.ABC):
         """(lo, hi): the delay's smallest and largest value in fast periods when concrete
         and known (hi None: unbounded or unknown). Default (0, None)."""
         return 0, None
+
+    def packets(self):
+        """The most packets the model can draw (a recorded trace's length; a
+        :class:`~jaxnc.loop.Loop` refuses a run with more slow instants when it is built), or
+        None: any number (the default)."""
+        return None

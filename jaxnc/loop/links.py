@@ -137,6 +137,9 @@ class TraceLoss(AbstractLoss):
         _trace("TraceLoss.lost", self, "lost", "a 1-D array of booleans (True = lost) or 0/1",
                lambda a: a.dtype.kind == "b" or bool(np.all((a == 0) | (a == 1))), bool)
 
+    def packets(self):
+        return int(np.shape(self.lost)[0])
+
     def sample(self, key, n: int):
         lost = jnp.asarray(self.lost, bool)
         if lost.shape[0] < n:
@@ -284,13 +287,17 @@ class TraceDelay(AbstractDelay):
 
     def __post_init__(self):
         _trace("TraceDelay.steps", self, "steps", "a 1-D array of integer delays in fast periods (negative = lost)",
-               lambda a: bool(np.all(a == np.round(a)) and np.all(np.abs(a) < 2**31)), np.int32)
+               lambda a: a.dtype.kind != "b" and bool(np.all(a == np.round(a)) and np.all(np.abs(a) < 2**31)),
+               np.int32)
 
     def bounds(self, T):
         if not concrete(self.steps):
             return 0, None
         ok = np.asarray(self.steps)[np.asarray(self.steps) >= 0]
         return (int(ok.min()), int(ok.max())) if ok.size else (0, 0)
+
+    def packets(self):
+        return int(np.shape(self.steps)[0])
 
     def sample(self, key, n: int, T):
         d = jnp.asarray(self.steps, jnp.int32)
@@ -314,7 +321,13 @@ class WifiModel(AbstractDelay):
         check_instance("WifiModel.channel", self.channel, wifi.WifiChannel, "a jaxnc.wifi.WifiChannel")
 
     def bounds(self, T):
-        return 0, int(self.channel.max_delay)
+        """(lo, hi): the delay law's first and last possible delays (its first and last
+        nonzero entries when concrete, else 0 and ``max_delay``), as :class:`PmfDelay`'s."""
+        pmf = self.channel.delay_pmf
+        if not concrete(pmf):
+            return 0, int(self.channel.max_delay)
+        nz = np.flatnonzero(np.asarray(pmf) > 0)
+        return int(nz[0]), int(nz[-1])
 
     def sample(self, key, n: int, T):
         d = wifi.sample_trace(key, self.channel, n)
@@ -362,7 +375,9 @@ class Link:
       delay: a delay model (default :class:`NoDelay`).
       tau_max: seconds; later packets are discarded (None: never).
       reliable_first: static; the packet of the first slow instant is never lost or late
-        (a start-up handshake).
+        (a start-up handshake): it keeps its drawn delay, or, where the delay model itself
+        marks it lost (a :class:`TraceDelay`'s negative entry, :class:`WifiModel`'s loss), the
+        model's shortest delay (``bounds(T)[0]``).
       order: static, ``"newest"``, ``"all"`` or ``"arrival"`` (module docstring).
       capacity: static ring length C (transmissions remembered), >= 1; None (the default):
         sized by the :class:`~jaxnc.loop.Loop` that holds the link, the smallest ring that
@@ -480,5 +495,9 @@ def draw_link(link: Link, key, n: int, T) -> LinkDraws:
         else:
             bad = bad | late(seconds, link.tau_max)
     if link.reliable_first:
-        bad = bad & (jnp.arange(n) > 0)
+        first = jnp.arange(n) == 0
+        bad = bad & ~first
+        # a model that marks the first packet lost itself (a trace's -1, the Wi-Fi channel's loss) has no
+        # delay for it: the handshake's packet takes the model's shortest delay
+        steps = jnp.where(first & (steps < 0), max(int(link.delay.bounds(T)[0] or 0), 0), steps)
     return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))

@@ -58,6 +58,11 @@ class RoundTrip(AbstractDelay):
         hi = None if hi_f is None or hi_b is None else hi_f + hi_b
         return lo, hi
 
+    def packets(self):
+        """The fewer of the parts' (a recorded part's length), None if neither has a limit."""
+        caps = [c for c in (self.forward.packets(), self.back.packets()) if c is not None]
+        return min(caps) if caps else None
+
     def sample(self, key, n: int, T):
         kf, kb = jax.random.split(key)
         df, sf = self.forward.sample(kf, n, T)

@@ -36,7 +36,7 @@ from jaxnc.loop.links import Link, LinkDraws, NoDelay, NoLoss, draw_link, link_d
 from jaxnc.prng import unrolled
 
 __all__ = ["Loop", "Record", "Monitor", "Quadratic", "FunctionCost", "Context", "Draws", "Trajectory", "Metrics", "draw", "simulate",
-           "run", "run_seed", "evaluate", "STREAMS", "SIGNALS", "PARTS"]
+           "run", "run_seed", "evaluate", "live_periods", "STREAMS", "SIGNALS", "PARTS"]
 
 #: the draw streams of a run: stream i uses ``fold_in(key, i)``
 STREAMS = ("process", "measurement", "uplink", "downlink", "plant_init")
@@ -326,6 +326,13 @@ class Loop:
                                  f"one's action, still due, would never be applied (use Link(..., order='all'))")
         for name in ("uplink", "downlink"):
             link = getattr(self, name)
+            for role in ("loss", "delay"):       # a recorded trace must cover the run's slow instants
+                have = getattr(link, role).packets()
+                if have is not None and have < self.steps // self.N:
+                    raise ValueError(f"Loop.{name}.{role} ({type(getattr(link, role)).__name__}) holds {have} "
+                                     f"packets, but the run sends one per slow instant: {self.steps // self.N} "
+                                     f"(steps={self.steps} / N={self.N}); give a trace of at least that many "
+                                     f"entries or shorten the run")
             lo, hi = link_delay_bounds(link, self.T)
             ring = lambda d: -(-d // self.N) + 1        # slow periods a packet can be in flight, plus its own
             # a packet stays in its slot for C slow periods: the uplink is read at slow instants,
@@ -622,8 +629,9 @@ class Trajectory(NamedTuple):
     #                       fast period: count failures with `failed`, not fail_step < K)
     done: jax.Array       # bool: the monitor found the run complete
     done_step: jax.Array  # int32: first fast instant after which it was complete (K if never; see fail_step)
-    tx_sc: jax.Array      # float: sensor transmissions in the run
-    tx_ca: jax.Array      # float: controller transmissions in the run
+    tx_sc: jax.Array      # float: sensor transmissions in the whole run (sum of sent_sc, after a failure too:
+    #                       the held plant's; Metrics.rate_sc stops at the failure, live_periods)
+    tx_ca: jax.Array      # float: controller transmissions in the whole run (sum of sent_ca; as tx_sc)
     parts: Any = ()       # dict role -> what Record's function of that role kept ("plant" [K, ...],
     #                       "estimator" [S, ...], "controller" [S, ...], "actuator" [K, ...], "monitor" [K, ...])
     final_plant: Any = ()   # the plant's state at the end of the run
@@ -798,8 +806,9 @@ class Metrics(NamedTuple):
     cost: jax.Array       # Loop.cost of the run (inf when failed; nan when the loop has no cost)
     cost_raw: jax.Array   # the same without the failure mask (the plant frozen at failure: finite unless that
     #                       state's cost overflows float32, a divergence with no Monitor bounds)
-    rate_sc: jax.Array    # sensor transmissions per slow period
-    rate_ca: jax.Array    # controller transmissions per slow period
+    rate_sc: jax.Array    # sensor transmissions per slow period of the run (a failed run: in and per the periods
+    #                       up to its failure, live_periods)
+    rate_ca: jax.Array    # controller transmissions per slow period (as rate_sc)
     unstable: jax.Array   # bool: the run failed
 
     def __repr__(self) -> str:
@@ -807,15 +816,30 @@ class Metrics(NamedTuple):
         return describe(self)
 
 
+def live_periods(failed, fail_step, N: int, S: int):
+    """int32: the slow periods a run lived, S if it did not fail, else those through the one
+    it failed in, ``(fail_step - 1) // N + 1`` (``fail_step`` the first failed fast instant,
+    :class:`Trajectory`). A failed run's transmission counts and rates stop there."""
+    return jnp.where(failed, (jnp.asarray(fail_step, jnp.int32) - 1) // N + 1, S).astype(jnp.int32)
+
+
 def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
-    """Metrics of one recorded run."""
+    """Metrics of one recorded run: the cost (inf when the run failed; ``cost_raw`` without
+    that mask) and the transmissions per slow period: a failed run's rates count and divide
+    by its slow periods up to and including the one it failed in (:func:`live_periods`; after
+    it the plant is held and its sends are no part of the run, as the monitor stops there),
+    not :class:`Trajectory`'s whole-run ``tx_sc`` / ``tx_ca``."""
     S = loop.steps // loop.N
     if loop.cost is not None and _wanted(loop.record, "x") and _wanted(loop.record, "u"):
         raw = loop.cost(traj.x, traj.u)
     else:
         raw = jnp.asarray(jnp.nan, jnp.float32)
     cost = jnp.where(traj.failed, jnp.inf, raw)
-    return Metrics(cost, raw, traj.tx_sc / S, traj.tx_ca / S, traj.failed)
+    lived = live_periods(traj.failed, traj.fail_step, loop.N, S)
+    live = (jnp.arange(S, dtype=jnp.int32) < lived).astype(jnp.float32)
+    lived = lived.astype(jnp.float32)
+    return Metrics(cost, raw, jnp.sum(traj.sent_sc * live) / lived, jnp.sum(traj.sent_ca * live) / lived,
+                   traj.failed)
 
 
 def run(loop: Loop, key, *, metrics=evaluate, **context):
