@@ -213,6 +213,22 @@ PYTHON_API = [
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0, 0.0]], np.eye(2), [[1.0]]), "lambda_max: C must be p x n with n = 2"),
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(3), [[1.0]]), "lambda_max: Q must be n x n = 2 x 2"),
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(2), np.eye(2)), "lambda_max: R must be p x p = 1 x 1"),
+    # a non-PD R failed with NumPy's "Singular matrix", a NaN A read inf, a lam outside [0, 1] ran,
+    # a scalar R for two outputs was added to every entry of C P C' (a wrong trace, no error)
+    (lambda: stability.lambda_max(1.3, 1.0, 1.0, 0.0), "lambda_max: R must be symmetric positive definite"),
+    (lambda: stability.lambda_max(1.3, 1.0, -1.0, 1.0), "lambda_max: Q must be symmetric positive semi-definite"),
+    (lambda: stability.lambda_max(np.nan, 1.0, 1.0, 1.0), "lambda_max: A must be finite"),
+    (lambda: stability.lambda_max(1.3, 1.0, 1.0, 1.0, steps=0), "lambda_max.steps must be an integer in [1, inf)"),
+    (lambda: stability.lambda_min(np.nan), "lambda_min: A must be finite"),
+    (lambda: stability.lyapunov_lower(1.3, 1.0, -0.5), "lyapunov_lower: lam must be in [0, 1]"),
+    (lambda: stability.lyapunov_lower(np.eye(2), np.eye(3), 0.5), "lyapunov_lower: Q must be n x n = 2 x 2"),
+    (lambda: stability.random_riccati(jax.random.PRNGKey(0), np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3),
+     "random_riccati: R must be p x p = 2 x 2"),
+    (lambda: stability.random_riccati(jax.random.PRNGKey(0), 1.3, 1.0, 1.0, 1.0, 1.5, 3),
+     "random_riccati: lam must be in [0, 1]"),
+    (lambda: stability.mare_iterate(np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3), "mare_iterate: R must be p x p"),
+    (lambda: stability.mare_step(np.eye(2), np.eye(2), np.eye(2), -np.eye(2), np.eye(2), 0.5),
+     "mare_step: Q must be symmetric positive semi-definite"),
     # the differential-drive robot's and the pursuit's numbers are single numbers (a vector failed
     # inside the trace with jax's message, or, for K, tau, u_max and assumed_delay, ran)
     (lambda: nc.DiffDrive(r=[0.028, 0.03]), "DiffDrive.r must be a single number, got shape (2,)"),
