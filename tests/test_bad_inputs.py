@@ -19,6 +19,7 @@ from jaxnc.paths import from_waypoints
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
+from jaxnc.estimators.ukf import merwe_sigma_points
 from jaxnc.schemes import diffdrive, mecanum
 
 
@@ -229,6 +230,12 @@ PYTHON_API = [
     (lambda: stability.mare_iterate(np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3), "mare_iterate: R must be p x p"),
     (lambda: stability.mare_step(np.eye(2), np.eye(2), np.eye(2), -np.eye(2), np.eye(2), 0.5),
      "mare_step: Q must be symmetric positive semi-definite"),
+    # Merwe's sigma points with n + kappa <= 0 (zero or negative spread) gave NaN estimates without an error
+    (lambda: nc.UKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), kappa=-3.0),
+     "UKF.kappa must be > -n = -2"),
+    (lambda: merwe_sigma_points(Gaussian(jnp.zeros(2), jnp.eye(2)), kappa=-2.0),
+     "merwe_sigma_points: kappa must be > -n = -2"),
+    (lambda: merwe_sigma_points(Gaussian(jnp.zeros(2), jnp.eye(2)), alpha=0.0), "merwe_sigma_points: alpha must be > 0"),
     # the differential-drive robot's and the pursuit's numbers are single numbers (a vector failed
     # inside the trace with jax's message, or, for K, tau, u_max and assumed_delay, ran)
     (lambda: nc.DiffDrive(r=[0.028, 0.03]), "DiffDrive.r must be a single number, got shape (2,)"),
@@ -271,6 +278,9 @@ EKF_ARGS = [
     (dict(cov0=np.array([[1.0, 2.0], [0.0, 1.0]])), "EKF.cov0 must be symmetric"),
     (dict(R=-np.eye(1)), "EKF.R must be positive"), (dict(Q=[1.0, -1.0]), "EKF.Q"),
     (dict(buffer=-1), "EKF.buffer must be an integer"),
+    # the unscented form with n + kappa <= 0 or a singular cov0 ran and estimated NaN
+    (dict(form="unscented", sigma_points=(1.0, 2.0, -2.0)), "EKF.sigma_points' kappa must be > -n = -2"),
+    (dict(form="unscented", cov0=np.zeros((2, 2))), "EKF.cov0 must be positive definite with form='unscented'"),
 ]
 
 

@@ -278,10 +278,10 @@ def UKF(model, Q, R, mean0, cov0, alpha=1.0, beta=2.0, kappa=0.0, *, buffer: int
 
     Args: model (an :class:`~jaxnc.loop.base.AbstractPlant`), Q float[q, q] or float[q], R
     float[p, p], mean0 float[n], cov0 float[n, n] (positive definite: the sigma points use
-    its Cholesky factor); alpha > 0, beta, kappa (static numbers); buffer, inputs as the EKF's.
+    its Cholesky factor); alpha > 0, beta, kappa > -n (static numbers); buffer, inputs as the EKF's.
 
     Raises: ValueError naming the field (``UKF.cov0`` not positive definite, ``UKF.inputs``,
-    ``UKF.alpha``..., and the EKF's own checks).
+    ``UKF.alpha`` <= 0, ``UKF.kappa`` <= -n, and the EKF's own checks).
     """
     _check_inputs("UKF", inputs)
     for n, v in (("alpha", alpha), ("beta", beta), ("kappa", kappa)):
@@ -291,6 +291,9 @@ def UKF(model, Q, R, mean0, cov0, alpha=1.0, beta=2.0, kappa=0.0, *, buffer: int
             raise ValueError(f"UKF.{n} must be a single number, got shape {np.shape(v)}")
     if float(alpha) <= 0:
         raise ValueError(f"UKF.alpha must be > 0, got {float(alpha):g}")
+    if not model.state_dim + float(kappa) > 0:
+        raise ValueError(f"UKF.kappa must be > -n = {-model.state_dim} (n + kappa > 0, n the model's state: the "
+                         f"sigma points' spread alpha^2 (n + kappa)), got {float(kappa):g}")
     check_given("UKF.cov0", cov0)
     check_finite("UKF.cov0", cov0)
     if not isinstance(cov0, jax.Array):
