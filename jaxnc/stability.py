@@ -350,10 +350,12 @@ def check_theorem1(b: Bounds, *, sigma: float, delta: float, N: int, gamma: floa
     """
     check_nonneg("sigma", sigma)
     check_nonneg("delta", delta)
+    check_int("check_theorem1: N", N, 1)
     b = Bounds(*(float(np.asarray(v)) for v in b))
     gamma = b.gamma if gamma is None else float(gamma)
     lam = b.lam if lam is None else float(lam)
     check_range("gamma", gamma, 0.0, 1.0, low_open=True)
+    check_range("check_theorem1: lam", lam, 0.0, 1.0)
     grid = np.logspace(-6, 6, 241) if grid is None else np.asarray(grid, np.float64)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         a1g, a2g = np.meshgrid(grid, grid, indexing="ij")

@@ -19,6 +19,7 @@ from jaxnc.paths import from_waypoints
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
+from jaxnc.estimators.steady_state import dlqe
 from jaxnc.estimators.ukf import merwe_sigma_points
 from jaxnc.schemes import diffdrive, mecanum
 
@@ -69,6 +70,7 @@ def test_cli_command_line_errors(args, fragment, tmp_path, capsys):
 
 _KEY = jax.random.PRNGKey(0)
 _PLANT = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]])
+_PLANT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]])
 _G = Gaussian(jnp.zeros(2), jnp.eye(2))
 _F = lambda x, u, w: x + w            # noqa: E731
 _H = lambda x, v: x[:1] + v           # noqa: E731
@@ -167,6 +169,12 @@ PYTHON_API = [
     (lambda: ekf_update(_H, _G, jnp.zeros(1), -np.eye(1), 1), "ekf_update: R must be positive definite"),
     (lambda: ekf_update(_H, _G, jnp.zeros(1), np.eye(1), 0), "ekf_update: noise_dim must be an integer >= 1"),
     (lambda: ekf_update(_H, _G, jnp.zeros(3), np.eye(1), 1), "ekf_update: z must have the shape of h(x, v), (1,)"),
+    # an asymmetric covariance passed the definiteness check of its symmetric part and was used as given
+    # (dlqe with R = [[1, .5], [-.5, 1]] gave another P than for its symmetric part I, without an error)
+    (lambda: ekf_predict(_F, _G, jnp.zeros(1), np.array([[1.0, 0.5], [-0.5, 1.0]]), 2), "ekf_predict: Q must be symmetric"),
+    (lambda: dlqe(np.eye(2) * 0.9, np.eye(2), np.eye(2), np.eye(2), [[1.0, 0.5], [-0.5, 1.0]]), "dlqe: R must be symmetric"),
+    (lambda: nc.SteadyStateKF(_PLANT_DETECTABLE, Q=[[1.0, 0.5], [-0.5, 1.0]], R=np.eye(1)),
+     "SteadyStateKF.Q must be symmetric"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), -np.ones(1), 1), "ekf_update_diag: r must be positive definite"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), np.ones(3), 1), "ekf_update_diag: r must be a vector of 1 variances"),
     # the runner's components
@@ -230,6 +238,11 @@ PYTHON_API = [
     (lambda: stability.mare_iterate(np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3), "mare_iterate: R must be p x p"),
     (lambda: stability.mare_step(np.eye(2), np.eye(2), np.eye(2), -np.eye(2), np.eye(2), 0.5),
      "mare_step: Q must be symmetric positive semi-definite"),
+    # Theorem 1's check: N = 0 failed with ZeroDivisionError, a negative arrival rate ran
+    (lambda: stability.check_theorem1(stability.Bounds(*([1.0] * 15)), sigma=0.0, delta=0.0, N=0),
+     "check_theorem1: N must be an integer in [1, inf)"),
+    (lambda: stability.check_theorem1(stability.Bounds(*([1.0] * 15)), sigma=0.0, delta=0.0, N=2, lam=-1.0),
+     "check_theorem1: lam must be in [0, 1]"),
     # Merwe's sigma points with n + kappa <= 0 (zero or negative spread) gave NaN estimates without an error
     (lambda: nc.UKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), kappa=-3.0),
      "UKF.kappa must be > -n = -2"),

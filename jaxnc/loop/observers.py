@@ -184,6 +184,8 @@ def _check_covariances(owner, model, Q, R):
                          f"got shape {Qa.shape}")
     if Ra.shape != (p, p):
         raise ValueError(f"{owner}.R must be {p}x{p} (the model's output_dim), got shape {Ra.shape}")
+    if Qa.ndim == 2 and not np.allclose(Qa, Qa.T):
+        raise ValueError(f"{owner}.Q must be symmetric (a covariance)")
     if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < 0):
         raise ValueError(f"{owner}.Q must be positive semi-definite")
     if not np.allclose(Ra, Ra.T) or np.linalg.eigvalsh((Ra + Ra.T) / 2).min() <= 0:
