@@ -19,6 +19,7 @@ from jaxnc.paths import from_waypoints
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
+from jaxnc.estimators.ekf_batched import ekf_filter
 from jaxnc.estimators.steady_state import dlqe
 from jaxnc.estimators.ukf import merwe_sigma_points
 from jaxnc.schemes import diffdrive, mecanum
@@ -177,6 +178,13 @@ PYTHON_API = [
     (lambda: nc.SteadyStateKF(_PLANT_DETECTABLE, Q=[[1.0, 0.5], [-0.5, 1.0]], R=np.eye(1)),
      "SteadyStateKF.Q must be symmetric"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), -np.ones(1), 1), "ekf_update_diag: r must be positive definite"),
+    # the batched filter took a negative variance and returned a negative covariance (-0.67) without an error
+    (lambda: ekf_filter(lambda x, u, w: x + w, lambda x, v: x + v, Gaussian(jnp.zeros((2, 1)), jnp.ones((2, 1, 1))),
+                        jnp.zeros((2, 3, 1)), jnp.ones((2, 3, 1)), jnp.ones((2, 3), bool), jnp.ones(1), -0.5 * jnp.ones(1),
+                        noise_dim=1), "ekf_filter: r must be positive definite"),
+    (lambda: ekf_filter(lambda x, u, w: x + w, lambda x, v: x + v, Gaussian(jnp.zeros((2, 1)), jnp.ones((2, 1, 1))),
+                        jnp.zeros((2, 3, 1)), jnp.ones((2, 3, 1)), jnp.ones((2, 3), bool), -jnp.ones(1), jnp.ones(1),
+                        noise_dim=1), "ekf_filter: Q must be positive semi-definite"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), np.ones(3), 1), "ekf_update_diag: r must be a vector of 1 variances"),
     # the runner's components
     (lambda: nc.Bernoulli(p=None), "Bernoulli.p must be a number"),

@@ -68,7 +68,7 @@ def _slow_noise(A, G, Q, N: int):
     for _ in range(N - 1):
         term = A @ term @ A.T
         acc = acc + term
-    return acc
+    return 0.5 * (acc + acc.T)          # exactly symmetric, as dlqe requires of a covariance
 
 
 def _check_linear(owner, obj):
