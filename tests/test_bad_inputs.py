@@ -252,6 +252,10 @@ PYTHON_API = [
      "check_theorem1: N must be an integer in [1, inf)"),
     (lambda: stability.check_theorem1(stability.Bounds(*([1.0] * 15)), sigma=0.0, delta=0.0, N=2, lam=-1.0),
      "check_theorem1: lam must be in [0, 1]"),
+    # a slow-period system of N = 0 (or < 0) fast periods returned A itself, not A^0 = I
+    (lambda: nc.slow_system(np.eye(2) * 0.5, np.ones((2, 1)), 0), "slow_system: N must be an integer in [1, inf)"),
+    (lambda: nc.stationary_gain(nc.SteadyStateKF(_PLANT_DETECTABLE, Q=np.eye(2), R=np.eye(1)), -1),
+     "stationary_gain: N must be an integer in [1, inf)"),
     # the NUMRE filter's noise and prior were not checked: a negative W or cov0 ran with wrong gains
     (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], -1.0, 0.01, 4, cov0=np.eye(2)),
      "Numre.W must be a symmetric positive semi-definite covariance"),

@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, concrete, fields_concrete
+from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
+                             fields_concrete)
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import dlqe, luenberger_step
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
@@ -52,7 +53,9 @@ __all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState
 
 def slow_system(A, B, N: int):
     """(A_N float[n, n], B_N float[n, N m]): x_{k+1} = A_N x_k + B_N [u_0; ...; u_{N-1}]
-    over N fast periods (N static)."""
+    over N fast periods (N static, an integer >= 1: ValueError otherwise; N = 0 returned
+    A itself)."""
+    check_int("slow_system: N", N, 1)
     A, B = jnp.asarray(A), jnp.asarray(B)
     powers = [jnp.eye(A.shape[0], dtype=A.dtype)]
     for _ in range(N - 1):
@@ -260,7 +263,9 @@ class SteadyStateKF(AbstractEstimator):
 
 def stationary_gain(kf: SteadyStateKF, N: int = 1):
     """(M float[n, p], P float[n, n]): the filter gain and the prior covariance of the
-    slow-period system with N fast periods per slow period."""
+    slow-period system with N fast periods per slow period (an integer >= 1: ValueError
+    naming N otherwise)."""
+    check_int("stationary_gain: N", N, 1)
     A, C, G = jnp.asarray(kf.model.A), jnp.asarray(kf.model.C), jnp.asarray(kf.model.G)
     A_N, _ = slow_system(A, jnp.asarray(kf.model.B), N)
     Q_N = _slow_noise(A, G, kf.Q, N)
