@@ -559,7 +559,9 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
       detectable): no arrival rate bounds the error covariance.
     Raises:
       ValueError: the matrices do not fit or are not finite, Q not PSD or R not PD (naming
-        which), ``tol`` or ``blowup`` <= 0, ``steps`` not an integer >= 1.
+        which), ``tol`` or ``blowup`` <= 0, ``steps`` not an integer >= 1, or ``steps`` too
+        few for the iteration to settle even at lam = 1 (whose limit exists: the doubling
+        algorithm decides lam = 1).
     """
     A, C, Q, R = _system("lambda_max", A, C, Q, R)
     check_positive("lambda_max.tol", tol)
@@ -584,15 +586,21 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
             P = Pn
         return False, P
 
-    # lam = 1 first, without a limit (a diverging iteration overflows or keeps changing), so
-    # that the limit for the others is relative to the covariance's own scale
-    ok1, P1 = iterate(1.0, np.inf)
+    # lam = 1 (the Kalman filter) first, by doubling: it decides in a few dozen steps whether
+    # the Riccati iteration has a limit, where the plain iteration may need far more than
+    # ``steps`` (a slowly converging filter read inf); its limit sets the divergence limit
+    # of the others relative to the covariance's own scale
+    ok1, P1 = _dare_doubling(A, C, Q, R)
     if not ok1:                  # then no lam <= 1 converges either (monotone in lam)
         return float("inf")
     limit = blowup * np.trace(P1)
 
     def converges(lam):
         return iterate(lam, limit)[0]
+
+    if not converges(1.0):
+        raise ValueError(f"lambda_max: the Riccati iteration from 0 does not settle within steps={steps} even "
+                         f"with every measurement (its limit exists); raise steps")
 
     if converges(0.0):
         return 0.0
@@ -606,6 +614,32 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
         else:
             lo = mid
     return hi
+
+
+def _dare_doubling(A, C, Q, R, doublings: int = 64) -> tuple:
+    """(converged, P): the limit of the Kalman filter's Riccati iteration P+ = A P A' + Q -
+    A P C'(C P C' + R)^-1 C P A' (float64 NumPy) by the structure-preserving doubling
+    algorithm (:func:`jaxnc.estimators.steady_state.dlqe`'s, on (A', C')): H_k is the
+    iteration after 2^k steps. Converged when a doubling changes H by less than 1e-9 of
+    it; not when H overflows or keeps growing (a mode the noise excites and C does not
+    see)."""
+    n = A.shape[0]
+    Ak, G, H = A.T.copy(), C.T @ np.linalg.solve(R, C), Q.copy()
+    I = np.eye(n)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(doublings):
+            W = I + G @ H
+            WA, WG = np.linalg.solve(W, Ak), np.linalg.solve(W, G)
+            Hn = H + Ak.T @ H @ WA
+            Hn = 0.5 * (Hn + Hn.T)
+            Ak, G = Ak @ WA, G + Ak @ WG @ Ak.T
+            G = 0.5 * (G + G.T)
+            if not np.all(np.isfinite(Hn)) or not np.all(np.isfinite(Ak)):
+                return False, Hn
+            if np.abs(Hn - H).max() <= 1e-9 * np.abs(Hn).max():
+                return True, Hn
+            H = Hn
+    return False, H
 
 
 def lyapunov_lower(A, Q, lam):

@@ -238,6 +238,17 @@ def test_critical_rate_does_not_depend_on_the_noise_scale():
         assert 1 - 1 / 1.69 <= st.lambda_max(1.3, 1.0, c, c, tol=tol) <= 1 - 1 / 1.69 + tol
 
 
+def test_critical_rate_of_a_slowly_converging_filter_is_not_read_as_infinite():
+    """A random walk observed through a precise-enough sensor with tiny process noise
+    (a = 1, q = 1e-8, r = 1): the Kalman filter's Riccati iteration converges, at a rate
+    1 - 2e-4 per step, so it had not settled within the default 20000 steps and lambda_max
+    read inf ("no arrival rate bounds the covariance"; the critical rate is 0). lambda = 1
+    is now decided by doubling; where the plain iteration cannot settle, it says so."""
+    with pytest.raises(ValueError, match="does not settle within steps=20000 even with every measurement"):
+        st.lambda_max(1.0, 1.0, 1e-8, 1.0)
+    assert st.lambda_max(1.0, 0.0, 1e-8, 1.0) == np.inf          # unobserved: still inf
+
+
 def test_critical_rate_upper_bound_for_one_output_closed_form():
     """A diagonal A seen through one output (C with no zero entry): the MARE has a solution
     iff lam > 1 - 1/prod|lambda_u|^2 over the unstable eigenvalues, which lambda_max meets
