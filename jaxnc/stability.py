@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_nonneg, check_positive, check_range
+from jaxnc._validate import check_int, check_nonneg, check_positive, check_range, concrete
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update_terms
 from jaxnc.loop.links import Bernoulli
 from jaxnc.loop.triggers import PetcState, petc_decide
@@ -350,10 +350,12 @@ def check_theorem1(b: Bounds, *, sigma: float, delta: float, N: int, gamma: floa
     """
     check_nonneg("sigma", sigma)
     check_nonneg("delta", delta)
+    check_int("check_theorem1: N", N, 1)
     b = Bounds(*(float(np.asarray(v)) for v in b))
     gamma = b.gamma if gamma is None else float(gamma)
     lam = b.lam if lam is None else float(lam)
     check_range("gamma", gamma, 0.0, 1.0, low_open=True)
+    check_range("check_theorem1: lam", lam, 0.0, 1.0)
     grid = np.logspace(-6, 6, 241) if grid is None else np.asarray(grid, np.float64)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         a1g, a2g = np.meshgrid(grid, grid, indexing="ij")
@@ -417,7 +419,18 @@ def bound_a21(k, *, eta, nu, p_lo, p_hi, e0):
 
 def mare_step(P, A, C, Q, R, lam):
     """Modified Riccati map g_lam(P) = A P A' + Q - lam A P C'(C P C' + R)^-1 C P A'
-    (Sinopoli et al. 2004, eq. 10); lam = 1 is the Kalman filter's Riccati map."""
+    (Sinopoli et al. 2004, eq. 10); lam = 1 is the Kalman filter's Riccati map.
+
+    P, A, Q float[n, n], C float[p, n], R float[p, p] (a scalar is 1 x 1: a scalar R with
+    p > 1 would otherwise be added to every entry of C P C'). Raises ValueError when the
+    shapes do not fit (naming the matrix), or a concrete lam is outside [0, 1]."""
+    A, C, Q, R = _system_jax("mare_step", A, C, Q, R)
+    P = _fit_p0("mare_step", P, A.shape[0])
+    _check_lam("mare_step", lam)
+    return _mare(P, A, C, Q, R, lam)
+
+
+def _mare(P, A, C, Q, R, lam):
     APC = A @ P @ C.T
     S = C @ P @ C.T + R
     G = A @ P @ A.T + Q - lam * APC @ jnp.linalg.solve(S, APC.T)
@@ -428,35 +441,90 @@ def mare_step(P, A, C, Q, R, lam):
 def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
     """``steps`` iterations of :func:`mare_step` from P0 (0 by default). Returns (P, change)
     where change is the relative change of the last iteration (small: converged; non-finite
-    or growing trace: no fixed point, lam below lambda_max)."""
-    A, C, Q, R = (jnp.asarray(a) for a in (A, C, Q, R))
-    P0 = jnp.zeros_like(Q) if P0 is None else jnp.asarray(P0)
+    or growing trace: no fixed point, lam below lambda_max). Shapes and lam as
+    :func:`mare_step` (ValueError otherwise)."""
+    A, C, Q, R = _system_jax("mare_iterate", A, C, Q, R)
+    _check_lam("mare_iterate", lam)
+    P0 = jnp.zeros_like(Q) if P0 is None else _fit_p0("mare_iterate", P0, A.shape[0])
 
     def body(_, c):
         P, _d = c
-        Pn = mare_step(P, A, C, Q, R, lam)
+        Pn = _mare(P, A, C, Q, R, lam)
         return Pn, jnp.linalg.norm(Pn - P) / jnp.maximum(jnp.linalg.norm(Pn), 1e-30)
 
     return jax.lax.fori_loop(0, steps, body, (P0, jnp.asarray(jnp.inf, Q.dtype)))
 
 
-def _system(fn: str, A, C=None, Q=None, R=None) -> tuple:
-    """(A, C, Q, R) as float64 2-D arrays (a scalar is 1 x 1), checked to fit: A n x n,
-    C p x n, Q n x n, R p x p. ValueError naming the argument otherwise."""
-    A = np.atleast_2d(np.asarray(A, np.float64))
+def _fit(fn: str, A, C=None, Q=None, R=None) -> None:
+    """A n x n, C p x n, Q n x n, R p x p (2-D arrays); ValueError naming the argument."""
     n = A.shape[0]
     if A.ndim != 2 or A.shape != (n, n):
         raise ValueError(f"{fn}: A must be a square matrix (n x n), got shape {A.shape}")
+    if C is not None and (C.ndim != 2 or C.shape[1] != n):
+        raise ValueError(f"{fn}: C must be p x n with n = {n} (A's size), got shape {C.shape}")
+    if Q is not None and Q.shape != (n, n):
+        raise ValueError(f"{fn}: Q must be n x n = {n} x {n} (A's size), got shape {Q.shape}")
+    if R is not None:
+        p = C.shape[0]
+        if R.shape != (p, p):
+            raise ValueError(f"{fn}: R must be p x p = {p} x {p} (C's rows), got shape {R.shape}")
+
+
+def _check_values(fn: str, r_definite: bool, **mats) -> None:
+    """Concrete matrices finite, Q symmetric PSD, R symmetric PSD (``r_definite``: PD);
+    ValueError naming the argument."""
+    for name, M in mats.items():
+        if M is None or not concrete(M):
+            continue
+        M = np.asarray(M, np.float64)
+        if not np.all(np.isfinite(M)):
+            raise ValueError(f"{fn}: {name} must be finite")
+        if name in ("Q", "R"):
+            definite = name == "R" and r_definite
+            low = np.linalg.eigvalsh(0.5 * (M + M.T)).min()
+            what = f"symmetric positive {'definite' if definite else 'semi-definite'} (a covariance)"
+            # symmetric to 1e-6 of its largest entry (a float32 product such as G G' is not exactly)
+            if not np.allclose(M, M.T, rtol=0.0, atol=1e-6 * np.abs(M).max()):
+                raise ValueError(f"{fn}: {name} must be {what}, got largest |{name} - {name}'| "
+                                 f"{np.abs(M - M.T).max():g}")
+            if low < 0 or (definite and low <= 0):
+                raise ValueError(f"{fn}: {name} must be {what}, got smallest eigenvalue {low:g}")
+
+
+def _check_lam(fn: str, lam) -> None:
+    """A concrete arrival rate in [0, 1] (a traced one is not checked)."""
+    if concrete(lam):
+        check_range(f"{fn}: lam", lam, 0.0, 1.0)
+
+
+def _fit_p0(fn: str, P0, n: int):
+    P0 = jnp.atleast_2d(jnp.asarray(P0))
+    if P0.shape != (n, n):
+        raise ValueError(f"{fn}: P must be n x n = {n} x {n} (A's size), got shape {P0.shape}")
+    return P0
+
+
+def _system_jax(fn: str, A, C, Q, R) -> tuple:
+    """(A, C, Q, R) as JAX 2-D arrays (a scalar is 1 x 1), checked to fit (:func:`_fit`) and,
+    when concrete, finite with Q PSD and R PSD."""
+    A, C, Q, R = (jnp.atleast_2d(jnp.asarray(a)) for a in (A, C, Q, R))
+    _fit(fn, A, C, Q, R)
+    _check_values(fn, False, A=A, C=C, Q=Q, R=R)
+    return A, C, Q, R
+
+
+def _system(fn: str, A, C=None, Q=None, R=None) -> tuple:
+    """(A, C, Q, R) as float64 2-D arrays (a scalar is 1 x 1), checked to fit: A n x n,
+    C p x n, Q n x n, R p x p; finite, Q symmetric PSD, R symmetric PD. ValueError naming
+    the argument otherwise."""
+    A = np.atleast_2d(np.asarray(A, np.float64))
     if C is None:
+        _fit(fn, A)
+        _check_values(fn, True, A=A)
         return (A,)
     C, Q, R = (np.atleast_2d(np.asarray(a, np.float64)) for a in (C, Q, R))
-    if C.ndim != 2 or C.shape[1] != n:
-        raise ValueError(f"{fn}: C must be p x n with n = {n} (A's size), got shape {C.shape}")
-    p = C.shape[0]
-    if Q.shape != (n, n):
-        raise ValueError(f"{fn}: Q must be n x n = {n} x {n} (A's size), got shape {Q.shape}")
-    if R.shape != (p, p):
-        raise ValueError(f"{fn}: R must be p x p = {p} x {p} (C's rows), got shape {R.shape}")
+    _fit(fn, A, C, Q, R)
+    _check_values(fn, True, A=A, C=C, Q=Q, R=R)
     return A, C, Q, R
 
 
@@ -475,38 +543,67 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     threshold the iteration slows down, so the value is an upper estimate within ``tol``
     plus the effect of the finite ``steps``. As in Sinopoli et al. (2004), (A, Q^1/2) is
     taken controllable: a mode the noise does not excite stays known exactly from P = 0.
+    The result does not depend on the scale of the noise: (Q, R) and c (Q, R) give the same.
 
     Args:
-      A: float[n, n]; C: float[p, n]; Q: float[n, n]; R: float[p, p] (scalars are 1 x 1).
+      A: float[n, n]; C: float[p, n]; Q: float[n, n] symmetric PSD; R: float[p, p] symmetric
+        PD (scalars are 1 x 1).
+      tol: > 0, the bisection's resolution; steps: iterations per trial rate.
+      blowup: an iteration whose trace exceeds ``blowup`` times the trace of the Kalman
+        filter's stationary prior covariance (the iteration's limit at lam = 1) is taken to
+        diverge; relative, so that it does not depend on the scale of Q and R.
     Returns:
       0.0 when the iteration converges without any measurement (lam = 0: A's noisy modes are
       stable); ``inf`` when it does not converge even with every measurement (lam = 1: an
       unstable or marginal mode that the noise excites and C does not see, i.e. (A, C) not
       detectable): no arrival rate bounds the error covariance.
     Raises:
-      ValueError: the matrices do not fit (naming which), ``tol`` <= 0.
+      ValueError: the matrices do not fit or are not finite, Q not PSD or R not PD (naming
+        which), ``tol`` or ``blowup`` <= 0, ``steps`` not an integer >= 1, or ``steps`` too
+        few for the iteration to settle even at lam = 1 (whose limit exists: the doubling
+        algorithm decides lam = 1).
     """
     A, C, Q, R = _system("lambda_max", A, C, Q, R)
     check_positive("lambda_max.tol", tol)
+    check_positive("lambda_max.blowup", blowup)
+    check_int("lambda_max.steps", steps, 1)
 
-    def converges(lam):
+    def iterate(lam, limit):
+        """(converged, P) after at most ``steps`` iterations from 0; divergence when the
+        trace exceeds ``limit`` or is not finite."""
         P = np.zeros_like(Q)
         for _ in range(steps):
-            APC = A @ P @ C.T
-            Pn = A @ P @ A.T + Q - lam * APC @ np.linalg.solve(C @ P @ C.T + R, APC.T)
-            Pn = 0.5 * (Pn + Pn.T)        # see mare_step
+            with np.errstate(over="ignore", invalid="ignore"):       # overflow is divergence, read below
+                APC = A @ P @ C.T
+                Pn = A @ P @ A.T + Q - lam * APC @ np.linalg.solve(C @ P @ C.T + R, APC.T)
+                Pn = 0.5 * (Pn + Pn.T)    # see mare_step
             tr = np.trace(Pn)
-            if not np.isfinite(tr) or tr > blowup:
-                return False
-            if np.linalg.norm(Pn - P) <= 1e-10 * np.linalg.norm(Pn):
-                return True
+            if not np.isfinite(tr) or tr > limit:
+                return False, Pn
+            # largest entries, not Frobenius norms: their squares would overflow to inf <= inf
+            if np.abs(Pn - P).max() <= 1e-10 * np.abs(Pn).max():
+                return True, Pn
             P = Pn
-        return False
+        return False, P
+
+    # lam = 1 (the Kalman filter) first, by doubling: it decides in a few dozen steps whether
+    # the Riccati iteration has a limit, where the plain iteration may need far more than
+    # ``steps`` (a slowly converging filter read inf); its limit sets the divergence limit
+    # of the others relative to the covariance's own scale
+    ok1, P1 = _dare_doubling(A, C, Q, R)
+    if not ok1:                  # then no lam <= 1 converges either (monotone in lam)
+        return float("inf")
+    limit = blowup * np.trace(P1)
+
+    def converges(lam):
+        return iterate(lam, limit)[0]
+
+    if not converges(1.0):
+        raise ValueError(f"lambda_max: the Riccati iteration from 0 does not settle within steps={steps} even "
+                         f"with every measurement (its limit exists); raise steps")
 
     if converges(0.0):
         return 0.0
-    if not converges(1.0):
-        return float("inf")
     lo, hi = lambda_min(A), 1.0
     if converges(lo + 1e-12) and lo > 0:
         return lo
@@ -519,11 +616,41 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     return hi
 
 
+def _dare_doubling(A, C, Q, R, doublings: int = 64) -> tuple:
+    """(converged, P): the limit of the Kalman filter's Riccati iteration P+ = A P A' + Q -
+    A P C'(C P C' + R)^-1 C P A' (float64 NumPy) by the structure-preserving doubling
+    algorithm (:func:`jaxnc.estimators.steady_state.dlqe`'s, on (A', C')): H_k is the
+    iteration after 2^k steps. Converged when a doubling changes H by less than 1e-9 of
+    it; not when H overflows or keeps growing (a mode the noise excites and C does not
+    see)."""
+    n = A.shape[0]
+    Ak, G, H = A.T.copy(), C.T @ np.linalg.solve(R, C), Q.copy()
+    I = np.eye(n)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for _ in range(doublings):
+            W = I + G @ H
+            WA, WG = np.linalg.solve(W, Ak), np.linalg.solve(W, G)
+            Hn = H + Ak.T @ H @ WA
+            Hn = 0.5 * (Hn + Hn.T)
+            Ak, G = Ak @ WA, G + Ak @ WG @ Ak.T
+            G = 0.5 * (G + G.T)
+            if not np.all(np.isfinite(Hn)) or not np.all(np.isfinite(Ak)):
+                return False, Hn
+            if np.abs(Hn - H).max() <= 1e-9 * np.abs(Hn).max():
+                return True, Hn
+            H = Hn
+    return False, H
+
+
 def lyapunov_lower(A, Q, lam):
     """Lower bound S on lim E[P_k]: the solution of S = (1 - lam) A S A' + Q (Sinopoli et al.
-    2004, Theorem 4), or inf when (1 - lam) rho(A)^2 >= 1."""
+    2004, Theorem 4), or inf when (1 - lam) rho(A)^2 >= 1. A, Q float[n, n] (scalars are
+    1 x 1), Q symmetric PSD; lam in [0, 1]. ValueError naming the argument otherwise."""
     from scipy.linalg import solve_discrete_lyapunov
     A, Q = (np.atleast_2d(np.asarray(a, np.float64)) for a in (A, Q))
+    _fit("lyapunov_lower", A, Q=Q)
+    _check_values("lyapunov_lower", True, A=A, Q=Q)
+    check_range("lyapunov_lower: lam", lam, 0.0, 1.0)
     rho = np.max(np.abs(np.linalg.eigvals(A)))
     if (1 - lam) * rho ** 2 >= 1:
         return np.full_like(Q, np.inf)
@@ -534,13 +661,16 @@ def random_riccati(key, A, C, Q, R, lam, steps: int, P0=None):
     """Error covariance of the Kalman filter with Bernoulli(lam) arrivals (it does not
     depend on the measured values): P_{k+1} = A P A' + Q - gamma_k A P C'(C P C' + R)^-1 C P A'.
     Returns trace(P_k), k = 1..steps. vmap over keys for a Monte-Carlo; lam may be traced.
-    Overflow gives inf: divergence is data."""
-    A, C, Q, R = (jnp.asarray(a) for a in (A, C, Q, R))
-    P0 = Q if P0 is None else jnp.asarray(P0)
+    Overflow gives inf: divergence is data. Shapes as :func:`mare_step` (scalars are 1 x 1;
+    R may be singular where C P C' is not, e.g. R = 0 with an invertible C and P0 = Q > 0);
+    ValueError when they do not fit, or for a concrete lam outside [0, 1]."""
+    A, C, Q, R = _system_jax("random_riccati", A, C, Q, R)
+    _check_lam("random_riccati", lam)
+    P0 = Q if P0 is None else _fit_p0("random_riccati", P0, A.shape[0])
     gam = (jax.random.uniform(key, (steps,)) < lam).astype(Q.dtype)
 
     def body(P, g):
-        Pn = mare_step(P, A, C, Q, R, g)
+        Pn = _mare(P, A, C, Q, R, g)
         return Pn, jnp.trace(Pn)
 
     _, tr = jax.lax.scan(body, P0, gam)

@@ -19,6 +19,9 @@ from jaxnc.paths import from_waypoints
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
+from jaxnc.estimators.ekf_batched import ekf_filter
+from jaxnc.estimators.steady_state import dlqe
+from jaxnc.estimators.ukf import merwe_sigma_points
 from jaxnc.schemes import diffdrive, mecanum
 
 
@@ -68,6 +71,8 @@ def test_cli_command_line_errors(args, fragment, tmp_path, capsys):
 
 _KEY = jax.random.PRNGKey(0)
 _PLANT = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]])
+_A_NUMRE = [[1.0, 0.1], [0.0, 0.9]]
+_PLANT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]])
 _G = Gaussian(jnp.zeros(2), jnp.eye(2))
 _F = lambda x, u, w: x + w            # noqa: E731
 _H = lambda x, v: x[:1] + v           # noqa: E731
@@ -174,7 +179,20 @@ PYTHON_API = [
     (lambda: ekf_update(_H, _G, jnp.zeros(1), -np.eye(1), 1), "ekf_update: R must be positive definite"),
     (lambda: ekf_update(_H, _G, jnp.zeros(1), np.eye(1), 0), "ekf_update: noise_dim must be an integer >= 1"),
     (lambda: ekf_update(_H, _G, jnp.zeros(3), np.eye(1), 1), "ekf_update: z must have the shape of h(x, v), (1,)"),
+    # an asymmetric covariance passed the definiteness check of its symmetric part and was used as given
+    # (dlqe with R = [[1, .5], [-.5, 1]] gave another P than for its symmetric part I, without an error)
+    (lambda: ekf_predict(_F, _G, jnp.zeros(1), np.array([[1.0, 0.5], [-0.5, 1.0]]), 2), "ekf_predict: Q must be symmetric"),
+    (lambda: dlqe(np.eye(2) * 0.9, np.eye(2), np.eye(2), np.eye(2), [[1.0, 0.5], [-0.5, 1.0]]), "dlqe: R must be symmetric"),
+    (lambda: nc.SteadyStateKF(_PLANT_DETECTABLE, Q=[[1.0, 0.5], [-0.5, 1.0]], R=np.eye(1)),
+     "SteadyStateKF.Q must be symmetric"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), -np.ones(1), 1), "ekf_update_diag: r must be positive definite"),
+    # the batched filter took a negative variance and returned a negative covariance (-0.67) without an error
+    (lambda: ekf_filter(lambda x, u, w: x + w, lambda x, v: x + v, Gaussian(jnp.zeros((2, 1)), jnp.ones((2, 1, 1))),
+                        jnp.zeros((2, 3, 1)), jnp.ones((2, 3, 1)), jnp.ones((2, 3), bool), jnp.ones(1), -0.5 * jnp.ones(1),
+                        noise_dim=1), "ekf_filter: r must be positive definite"),
+    (lambda: ekf_filter(lambda x, u, w: x + w, lambda x, v: x + v, Gaussian(jnp.zeros((2, 1)), jnp.ones((2, 1, 1))),
+                        jnp.zeros((2, 3, 1)), jnp.ones((2, 3, 1)), jnp.ones((2, 3), bool), -jnp.ones(1), jnp.ones(1),
+                        noise_dim=1), "ekf_filter: Q must be positive semi-definite"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), np.ones(3), 1), "ekf_update_diag: r must be a vector of 1 variances"),
     # the runner's components
     (lambda: nc.Bernoulli(p=None), "Bernoulli.p must be a number"),
@@ -221,6 +239,46 @@ PYTHON_API = [
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0, 0.0]], np.eye(2), [[1.0]]), "lambda_max: C must be p x n with n = 2"),
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(3), [[1.0]]), "lambda_max: Q must be n x n = 2 x 2"),
     (lambda: stability.lambda_max(np.eye(2), [[1.0, 0.0]], np.eye(2), np.eye(2)), "lambda_max: R must be p x p = 1 x 1"),
+    # a non-PD R failed with NumPy's "Singular matrix", a NaN A read inf, a lam outside [0, 1] ran,
+    # a scalar R for two outputs was added to every entry of C P C' (a wrong trace, no error)
+    (lambda: stability.lambda_max(1.3, 1.0, 1.0, 0.0), "lambda_max: R must be symmetric positive definite"),
+    (lambda: stability.lambda_max(1.3, 1.0, -1.0, 1.0), "lambda_max: Q must be symmetric positive semi-definite"),
+    (lambda: stability.lambda_max(np.nan, 1.0, 1.0, 1.0), "lambda_max: A must be finite"),
+    (lambda: stability.lambda_max(1.3, 1.0, 1.0, 1.0, steps=0), "lambda_max.steps must be an integer in [1, inf)"),
+    (lambda: stability.lambda_min(np.nan), "lambda_min: A must be finite"),
+    (lambda: stability.lyapunov_lower(1.3, 1.0, -0.5), "lyapunov_lower: lam must be in [0, 1]"),
+    (lambda: stability.lyapunov_lower(np.eye(2), np.eye(3), 0.5), "lyapunov_lower: Q must be n x n = 2 x 2"),
+    (lambda: stability.random_riccati(jax.random.PRNGKey(0), np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3),
+     "random_riccati: R must be p x p = 2 x 2"),
+    (lambda: stability.random_riccati(jax.random.PRNGKey(0), 1.3, 1.0, 1.0, 1.0, 1.5, 3),
+     "random_riccati: lam must be in [0, 1]"),
+    (lambda: stability.mare_iterate(np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3), "mare_iterate: R must be p x p"),
+    (lambda: stability.mare_step(np.eye(2), np.eye(2), np.eye(2), -np.eye(2), np.eye(2), 0.5),
+     "mare_step: Q must be symmetric positive semi-definite"),
+    # Theorem 1's check: N = 0 failed with ZeroDivisionError, a negative arrival rate ran
+    (lambda: stability.check_theorem1(stability.Bounds(*([1.0] * 15)), sigma=0.0, delta=0.0, N=0),
+     "check_theorem1: N must be an integer in [1, inf)"),
+    (lambda: stability.check_theorem1(stability.Bounds(*([1.0] * 15)), sigma=0.0, delta=0.0, N=2, lam=-1.0),
+     "check_theorem1: lam must be in [0, 1]"),
+    # a slow-period system of N = 0 (or < 0) fast periods returned A itself, not A^0 = I
+    (lambda: nc.slow_system(np.eye(2) * 0.5, np.ones((2, 1)), 0), "slow_system: N must be an integer in [1, inf)"),
+    (lambda: nc.stationary_gain(nc.SteadyStateKF(_PLANT_DETECTABLE, Q=np.eye(2), R=np.eye(1)), -1),
+     "stationary_gain: N must be an integer in [1, inf)"),
+    # the NUMRE filter's noise and prior were not checked: a negative W or cov0 ran with wrong gains
+    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], -1.0, 0.01, 4, cov0=np.eye(2)),
+     "Numre.W must be a symmetric positive semi-definite covariance"),
+    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], 1.0, 0.01, 4, cov0=-np.eye(2)),
+     "Numre.cov0 must be a symmetric positive semi-definite covariance"),
+    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], 1.0, 0.01, 4, cov0=np.eye(3)),
+     "Numre.cov0 must be 2x2 (A's size)"),
+    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], 1.0, 0.01, 4, cov0=np.eye(2),
+                             mean0=[0.0, 0.0, 0.0]), "Numre.mean0 must have 2 entries"),
+    # Merwe's sigma points with n + kappa <= 0 (zero or negative spread) gave NaN estimates without an error
+    (lambda: nc.UKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), kappa=-3.0),
+     "UKF.kappa must be > -n = -2"),
+    (lambda: merwe_sigma_points(Gaussian(jnp.zeros(2), jnp.eye(2)), kappa=-2.0),
+     "merwe_sigma_points: kappa must be > -n = -2"),
+    (lambda: merwe_sigma_points(Gaussian(jnp.zeros(2), jnp.eye(2)), alpha=0.0), "merwe_sigma_points: alpha must be > 0"),
     # the differential-drive robot's and the pursuit's numbers are single numbers (a vector failed
     # inside the trace with jax's message, or, for K, tau, u_max and assumed_delay, ran)
     (lambda: nc.DiffDrive(r=[0.028, 0.03]), "DiffDrive.r must be a single number, got shape (2,)"),
@@ -263,6 +321,9 @@ EKF_ARGS = [
     (dict(cov0=np.array([[1.0, 2.0], [0.0, 1.0]])), "EKF.cov0 must be symmetric"),
     (dict(R=-np.eye(1)), "EKF.R must be positive"), (dict(Q=[1.0, -1.0]), "EKF.Q"),
     (dict(buffer=-1), "EKF.buffer must be an integer"),
+    # the unscented form with n + kappa <= 0 or a singular cov0 ran and estimated NaN
+    (dict(form="unscented", sigma_points=(1.0, 2.0, -2.0)), "EKF.sigma_points' kappa must be > -n = -2"),
+    (dict(form="unscented", cov0=np.zeros((2, 2))), "EKF.cov0 must be positive definite with form='unscented'"),
 ]
 
 

@@ -227,6 +227,55 @@ def test_critical_rate_is_zero_for_a_stable_plant_and_infinite_for_an_undetectab
     assert st.lambda_min(1.3) == pytest.approx(1 - 1 / 1.69)     # a scalar is 1 x 1, as in lambda_max
 
 
+def test_critical_rate_does_not_depend_on_the_noise_scale():
+    """The MARE is homogeneous: (Q, R) -> c (Q, R) scales P by c, so lambda_max is the same.
+    Its divergence test compared the trace with an absolute 1e12: with Q = R = 1e13 I the
+    first iterate already exceeded it, and a stable plant read inf (it is 0), an unstable
+    scalar one inf (it is 1 - 1/a^2)."""
+    tol = 2e-3
+    for c in (1e-12, 1.0, 1e13):
+        assert st.lambda_max(0.5, 1.0, c, c, tol=tol) == 0.0
+        assert 1 - 1 / 1.69 <= st.lambda_max(1.3, 1.0, c, c, tol=tol) <= 1 - 1 / 1.69 + tol
+
+
+def test_critical_rate_of_a_slowly_converging_filter_is_not_read_as_infinite():
+    """A random walk observed through a precise-enough sensor with tiny process noise
+    (a = 1, q = 1e-8, r = 1): the Kalman filter's Riccati iteration converges, at a rate
+    1 - 2e-4 per step, so it had not settled within the default 20000 steps and lambda_max
+    read inf ("no arrival rate bounds the covariance"; the critical rate is 0). lambda = 1
+    is now decided by doubling; where the plain iteration cannot settle, it says so."""
+    with pytest.raises(ValueError, match="does not settle within steps=20000 even with every measurement"):
+        st.lambda_max(1.0, 1.0, 1e-8, 1.0)
+    assert st.lambda_max(1.0, 0.0, 1e-8, 1.0) == np.inf          # unobserved: still inf
+
+
+def test_critical_rate_upper_bound_for_one_output_closed_form():
+    """A diagonal A seen through one output (C with no zero entry): the MARE has a solution
+    iff lam > 1 - 1/prod|lambda_u|^2 over the unstable eigenvalues, which lambda_max meets
+    from above within tol (two cases: two unstable modes; a sign-changing mode, a stable
+    one, another C and Q)."""
+    tol = 2e-3
+    cases = [(np.diag([1.3, 1.2]), [[1.0, 1.0]], np.eye(2), 1.3 * 1.2),
+             (np.diag([1.3, -1.1, 0.5]), [[1.0, 2.0, 1.0]], np.diag([1.0, 3.0, 0.5]), 1.3 * 1.1)]
+    for A, C, Q, prod in cases:
+        exact = 1 - 1 / prod ** 2
+        assert exact <= st.lambda_max(A, C, Q, [[1.0]], tol=tol) <= exact + tol
+
+
+def test_riccati_maps_refuse_a_scalar_R_for_several_outputs():
+    """A scalar R with p = 2 outputs was added to every entry of C P C' (not R I): the
+    random Riccati recursion returned a wrong trace (2.74 for 3.09) and the MARE iteration
+    NaN, without an error."""
+    A, C, Q = np.diag([1.2, 0.5]), np.eye(2), np.eye(2)
+    with pytest.raises(ValueError, match="R must be p x p = 2 x 2"):
+        st.random_riccati(jax.random.PRNGKey(0), A, C, Q, 1.0, 0.9, 5)
+    with pytest.raises(ValueError, match="R must be p x p = 2 x 2"):
+        st.mare_iterate(A, C, Q, 1.0, 0.9, 5)
+    # a scalar stays a 1 x 1 matrix where p = 1
+    P, _ = st.mare_iterate(1.3, 1.0, 1.0, 2.0, 0.8, 500)
+    assert P.shape == (1, 1)
+
+
 def test_random_riccati_scalar_closed_form():
     """R = 0, C = 1: P resets to Q on arrival, so E[P] -> Q / (1 - (1 - lam) a^2)."""
     with jax.enable_x64(True):

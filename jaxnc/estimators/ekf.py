@@ -19,7 +19,7 @@ precise measurements (docs/build_your_own_loop.md, "Covariance in float32").
 
 Every function checks the static shapes of its noise covariance against the model when
 it is traced (ValueError naming ``Q``/``R``/``r``/``noise_dim``/``z`` and the expected
-shape), and, when the covariance is concrete (not a tracer), that it is positive
+shape), and, when the covariance is concrete (not a tracer), that it is symmetric and positive
 semi-definite (``R``: definite).
 """
 from __future__ import annotations
@@ -96,6 +96,10 @@ def _check_cov(where: str, name: str, M, dim: int, *, form: str, definite: bool)
         return
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{where}: {name} must be finite")
+    if a.ndim == 2 and not np.allclose(a, a.T, rtol=0.0, atol=1e-6 * max(np.abs(a).max(), np.finfo(float).tiny)):
+        # a covariance is symmetric; an asymmetric one's inverse (R) is not that of its symmetric part
+        raise ValueError(f"{where}: {name} must be symmetric (a covariance), got largest |{name} - {name}'| "
+                         f"{np.abs(a - a.T).max():g}")
     low = a.min() if a.ndim == 1 else np.linalg.eigvalsh(0.5 * (a + a.T)).min()
     if low < 0 or (definite and low <= 0):
         raise ValueError(f"{where}: {name} must be positive {'definite' if definite else 'semi-definite'} "

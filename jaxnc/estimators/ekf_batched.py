@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-from jaxnc.estimators.ekf import Gaussian
+from jaxnc.estimators.ekf import Gaussian, _check_cov
 from jaxnc.estimators.covariance import predict_cov, update_diag
 from jaxnc.estimators.sparsity import EKFStructure, check_shape, embed, jacobian_columns
 
@@ -226,6 +226,11 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
 
     Returns:
       the final beliefs (batch-first), and the means if ``return_means``.
+
+    Raises:
+      ValueError: shapes that do not fit (naming the argument), a model that does not
+        broadcast over the batch axis, and (when concrete) a Q that is not PSD or an r with
+        an entry <= 0 (naming ``Q`` / ``r``).
     """
     mean0, cov0 = jnp.asarray(belief0.mean), jnp.asarray(belief0.cov)
     us, zs, valid = jnp.asarray(us), jnp.asarray(zs), jnp.asarray(valid)
@@ -241,6 +246,8 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
     if Q.shape not in ((noise_dim, noise_dim), (noise_dim,)) or r.shape != (m,):
         raise ValueError(f"ekf_filter: Q must be ({noise_dim}, {noise_dim}) or ({noise_dim},) (diagonal) and r ({m},); "
                          f"got {Q.shape}, {r.shape}")
+    _check_cov("ekf_filter", "Q", Q, noise_dim, form="either", definite=False)    # when concrete: PSD
+    _check_cov("ekf_filter", "r", r, m, form="vector", definite=True)             # variances > 0
     if structure is not None:
         for name, pat, want in zip("ALH", structure, ((n, n), (n, noise_dim), (m, n))):
             check_shape("ekf_filter", name, pat, want)

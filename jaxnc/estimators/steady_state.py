@@ -78,7 +78,8 @@ def dlqe(A, G, C, Q, R, *, iterations: int = 60):
       (L float[n, p], P float[n, n], E complex[n]).
 
     Raises:
-      ValueError: shapes that do not match, Q not PSD or R not PD (when concrete), and,
+      ValueError: shapes that do not match, Q or R not symmetric, Q not PSD or R not PD
+        (when concrete), and,
         when every input is concrete, no stabilising solution (A - L C not Schur: (A, C)
         must be detectable and (A, G Q^1/2) stabilisable). Schur means a spectral radius
         below 1 - 1e-5: in float32 an undetectable mode on the unit circle (an oscillation

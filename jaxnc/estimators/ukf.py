@@ -25,6 +25,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxnc._validate import concrete
 from jaxnc.estimators.ekf import Gaussian, _check_cov, _check_z, _noise_dim, _symmetrize
 
 __all__ = ["SigmaPoints", "merwe_sigma_points", "ukf_predict", "ukf_update"]
@@ -54,9 +55,17 @@ def merwe_sigma_points(belief: Gaussian, *, alpha=1.0, beta=2.0, kappa=0.0) -> S
 
     Returns:
       :class:`SigmaPoints` with 2n + 1 points.
+
+    Raises:
+      ValueError: a concrete alpha <= 0 or kappa <= -n (n + lambda = alpha^2 (n + kappa)
+        would divide the weights by zero or have no Cholesky factor: NaN without an error).
     """
     x = belief.mean
     n = x.shape[0]
+    if concrete(alpha) and not float(alpha) > 0:
+        raise ValueError(f"merwe_sigma_points: alpha must be > 0, got {alpha!r}")
+    if concrete(kappa) and not n + float(kappa) > 0:
+        raise ValueError(f"merwe_sigma_points: kappa must be > -n = {-n} (n + kappa > 0), got {kappa!r}")
     dt = x.dtype
     alpha, beta, kappa = (jnp.asarray(v, dt) for v in (alpha, beta, kappa))
     lam = alpha ** 2 * (n + kappa) - n

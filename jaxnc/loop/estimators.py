@@ -120,6 +120,11 @@ class EKF(AbstractEstimator):
         if not (isinstance(sp, tuple) and len(sp) == 3 and all(isinstance(v, (int, float)) for v in sp)
                 and np.all(np.isfinite(sp)) and sp[0] > 0):
             raise ValueError(f"EKF.sigma_points must be (alpha > 0, beta, kappa), three numbers, got {sp!r}")
+        n_state = self.model.state_dim
+        if self.form == "unscented" and not n_state + sp[2] > 0:
+            # n + lambda = alpha^2 (n + kappa): zero divides the weights, negative has no Cholesky factor
+            raise ValueError(f"EKF.sigma_points' kappa must be > -n = {-n_state} (n + kappa > 0, n the model's "
+                             f"state), got {sp[2]!r}")
         if not concrete(self.Q, self.R, self.mean0, self.cov0):     # the model's sizes are class data
             return
         n, q, p = self.model.state_dim, self.model.noise_dim, self.model.output_dim
@@ -144,6 +149,9 @@ class EKF(AbstractEstimator):
                 raise ValueError(f"EKF.{name} must be positive semi-definite")
         if np.linalg.eigvalsh(R.astype(float)).min() <= 0:
             raise ValueError("EKF.R must be positive definite")
+        if self.form == "unscented" and np.linalg.eigvalsh(P0.astype(float)).min() <= 0:
+            raise ValueError("EKF.cov0 must be positive definite with form='unscented' (the sigma points use its "
+                             "Cholesky factor)")
         if Q.ndim == 1 and Q.min() < 0:
             raise ValueError("EKF.Q's variances must be >= 0")
         for name, M in (("Q", Q), ("R", R), ("mean0", m0), ("cov0", P0)):   # the state's dtype, also under x64

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_choice, check_int, check_nonneg
+from jaxnc._validate import check_choice, check_finite, check_int, check_nonneg
 from jaxnc.estimators.numre import NumreTables, numre_correct, numre_tables
 from jaxnc.loop.base import AbstractEstimator, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
@@ -78,14 +78,31 @@ class Numre(AbstractEstimator):
         """The filter of the model x+ = A x + B u + Bw w, y = C x + v, Cov(w) = W (scalar or
         float[q, q], Bw float[n] or float[n, q]), Var(v) = V (single output: C float[n]),
         with tables up to the multiplicity ``n_max``. Raises ValueError for n_max < 1, a
-        negative V, a C with more than one row or an unknown ``we_form``."""
+        negative V, a C with more than one row or an unknown ``we_form``, an A that is not
+        square, a W that is not a PSD covariance, a cov0 that is not n x n symmetric PSD,
+        a mean0 without n entries, or non-finite numbers (each naming the argument)."""
         check_int("Numre.n_max", n_max, 1)
         check_nonneg("Numre.V", V)
+        for name, v in (("A", A), ("B", B), ("Bw", Bw), ("C", C), ("W", W), ("cov0", cov0)) + (
+                (("mean0", mean0),) if mean0 is not None else ()):
+            check_finite(f"Numre.{name}", v)
         A = np.asarray(A, float)
-        n = A.shape[0]
+        n = A.shape[0] if A.ndim else 0
+        if A.shape != (n, n) or n == 0:
+            raise ValueError(f"Numre.A must be a square matrix (n x n), got shape {A.shape}")
         C = np.asarray(C, float)
         if C.size != n:
             raise ValueError(f"Numre.C must be one output row of {n} entries (single output), got shape {C.shape}")
+        for name, M, shapes in (("W", np.atleast_2d(np.asarray(W, float)), None),
+                                ("cov0", np.asarray(cov0, float), ((n, n),))):
+            if shapes is not None and M.shape not in shapes:
+                raise ValueError(f"Numre.{name} must be {n}x{n} (A's size), got shape {M.shape}")
+            if M.ndim != 2 or M.shape[0] != M.shape[1] or not np.allclose(M, M.T) \
+                    or np.linalg.eigvalsh(0.5 * (M + M.T)).min() < 0:
+                raise ValueError(f"Numre.{name} must be a symmetric positive semi-definite covariance "
+                                 f"(a number >= 0 or a square matrix), got {M.tolist()}")
+        if mean0 is not None and np.shape(mean0) != (n,):
+            raise ValueError(f"Numre.mean0 must have {n} entries (A's size), got shape {np.shape(mean0)}")
         tables = numre_tables(A, Bw, C.reshape(n), W, V, n_max, we_form=we_form)
         f = lambda a: jnp.asarray(a, jnp.float32)
         mean0 = np.zeros(n) if mean0 is None else mean0

@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, concrete, fields_concrete
+from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
+                             fields_concrete)
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import _SCHUR_MARGIN, dlqe, luenberger_step
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
@@ -52,7 +53,9 @@ __all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState
 
 def slow_system(A, B, N: int):
     """(A_N float[n, n], B_N float[n, N m]): x_{k+1} = A_N x_k + B_N [u_0; ...; u_{N-1}]
-    over N fast periods (N static)."""
+    over N fast periods (N static, an integer >= 1: ValueError otherwise; N = 0 returned
+    A itself)."""
+    check_int("slow_system: N", N, 1)
     A, B = jnp.asarray(A), jnp.asarray(B)
     powers = [jnp.eye(A.shape[0], dtype=A.dtype)]
     for _ in range(N - 1):
@@ -68,7 +71,7 @@ def _slow_noise(A, G, Q, N: int):
     for _ in range(N - 1):
         term = A @ term @ A.T
         acc = acc + term
-    return acc
+    return 0.5 * (acc + acc.T)          # exactly symmetric, as dlqe requires of a covariance
 
 
 def _check_linear(owner, obj):
@@ -187,6 +190,8 @@ def _check_covariances(owner, model, Q, R):
                          f"got shape {Qa.shape}")
     if Ra.shape != (p, p):
         raise ValueError(f"{owner}.R must be {p}x{p} (the model's output_dim), got shape {Ra.shape}")
+    if Qa.ndim == 2 and not np.allclose(Qa, Qa.T):
+        raise ValueError(f"{owner}.Q must be symmetric (a covariance)")
     if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < 0):
         raise ValueError(f"{owner}.Q must be positive semi-definite")
     if not np.allclose(Ra, Ra.T) or np.linalg.eigvalsh((Ra + Ra.T) / 2).min() <= 0:
@@ -262,7 +267,9 @@ class SteadyStateKF(AbstractEstimator):
 
 def stationary_gain(kf: SteadyStateKF, N: int = 1):
     """(M float[n, p], P float[n, n]): the filter gain and the prior covariance of the
-    slow-period system with N fast periods per slow period."""
+    slow-period system with N fast periods per slow period (an integer >= 1: ValueError
+    naming N otherwise)."""
+    check_int("stationary_gain: N", N, 1)
     A, C, G = jnp.asarray(kf.model.A), jnp.asarray(kf.model.C), jnp.asarray(kf.model.G)
     A_N, _ = slow_system(A, jnp.asarray(kf.model.B), N)
     Q_N = _slow_noise(A, G, kf.Q, N)
@@ -282,10 +289,10 @@ def UKF(model, Q, R, mean0, cov0, alpha=1.0, beta=2.0, kappa=0.0, *, buffer: int
 
     Args: model (an :class:`~jaxnc.loop.base.AbstractPlant`), Q float[q, q] or float[q], R
     float[p, p], mean0 float[n], cov0 float[n, n] (positive definite: the sigma points use
-    its Cholesky factor); alpha > 0, beta, kappa (static numbers); buffer, inputs as the EKF's.
+    its Cholesky factor); alpha > 0, beta, kappa > -n (static numbers); buffer, inputs as the EKF's.
 
     Raises: ValueError naming the field (``UKF.cov0`` not positive definite, ``UKF.inputs``,
-    ``UKF.alpha``..., and the EKF's own checks).
+    ``UKF.alpha`` <= 0, ``UKF.kappa`` <= -n, and the EKF's own checks).
     """
     _check_inputs("UKF", inputs)
     for n, v in (("alpha", alpha), ("beta", beta), ("kappa", kappa)):
@@ -295,6 +302,9 @@ def UKF(model, Q, R, mean0, cov0, alpha=1.0, beta=2.0, kappa=0.0, *, buffer: int
             raise ValueError(f"UKF.{n} must be a single number, got shape {np.shape(v)}")
     if float(alpha) <= 0:
         raise ValueError(f"UKF.alpha must be > 0, got {float(alpha):g}")
+    if not model.state_dim + float(kappa) > 0:
+        raise ValueError(f"UKF.kappa must be > -n = {-model.state_dim} (n + kappa > 0, n the model's state: the "
+                         f"sigma points' spread alpha^2 (n + kappa)), got {float(kappa):g}")
     check_given("UKF.cov0", cov0)
     check_finite("UKF.cov0", cov0)
     if not isinstance(cov0, jax.Array):

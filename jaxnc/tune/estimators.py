@@ -1,7 +1,7 @@
 """Gradients through event triggers: the estimators and how to pick one.
 
 A trigger fires when a gap g(theta) > 0 (seed 000 eq. 4: g = ||zbar - z||^2 -
-sum_i sigma(i) z(i)^2 + delta(i)); beta = 1[g > 0] is a step function, so its exact
+sum_i (sigma(i) z(i)^2 + delta(i))); beta = 1[g > 0] is a step function, so its exact
 derivative is zero almost everywhere and d J / d theta of any closed-loop cost J
 built on it carries no information.  jaxnc offers:
 
