@@ -14,6 +14,7 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo, stability, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
+from jaxnc.design.mrci import decompose as mrci_decompose
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
 from jaxnc.experiment import Experiment as _Experiment
@@ -83,6 +84,17 @@ def _dual_rate(T, N):
     import control
     return DualRateController.from_design(dualrate_design(control.tf([0.1276], [0.1235, 1.0]), pi_controller(6.0, 0.12),
                                                           T, N))
+
+
+def _tf(num, den, *dt):
+    import control
+    return control.tf(num, den, *dt)
+
+
+def _design(gp=([0.1276], [0.1235, 1.0]), c=None, T=0.1, N=2):
+    """dualrate_design with seed 004's motor and PI unless told otherwise (gp: (num, den[, dt]) or a system)."""
+    gp = _tf(*gp) if isinstance(gp, tuple) else gp
+    return dualrate_design(gp, pi_controller(6.0, 0.12) if c is None else c, T, N)
 
 
 def _loop(**kw):
@@ -227,6 +239,21 @@ PYTHON_API = [
     (lambda: _pursuit(path=from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.001), v_ref=0.5),
      "PursuitPI.window (40 path points, 0.039 m of progress per sensing period at the path's spacing 0.001 m) must "
      "cover the arc the robot travels in one sensing period at v_ref (0.05 m"),
+    # dual-rate design (nu7): a plant whose poles G2 cancels gave an internally unstable loop (lifted
+    # eigenvalue e^{NT} for 1/(s - 1), 1 for an integrator) without a word; a discrete C was read as
+    # continuous; a discrete, MIMO, zero or improper Gp failed in python-control without naming Gp; a
+    # controller whose N was not its periods' ratio ran
+    (lambda: _design(gp=([1.0], [1.0, -1.0])), "dualrate_design: Gp must be stable (poles in the open left half-plane)"),
+    (lambda: _design(gp=([2.0], [0.5, 1.0, 0.0])), "dualrate_design: Gp must be stable"),
+    (lambda: _design(c=_tf([6.0, -5.0], [1.0, -1.0], 0.1)), "dualrate_design: C must be continuous-time (dt = 0)"),
+    (lambda: _design(gp=([0.1276], [1.0, -0.4], 0.1)), "dualrate_design: Gp must be continuous-time (dt = 0)"),
+    (lambda: _design(gp=([0.0], [0.1235, 1.0])), "dualrate_design: Gp must be nonzero"),
+    (lambda: _design(gp=([1.0, 1.0, 1.0], [0.1235, 1.0])), "dualrate_design: Gp must be proper"),
+    (lambda: _design(gp=_tf([[[1.0], [1.0]]], [[[1.0, 1.0], [1.0, 2.0]]])), "dualrate_design: Gp must be SISO"),
+    (lambda: DualRateController(_dual_rate(T=0.05, N=2).G1, _dual_rate(T=0.05, N=2).G2, N=3),
+     "DualRateController.N must be G1's period over G2's, 0.1 s / 0.05 s = 2, got N=3"),
+    # MRCI: a NaN coefficient gave a design of NaNs
+    (lambda: mrci_decompose([np.nan, 1.0], [1.0, -0.5], 2), "num must be finite"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
