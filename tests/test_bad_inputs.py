@@ -17,6 +17,7 @@ from jaxnc.cli import run_cli
 from jaxnc.design.mrci import decompose as mrci_decompose
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
+from jaxnc.plants.balancing import Balancing
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
@@ -254,6 +255,10 @@ PYTHON_API = [
      "DualRateController.N must be G1's period over G2's, 0.1 s / 0.05 s = 2, got N=3"),
     # MRCI: a NaN coefficient gave a design of NaNs
     (lambda: mrci_decompose([np.nan, 1.0], [1.0, -0.5], 2), "num must be finite"),
+    # the balancing robot's step with the sensor's error in the state and two noises took w[1], the tilt
+    # acceleration, as the sensor's drive (JAX clamps the missing index)
+    (lambda: Balancing().dynamics(jnp.zeros(5), jnp.zeros(1), jnp.zeros(2)),
+     "Balancing.dynamics: x must have 4 or 5 entries and w at least 3"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
