@@ -139,7 +139,17 @@ class Balancing(AbstractPlant):
 
         Returns:
           float[5] (float[4] for a float[4] state).
+
+        Raises:
+          ValueError: a state that is not float[4] or float[5], or w with fewer entries than
+            the state needs (3 with the sensor's error, 2 without): JAX would clamp the index
+            of the missing sensor drive to w[1], the tilt acceleration.
         """
+        nx, nw = jnp.shape(x)[0], jnp.shape(w)[0]
+        if nx not in (4, 5) or nw < nx - 2:
+            raise ValueError(f"Balancing.dynamics: x must have 4 or 5 entries and w at least {max(nx - 2, 2)} "
+                             f"(servo error, tilt acceleration{', sensor drive' if nx == 5 else ''}), got x of "
+                             f"{nx} and w of {nw} entries")
         ua = jnp.clip(u[0], -self.u_max, self.u_max) + w[0]
         h = self.Ts / 2
 
