@@ -15,6 +15,8 @@ from jaxnc import montecarlo, stability, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.design.mrci import decompose as mrci_decompose
+from jaxnc.design.mrci import mrci_init, mrci_step
+from jaxnc.disturbance import dob_design, dob_init, dob_update
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
 from jaxnc.plants.balancing import Balancing
@@ -96,6 +98,9 @@ def _design(gp=([0.1276], [0.1235, 1.0]), c=None, T=0.1, N=2):
     """dualrate_design with seed 004's motor and PI unless told otherwise (gp: (num, den[, dt]) or a system)."""
     gp = _tf(*gp) if isinstance(gp, tuple) else gp
     return dualrate_design(gp, pi_controller(6.0, 0.12) if c is None else c, T, N)
+
+
+_MRCI = mrci_decompose([1.0, -0.5], [1.0, -1.5, 0.5], 2).as_jax()
 
 
 def _loop(**kw):
@@ -259,6 +264,11 @@ PYTHON_API = [
     # acceleration, as the sensor's drive (JAX clamps the missing index)
     (lambda: Balancing().dynamics(jnp.zeros(5), jnp.zeros(1), jnp.zeros(2)),
      "Balancing.dynamics: x must have 4 or 5 entries and w at least 3"),
+    # the SISO kernels of seed 003 broadcast a vector into their states
+    (lambda: dob_update(dob_design(2e-5, 300.0), dob_init(dob_design(2e-5, 300.0)), jnp.zeros(2), jnp.zeros(2)),
+     "dob_update: u must be a single number (the DOB is SISO), got shape (2,)"),
+    (lambda: mrci_step(_MRCI, mrci_init(_MRCI), 0, jnp.zeros(2)),
+     "mrci_step: e must be a single number (the controller is SISO), got shape (2,)"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
