@@ -20,6 +20,8 @@ from jaxnc.disturbance import dob_design, dob_init, dob_update
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
 from jaxnc.plants.balancing import Balancing
+from jaxnc.plants.hdd import frequency_response as hdd_frequency_response
+from jaxnc.plants.hdd import plant_matrices as hdd_plant_matrices
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
@@ -269,6 +271,10 @@ PYTHON_API = [
      "dob_update: u must be a single number (the DOB is SISO), got shape (2,)"),
     (lambda: mrci_step(_MRCI, mrci_init(_MRCI), 0, jnp.zeros(2)),
      "mrci_step: e must be a single number (the controller is SISO), got shape (2,)"),
+    # the HDD plant at a negative or NaN period gave matrices (eigenvalue 1.02, or NaN), and its
+    # frequency response above Nyquist an aliased value
+    (lambda: hdd_plant_matrices(Ts=-2e-5), "Ts must be in (0, inf), got -2e-05"),
+    (lambda: hdd_frequency_response(f_hz=[1e5]), "f_hz must be in [0, 25000], got [100000.0]"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
