@@ -275,6 +275,8 @@ PYTHON_API = [
     # frequency response above Nyquist an aliased value
     (lambda: hdd_plant_matrices(Ts=-2e-5), "Ts must be in (0, inf), got -2e-05"),
     (lambda: hdd_frequency_response(f_hz=[1e5]), "f_hz must be in [0, 25000], got [100000.0]"),
+    # a vector tilt gave the robot an x0 of shape (5, 2)
+    (lambda: Balancing(theta0=[0.1, 0.2]), "Balancing.theta0 must be a single number, got shape (2,)"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),

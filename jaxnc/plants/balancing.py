@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from jaxnc._validate import check_nonneg, check_positive, check_range
+from jaxnc._validate import check_nonneg, check_positive, check_range, scalar_fields
 from jaxnc.loop.base import AbstractPlant, pytree_dataclass
 
 STATE_DIM = 4
@@ -78,7 +78,8 @@ class Balancing(AbstractPlant):
     Parameters in SI units; ``tilt_sensor`` and ``Ts`` static.
 
     Raises:
-      ValueError: a parameter out of its range (naming it), an unknown ``tilt_sensor``.
+      ValueError: a parameter out of its range or not a single number (naming it), an
+        unknown ``tilt_sensor``.
     """
 
     state_dim = 4
@@ -114,6 +115,9 @@ class Balancing(AbstractPlant):
         for name in ("b", "w_theta", "w_servo", "sigma_theta", "sigma_gyro", "sigma_accel"):
             check_nonneg(f"Balancing.{name}", getattr(self, name))
         check_range("Balancing.theta0", self.theta0, -np.pi / 2, np.pi / 2, low_open=True, high_open=True)
+        # one robot: a vector made x0 float[5, k] (theta0) or failed later in float() (the masses)
+        scalar_fields(self, "M", "l", "J_b", "m_w", "r", "J_w", "b", "u_max", "w_theta", "w_servo", "sigma_theta",
+                      "encoder_step", "sigma_gyro", "sigma_accel", "tau_cf", "theta0")
 
     @property
     def w_std(self):
