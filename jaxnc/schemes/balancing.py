@@ -68,7 +68,9 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
       gain: model design, ``"hold"`` (eq. 17-19, ``theta`` = P(command in time), default
         from the ``ca`` channel and ``lead``) or ``"lqr"``.
       ca, sc: the controller -> robot and robot -> controller channels (``sc``: ``ca``).
-      hold: model design's actuator on a missing command: hold (True) or zero.
+      hold: model design's actuator on a missing command: hold (True) or zero. The
+        ``"hold"`` gain is designed for the hold actuator (eq. 4, 17-19) whatever ``hold``:
+        with ``hold=False`` it is not the optimal gain of the zero strategy.
       N_buf: the filter's buffer (steps a measurement may be late), >= 1; lead: steps of
         prediction (the stamp's lead), >= 1.
       derivative: the emulation observer's rates, ``"simple"`` (the paper's) or
