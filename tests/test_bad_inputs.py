@@ -25,7 +25,7 @@ from jaxnc.plants.hdd import plant_matrices as hdd_plant_matrices
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
-from jaxnc.schemes import diffdrive, mecanum
+from jaxnc.schemes import diffdrive, hdd, mecanum
 
 
 CLI_SETTINGS = [
@@ -277,6 +277,9 @@ PYTHON_API = [
     (lambda: hdd_frequency_response(f_hz=[1e5]), "f_hz must be in [0, 25000], got [100000.0]"),
     # a vector tilt gave the robot an x0 of shape (5, 2)
     (lambda: Balancing(theta0=[0.1, 0.2]), "Balancing.theta0 must be a single number, got shape (2,)"),
+    # seed 003's builder: one threshold failed in tuple unpacking, a bad DOB cut-off was named as dob_design's
+    (lambda: hdd.hdd_loop(4, thresholds=(1e-4,)), "thresholds must be a pair (delta_s = sigma_s, delta_c = sigma_c)"),
+    (lambda: hdd.hdd_loop(6, dob_f_hz=0.0), "dob_f_hz must be in (0, 25000), got 0.0"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),
