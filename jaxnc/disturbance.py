@@ -46,8 +46,10 @@ class DobState(NamedTuple):
 
 
 def rigid_nominal(Ts: float):
-    """ZOH of 7.153e6/(s^2 + 502.7 s + 1.011e6): (num, den) in z (numerator b1 z + b0)."""
+    """ZOH of 7.153e6/(s^2 + 502.7 s + 1.011e6): (num, den) in z (numerator b1 z + b0).
+    Raises ValueError unless the period Ts > 0 (s)."""
     import scipy.signal
+    check_positive("Ts", Ts)
     from jaxnc.plants.hdd import RIGID_DEN, RIGID_NUM
     num, den, _ = scipy.signal.cont2discrete(([RIGID_NUM], list(RIGID_DEN)), Ts, method="zoh")
     return np.trim_zeros(np.ravel(num), "f"), np.ravel(den)

@@ -16,7 +16,7 @@ from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.design.mrci import decompose as mrci_decompose
 from jaxnc.design.mrci import mrci_init, mrci_step
-from jaxnc.disturbance import dob_design, dob_init, dob_update
+from jaxnc.disturbance import dob_design, dob_init, dob_update, rigid_nominal
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
 from jaxnc.plants.balancing import Balancing
@@ -277,6 +277,7 @@ PYTHON_API = [
     (lambda: hdd_frequency_response(f_hz=[1e5]), "f_hz must be in [0, 25000], got [100000.0]"),
     # a vector tilt gave the robot an x0 of shape (5, 2)
     (lambda: Balancing(theta0=[0.1, 0.2]), "Balancing.theta0 must be a single number, got shape (2,)"),
+    (lambda: rigid_nominal(-2e-5), "Ts must be in (0, inf), got -2e-05"),
     # seed 003's builder: one threshold failed in tuple unpacking, a bad DOB cut-off was named as dob_design's
     (lambda: hdd.hdd_loop(4, thresholds=(1e-4,)), "thresholds must be a pair (delta_s = sigma_s, delta_c = sigma_c)"),
     (lambda: hdd.hdd_loop(6, dob_f_hz=0.0), "dob_f_hz must be in (0, 25000), got 0.0"),

@@ -150,7 +150,7 @@ class Metrics(NamedTuple):
 
     upright: jax.Array        # bool: |theta| stayed within the limit
     tilt_rms_deg: jax.Array   # RMS tilt over the run, deg (inf when fallen)
-    track_rms_mm: jax.Array   # RMS position error over the last 5 s, mm (inf when fallen)
+    track_rms_mm: jax.Array   # RMS position error over the last 5 s (the whole run if shorter), mm (inf when fallen)
     tilt_max_deg: jax.Array   # max |theta|, deg
 
 
