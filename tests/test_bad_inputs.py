@@ -258,6 +258,8 @@ PYTHON_API = [
     (lambda: _design(gp=([0.0], [0.1235, 1.0])), "dualrate_design: Gp must be nonzero"),
     (lambda: _design(gp=([1.0, 1.0, 1.0], [0.1235, 1.0])), "dualrate_design: Gp must be proper"),
     (lambda: _design(gp=_tf([[[1.0], [1.0]]], [[[1.0, 1.0], [1.0, 2.0]]])), "dualrate_design: Gp must be SISO"),
+    (lambda: _design(gp=([1.0], [1.0, 2.0, 1.0]), c=pi_controller(10.0, 0.1)),
+     "dualrate_design: C must stabilise Gp: the closed loop M = C Gp / (1 + C Gp) has poles"),
     (lambda: DualRateController(_dual_rate(T=0.05, N=2).G1, _dual_rate(T=0.05, N=2).G2, N=3),
      "DualRateController.N must be G1's period over G2's, 0.1 s / 0.05 s = 2, got N=3"),
     # MRCI: a NaN coefficient gave a design of NaNs

@@ -142,7 +142,8 @@ def dualrate_design(Gp: control.TransferFunction, C: control.TransferFunction, T
     stays in the loop as a hidden mode (a closed-loop eigenvalue e^{p N T} of the lifted
     loop for a plant pole p; for an integrator, a pole at 1: under a constant input
     disturbance the controller's states ramp without bound and the output keeps an
-    offset), so ``Gp`` must be stable (poles in the open left half-plane).  Otherwise
+    offset), so ``Gp`` must be stable (poles in the open left half-plane), and ``C`` must
+    stabilise it (M's poles in the open left half-plane: the loop reproduces M).  Otherwise
     ValueError.  G_1 has a pole at z = 1 whenever M(0) = 1 (C has integral action): the
     integral action of the dual-rate loop.
     """
@@ -162,6 +163,10 @@ def dualrate_design(Gp: control.TransferFunction, C: control.TransferFunction, T
                          f"G2 = M^T / Gp^T cancels Gp^T's poles {np.exp(poles * T)} on or outside the unit circle, "
                          "and the loop keeps them as hidden modes (internally unstable)")
     M = closed_loop(Gp, C)
+    m_poles = np.roots(_num_den(M)[1])
+    if np.any(np.real(m_poles) >= 0.0):
+        raise ValueError(f"dualrate_design: C must stabilise Gp: the closed loop M = C Gp / (1 + C Gp) has poles "
+                         f"{m_poles}, not all in the open left half-plane (the dual-rate loop reproduces M)")
     MT, MNT, GpT = c2d_zoh(M, T), c2d_zoh(M, N * T), c2d_zoh(Gp, T)
     mn, md = _num_den(MNT)
     g1_den = np.polysub(md, mn)
