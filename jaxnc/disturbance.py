@@ -46,8 +46,10 @@ class DobState(NamedTuple):
 
 
 def rigid_nominal(Ts: float):
-    """ZOH of 7.153e6/(s^2 + 502.7 s + 1.011e6): (num, den) in z (numerator b1 z + b0)."""
+    """ZOH of 7.153e6/(s^2 + 502.7 s + 1.011e6): (num, den) in z (numerator b1 z + b0).
+    Raises ValueError unless the period Ts > 0 (s)."""
     import scipy.signal
+    check_positive("Ts", Ts)
     from jaxnc.plants.hdd import RIGID_DEN, RIGID_NUM
     num, den, _ = scipy.signal.cont2discrete(([RIGID_NUM], list(RIGID_DEN)), Ts, method="zoh")
     return np.trim_zeros(np.ravel(num), "f"), np.ravel(den)
@@ -82,10 +84,22 @@ def dob_init(d: Dob, dtype=jnp.float32) -> DobState:
     return DobState(jnp.zeros(d.A.shape[0], dtype))
 
 
+def _scalar(name, v):
+    """``v`` as a float scalar; ValueError naming ``name`` unless it has one entry (the DOB is SISO)."""
+    v = jnp.asarray(v)
+    if v.size != 1:
+        raise ValueError(f"{name} must be a single number (the DOB is SISO), got shape {v.shape}")
+    return v.reshape(())
+
+
 def dob_output(d: Dob, s: DobState, y_hat):
-    """d_hat_k before u_k is known: D1 is strictly proper, so D[0] = 0 (no algebraic loop)."""
-    return d.C @ s.x + d.D[1] * y_hat
+    """d_hat_k (float scalar) before u_k is known: D1 is strictly proper, so D[0] = 0 (no
+    algebraic loop). ``y_hat``: one number (shape () or (1,)); ValueError otherwise."""
+    return d.C @ s.x + d.D[1] * _scalar("dob_output: y_hat", y_hat)
 
 
 def dob_update(d: Dob, s: DobState, u, y_hat) -> DobState:
+    """The DOB's state after u_k and y_hat_k, each one number (shape () or (1,): a (1,)
+    pair made the state a matrix); ValueError otherwise."""
+    u, y_hat = _scalar("dob_update: u", u), _scalar("dob_update: y_hat", y_hat)
     return DobState(d.A @ s.x + d.B @ jnp.stack([u, y_hat]))

@@ -14,15 +14,21 @@ from jaxnc import loop as nc
 from jaxnc import montecarlo, stability, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
+from jaxnc.design.mrci import decompose as mrci_decompose
+from jaxnc.design.mrci import mrci_init, mrci_step
+from jaxnc.disturbance import dob_design, dob_init, dob_update, rigid_nominal
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
 from jaxnc.paths import from_waypoints
+from jaxnc.plants.balancing import Balancing
+from jaxnc.plants.hdd import frequency_response as hdd_frequency_response
+from jaxnc.plants.hdd import plant_matrices as hdd_plant_matrices
 from jaxnc.experiment import Experiment as _Experiment
 from jaxnc.experiment import Option as _Option
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update, ekf_update_diag
 from jaxnc.estimators.ekf_batched import ekf_filter
 from jaxnc.estimators.steady_state import dlqe
 from jaxnc.estimators.ukf import merwe_sigma_points
-from jaxnc.schemes import diffdrive, mecanum
+from jaxnc.schemes import diffdrive, hdd, mecanum
 
 
 CLI_SETTINGS = [
@@ -88,6 +94,20 @@ def _dual_rate(T, N):
     import control
     return DualRateController.from_design(dualrate_design(control.tf([0.1276], [0.1235, 1.0]), pi_controller(6.0, 0.12),
                                                           T, N))
+
+
+def _tf(num, den, *dt):
+    import control
+    return control.tf(num, den, *dt)
+
+
+def _design(gp=([0.1276], [0.1235, 1.0]), c=None, T=0.1, N=2):
+    """dualrate_design with seed 004's motor and PI unless told otherwise (gp: (num, den[, dt]) or a system)."""
+    gp = _tf(*gp) if isinstance(gp, tuple) else gp
+    return dualrate_design(gp, pi_controller(6.0, 0.12) if c is None else c, T, N)
+
+
+_MRCI = mrci_decompose([1.0, -0.5], [1.0, -1.5, 0.5], 2).as_jax()
 
 
 def _loop(**kw):
@@ -293,6 +313,42 @@ PYTHON_API = [
     (lambda: _pursuit(path=from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.001), v_ref=0.5),
      "PursuitPI.window (40 path points, 0.039 m of progress per sensing period at the path's spacing 0.001 m) must "
      "cover the arc the robot travels in one sensing period at v_ref (0.05 m"),
+    # dual-rate design (nu7): a plant whose poles G2 cancels gave an internally unstable loop (lifted
+    # eigenvalue e^{NT} for 1/(s - 1), 1 for an integrator) without a word; a discrete C was read as
+    # continuous; a discrete, MIMO, zero or improper Gp failed in python-control without naming Gp; a
+    # controller whose N was not its periods' ratio ran
+    (lambda: _design(gp=([1.0], [1.0, -1.0])), "dualrate_design: Gp must be stable (poles in the open left half-plane)"),
+    (lambda: _design(gp=([2.0], [0.5, 1.0, 0.0])), "dualrate_design: Gp must be stable"),
+    (lambda: _design(c=_tf([6.0, -5.0], [1.0, -1.0], 0.1)), "dualrate_design: C must be continuous-time (dt = 0)"),
+    (lambda: _design(gp=([0.1276], [1.0, -0.4], 0.1)), "dualrate_design: Gp must be continuous-time (dt = 0)"),
+    (lambda: _design(gp=([0.0], [0.1235, 1.0])), "dualrate_design: Gp must be nonzero"),
+    (lambda: _design(gp=([1.0, 1.0, 1.0], [0.1235, 1.0])), "dualrate_design: Gp must be proper"),
+    (lambda: _design(gp=_tf([[[1.0], [1.0]]], [[[1.0, 1.0], [1.0, 2.0]]])), "dualrate_design: Gp must be SISO"),
+    (lambda: _design(gp=([1.0], [1.0, 2.0, 1.0]), c=pi_controller(10.0, 0.1)),
+     "dualrate_design: C must stabilise Gp: the closed loop M = C Gp / (1 + C Gp) has poles"),
+    (lambda: DualRateController(_dual_rate(T=0.05, N=2).G1, _dual_rate(T=0.05, N=2).G2, N=3),
+     "DualRateController.N must be G1's period over G2's, 0.1 s / 0.05 s = 2, got N=3"),
+    # MRCI: a NaN coefficient gave a design of NaNs
+    (lambda: mrci_decompose([np.nan, 1.0], [1.0, -0.5], 2), "num must be finite"),
+    # the balancing robot's step with the sensor's error in the state and two noises took w[1], the tilt
+    # acceleration, as the sensor's drive (JAX clamps the missing index)
+    (lambda: Balancing().dynamics(jnp.zeros(5), jnp.zeros(1), jnp.zeros(2)),
+     "Balancing.dynamics: x must have 4 or 5 entries and w at least 3"),
+    # the SISO kernels of seed 003 broadcast a vector into their states
+    (lambda: dob_update(dob_design(2e-5, 300.0), dob_init(dob_design(2e-5, 300.0)), jnp.zeros(2), jnp.zeros(2)),
+     "dob_update: u must be a single number (the DOB is SISO), got shape (2,)"),
+    (lambda: mrci_step(_MRCI, mrci_init(_MRCI), 0, jnp.zeros(2)),
+     "mrci_step: e must be a single number (the controller is SISO), got shape (2,)"),
+    # the HDD plant at a negative or NaN period gave matrices (eigenvalue 1.02, or NaN), and its
+    # frequency response above Nyquist an aliased value
+    (lambda: hdd_plant_matrices(Ts=-2e-5), "Ts must be in (0, inf), got -2e-05"),
+    (lambda: hdd_frequency_response(f_hz=[1e5]), "f_hz must be in [0, 25000], got [100000.0]"),
+    # a vector tilt gave the robot an x0 of shape (5, 2)
+    (lambda: Balancing(theta0=[0.1, 0.2]), "Balancing.theta0 must be a single number, got shape (2,)"),
+    (lambda: rigid_nominal(-2e-5), "Ts must be in (0, inf), got -2e-05"),
+    # seed 003's builder: one threshold failed in tuple unpacking, a bad DOB cut-off was named as dob_design's
+    (lambda: hdd.hdd_loop(4, thresholds=(1e-4,)), "thresholds must be a pair (delta_s = sigma_s, delta_c = sigma_c)"),
+    (lambda: hdd.hdd_loop(6, dob_f_hz=0.0), "dob_f_hz must be in (0, 25000), got 0.0"),
     # an experiment's default outside its own range ran unchecked (a run without --set uses it)
     (lambda: _Option("p", "float", 1.5, "loss", low=0.0, high=1.0), "Option 'p': default 1.5 must be a number in [0, 1]"),
     (lambda: _Option("n", "int", 2.5, "n", low=0, high=10), "Option 'n': default 2.5 must be an integer in [0, 10]"),

@@ -154,6 +154,76 @@ def test_design_rejects_unstable_inverse():
         dualrate_design(_gp(), pi_controller(KP, TI), T, 0)
 
 
+def _lifted_loop_matrix(design, A, B, C):
+    """float64 map of the dual-rate loop over one slow period, state [x_plant, x_G1, x_G2], r = 0:
+    the plant (A, B, C) at T, G1 on the error at NT, its output held, G2 N times on it."""
+    def ss(tf):
+        s = control.tf2ss(tf)
+        return [np.asarray(a, float) for a in (s.A, s.B, s.C, s.D)]
+    (A1, B1, C1, D1), (A2, B2, C2, D2) = ss(design.G1), ss(design.G2)
+    n, n1 = A.shape[0], A1.shape[0]
+
+    def period(v):
+        x, x1, x2 = v[:n], v[n:n + n1], v[n + n1:]
+        e = -(C @ x)
+        u1 = C1 @ x1 + D1 @ e
+        x1 = A1 @ x1 + B1 @ e
+        for _ in range(design.N):
+            u = C2 @ x2 + D2 @ u1
+            x2 = A2 @ x2 + B2 @ u1
+            x = A @ x + B @ u
+        return np.concatenate([x, x1, x2])
+    size = n + n1 + A2.shape[0]
+    return np.stack([period(e) for e in np.eye(size)], 1)
+
+
+def test_design_of_a_stable_plant_has_a_stable_lifted_loop(design):
+    """The eigenvalues of the lifted loop: M^{NT}'s poles and the cancelled G_p^T zeros' and
+    poles' N-th powers, all inside the unit circle for the paper's stable motor."""
+    s = control.ss(design.GpT)
+    Phi = _lifted_loop_matrix(design, np.asarray(s.A, float), np.asarray(s.B, float), np.asarray(s.C, float))
+    ev = np.linalg.eigvals(Phi)
+    assert np.max(np.abs(ev)) < 1.0
+    for p in control.poles(design.MNT):                    # the designed closed loop is in there
+        assert np.min(np.abs(ev - p)) < 1e-6
+
+
+@pytest.mark.parametrize("gp", [control.tf([1.0], [1.0, -1.0]),            # unstable: hidden eigenvalue e^{NT}
+                                control.tf([2.0], [0.5, 1.0, 0.0])],        # integrator: hidden eigenvalue 1
+                         ids=["unstable", "integrator"])
+def test_design_refuses_plants_whose_poles_G2_would_cancel(gp):
+    """G2 = M^T / G_p^T cancels G_p^T's poles; for a pole on or outside the unit circle the
+    lifted loop keeps it as an eigenvalue (computed here on the design the module returned
+    before it refused them), so the reference-to-output map looks like M^{NT} while the loop
+    is internally unstable. The design must refuse such a plant, naming Gp."""
+    with pytest.raises(ValueError, match="Gp must be stable"):
+        dualrate_design(gp, pi_controller(3.0, 0.8), 0.05, 4)
+
+
+def test_hidden_mode_of_a_cancelled_unstable_pole_is_real():
+    """Why the refusal: the same algebra as the design (M, its ZOH, G1, G2) for 1/(s - 1)
+    gives a lifted loop with the eigenvalue e^{N T} of the plant's pole."""
+    from jaxnc.design.dualrate import DualRateDesign, _num_den, _tf
+    gp, T_, N_ = control.tf([1.0], [1.0, -1.0]), 0.05, 4
+    M = closed_loop(gp, pi_controller(3.0, 0.8))
+    MT, MNT, GpT = c2d_zoh(M, T_), c2d_zoh(M, N_ * T_), c2d_zoh(gp, T_)
+    mn, md = _num_den(MNT)
+    (tn, td), (pn, pd) = _num_den(MT), _num_den(GpT)
+    d = DualRateDesign(M=M, MT=MT, MNT=MNT, GpT=GpT, G1=_tf(md, np.polysub(md, mn), N_ * T_),
+                       G2=_tf(np.polymul(tn, pd), np.polymul(td, pn), T_), T=T_, N=N_)
+    s = control.ss(GpT)
+    ev = np.linalg.eigvals(_lifted_loop_matrix(d, np.asarray(s.A, float), np.asarray(s.B, float),
+                                               np.asarray(s.C, float)))
+    assert np.min(np.abs(ev - np.exp(N_ * T_))) < 1e-6 and np.max(np.abs(ev)) > 1.2
+
+
+def test_controller_refuses_N_that_is_not_the_ratio_of_its_periods(design):
+    g1, g2 = DiscreteSS.from_tf(design.G1), DiscreteSS.from_tf(design.G2)
+    assert DualRateController(g1, g2, N=N).N == N
+    with pytest.raises(ValueError, match="DualRateController.N must be G1's period over G2's"):
+        DualRateController(g1, g2, N=N + 1)
+
+
 def test_closed_loop_helpers():
     M = closed_loop(_gp(), pi_controller(KP, TI))
     assert abs(M(0) - 1.0) < 1e-12

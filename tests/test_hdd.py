@@ -79,6 +79,20 @@ def test_dob_recovers_constant_disturbance_on_nominal_model():
     np.testing.assert_allclose(np.asarray(dh)[-100:], 0.3, rtol=1e-6)
 
 
+def test_dob_takes_one_entry_arrays_as_numbers():
+    """A (1,) input and output (a measurement vector of one entry) made the DOB's state a
+    7 x 7 matrix by broadcasting, and its estimate a vector of 7 numbers."""
+    d = dob_design(plant.T, 300.0)
+    s_scalar, s_vec = dob_init(d), dob_init(d)
+    for k in range(5):
+        u, y = 0.1 * k, 0.02 * k * k
+        s_scalar = dob_update(d, s_scalar, jnp.float32(u), jnp.float32(y))
+        s_vec = dob_update(d, s_vec, jnp.full(1, u, jnp.float32), jnp.full(1, y, jnp.float32))
+    assert s_vec.x.shape == s_scalar.x.shape == (d.A.shape[0],)
+    np.testing.assert_array_equal(np.asarray(s_vec.x), np.asarray(s_scalar.x))
+    assert dob_output(d, s_vec, jnp.ones(1)).shape == ()
+
+
 def test_triggers_eq6_eq22():
     """Eq. (6) and (22), ||ybar - y||^2 > sigma ||y||^2 + delta, on one output: the PETC gap."""
     fires = lambda last, s, sigma, delta: bool(petc_gap(jnp.array([last]), jnp.array([s]), sigma, delta) > 0)

@@ -76,6 +76,18 @@ def _tf(num, den, dt=None) -> control.TransferFunction:
     return _control().tf(num, den) if dt is None else _control().tf(num, den, dt)
 
 
+def _check_continuous_siso(name: str, sys) -> None:
+    """ValueError naming ``name`` unless ``sys`` is a continuous-time SISO python-control system."""
+    ct = _control()
+    if not isinstance(sys, (ct.TransferFunction, ct.StateSpace)):
+        raise ValueError(f"dualrate_design: {name} must be a python-control TransferFunction or StateSpace, "
+                         f"got {type(sys).__name__}")
+    if sys.ninputs != 1 or sys.noutputs != 1:
+        raise ValueError(f"dualrate_design: {name} must be SISO, got {sys.noutputs} outputs x {sys.ninputs} inputs")
+    if ct.isdtime(sys, strict=True):
+        raise ValueError(f"dualrate_design: {name} must be continuous-time (dt = 0), got dt = {sys.dt}")
+
+
 def pi_controller(Kp: float, Ti: float) -> control.TransferFunction:
     """Continuous PI of eq. (27): C(s) = Kp (1 + 1/(Ti s)) = Kp (Ti s + 1) / (Ti s)."""
     check_positive("Kp", Kp)
@@ -122,15 +134,39 @@ class DualRateDesign:
 def dualrate_design(Gp: control.TransferFunction, C: control.TransferFunction, T: float, N: int) -> DualRateDesign:
     """Salt & Albertos' model-based dual-rate design, eq. (21)-(22).
 
-    ``Gp`` and ``C`` are continuous transfer functions, ``T`` the fast (actuation) period
-    and ``N`` the multiplicity (sensing period NT).  G_2 inverts G_p^T, so G_p^T must have
-    relative degree 1 (G_2 proper) and its zeros must lie inside the unit circle (G_2
-    stable); otherwise ValueError.  G_1 has a pole at z = 1 whenever M(0) = 1 (C has
-    integral action): the integral action of the dual-rate loop.
+    ``Gp`` and ``C`` are continuous SISO transfer functions (``Gp`` nonzero), ``T`` the
+    fast (actuation) period and ``N`` the multiplicity (sensing period NT).  G_2 inverts
+    G_p^T, so G_p^T must have relative degree 1 (G_2 proper), its zeros must lie inside
+    the unit circle (G_2 stable) and so must its poles: G_2 = M^T / G_p^T has G_p^T's
+    poles as zeros, which cancel them, and a cancelled pole on or outside the unit circle
+    stays in the loop as a hidden mode (a closed-loop eigenvalue e^{p N T} of the lifted
+    loop for a plant pole p; for an integrator, a pole at 1: under a constant input
+    disturbance the controller's states ramp without bound and the output keeps an
+    offset), so ``Gp`` must be stable (poles in the open left half-plane), and ``C`` must
+    stabilise it (M's poles in the open left half-plane: the loop reproduces M).  Otherwise
+    ValueError.  G_1 has a pole at z = 1 whenever M(0) = 1 (C has integral action): the
+    integral action of the dual-rate loop.
     """
     check_positive("T", T)
     check_int("N", N, 1, 1000)
+    for name, sys in (("Gp", Gp), ("C", C)):
+        _check_continuous_siso(name, sys)
+    gn, gd = _num_den(Gp)
+    if not np.any(gn):
+        raise ValueError("dualrate_design: Gp must be nonzero (G2 = M^T / Gp^T inverts it)")
+    if len(gn) > len(gd):
+        raise ValueError(f"dualrate_design: Gp must be proper, got numerator degree {len(gn) - 1} > denominator "
+                         f"degree {len(gd) - 1}")
+    poles = np.roots(gd)
+    if np.any(np.real(poles) >= 0.0):
+        raise ValueError(f"dualrate_design: Gp must be stable (poles in the open left half-plane), got poles {poles}: "
+                         f"G2 = M^T / Gp^T cancels Gp^T's poles {np.exp(poles * T)} on or outside the unit circle, "
+                         "and the loop keeps them as hidden modes (internally unstable)")
     M = closed_loop(Gp, C)
+    m_poles = np.roots(_num_den(M)[1])
+    if np.any(np.real(m_poles) >= 0.0):
+        raise ValueError(f"dualrate_design: C must stabilise Gp: the closed loop M = C Gp / (1 + C Gp) has poles "
+                         f"{m_poles}, not all in the open left half-plane (the dual-rate loop reproduces M)")
     MT, MNT, GpT = c2d_zoh(M, T), c2d_zoh(M, N * T), c2d_zoh(Gp, T)
     mn, md = _num_den(MNT)
     g1_den = np.polysub(md, mn)
@@ -214,7 +250,10 @@ class DualRateState(NamedTuple):
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class DualRateController:
-    """Runtime form of the dual-rate controller: G1 at NT, hold, G2 at T (section 3.4)."""
+    """Runtime form of the dual-rate controller: G1 at NT, hold, G2 at T (section 3.4).
+
+    Raises ValueError for N outside [1, 1000] or, when G1 and G2 know their periods
+    (``DiscreteSS.dt``), an N that is not G1's period over G2's."""
 
     G1: DiscreteSS
     G2: DiscreteSS
@@ -222,6 +261,10 @@ class DualRateController:
 
     def __post_init__(self):
         check_int("DualRateController.N", self.N, 1, 1000)
+        d1, d2 = getattr(self.G1, "dt", None), getattr(self.G2, "dt", None)
+        if d1 is not None and d2 is not None and abs(d1 - self.N * d2) > 1e-9 * max(d1, self.N * d2):
+            raise ValueError(f"DualRateController.N must be G1's period over G2's, {d1:g} s / {d2:g} s = "
+                             f"{d1 / d2:g}, got N={self.N}")
 
     @staticmethod
     def from_design(design: DualRateDesign) -> "DualRateController":

@@ -12,7 +12,8 @@ eq. (19),
 i.e. its state is updated once every m fast periods with the (down-sampled, held) error;
 its output is held by a ZOH. Slow mode i (1-based) is updated at the fast instants
 k = m j + i - 1 (interlacing, Fig. 4), so the slow work is spread over the m phases.
-Computation saving, eq. (20): CS = (m - 1)/(m + n), n the number of fast modes.
+Computation saving, eq. (20): CS = (m - 1)/(m + n), n the number of fast modes, for m
+slow modes (:func:`computation_saving` counts any number of them).
 
 Run time (JAX): :func:`mrci_step` is one fast period of the interlaced controller; with
 m = 1 every mode is updated every period and the sum of the modes is exactly C(z).
@@ -29,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, check_range
+from jaxnc._validate import check_finite, check_int, check_range
 
 __all__ = ["Mode", "MrciDesign", "Mrci", "MrciState", "partial_fractions", "decompose",
            "computation_saving", "mrci_init", "mrci_step"]
@@ -67,9 +68,12 @@ def partial_fractions(num, den, *, tol: float = 1e-8) -> tuple[list[Mode], float
 
     A real pole p with residue r gives the mode (A, B, C) = (p, 1, r); a complex pair
     p, conj(p) gives the real block with characteristic polynomial z^2 - 2 Re(p) z + |p|^2
-    in controllable canonical form.
+    in controllable canonical form. Raises ValueError for non-finite coefficients, an
+    improper C or repeated poles.
     """
     import scipy.signal
+    for name, c in (("num", num), ("den", den)):
+        check_finite(name, c)
     num = np.trim_zeros(np.atleast_1d(np.asarray(num, float)), "f")
     den = np.trim_zeros(np.atleast_1d(np.asarray(den, float)), "f")
     if len(num) > len(den):
@@ -100,9 +104,14 @@ def partial_fractions(num, den, *, tol: float = 1e-8) -> tuple[list[Mode], float
     return modes, D
 
 
-def computation_saving(m: int, n: int) -> float:
-    """Eq. (20): CS = (m - 1)/(m + n), as a fraction (m slow modes, rate ratio m, n fast modes)."""
-    return (m - 1) / (m + n)
+def computation_saving(m: int, n: int, n_slow: int | None = None) -> float:
+    """Computation saving, as a fraction: the share of the mode updates per fast period that
+    running ``n_slow`` slow modes once every ``m`` periods (and ``n`` fast dynamics every
+    period) saves, n_slow (m - 1) / (m (n_slow + n)).  With ``n_slow = m`` (the default,
+    one slow mode per phase) it is eq. (20), CS = (m - 1)/(m + n); with m = 1 it is 0."""
+    n_slow = m if n_slow is None else n_slow
+    total = n_slow + n
+    return 0.0 if total == 0 else n_slow * (m - 1) / (m * total)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,8 +130,10 @@ class MrciDesign:
 
     @property
     def cs(self) -> float:
-        """Computation saving CS of eq. (20), fraction (m here is the number of slow modes)."""
-        return computation_saving(len(self.slow), self.n_fast)
+        """Computation saving CS of eq. (20), a fraction: :func:`computation_saving` of this
+        design's rate ratio m, its slow modes and its fast dynamics (eq. 20 itself when there
+        are m slow modes; 0 for m = 1, where every mode runs every period)."""
+        return computation_saving(self.m, self.n_fast, len(self.slow))
 
     def fast_tf(self) -> tuple[np.ndarray, np.ndarray]:
         """C^f(z): the sum of the fast modes and D, as (num, den) in z."""
@@ -231,7 +242,11 @@ def mrci_step(c: Mrci, s: MrciState, k, e) -> tuple[jax.Array, MrciState]:
 
     Slow mode i outputs C_i x_i + D_i e_k and updates x_i <- A_i^m x_i + B_i^m e_k only at
     k = m j + phase_i (Fig. 4); otherwise its output is held. The fast part runs every period.
+    ``e`` is one number (shape () or (1,): the controller is SISO); ValueError otherwise (a
+    vector broadcast into the modes' states).
     """
+    if jnp.size(e) != 1:
+        raise ValueError(f"mrci_step: e must be a single number (the controller is SISO), got shape {jnp.shape(e)}")
     ph = jnp.mod(k, c.m)
     upd_x = c.state_phase == ph
     upd_u = c.mode_phase == ph

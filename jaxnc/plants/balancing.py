@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from jaxnc._validate import check_nonneg, check_positive, check_range
+from jaxnc._validate import check_nonneg, check_positive, check_range, scalar_fields
 from jaxnc.loop.base import AbstractPlant, pytree_dataclass
 
 STATE_DIM = 4
@@ -78,7 +78,8 @@ class Balancing(AbstractPlant):
     Parameters in SI units; ``tilt_sensor`` and ``Ts`` static.
 
     Raises:
-      ValueError: a parameter out of its range (naming it), an unknown ``tilt_sensor``.
+      ValueError: a parameter out of its range or not a single number (naming it), an
+        unknown ``tilt_sensor``.
     """
 
     state_dim = 4
@@ -114,6 +115,9 @@ class Balancing(AbstractPlant):
         for name in ("b", "w_theta", "w_servo", "sigma_theta", "sigma_gyro", "sigma_accel"):
             check_nonneg(f"Balancing.{name}", getattr(self, name))
         check_range("Balancing.theta0", self.theta0, -np.pi / 2, np.pi / 2, low_open=True, high_open=True)
+        # one robot: a vector made x0 float[5, k] (theta0) or failed later in float() (the masses)
+        scalar_fields(self, "M", "l", "J_b", "m_w", "r", "J_w", "b", "u_max", "w_theta", "w_servo", "sigma_theta",
+                      "encoder_step", "sigma_gyro", "sigma_accel", "tau_cf", "theta0")
 
     @property
     def w_std(self):
@@ -139,7 +143,17 @@ class Balancing(AbstractPlant):
 
         Returns:
           float[5] (float[4] for a float[4] state).
+
+        Raises:
+          ValueError: a state that is not float[4] or float[5], or w with fewer entries than
+            the state needs (3 with the sensor's error, 2 without): JAX would clamp the index
+            of the missing sensor drive to w[1], the tilt acceleration.
         """
+        nx, nw = jnp.shape(x)[0], jnp.shape(w)[0]
+        if nx not in (4, 5) or nw < nx - 2:
+            raise ValueError(f"Balancing.dynamics: x must have 4 or 5 entries and w at least {max(nx - 2, 2)} "
+                             f"(servo error, tilt acceleration{', sensor drive' if nx == 5 else ''}), got x of "
+                             f"{nx} and w of {nw} entries")
         ua = jnp.clip(u[0], -self.u_max, self.u_max) + w[0]
         h = self.Ts / 2
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from jaxnc._validate import check_nonneg
+from jaxnc._validate import check_nonneg, check_positive, check_range
 from jaxnc.loop.plants import LTI
 
 __all__ = ["T", "TABLE2", "READINGS", "DISTURBANCE_OUTPUT", "plant_matrices", "continuous_plant", "notch_matrices",
@@ -85,7 +85,9 @@ def continuous_plant(reading: str = "sum"):
 
 
 def notch_matrices(Ts: float = T):
-    """Eq. (31): the two notch sections in series, discrete state space (4 states)."""
+    """Eq. (31): the two notch sections in series, discrete state space (4 states).
+    Raises ValueError unless the period Ts > 0 (s)."""
+    check_positive("Ts", Ts)
     w = 2 * np.pi * np.asarray(TABLE2["f_hz"])
     A = np.zeros((4, 4))
     B = np.zeros(4)
@@ -112,7 +114,9 @@ def notch_matrices(Ts: float = T):
 
 
 def plant_matrices(reading: str = "sum", Ts: float = T):
-    """(Ap, Bp, Cp) of eq. (1): notch (eq. 31) then the ZOH-discretised eq. (30), 10 states."""
+    """(Ap, Bp, Cp) of eq. (1): notch (eq. 31) then the ZOH-discretised eq. (30), 10 states.
+    Raises ValueError for an unknown reading or a period Ts <= 0 (s)."""
+    check_positive("Ts", Ts)
     Ac, Bc, Cc = continuous_plant(reading)
     n = Ac.shape[0]
     M = np.zeros((n + 1, n + 1))
@@ -175,9 +179,14 @@ def hdd_model(reading: str = "sum", *, w_std: float = W_STD, v_std: float = V_ST
 
 
 def frequency_response(reading: str = "sum", f_hz=None, Ts: float = T):
-    """(f_hz, G(e^{j w T})) of the discrete 10th-order plant (notch included)."""
+    """(f_hz, G(e^{j w T})) of the discrete 10th-order plant (notch included), at the
+    frequencies ``f_hz`` in [0, 0.5/Ts] (default: 600 from 10 Hz to the Nyquist frequency).
+    Raises ValueError for a period Ts <= 0 or a frequency outside [0, 0.5/Ts] (above
+    Nyquist the discrete response only repeats an aliased one)."""
+    check_positive("Ts", Ts)
     if f_hz is None:
         f_hz = np.logspace(1, np.log10(0.5 / Ts), 600)
+    check_range("f_hz", f_hz, 0.0, 0.5 / Ts)
     A, B, C = plant_matrices(reading, Ts)
     zs = np.exp(1j * 2 * np.pi * np.asarray(f_hz) * Ts)
     I = np.eye(A.shape[0])

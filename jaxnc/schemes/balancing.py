@@ -68,7 +68,9 @@ def balancing_loop(design: str = "model", *, plant: Balancing | None = None, gai
       gain: model design, ``"hold"`` (eq. 17-19, ``theta`` = P(command in time), default
         from the ``ca`` channel and ``lead``) or ``"lqr"``.
       ca, sc: the controller -> robot and robot -> controller channels (``sc``: ``ca``).
-      hold: model design's actuator on a missing command: hold (True) or zero.
+      hold: model design's actuator on a missing command: hold (True) or zero. The
+        ``"hold"`` gain is designed for the hold actuator (eq. 4, 17-19) whatever ``hold``:
+        with ``hold=False`` it is not the optimal gain of the zero strategy.
       N_buf: the filter's buffer (steps a measurement may be late), >= 1; lead: steps of
         prediction (the stamp's lead), >= 1.
       derivative: the emulation observer's rates, ``"simple"`` (the paper's) or
@@ -148,7 +150,7 @@ class Metrics(NamedTuple):
 
     upright: jax.Array        # bool: |theta| stayed within the limit
     tilt_rms_deg: jax.Array   # RMS tilt over the run, deg (inf when fallen)
-    track_rms_mm: jax.Array   # RMS position error over the last 5 s, mm (inf when fallen)
+    track_rms_mm: jax.Array   # RMS position error over the last 5 s (the whole run if shorter), mm (inf when fallen)
     tilt_max_deg: jax.Array   # max |theta|, deg
 
 

@@ -128,14 +128,18 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None 
 
     Raises:
       ValueError naming the argument: case outside 1..6, h outside [1, 10000], k_max
-      outside [0, h], negative thresholds or stds, an unknown reading or we_form.
+      outside [0, h], thresholds that are not a pair of numbers >= 0, negative stds,
+      dob_f_hz outside (0, 25000) Hz (Nyquist), an unknown reading or we_form.
     """
     check_int("case", case, 1, 6)
     check_int("steps", steps, 1)
     h = whole_run_horizon(steps) if h is None else h
     check_int("h", h, 1, 10_000)
     check_int("k_max", k_max, 0, h)
+    if thresholds is not None and np.shape(thresholds) != (2,):
+        raise ValueError(f"thresholds must be a pair (delta_s = sigma_s, delta_c = sigma_c) or None, got {thresholds!r}")
     ts, tc = (NARROW_THRESHOLDS if case >= 5 else PAPER_THRESHOLDS) if thresholds is None else thresholds
+    check_range("dob_f_hz", dob_f_hz, 0.0, 0.5 / hdd_plant.T, low_open=True, high_open=True)
     check_range("delta_s = sigma_s", ts, 0.0, None)
     check_range("delta_c = sigma_c", tc, 0.0, None)
     for name, v in (("w_std", w_std), ("v_std", v_std), ("r", r)):
