@@ -51,7 +51,9 @@ class Numre(AbstractEstimator):
       tables: :class:`~jaxnc.estimators.numre.NumreTables` (A^N, We(N) for N <= n_max, C, V);
         a gap longer than ``tables.n_max`` is corrected with K(n_max).
       A: float[n, n]; B: float[n, m], the model over one period.
-      mean0: float[n]; cov0: float[n, n], the prior at k = 0.
+      mean0: float[n]; cov0: float[n, n], the prior at k = 0: a measurement arriving at
+        k = 0 is corrected with M = cov0 (N = 0), the first one at k > 0 with
+        M = A^k cov0 (A^k)' + We(k).
       inputs: static, ``"believed"`` (the actions of the controller's own packets, what a
         filter on the control side knows) or ``"applied"`` (a filter at the actuator).
 
@@ -99,7 +101,8 @@ class Numre(AbstractEstimator):
 
     def correct(self, state: NumreState, inbox: Inbox, k):
         z, _, w = inbox.newest()
-        N = jnp.clip(k - state.k_lm, 1, self.tables.n_max)
+        # N = 0 only at k = 0 (k_lm starts at 0): the prior there is (mean0, cov0) itself
+        N = jnp.clip(k - state.k_lm, 0, self.tables.n_max)
         mean, cov, _ = numre_correct(self.tables, state.mean, state.cov, z[0], N)
         new = blend(w, NumreState(mean, cov, jnp.asarray(k, jnp.int32)), state)
         return new, new.mean
