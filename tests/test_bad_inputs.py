@@ -85,6 +85,13 @@ def _dual_rate(T, N):
                                                           T, N))
 
 
+def _numre(**kw):
+    """Numre.design of a 2-state model with one argument replaced."""
+    args = dict(A=[[1.0, 0.1], [0.0, 0.9]], B=[0.0, 0.1], Bw=[0.0, 1.0], C=[1.0, 0.0], W=0.01, V=1e-4, n_max=4,
+                cov0=np.eye(2))
+    return nc.Numre.design(**{**args, **kw})
+
+
 def _loop(**kw):
     base = dict(plant=_PLANT, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
                 controller=nc.StateFeedback(K=[[1.0]]), downlink=nc.Link(), actuator=nc.PacketActuator())
@@ -238,6 +245,17 @@ PYTHON_API = [
     (lambda: _Experiment("x", "d", (("a", "int", 1),), run=print), "Experiment 'x': options[0] must be a jaxnc"),
     (lambda: _Experiment("x", "d", (), run=None), "Experiment 'x': run must be a function"),
     (lambda: _Experiment("a/b", "d", (), run=print), "Experiment.name must be a non-empty name without /"),
+    # Numre.design: a negative or non-PSD covariance ran to nan estimates; a NaN model ran
+    (lambda: _numre(cov0=-np.eye(2)), "Numre.cov0 must be positive semi-definite (a covariance)"),
+    (lambda: _numre(cov0=np.array([[1.0, 0.5], [0.0, 1.0]])), "Numre.cov0 must be symmetric"),
+    (lambda: _numre(W=-1.0), "Numre.W must be positive semi-definite (a covariance)"),
+    (lambda: _numre(A=np.array([[np.nan, 0.0], [0.0, 1.0]])), "Numre.A must be finite"),
+    (lambda: _numre(mean0=[0.0, np.nan]), "Numre.mean0 must be finite"),
+    # sizes that failed inside a matmul (A, Bw) or only when a Loop traced the filter (cov0, mean0)
+    (lambda: _numre(A=np.ones((2, 3))), "Numre.A must be a square matrix float[n, n], got shape (2, 3)"),
+    (lambda: _numre(Bw=np.ones(3)), "Numre.Bw must be float[2] or float[2, k] (A is 2x2), got shape (3,)"),
+    (lambda: _numre(cov0=np.eye(3)), "Numre.cov0 must be 2x2 (a covariance), got shape (3, 3)"),
+    (lambda: _numre(mean0=[0.0, 0.0, 1.0]), "Numre.mean0 must have 2 entries (A is 2x2), got shape (3,)"),
 ]
 
 
@@ -595,6 +613,9 @@ LOOP_FIT = [
     (lambda: _fit_loop(controller=nc.Cascade(_FitLaw(), np.eye(2), np.ones((2, 1)), horizon=2),
                        actuator=nc.PacketActuator(horizon=2)), "Loop.controller.B has shape (2, 1)"),
     (lambda: nc.Cascade(_FitLaw(), np.eye(2), horizon=2), "Cascade.B must be a vector"),
+    # a single-output Numre on a plant of two outputs used the first and ignored the other
+    (lambda: _fit_loop(plant=_FIT_MODEL3, estimator=_numre()),
+     "Numre is a single-output filter (C float[n]): the plant must have output_dim = 1, got 2"),
     # a part holding a plain Python object (a law that is not a pytree) skipped every fit check
     (lambda: _fit_loop(controller=nc.Cascade(_PlainLaw(), np.eye(3), np.ones(3), horizon=2),
                        actuator=nc.PacketActuator(horizon=2)), "Loop.controller.A has shape (3, 3)"),
