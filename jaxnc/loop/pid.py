@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range
+from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range, concrete
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -79,7 +79,8 @@ class PID(AbstractController):
       Kp, Ki, Kd: float or float[c] (Python numbers become float32, arrays keep their dtype), proportional, integral (1/s) and derivative (s) gains.
       Tf: float or float[c] >= 0, derivative filter time constant (s); 0: unfiltered.
       b, c: float or float[c], setpoint weights of the proportional and derivative terms.
-      u_min, u_max: float, float[c] or None (unbounded), output limits, u_min <= u_max.
+      u_min, u_max: float, float[c] or None (unbounded), output limits, u_min <= u_max;
+        u_min = -inf and u_max = inf are unbounded too (u_min = +inf or u_max = -inf is refused).
       Kb: float or float[c] >= 0, back-calculation gain (1/s), used with
         ``anti_windup="back_calculation"``.
       reference: a :class:`jaxnc.references.AbstractReference` with 1 or c channels; None: 0.
@@ -88,9 +89,13 @@ class PID(AbstractController):
       anti_windup: static, ``"none"``, ``"clamping"`` or ``"back_calculation"``.
       hold: static bool, hold (compute nothing, send nothing) when ``fresh == 0``.
 
+    It computes in :attr:`dtype` (float32, or float64 when a gain, limit or the reference is a
+    float64 array under x64): its state, the measurement and the reference are in it.
+
     Raises:
-      ValueError: naming the field, for a non-finite gain, Tf or Kb < 0, u_min > u_max,
-        a reference that is not a :mod:`jaxnc.references` object, an index that is not
+      ValueError: naming the field, for a non-finite gain, Tf or Kb < 0, u_min > u_max
+        (also for JAX arrays), u_min = +inf or u_max = -inf, a field (NumPy or JAX) that is
+        neither a number nor float[1] / float[c], a reference that is not a :mod:`jaxnc.references` object, an index that is not
         a non-negative int or tuple of distinct ones, gains whose channel count differs
         from ``len(index)``, or an unknown ``anti_windup``; when a ``Loop`` is built
         (its fit check traces one step), an index beyond the estimator's estimate.
@@ -132,18 +137,25 @@ class PID(AbstractController):
             else:
                 check_given(f"PID.{name}", v)
                 check_range(f"PID.{name}", v, 0.0 if name in ("Tf", "Kb") else None)
-            if v is None or isinstance(v, jax.Array):
+            if v is None:
+                continue
+            shape = np.shape(v)
+            if len(shape) > 1 or (len(shape) == 1 and shape[0] not in (1, n)):
+                raise ValueError(f"PID.{name} must be a number or have {n} entries (one per channel of "
+                                 f"index), got shape {shape}")
+            if isinstance(v, jax.Array):                                # a JAX array (or tracer) as it is
                 continue
             a = np.asarray(v)
             if a.dtype.kind != "f" or not isinstance(v, np.ndarray):    # Python numbers: float32
                 a = a.astype(np.float32)
-            if a.ndim > 1 or (a.ndim == 1 and a.shape[0] not in (1, n)):
-                raise ValueError(f"PID.{name} must be a number or have {n} entries (one per channel of "
-                                 f"index), got shape {a.shape}")
             object.__setattr__(self, name, np.broadcast_to(a, (n,)).copy())
         lo, hi = self.u_min, self.u_max
-        if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
-            raise ValueError("PID.u_min must be <= u_max")
+        if lo is not None and concrete(lo) and np.any(np.asarray(lo) == np.inf):
+            raise ValueError(f"PID.u_min must be in [-inf, inf) (-inf: unbounded below), got {np.asarray(lo).tolist()}")
+        if hi is not None and concrete(hi) and np.any(np.asarray(hi) == -np.inf):
+            raise ValueError(f"PID.u_max must be in (-inf, inf] (inf: unbounded above), got {np.asarray(hi).tolist()}")
+        if lo is not None and hi is not None and concrete(lo, hi) and np.any(np.asarray(lo) > np.asarray(hi)):
+            raise ValueError(f"PID.u_min must be <= u_max, got {np.asarray(lo).tolist()} and {np.asarray(hi).tolist()}")
         if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
             want = "1 channel" if n == 1 else f"1 or {n} channels"
             raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
@@ -153,8 +165,16 @@ class PID(AbstractController):
         """c, the number of loops (``len(index)``)."""
         return len(self.index)
 
+    @property
+    def dtype(self):
+        """The dtype it computes in: that of its gains, weights, limits and reference
+        (float32 unless one of them is a float64 array and x64 is on)."""
+        leaves = [getattr(self, n) for n in ("Kp", "Ki", "Kd", "Tf", "b", "c", "u_min", "u_max", "Kb")]
+        leaves = [v for v in leaves + jax.tree.leaves(self.reference) if v is not None]
+        return jnp.result_type(jnp.float32, *leaves)
+
     def init(self, ctx) -> PIDState:
-        z = jnp.zeros((self.channels,), jnp.float32)
+        z = jnp.zeros((self.channels,), self.dtype)
         u0 = jnp.clip(z, self.u_min, self.u_max) if self._limited else z
         return PIDState(z, z, z, u0, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32))
 
@@ -165,11 +185,12 @@ class PID(AbstractController):
     def step(self, state: PIDState, xhat, fresh, k, ctx):
         xhat = jnp.asarray(xhat)
         check_components("PID.index", self.index, xhat.shape[-1], "the estimator's estimate")
-        y = xhat[jnp.asarray(self.index)]
-        h = ctx.N * ctx.T
+        dt = self.dtype
+        y = xhat[jnp.asarray(self.index)].astype(dt)
+        h = jnp.asarray(ctx.N * ctx.T, dt)
         if self.hold:
-            h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(jnp.float32)
-        new, u = pid_update(self, state, y, _reference(self, k, ctx), h)
+            h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(dt)
+        new, u = pid_update(self, state, y, _reference(self, k, ctx).astype(dt), h)
         new = new._replace(last=jnp.asarray(k, jnp.int32))
         if self.hold:
             w = jnp.asarray(fresh, jnp.float32)
