@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range, concrete
+from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -93,9 +93,9 @@ class PID(AbstractController):
     float64 array under x64): its state, the measurement and the reference are in it.
 
     Raises:
-      ValueError: naming the field, for a non-finite gain, Tf or Kb < 0, u_min > u_max
-        (also for JAX arrays), u_min = +inf or u_max = -inf, a field (NumPy or JAX) that is
-        neither a number nor float[1] / float[c], a reference that is not a :mod:`jaxnc.references` object, an index that is not
+      ValueError: naming the field, for a non-finite gain, Tf or Kb < 0, u_min > u_max,
+        u_min = +inf or u_max = -inf, a field that is neither a number nor float[1] /
+        float[c] (JAX arrays are not checked: batched leaves), a reference that is not a :mod:`jaxnc.references` object, an index that is not
         a non-negative int or tuple of distinct ones, gains whose channel count differs
         from ``len(index)``, or an unknown ``anti_windup``; when a ``Loop`` is built
         (its fit check traces one step), an index beyond the estimator's estimate.
@@ -137,25 +137,22 @@ class PID(AbstractController):
             else:
                 check_given(f"PID.{name}", v)
                 check_range(f"PID.{name}", v, 0.0 if name in ("Tf", "Kb") else None)
-            if v is None:
-                continue
-            shape = np.shape(v)
-            if len(shape) > 1 or (len(shape) == 1 and shape[0] not in (1, n)):
-                raise ValueError(f"PID.{name} must be a number or have {n} entries (one per channel of "
-                                 f"index), got shape {shape}")
-            if isinstance(v, jax.Array):                                # a JAX array (or tracer) as it is
+            if v is None or isinstance(v, jax.Array):      # JAX arrays (batched leaves) are not checked
                 continue
             a = np.asarray(v)
             if a.dtype.kind != "f" or not isinstance(v, np.ndarray):    # Python numbers: float32
                 a = a.astype(np.float32)
+            if a.ndim > 1 or (a.ndim == 1 and a.shape[0] not in (1, n)):
+                raise ValueError(f"PID.{name} must be a number or have {n} entries (one per channel of "
+                                 f"index), got shape {a.shape}")
             object.__setattr__(self, name, np.broadcast_to(a, (n,)).copy())
         lo, hi = self.u_min, self.u_max
-        if lo is not None and concrete(lo) and np.any(np.asarray(lo) == np.inf):
-            raise ValueError(f"PID.u_min must be in [-inf, inf) (-inf: unbounded below), got {np.asarray(lo).tolist()}")
-        if hi is not None and concrete(hi) and np.any(np.asarray(hi) == -np.inf):
-            raise ValueError(f"PID.u_max must be in (-inf, inf] (inf: unbounded above), got {np.asarray(hi).tolist()}")
-        if lo is not None and hi is not None and concrete(lo, hi) and np.any(np.asarray(lo) > np.asarray(hi)):
-            raise ValueError(f"PID.u_min must be <= u_max, got {np.asarray(lo).tolist()} and {np.asarray(hi).tolist()}")
+        if isinstance(lo, np.ndarray) and np.any(lo == np.inf):
+            raise ValueError(f"PID.u_min must be in [-inf, inf) (-inf: unbounded below), got {lo.tolist()}")
+        if isinstance(hi, np.ndarray) and np.any(hi == -np.inf):
+            raise ValueError(f"PID.u_max must be in (-inf, inf] (inf: unbounded above), got {hi.tolist()}")
+        if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
+            raise ValueError(f"PID.u_min must be <= u_max, got {lo.tolist()} and {hi.tolist()}")
         if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
             want = "1 channel" if n == 1 else f"1 or {n} channels"
             raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
