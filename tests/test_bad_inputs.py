@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxnc import loop as nc
-from jaxnc import montecarlo, stability, wifi
+from jaxnc import montecarlo, stability, tracking, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.design.dualrate import DiscreteSS, DualRateController, dualrate_design, pi_controller, single_rate_pi
@@ -245,6 +245,17 @@ PYTHON_API = [
     (lambda: _Experiment("x", "d", (("a", "int", 1),), run=print), "Experiment 'x': options[0] must be a jaxnc"),
     (lambda: _Experiment("x", "d", (), run=None), "Experiment 'x': run must be a function"),
     (lambda: _Experiment("a/b", "d", (), run=print), "Experiment.name must be a non-empty name without /"),
+    # tracking metrics and references: a period <= 0 gave negative or zero ISE and times, a negative ITAE
+    # start weighed samples from before the run, an empty response failed with IndexError, a final value
+    # for another number of channels failed inside broadcasting, an empty PiecewiseLinear was built
+    (lambda: tracking.ise(jnp.ones(5), -0.1), "ise: T must be in (0, inf), got -0.1"),
+    (lambda: tracking.step_info(jnp.linspace(0.0, 1.0, 10), 0.0), "step_info: T must be in (0, inf), got 0.0"),
+    (lambda: tracking.itae(jnp.ones(10), 0.1, start=-5), "itae: start must be >= 0 (a sample of e), got -5"),
+    (lambda: tracking.step_info(jnp.ones((0,)), 0.1), "step_info: y must be float[K] or float[K, p] with K >= 1"),
+    (lambda: tracking.step_info(jnp.ones((10, 2)), 0.1, y_final=jnp.ones(3)),
+     "step_info: y_final must be a scalar or float[2] (one per channel of y), got shape (3,)"),
+    (lambda: nc_refs.evaluate(nc_refs.Ramp(1.0), 5, 0.0), "evaluate: T must be in (0, inf), got 0.0"),
+    (lambda: nc_refs.PiecewiseLinear([], []), "PiecewiseLinear.times must have at least one breakpoint (M >= 1)"),
     # PID: limits that clip every output to +-inf ran (the plant got inf)
     (lambda: nc.PID(Kp=1.0, u_min=np.inf), "PID.u_min must be in [-inf, inf) (-inf: unbounded below), got [inf]"),
     (lambda: nc.PID(Kp=1.0, u_max=-np.inf), "PID.u_max must be in (-inf, inf] (inf: unbounded above), got [-inf]"),
