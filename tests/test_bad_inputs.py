@@ -729,6 +729,9 @@ LOOP_FIT = [
      "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),
     (lambda: nc.Tracking(nc_refs.Step(1.0), index=(0, 4)).metrics(jnp.zeros((10, 2)), 0.1),
      "Tracking.index must pick components in [0, 1] of the state x (2 entries), got (0, 4)"),
+    # a steady-state window longer than the run failed naming steady_state_error's window
+    (lambda: nc.Tracking(nc_refs.Step(1.0), window=20).metrics(jnp.zeros((10, 1)), 0.1),
+     "Tracking.window (samples averaged, the run has 10) must be an integer in [1, 10], got 20"),
     # a controller built for another slow period than the loop's N (PursuitPI: ns T of sub fast periods each)
     # ran: its PI and pure pursuit every N fast periods, its packets of ns * sub actions
     (lambda: _pursuit_loop(N=20), "Loop.N (20) must equal the fast periods per slow period the controller is built "
