@@ -279,3 +279,24 @@ def test_anti_windup_removes_the_overshoot_of_a_saturated_step():
         np.testing.assert_allclose(float(tm.overshoot[0]), info["Overshoot"], rtol=1e-4, atol=1e-4)
         overshoot[aw] = info["Overshoot"]
     assert overshoot["none"] > 10.0 and overshoot["clamping"] < 0.5 and overshoot["back_calculation"] < 0.5, overshoot
+
+
+def test_back_calculation_adds_no_integral_to_a_pd():
+    """A PD (Ki = 0) saturated by a large step: back-calculation has no integrator to unwind,
+    so the run reaches the proportional steady state x = 0.8 Kp r / (1 + 0.8 Kp) = 24, as
+    without anti-windup. It used to integrate Kb (u - v) while saturated (I = -79) and settle
+    at 11.3 with that bias for ever."""
+    T, steps = 0.5, 200
+    a = float(np.exp(-T / 20.0))
+    sp = refs.Step(30.0, time=5.0)
+    final = {}
+    for aw in ("none", "back_calculation"):
+        pid = nc.PID(Kp=5.0, Ki=0.0, Kd=1.0, Tf=1.0, u_min=0.0, u_max=45.0, Kb=0.5, reference=sp, anti_windup=aw)
+        loop = nc.Loop(plant=nc.LTI(A=[[a]], B=[[0.8 * (1.0 - a)]], C=[[1.0]], x0=[0.0], T=T), trigger=nc.Periodic(),
+                       uplink=nc.Link(), estimator=nc.Passthrough(), controller=pid, downlink=nc.Link(),
+                       actuator=nc.HoldLast(), T=T, steps=steps)
+        tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
+        assert float(jnp.max(tr.u)) == 45.0                          # it saturated
+        final[aw] = float(tr.x[-1, 0])
+    np.testing.assert_allclose(final["back_calculation"], 24.0, rtol=1e-4)
+    np.testing.assert_allclose(final["none"], 24.0, rtol=1e-4)

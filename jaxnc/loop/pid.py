@@ -20,10 +20,13 @@ event-based sampling interval):
     I <- I + h_k Ki e                                                   (anti_windup="none")
        = I + h_k Ki e, unless v_k > u_max and Ki e > 0
                        or v_k < u_min and Ki e < 0 (then I)            ("clamping")
-       = I + h_k (Ki e + Kb (u_k - v_k))                                ("back_calculation")
+       = I + h_k (Ki e + Kb (u_k - v_k))                                ("back_calculation";
+                                                                          I unchanged where Ki = 0)
 
-(I is updated after u_k is computed: u_k uses the integral of the errors before k.) The
-first computation takes e_d,prev = e_d (no derivative kick at start-up).
+(I is updated after u_k is computed: u_k uses the integral of the errors before k.) A channel
+without integral action (Ki = 0) has I = 0 in every mode: back-calculation feeds the
+integrator, and there is none (it used to integrate Kb (u - v) while saturated, leaving a
+permanent bias). The first computation takes e_d,prev = e_d (no derivative kick at start-up).
 
 No measurement (``hold=True``, the default): at an instant where ``fresh == 0`` (the
 estimator received nothing) the controller does not compute: its state (integral,
@@ -82,7 +85,7 @@ class PID(AbstractController):
       u_min, u_max: float, float[c] or None (unbounded), output limits, u_min <= u_max;
         u_min = -inf and u_max = inf are unbounded too (u_min = +inf or u_max = -inf is refused).
       Kb: float or float[c] >= 0, back-calculation gain (1/s), used with
-        ``anti_windup="back_calculation"``.
+        ``anti_windup="back_calculation"`` on the channels with Ki != 0.
       reference: a :class:`jaxnc.references.AbstractReference` with 1 or c channels; None: 0.
       index: static int or tuple of c distinct ints >= 0, the estimator-output components
         measured.
@@ -219,6 +222,7 @@ def pid_update(pid: PID, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]
         lo = -jnp.inf if pid.u_min is None else pid.u_min
         gain = jnp.where(((v > hi) & (gain > 0)) | ((v < lo) & (gain < 0)), 0.0, gain)
     elif pid.anti_windup == "back_calculation":
-        gain = gain + pid.Kb * (u - v)
+        # only where there is integral action: a channel with Ki = 0 has no integrator to unwind
+        gain = gain + jnp.where(pid.Ki != 0, pid.Kb * (u - v), 0.0)
     integral = state.integral + h * gain
     return state._replace(integral=integral, deriv=D, e_d=ed, u=u, started=jnp.ones_like(state.started)), u
