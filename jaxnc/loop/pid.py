@@ -24,9 +24,8 @@ event-based sampling interval):
                                                                           I unchanged where Ki = 0)
 
 (I is updated after u_k is computed: u_k uses the integral of the errors before k.) A channel
-without integral action (Ki = 0) has I = 0 in every mode: back-calculation feeds the
-integrator, and there is none (it used to integrate Kb (u - v) while saturated, leaving a
-permanent bias). The first computation takes e_d,prev = e_d (no derivative kick at start-up).
+without integral action (Ki = 0) keeps I = 0 in every mode: back-calculation feeds the
+integrator, and there is none. The first computation takes e_d,prev = e_d (no derivative kick at start-up).
 
 No measurement (``hold=True``, the default): at an instant where ``fresh == 0`` (the
 estimator received nothing) the controller does not compute: its state (integral,
