@@ -95,12 +95,16 @@ class Numre(AbstractEstimator):
                inputs: str = "believed") -> "Numre":
         """The filter of the model x+ = A x + B u + Bw w, y = C x + v, Cov(w) = W (scalar or
         float[q, q], Bw float[n] or float[n, q]), Var(v) = V (single output: C float[n]),
-        with tables up to the multiplicity ``n_max``. Raises ValueError, naming the argument,
-        for n_max < 1, a non-finite entry of any matrix or of mean0, an A that is not square,
-        a B, Bw or C whose rows do not match A's n (C: one output row of n entries), a W that
-        is not a non-negative scalar or a q x q covariance (q = Bw's columns), a negative V, a
-        cov0 that is not an n x n covariance (symmetric positive semi-definite), a mean0
-        without n entries, or an unknown ``we_form``."""
+        with tables up to the multiplicity ``n_max``: a gap between arrivals longer than
+        n_max is corrected with K(n_max) and We(n_max), not the Kalman filter's gain (choose
+        n_max >= the longest gap, e.g. the run's steps, for the exact filter).
+
+        Raises ValueError, naming the argument, for n_max < 1, a non-finite entry of any
+        matrix or of mean0, an A that is not square, a B, Bw or C whose rows do not match A's
+        n (C: one output row of n entries), a W that is not a non-negative scalar or a q x q
+        covariance (q = Bw's columns), a negative V, a cov0 that is not an n x n covariance
+        (symmetric positive semi-definite), a mean0 without n entries, or an unknown
+        ``we_form``."""
         check_int("Numre.n_max", n_max, 1)
         check_nonneg("Numre.V", V)
         for name, v in (("A", A), ("B", B), ("Bw", Bw), ("C", C), ("W", W), ("cov0", cov0)):
