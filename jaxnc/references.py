@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, checked_pytree
+from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, check_positive, checked_pytree
 
 __all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate"]
 
@@ -237,6 +237,8 @@ class PiecewiseLinear(AbstractReference):
             if values.shape[0] != times.shape[0]:
                 raise ValueError(f"PiecewiseLinear.values must have one row per time (M={times.shape[0]}), "
                                  f"got shape {values.shape}")
+            if times.shape[0] < 1:
+                raise ValueError("PiecewiseLinear.times must have at least one breakpoint (M >= 1), got none")
             if np.any(np.diff(times) <= 0):
                 raise ValueError(f"PiecewiseLinear.times must be strictly increasing, got {times.tolist()}")
 
@@ -295,11 +297,13 @@ def evaluate(reference: AbstractReference, steps: int, T, *, start: int = 0) -> 
       float[K, p].
 
     Raises:
-      ValueError: ``steps`` < 1 or ``start`` < 0, or ``reference`` not a reference.
+      ValueError: ``steps`` < 1 or ``start`` < 0, ``T`` <= 0 (when concrete), or
+        ``reference`` not a reference.
     """
     if not isinstance(reference, AbstractReference):
         raise ValueError(f"evaluate: reference must be a jaxnc.references reference, got {type(reference).__name__}")
     check_int("evaluate: steps", steps, 1)
     check_int("evaluate: start", start, 0)
+    check_positive("evaluate: T", T)
     t = jnp.arange(start, start + steps, dtype=jnp.int32)
     return jax.vmap(reference.at, in_axes=(0, None))(t, T)

@@ -16,16 +16,17 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from jaxnc._validate import check_int, check_range
+from jaxnc._validate import check_int, check_positive, check_range
 
 __all__ = ["ise", "iae", "itae", "steady_state_error", "StepInfo", "step_info"]
 
 
 def _signal(name, e):
     e = jnp.asarray(e)
-    if e.ndim not in (1, 2):
-        raise ValueError(f"{name} must be float[K] or float[K, p], got shape {e.shape}")
+    if e.ndim not in (1, 2) or e.shape[0] < 1:
+        raise ValueError(f"{name} must be float[K] or float[K, p] with K >= 1, got shape {e.shape}")
     if not jnp.issubdtype(e.dtype, jnp.floating):
         e = e.astype(jnp.float32)
     return e
@@ -40,8 +41,12 @@ def ise(e, T) -> jax.Array:
 
     Returns:
       float[] or float[p] (per channel).
+
+    Raises:
+      ValueError: ``e`` not float[K] / float[K, p] with K >= 1, ``T`` <= 0 (when concrete).
     """
     e = _signal("ise: e", e)
+    check_positive("ise: T", T)
     return jnp.sum(e * e, axis=0) * jnp.asarray(T, e.dtype)
 
 
@@ -51,6 +56,7 @@ def iae(e, T) -> jax.Array:
     Args and Returns as :func:`ise`. The gradient at e_k = 0 is 0 (``jnp.abs``).
     """
     e = _signal("iae: e", e)
+    check_positive("iae: T", T)
     return jnp.sum(jnp.abs(e), axis=0) * jnp.asarray(T, e.dtype)
 
 
@@ -62,19 +68,24 @@ def itae(e, T, *, start=0) -> jax.Array:
 
     Args:
       e, T: as :func:`ise`.
-      start: int scalar, or int[p] for a float[K, p] ``e`` (one per channel); may be traced.
+      start: int scalar >= 0, or int[p] for a float[K, p] ``e`` (one per channel); may be
+        traced (a start >= K weighs every sample 0).
 
     Returns:
       float[] or float[p] (per channel).
 
     Raises:
-      ValueError: ``start`` not an integer scalar or int[p].
+      ValueError: ``start`` not an integer scalar or int[p], or negative (when concrete);
+        ``T`` <= 0 (when concrete); ``e`` without samples.
     """
     e = _signal("itae: e", e)
+    check_positive("itae: T", T)
     s = jnp.asarray(start)
     if not jnp.issubdtype(s.dtype, jnp.integer) or s.ndim > e.ndim - 1 or (s.ndim == 1 and s.shape[0] != e.shape[1]):
         want = "an int" if e.ndim == 1 else f"an int or int[{e.shape[1]}]"
         raise ValueError(f"itae: start must be {want}, got {s.dtype}{list(s.shape)}")
+    if not isinstance(start, jax.core.Tracer) and np.any(np.asarray(start) < 0):
+        raise ValueError(f"itae: start must be >= 0 (a sample of e), got {np.asarray(start).tolist()}")
     k = jnp.arange(e.shape[0])
     if e.ndim == 2:
         k, s = k[:, None], jnp.broadcast_to(s, e.shape[1:])[None, :]
@@ -215,11 +226,18 @@ def step_info(y, T, *, y_final=None, y_initial=0.0, reference=None, settling_thr
       does a zero final change (python-control divides by it).
 
     Raises:
-      ValueError: ``y`` not float[K] / float[K, p], ``settling_threshold`` outside
-        (0, 1) or ``rise_time_limits`` not two fractions low < high in [0, 1] (when
-        concrete).
+      ValueError: ``y`` not float[K] / float[K, p] with K >= 1, ``y_final``,
+        ``y_initial`` or ``reference`` neither a scalar nor float[p] (float[K, p] ``y``),
+        ``T`` <= 0, ``settling_threshold`` outside (0, 1) or ``rise_time_limits`` not two
+        fractions low < high in [0, 1] (when concrete).
     """
     y = _signal("step_info: y", y)
+    check_positive("step_info: T", T)
+    p = 1 if y.ndim == 1 else y.shape[1]
+    for name, v in (("y_final", y_final), ("y_initial", y_initial), ("reference", reference)):
+        if v is not None and np.ndim(v) > 0 and (y.ndim == 1 or np.shape(v) not in ((p,), (1,))):
+            want = "a scalar" if y.ndim == 1 else f"a scalar or float[{p}] (one per channel of y)"
+            raise ValueError(f"step_info: {name} must be {want}, got shape {np.shape(v)}")
     check_range("step_info: settling_threshold", settling_threshold, 0.0, 1.0, low_open=True, high_open=True)
     if len(rise_time_limits) != 2:
         raise ValueError(f"step_info: rise_time_limits must be two fractions (low, high), got {rise_time_limits!r}")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxnc import loop as nc
-from jaxnc import montecarlo, stability, wifi
+from jaxnc import montecarlo, stability, tracking, wifi
 from jaxnc import references as nc_refs
 from jaxnc.cli import run_cli
 from jaxnc.design.mrci import decompose as mrci_decompose
@@ -108,6 +108,11 @@ def _design(gp=([0.1276], [0.1235, 1.0]), c=None, T=0.1, N=2):
 
 
 _MRCI = mrci_decompose([1.0, -0.5], [1.0, -1.5, 0.5], 2).as_jax()
+def _numre(**kw):
+    """Numre.design of a 2-state model with one argument replaced."""
+    args = dict(A=[[1.0, 0.1], [0.0, 0.9]], B=[0.0, 0.1], Bw=[0.0, 1.0], C=[1.0, 0.0], W=0.01, V=1e-4, n_max=4,
+                cov0=np.eye(2))
+    return nc.Numre.design(**{**args, **kw})
 
 
 def _loop(**kw):
@@ -360,6 +365,31 @@ PYTHON_API = [
     (lambda: _Experiment("x", "d", (("a", "int", 1),), run=print), "Experiment 'x': options[0] must be a jaxnc"),
     (lambda: _Experiment("x", "d", (), run=None), "Experiment 'x': run must be a function"),
     (lambda: _Experiment("a/b", "d", (), run=print), "Experiment.name must be a non-empty name without /"),
+    # tracking metrics and references: a period <= 0 gave negative or zero ISE and times, a negative ITAE
+    # start weighed samples from before the run, an empty response failed with IndexError, a final value
+    # for another number of channels failed inside broadcasting, an empty PiecewiseLinear was built
+    (lambda: tracking.ise(jnp.ones(5), -0.1), "ise: T must be in (0, inf), got -0.1"),
+    (lambda: tracking.step_info(jnp.linspace(0.0, 1.0, 10), 0.0), "step_info: T must be in (0, inf), got 0.0"),
+    (lambda: tracking.itae(jnp.ones(10), 0.1, start=-5), "itae: start must be >= 0 (a sample of e), got -5"),
+    (lambda: tracking.step_info(jnp.ones((0,)), 0.1), "step_info: y must be float[K] or float[K, p] with K >= 1"),
+    (lambda: tracking.step_info(jnp.ones((10, 2)), 0.1, y_final=jnp.ones(3)),
+     "step_info: y_final must be a scalar or float[2] (one per channel of y), got shape (3,)"),
+    (lambda: nc_refs.evaluate(nc_refs.Ramp(1.0), 5, 0.0), "evaluate: T must be in (0, inf), got 0.0"),
+    (lambda: nc_refs.PiecewiseLinear([], []), "PiecewiseLinear.times must have at least one breakpoint (M >= 1)"),
+    # PID: limits that clip every output to +-inf ran (the plant got inf)
+    (lambda: nc.PID(Kp=1.0, u_min=np.inf), "PID.u_min must be in [-inf, inf) (-inf: unbounded below), got [inf]"),
+    (lambda: nc.PID(Kp=1.0, u_max=-np.inf), "PID.u_max must be in (-inf, inf] (inf: unbounded above), got [-inf]"),
+    # Numre.design: a negative or non-PSD covariance ran to nan estimates; a NaN model ran
+    (lambda: _numre(cov0=-np.eye(2)), "Numre.cov0 must be positive semi-definite (a covariance)"),
+    (lambda: _numre(cov0=np.array([[1.0, 0.5], [0.0, 1.0]])), "Numre.cov0 must be symmetric"),
+    (lambda: _numre(W=-1.0), "Numre.W must be positive semi-definite (a covariance)"),
+    (lambda: _numre(A=np.array([[np.nan, 0.0], [0.0, 1.0]])), "Numre.A must be finite"),
+    (lambda: _numre(mean0=[0.0, np.nan]), "Numre.mean0 must be finite"),
+    # sizes that failed inside a matmul (A, Bw) or only when a Loop traced the filter (cov0, mean0)
+    (lambda: _numre(A=np.ones((2, 3))), "Numre.A must be a square matrix float[n, n], got shape (2, 3)"),
+    (lambda: _numre(Bw=np.ones(3)), "Numre.Bw must be float[2] or float[2, k] (A is 2x2), got shape (3,)"),
+    (lambda: _numre(cov0=np.eye(3)), "Numre.cov0 must be 2x2 (a covariance), got shape (3, 3)"),
+    (lambda: _numre(mean0=[0.0, 0.0, 1.0]), "Numre.mean0 must have 2 entries (A is 2x2), got shape (3,)"),
 ]
 
 
@@ -724,6 +754,9 @@ LOOP_FIT = [
     (lambda: _fit_loop(controller=nc.Cascade(_FitLaw(), np.eye(2), np.ones((2, 1)), horizon=2),
                        actuator=nc.PacketActuator(horizon=2)), "Loop.controller.B has shape (2, 1)"),
     (lambda: nc.Cascade(_FitLaw(), np.eye(2), horizon=2), "Cascade.B must be a vector"),
+    # a single-output Numre on a plant of two outputs used the first and ignored the other
+    (lambda: _fit_loop(plant=_FIT_MODEL3, estimator=_numre()),
+     "Numre is a single-output filter (C float[n]): the plant must have output_dim = 1, got 2"),
     # a part holding a plain Python object (a law that is not a pytree) skipped every fit check
     (lambda: _fit_loop(controller=nc.Cascade(_PlainLaw(), np.eye(3), np.ones(3), horizon=2),
                        actuator=nc.PacketActuator(horizon=2)), "Loop.controller.A has shape (3, 3)"),
@@ -823,6 +856,9 @@ LOOP_FIT = [
      "PID.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (2,)"),
     (lambda: nc.Tracking(nc_refs.Step(1.0), index=(0, 4)).metrics(jnp.zeros((10, 2)), 0.1),
      "Tracking.index must pick components in [0, 1] of the state x (2 entries), got (0, 4)"),
+    # a steady-state window longer than the run failed naming steady_state_error's window
+    (lambda: nc.Tracking(nc_refs.Step(1.0), window=20).metrics(jnp.zeros((10, 1)), 0.1),
+     "Tracking.window (samples averaged, the run has 10) must be an integer in [1, 10], got 20"),
     # a controller built for another slow period than the loop's N (PursuitPI: ns T of sub fast periods each)
     # ran: its PI and pure pursuit every N fast periods, its packets of ns * sub actions
     (lambda: _pursuit_loop(N=20), "Loop.N (20) must equal the fast periods per slow period the controller is built "

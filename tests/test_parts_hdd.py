@@ -34,18 +34,76 @@ def test_numre_is_the_kalman_filter_with_intermittent_corrections(inputs):
     own measurements, arrivals and actions (half the packets lost)."""
     loop = _numre_loop(inputs=inputs)
     tr = jax.device_get(jax.jit(jl.simulate)(loop, jax.random.PRNGKey(4)))
-    got, recv = np.asarray(tr.recv_sc) > 0.5, np.asarray(tr.xhat)
-    z, u = np.asarray(tr.z)[:, 0], np.asarray(tr.u)[:, 0]
+    got = np.asarray(tr.recv_sc) > 0.5
     assert 20 < got.sum() < 60 and not got.all()
-    x, P, Q = np.array([0.5, 0.0]), np.eye(2), np.diag(W_STD ** 2)
-    for k in range(loop.steps):
+    xs, _ = _float64_kf(tr, np.array([0.5, 0.0]), np.eye(2))
+    np.testing.assert_allclose(np.asarray(tr.xhat), xs, rtol=2e-4, atol=2e-5)
+
+
+def _float64_kf(tr, mean0, cov0):
+    """The Kalman filter of (A2, B2, C2) that predicts every period and corrects at the run's
+    arrivals, in float64 on its measurements and actions: (x(k|k or k-1) float[K, 2], the
+    covariance after each instant's correction float[K, 2, 2])."""
+    got, z, u = np.asarray(tr.recv_sc) > 0.5, np.asarray(tr.z)[:, 0], np.asarray(tr.u)[:, 0]
+    x, P, Q, xs, Ps = np.asarray(mean0, float), np.asarray(cov0, float), np.diag(W_STD ** 2), [], []
+    for k in range(got.size):
         if got[k]:
-            S = C2 @ P @ C2 + V_STD ** 2
-            K = P @ C2 / S
-            x = x + K * (z[k] - C2 @ x)
-            P = (np.eye(2) - np.outer(K, C2)) @ P
-        np.testing.assert_allclose(recv[k], x, rtol=2e-4, atol=2e-5, err_msg=f"k = {k}")
+            K = P @ C2 / (C2 @ P @ C2 + V_STD ** 2)
+            x, P = x + K * (z[k] - C2 @ x), (np.eye(2) - np.outer(K, C2)) @ P
+        xs.append(x)
+        Ps.append(P)
         x, P = A2 @ x + B2 * u[k], A2 @ P @ A2.T + Q
+    return np.asarray(xs), np.asarray(Ps)
+
+
+def _numre_cov(est, state):
+    return state.cov
+
+
+_PRIOR_STD = np.array([0.01, 0.02])     # cov0 = diag(_PRIOR_STD^2), of the order of one period's noise
+
+
+def _numre_periodic_loop(every, steps, drawn=False):
+    """The 2-state plant sampled every ``every`` periods (no loss, the first at k = 0);
+    its initial state drawn from the filter's prior N(mean0, cov0) when ``drawn``."""
+    plant = jl.LTI(A=A2, B=B2[:, None], C=C2[None], x0=[0.5, 0.0], x0_std=_PRIOR_STD if drawn else None,
+                   w_std=W_STD, v_std=[V_STD], T=0.1)
+    cov0 = np.diag(_PRIOR_STD ** 2)
+    est = jl.Numre.design(A2, B2, np.eye(2), C2, np.diag(W_STD ** 2), V_STD ** 2, steps, cov0=cov0,
+                          mean0=[0.5, 0.0])
+    return jl.Loop(plant=plant, trigger=jl.Periodic(every), uplink=jl.Link(), estimator=est,
+                   controller=jl.StateFeedback([[3.0, 1.5]]), downlink=jl.Link(), actuator=jl.HoldLast(),
+                   steps=steps, T=0.1, record=jl.Record(estimator=_numre_cov)), cov0
+
+
+def test_numre_with_a_measurement_at_k0_starts_from_the_prior_cov0():
+    """mean0, cov0 are the prior at k = 0: a measurement arriving at k = 0 is corrected with
+    M = cov0 (no period of dynamics or noise before it), later ones after N periods, as the
+    float64 Kalman filter that predicts every period. The first correction used to inflate
+    cov0 to A cov0 A' + We(1) while leaving mean0 where it was (here the posterior variances
+    at k = 0 were 1.9e-4 and 7.6e-4 instead of 9.6e-5 and 4.0e-4)."""
+    loop, cov0 = _numre_periodic_loop(3, 30)
+    tr = jax.device_get(jax.jit(jl.simulate)(loop, jax.random.PRNGKey(1)))
+    got = np.asarray(tr.recv_sc) > 0.5
+    assert got[0] and got.sum() == 10
+    xs, Ps = _float64_kf(tr, np.array([0.5, 0.0]), cov0)
+    np.testing.assert_allclose(np.asarray(tr.parts["estimator"])[got], Ps[got], rtol=1e-4, atol=1e-8)
+    np.testing.assert_allclose(np.asarray(tr.xhat), xs, rtol=2e-4, atol=2e-5)
+
+
+def test_numre_posterior_covariance_is_the_error_covariance_over_seeds():
+    """With the initial state drawn from the filter's prior, the estimation error at each
+    arrival is N(0, P) with P the filter's posterior covariance: the mean NEES e' P^-1 e over
+    S seeds is 2 (n = 2) within 4 standard errors, sqrt(2 n / S) each, at k = 0 (1.11 before
+    the fix of the first correction) and at later arrivals."""
+    S = 1024
+    loop, _ = _numre_periodic_loop(3, 31, drawn=True)
+    tr = jax.device_get(jax.jit(jax.vmap(jl.simulate, in_axes=(None, 0)))(loop, jax.random.split(jax.random.PRNGKey(5), S)))
+    e = np.asarray(tr.x, float) - np.asarray(tr.xhat, float)
+    P = np.asarray(tr.parts["estimator"], float)
+    for k in (0, 3, 15, 30):
+        nees = np.einsum("si,sij,sj->s", e[:, k], np.linalg.inv(P[:, k]), e[:, k])
+        assert abs(nees.mean() - 2.0) < 4 * np.sqrt(2 * 2 / S), (k, nees.mean())
 
 
 def test_numre_validation():

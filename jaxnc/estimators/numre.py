@@ -85,7 +85,9 @@ def numre_correct(t: NumreTables, x_prior, P, y, N):
     scalar y = C x + v, Var(v) = V: :func:`jaxnc.estimators.ekf.ekf_update_terms` (Joseph form).
 
     Args: t the tables; x_prior float[n]; P float[n, n], the posterior covariance of the last
-    arrival; y scalar; N int32 in [1, t.n_max]. Returns: (x float[n], P+ float[n, n], K float[n]).
+    arrival; y scalar; N int32 in [0, t.n_max] (0: P is already the prior covariance of this
+    instant, no period of dynamics and noise before it). Returns: (x float[n], P+ float[n, n],
+    K float[n]).
     """
     _, M = numre_gain(t, P, N)
     h = lambda x, v: jnp.reshape(t.C @ x, (1,)) + v

@@ -82,7 +82,8 @@ class Tracking:
       window: static int >= 1, samples averaged for the steady-state error.
 
     Raises: ValueError naming the field; :meth:`signals` (so :meth:`metrics` and
-    :func:`run_tracking`, at their first trace) when ``index`` is beyond the state x.
+    :func:`run_tracking`, at their first trace) when ``index`` is beyond the state x, and
+    :meth:`metrics` when ``window`` is longer than the run.
     """
 
     reference: Any
@@ -127,6 +128,7 @@ class Tracking:
         y, r = self.signals(x, T)
         e = r - y
         K = y.shape[0]
+        check_int(f"Tracking.window (samples averaged, the run has {K})", self.window, 1, K)
         k0 = self.step_instant(K, T)
         # the samples from k0 on, the last one repeated to length K: step_info's characteristics
         # of this are those of y[k0:] (the repeats change no first crossing, extremum or band exit)

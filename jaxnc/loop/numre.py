@@ -26,13 +26,29 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_choice, check_finite, check_int, check_nonneg
+from jaxnc._validate import check_choice, check_finite, check_given, check_int, check_nonneg
 from jaxnc.estimators.numre import NumreTables, numre_correct, numre_tables
 from jaxnc.loop.base import AbstractEstimator, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
 __all__ = ["Numre", "NumreState"]
+
+
+def _check_covariance(name: str, M, dim: int, *, scalar: bool = False) -> None:
+    """``M`` (finite, checked before) a dim x dim symmetric positive semi-definite matrix, or
+    (``scalar``) a non-negative number; ValueError naming ``name``."""
+    a = np.asarray(M, float)
+    if scalar and a.size == 1:
+        a = a.reshape(1, 1)
+    if a.shape != (dim, dim):
+        want = f"a number >= 0 or {dim}x{dim}" if scalar else f"{dim}x{dim}"
+        raise ValueError(f"{name} must be {want} (a covariance), got shape {a.shape}")
+    if not np.allclose(a, a.T, atol=1e-9 * max(1.0, float(np.abs(a).max()))):
+        raise ValueError(f"{name} must be symmetric (a covariance)")
+    low = float(np.linalg.eigvalsh(a).min())
+    if low < -1e-12 * max(1.0, float(np.abs(a).max())):
+        raise ValueError(f"{name} must be positive semi-definite (a covariance), got smallest eigenvalue {low:g}")
 
 
 class NumreState(NamedTuple):
@@ -51,7 +67,9 @@ class Numre(AbstractEstimator):
       tables: :class:`~jaxnc.estimators.numre.NumreTables` (A^N, We(N) for N <= n_max, C, V);
         a gap longer than ``tables.n_max`` is corrected with K(n_max).
       A: float[n, n]; B: float[n, m], the model over one period.
-      mean0: float[n]; cov0: float[n, n], the prior at k = 0.
+      mean0: float[n]; cov0: float[n, n], the prior at k = 0: a measurement arriving at
+        k = 0 is corrected with M = cov0 (N = 0), the first one at k > 0 with
+        M = A^k cov0 (A^k)' + We(k).
       inputs: static, ``"believed"`` (the actions of the controller's own packets, what a
         filter on the control side knows) or ``"applied"`` (a filter at the actuator).
 
@@ -77,46 +95,56 @@ class Numre(AbstractEstimator):
                inputs: str = "believed") -> "Numre":
         """The filter of the model x+ = A x + B u + Bw w, y = C x + v, Cov(w) = W (scalar or
         float[q, q], Bw float[n] or float[n, q]), Var(v) = V (single output: C float[n]),
-        with tables up to the multiplicity ``n_max``. Raises ValueError for n_max < 1, a
-        negative V, a C with more than one row or an unknown ``we_form``, an A that is not
-        square, a W that is not a PSD covariance, a cov0 that is not n x n symmetric PSD,
-        a mean0 without n entries, or non-finite numbers (each naming the argument)."""
+        with tables up to the multiplicity ``n_max``: a gap between arrivals longer than
+        n_max is corrected with K(n_max) and We(n_max), not the Kalman filter's gain (choose
+        n_max >= the longest gap, e.g. the run's steps, for the exact filter).
+
+        Raises ValueError, naming the argument, for n_max < 1, a non-finite entry of any
+        matrix or of mean0, an A that is not square, a B, Bw or C whose rows do not match A's
+        n (C: one output row of n entries), a W that is not a non-negative scalar or a q x q
+        covariance (q = Bw's columns), a negative V, a cov0 that is not an n x n covariance
+        (symmetric positive semi-definite), a mean0 without n entries, or an unknown
+        ``we_form``."""
         check_int("Numre.n_max", n_max, 1)
         check_nonneg("Numre.V", V)
-        for name, v in (("A", A), ("B", B), ("Bw", Bw), ("C", C), ("W", W), ("cov0", cov0)) + (
-                (("mean0", mean0),) if mean0 is not None else ()):
+        for name, v in (("A", A), ("B", B), ("Bw", Bw), ("C", C), ("W", W), ("cov0", cov0)):
+            check_given(f"Numre.{name}", v)
             check_finite(f"Numre.{name}", v)
+        check_finite("Numre.mean0", mean0)          # None: zeros
         A = np.asarray(A, float)
-        n = A.shape[0] if A.ndim else 0
-        if A.shape != (n, n) or n == 0:
-            raise ValueError(f"Numre.A must be a square matrix (n x n), got shape {A.shape}")
+        if A.ndim != 2 or A.shape[0] != A.shape[1]:
+            raise ValueError(f"Numre.A must be a square matrix float[n, n], got shape {A.shape}")
+        n = A.shape[0]
         C = np.asarray(C, float)
         if C.size != n:
             raise ValueError(f"Numre.C must be one output row of {n} entries (single output), got shape {C.shape}")
-        for name, M, shapes in (("W", np.atleast_2d(np.asarray(W, float)), None),
-                                ("cov0", np.asarray(cov0, float), ((n, n),))):
-            if shapes is not None and M.shape not in shapes:
-                raise ValueError(f"Numre.{name} must be {n}x{n} (A's size), got shape {M.shape}")
-            if M.ndim != 2 or M.shape[0] != M.shape[1] or not np.allclose(M, M.T) \
-                    or np.linalg.eigvalsh(0.5 * (M + M.T)).min() < 0:
-                raise ValueError(f"Numre.{name} must be a symmetric positive semi-definite covariance "
-                                 f"(a number >= 0 or a square matrix), got {M.tolist()}")
-        if mean0 is not None and np.shape(mean0) != (n,):
-            raise ValueError(f"Numre.mean0 must have {n} entries (A's size), got shape {np.shape(mean0)}")
+        B, Bw = np.asarray(B, float), np.asarray(Bw, float)
+        for name, M in (("B", B), ("Bw", Bw)):
+            if M.ndim not in (1, 2) or M.shape[0] != n:
+                raise ValueError(f"Numre.{name} must be float[{n}] or float[{n}, k] (A is {n}x{n}), got shape {M.shape}")
+        q = 1 if Bw.ndim == 1 else Bw.shape[1]
+        _check_covariance("Numre.W", W, q, scalar=q == 1)
+        _check_covariance("Numre.cov0", cov0, n)
+        mean0 = np.zeros(n) if mean0 is None else np.asarray(mean0, float)
+        if mean0.shape != (n,):
+            raise ValueError(f"Numre.mean0 must have {n} entries (A is {n}x{n}), got shape {mean0.shape}")
         tables = numre_tables(A, Bw, C.reshape(n), W, V, n_max, we_form=we_form)
         f = lambda a: jnp.asarray(a, jnp.float32)
-        mean0 = np.zeros(n) if mean0 is None else mean0
-        return cls(tables, f(A), f(np.asarray(B, float).reshape(n, -1)), f(mean0), f(cov0), inputs=inputs)
+        return cls(tables, f(A), f(B.reshape(n, -1)), f(mean0), f(cov0), inputs=inputs)
 
     def init(self, ctx) -> NumreState:
         if ctx.N != 1:
             raise ValueError(f"Numre needs the loop's slow period to be the model's period (Loop.N = 1), got "
                              f"N = {ctx.N}")
+        if ctx.output_dim != 1:
+            raise ValueError(f"Numre is a single-output filter (C float[n]): the plant must have output_dim = 1, "
+                             f"got {ctx.output_dim} (the others would be ignored)")
         return NumreState(jnp.asarray(self.mean0), jnp.asarray(self.cov0), jnp.zeros((), jnp.int32))
 
     def correct(self, state: NumreState, inbox: Inbox, k):
         z, _, w = inbox.newest()
-        N = jnp.clip(k - state.k_lm, 1, self.tables.n_max)
+        # N = 0 only at k = 0 (k_lm starts at 0): the prior there is (mean0, cov0) itself
+        N = jnp.clip(k - state.k_lm, 0, self.tables.n_max)
         mean, cov, _ = numre_correct(self.tables, state.mean, state.cov, z[0], N)
         new = blend(w, NumreState(mean, cov, jnp.asarray(k, jnp.int32)), state)
         return new, new.mean

@@ -20,10 +20,12 @@ event-based sampling interval):
     I <- I + h_k Ki e                                                   (anti_windup="none")
        = I + h_k Ki e, unless v_k > u_max and Ki e > 0
                        or v_k < u_min and Ki e < 0 (then I)            ("clamping")
-       = I + h_k (Ki e + Kb (u_k - v_k))                                ("back_calculation")
+       = I + h_k (Ki e + Kb (u_k - v_k))                                ("back_calculation";
+                                                                          I unchanged where Ki = 0)
 
-(I is updated after u_k is computed: u_k uses the integral of the errors before k.) The
-first computation takes e_d,prev = e_d (no derivative kick at start-up).
+(I is updated after u_k is computed: u_k uses the integral of the errors before k.) A channel
+without integral action (Ki = 0) keeps I = 0 in every mode: back-calculation feeds the
+integrator, and there is none. The first computation takes e_d,prev = e_d (no derivative kick at start-up).
 
 No measurement (``hold=True``, the default): at an instant where ``fresh == 0`` (the
 estimator received nothing) the controller does not compute: its state (integral,
@@ -79,18 +81,23 @@ class PID(AbstractController):
       Kp, Ki, Kd: float or float[c] (Python numbers become float32, arrays keep their dtype), proportional, integral (1/s) and derivative (s) gains.
       Tf: float or float[c] >= 0, derivative filter time constant (s); 0: unfiltered.
       b, c: float or float[c], setpoint weights of the proportional and derivative terms.
-      u_min, u_max: float, float[c] or None (unbounded), output limits, u_min <= u_max.
+      u_min, u_max: float, float[c] or None (unbounded), output limits, u_min <= u_max;
+        u_min = -inf and u_max = inf are unbounded too (u_min = +inf or u_max = -inf is refused).
       Kb: float or float[c] >= 0, back-calculation gain (1/s), used with
-        ``anti_windup="back_calculation"``.
+        ``anti_windup="back_calculation"`` on the channels with Ki != 0.
       reference: a :class:`jaxnc.references.AbstractReference` with 1 or c channels; None: 0.
       index: static int or tuple of c distinct ints >= 0, the estimator-output components
         measured.
       anti_windup: static, ``"none"``, ``"clamping"`` or ``"back_calculation"``.
       hold: static bool, hold (compute nothing, send nothing) when ``fresh == 0``.
 
+    It computes in :attr:`dtype` (float32, or float64 when a gain, limit or the reference is a
+    float64 array under x64): its state, the measurement and the reference are in it.
+
     Raises:
       ValueError: naming the field, for a non-finite gain, Tf or Kb < 0, u_min > u_max,
-        a reference that is not a :mod:`jaxnc.references` object, an index that is not
+        u_min = +inf or u_max = -inf, a field that is neither a number nor float[1] /
+        float[c] (JAX arrays are not checked: batched leaves), a reference that is not a :mod:`jaxnc.references` object, an index that is not
         a non-negative int or tuple of distinct ones, gains whose channel count differs
         from ``len(index)``, or an unknown ``anti_windup``; when a ``Loop`` is built
         (its fit check traces one step), an index beyond the estimator's estimate.
@@ -132,7 +139,7 @@ class PID(AbstractController):
             else:
                 check_given(f"PID.{name}", v)
                 check_range(f"PID.{name}", v, 0.0 if name in ("Tf", "Kb") else None)
-            if v is None or isinstance(v, jax.Array):
+            if v is None or isinstance(v, jax.Array):      # JAX arrays (batched leaves) are not checked
                 continue
             a = np.asarray(v)
             if a.dtype.kind != "f" or not isinstance(v, np.ndarray):    # Python numbers: float32
@@ -142,8 +149,12 @@ class PID(AbstractController):
                                  f"index), got shape {a.shape}")
             object.__setattr__(self, name, np.broadcast_to(a, (n,)).copy())
         lo, hi = self.u_min, self.u_max
+        if isinstance(lo, np.ndarray) and np.any(lo == np.inf):
+            raise ValueError(f"PID.u_min must be in [-inf, inf) (-inf: unbounded below), got {lo.tolist()}")
+        if isinstance(hi, np.ndarray) and np.any(hi == -np.inf):
+            raise ValueError(f"PID.u_max must be in (-inf, inf] (inf: unbounded above), got {hi.tolist()}")
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
-            raise ValueError("PID.u_min must be <= u_max")
+            raise ValueError(f"PID.u_min must be <= u_max, got {lo.tolist()} and {hi.tolist()}")
         if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
             want = "1 channel" if n == 1 else f"1 or {n} channels"
             raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
@@ -153,8 +164,16 @@ class PID(AbstractController):
         """c, the number of loops (``len(index)``)."""
         return len(self.index)
 
+    @property
+    def dtype(self):
+        """The dtype it computes in: that of its gains, weights, limits and reference
+        (float32 unless one of them is a float64 array and x64 is on)."""
+        leaves = [getattr(self, n) for n in ("Kp", "Ki", "Kd", "Tf", "b", "c", "u_min", "u_max", "Kb")]
+        leaves = [v for v in leaves + jax.tree.leaves(self.reference) if v is not None]
+        return jnp.result_type(jnp.float32, *leaves)
+
     def init(self, ctx) -> PIDState:
-        z = jnp.zeros((self.channels,), jnp.float32)
+        z = jnp.zeros((self.channels,), self.dtype)
         u0 = jnp.clip(z, self.u_min, self.u_max) if self._limited else z
         return PIDState(z, z, z, u0, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32))
 
@@ -165,11 +184,12 @@ class PID(AbstractController):
     def step(self, state: PIDState, xhat, fresh, k, ctx):
         xhat = jnp.asarray(xhat)
         check_components("PID.index", self.index, xhat.shape[-1], "the estimator's estimate")
-        y = xhat[jnp.asarray(self.index)]
-        h = ctx.N * ctx.T
+        dt = self.dtype
+        y = xhat[jnp.asarray(self.index)].astype(dt)
+        h = jnp.asarray(ctx.N * ctx.T, dt)
         if self.hold:
-            h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(jnp.float32)
-        new, u = pid_update(self, state, y, _reference(self, k, ctx), h)
+            h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(dt)
+        new, u = pid_update(self, state, y, _reference(self, k, ctx).astype(dt), h)
         new = new._replace(last=jnp.asarray(k, jnp.int32))
         if self.hold:
             w = jnp.asarray(fresh, jnp.float32)
@@ -201,6 +221,7 @@ def pid_update(pid: PID, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]
         lo = -jnp.inf if pid.u_min is None else pid.u_min
         gain = jnp.where(((v > hi) & (gain > 0)) | ((v < lo) & (gain < 0)), 0.0, gain)
     elif pid.anti_windup == "back_calculation":
-        gain = gain + pid.Kb * (u - v)
+        # only where there is integral action: a channel with Ki = 0 has no integrator to unwind
+        gain = gain + jnp.where(pid.Ki != 0, pid.Kb * (u - v), 0.0)
     integral = state.integral + h * gain
     return state._replace(integral=integral, deriv=D, e_d=ed, u=u, started=jnp.ones_like(state.started)), u
