@@ -77,7 +77,6 @@ def test_cli_command_line_errors(args, fragment, tmp_path, capsys):
 
 _KEY = jax.random.PRNGKey(0)
 _PLANT = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]])
-_A_NUMRE = [[1.0, 0.1], [0.0, 0.9]]
 _PLANT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]])
 _G = Gaussian(jnp.zeros(2), jnp.eye(2))
 _F = lambda x, u, w: x + w            # noqa: E731
@@ -289,15 +288,6 @@ PYTHON_API = [
     (lambda: nc.slow_system(np.eye(2) * 0.5, np.ones((2, 1)), 0), "slow_system: N must be an integer in [1, inf)"),
     (lambda: nc.stationary_gain(nc.SteadyStateKF(_PLANT_DETECTABLE, Q=np.eye(2), R=np.eye(1)), -1),
      "stationary_gain: N must be an integer in [1, inf)"),
-    # the NUMRE filter's noise and prior were not checked: a negative W or cov0 ran with wrong gains
-    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], -1.0, 0.01, 4, cov0=np.eye(2)),
-     "Numre.W must be a symmetric positive semi-definite covariance"),
-    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], 1.0, 0.01, 4, cov0=-np.eye(2)),
-     "Numre.cov0 must be a symmetric positive semi-definite covariance"),
-    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], 1.0, 0.01, 4, cov0=np.eye(3)),
-     "Numre.cov0 must be 2x2 (A's size)"),
-    (lambda: nc.Numre.design(_A_NUMRE, [0.0, 0.1], [0.0, 1.0], [1.0, 0.0], 1.0, 0.01, 4, cov0=np.eye(2),
-                             mean0=[0.0, 0.0, 0.0]), "Numre.mean0 must have 2 entries"),
     # Merwe's sigma points with n + kappa <= 0 (zero or negative spread) gave NaN estimates without an error
     (lambda: nc.UKF(_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), kappa=-3.0),
      "UKF.kappa must be > -n = -2"),
