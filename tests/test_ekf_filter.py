@@ -148,3 +148,15 @@ def test_inconsistent_shapes_are_refused_before_tracing():
         st = STRUCTURE
         ekf_filter(plant.dynamics, plant.measure, b0, us, zs, valid, Q, r, noise_dim=PROCESS_NOISE_DIM,
                    structure=EKFStructure(st.A, st.L, Pattern.dense(6, 6)))
+
+
+def test_a_per_seed_model_is_refused_even_when_the_batch_equals_the_state_size():
+    """A row-vector model ``x @ A.T`` (right for one seed) runs without a shape error on a batch of
+    B = n seeds, mixing the seeds; the check's batch differs from every model size, so it is refused."""
+    A = jnp.asarray([[1.0, 0.1], [0.0, 1.0]])
+    f = lambda x, u, w: x @ A.T + w            # per seed only: for x (2, B) it contracts the batch axis
+    h = lambda x, v: x[:1] + v
+    b0 = ekf.Gaussian(jnp.zeros((2, 2)), jnp.broadcast_to(jnp.eye(2), (2, 2, 2)))
+    us, zs, valid = jnp.zeros((2, 5, 1)), jnp.ones((2, 5, 1)), jnp.ones((2, 5), bool)
+    with pytest.raises(ValueError, match="batch-last"):
+        ekf_filter(f, h, b0, us, zs, valid, jnp.eye(2), jnp.ones(1), noise_dim=2)

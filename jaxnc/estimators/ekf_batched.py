@@ -179,8 +179,10 @@ def _jacobian(fn, x, cols=None):
 
 
 def _check_model(f, h, n, nu, nw, m, dtype):
-    """Evaluate f and h abstractly on a batch of 2 to fail early with a clear message."""
-    b = 2
+    """Evaluate f and h abstractly on a batch of b seeds to fail early with a clear message; b
+    differs from every size of the model, so a per-seed model that contracts or broadcasts
+    against the batch axis (``x @ A.T``) fails here rather than mixing seeds when B equals a size."""
+    b = min(set(range(2, 7)) - {n, nu, nw, m})
     x, u = jax.ShapeDtypeStruct((n, b), dtype), jax.ShapeDtypeStruct((nu, b), dtype)
     w, v = jax.ShapeDtypeStruct((nw, b), dtype), jax.ShapeDtypeStruct((m, b), dtype)
     for name, fn, args, want in (("f", f, (x, u, w), (n, b)), ("h", h, (x, v), (m, b))):
