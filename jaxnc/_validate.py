@@ -122,6 +122,19 @@ def check_int(name, v, low, high=None):
         raise ValueError(f"{name} must be an integer in [{low}, {hi}, got {v!r}")
 
 
+def index_tuple(name, index, what: str = "") -> tuple:
+    """A static component index, an int >= 0 or a non-empty tuple/list of distinct ones, as a
+    tuple of ints. Raises ValueError naming ``name`` (``what``: the components, in words, for
+    the message)."""
+    idx = (index,) if isinstance(index, (int, np.integer)) and not isinstance(index, bool) else index
+    if not isinstance(idx, (tuple, list)) or not idx or \
+            not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) and i >= 0 for i in idx) \
+            or len(set(idx)) != len(idx):
+        raise ValueError(f"{name} must be an int >= 0 or a tuple of distinct ints >= 0{what and f' ({what})'}, "
+                         f"got {index!r}")
+    return tuple(int(i) for i in idx)
+
+
 def check_components(name, index, size: int, what: str):
     """The static component indices ``index`` (a tuple of ints) pick entries of a vector of
     ``size`` (static: a traced array's shape), named ``what`` in words. Indexing with an

@@ -380,7 +380,30 @@ PYTHON_API = [
     (lambda: _numre(Bw=np.ones(3)), "Numre.Bw must be float[2] or float[2, k] (A is 2x2), got shape (3,)"),
     (lambda: _numre(cov0=np.eye(3)), "Numre.cov0 must be 2x2 (a covariance), got shape (3, 3)"),
     (lambda: _numre(mean0=[0.0, 0.0, 1.0]), "Numre.mean0 must have 2 entries (A is 2x2), got shape (3,)"),
+    # LinearController (a compensator in state-space form): sizes that do not fit, limits, periods
+    (lambda: nc.LinearController(A=[[1.0, 0.0]], B=[[1.0]], C=[[1.0]]),
+     "LinearController.A must be a square matrix (n x n, n >= 1), got shape (1, 2)"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0, 1.0]], C=[[1.0]]), "LinearController.B must be 1 x 1"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], D=[[1.0, 2.0]]),
+     "LinearController.D must have shape (1, 1)"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], K_aw=[1.0]), "LinearController.K_aw must have shape (1, 1)"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], u_min=1.0, u_max=0.0),
+     "LinearController.u_min must be <= u_max"),
+    (lambda: nc.LinearController(A=[[np.nan]], B=[[1.0]], C=[[1.0]]), "LinearController.A must be finite"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], dt=-0.1),
+     "LinearController.dt must be a positive number of seconds or None, got -0.1"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=None), "LinearController.C must be a matrix"),
+    (lambda: _linear_from_control(None), "LinearController.from_control: h (the loop's slow period N T, seconds) is "
+                                         "required to discretise a continuous-time system"),
+    (lambda: _linear_from_control(0.1, dt=0.2), "LinearController.from_control: the system is discrete with dt=0.2, "
+                                                "h=0.1 differs"),
 ]
+
+
+def _linear_from_control(h, dt=None):
+    import control
+    sys = control.tf([1.0], [1.0, 1.0]) if dt is None else control.tf([1.0], [1.0, 0.5], dt=dt)
+    return nc.LinearController.from_control(sys, h)
 
 
 @pytest.mark.parametrize("call, fragment", PYTHON_API)
@@ -869,6 +892,11 @@ LOOP_FIT = [
     # and the EKF never corrected, x̂ 0 throughout, as PmfDelay with the same law is refused)
     (lambda: _fit_loop(uplink=nc.Link(delay=nc.WifiModel(wifi.WifiChannel(delay_pmf=[0.0, 0.0, 0.0, 1.0])))),
      "Loop.estimator (EKF) uses a measurement at most 0 slow periods late"),
+    # a compensator designed for another period than the loop's N T; an index beyond the estimate
+    (lambda: _fit_loop(controller=nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], dt=0.2)),
+     "LinearController.dt: the compensator was designed for a period of 0.2 s but the loop's slow period is N T"),
+    (lambda: _fit_loop(controller=nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], index=3)),
+     "LinearController.index must pick components in [0, 1] of the estimator's estimate (2 entries), got (3,)"),
     # records
     (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
     (lambda: nc.Record(estimator=3), "Record.estimator must be"),

@@ -7,6 +7,7 @@ args=(loop,))`` maps it over seeds. See docs/build_your_own_loop.md.
 """
 from jaxnc.loop.actuators import ActuatorState, HoldLast, PacketActuator, ZeroOrder
 from jaxnc.loop.cascade import Cascade, CascadeState
+from jaxnc.loop.compensator import LinearController
 from jaxnc.loop.numre import Numre, NumreState
 from jaxnc.loop.unstamped import ArrivalHold, DirtyDerivative, DirtyDerivativeState
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator, AbstractInitial,
@@ -49,6 +50,7 @@ __all__ = [
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PID", "PIDState", "pid_update",
+    "LinearController",
     "Tracking", "TrackingMetrics", "run_tracking",
     "AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", "RateLimitState", "LimitedActuator",
     "LimitedSensor",

@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnc import tracking as _tr
-from jaxnc._validate import check_components, check_instance, check_int, check_range
+from jaxnc._validate import check_components, check_instance, check_int, check_range, index_tuple
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
@@ -94,11 +94,7 @@ class Tracking:
     def __post_init__(self):
         check_instance("Tracking.reference", self.reference, AbstractReference,
                        "a jaxnc.references object (Step, Ramp, Sine, PiecewiseLinear, Recorded)")
-        idx = (self.index,) if isinstance(self.index, int) and not isinstance(self.index, bool) else self.index
-        if not isinstance(idx, (tuple, list)) or not idx or len(set(idx)) != len(idx) or \
-                not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in idx):
-            raise ValueError(f"Tracking.index must be an int >= 0 or a tuple of distinct ints >= 0, got {self.index!r}")
-        object.__setattr__(self, "index", tuple(idx))
+        object.__setattr__(self, "index", index_tuple("Tracking.index", self.index))
         if self.reference.dim not in (1, len(self.index)):
             c = len(self.index)
             want = "1 channel" if c == 1 else f"1 or {c} channels"

@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range
+from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range, index_tuple
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -118,13 +118,7 @@ class PID(AbstractController):
     hold: bool = _static(True)
 
     def __post_init__(self):
-        idx = (self.index,) if isinstance(self.index, (int, np.integer)) else self.index
-        if not isinstance(idx, (tuple, list)) or not idx or \
-                not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) and i >= 0 for i in idx) \
-                or len(set(idx)) != len(idx):
-            raise ValueError(f"PID.index must be an int >= 0 or a tuple of distinct ints >= 0 (the estimator-output "
-                             f"components measured), got {self.index!r}")
-        object.__setattr__(self, "index", tuple(int(i) for i in idx))
+        object.__setattr__(self, "index", index_tuple("PID.index", self.index, "the estimator-output components measured"))
         if self.anti_windup not in _ANTI_WINDUP:
             raise ValueError(f"PID.anti_windup must be one of {', '.join(_ANTI_WINDUP)}, got {self.anti_windup!r}")
         check_bool("PID.hold", self.hold)
