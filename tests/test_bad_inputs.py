@@ -308,6 +308,10 @@ PYTHON_API = [
     (lambda: _pursuit(path=from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.001), v_ref=0.5),
      "PursuitPI.window (40 path points, 0.039 m of progress per sensing period at the path's spacing 0.001 m) must "
      "cover the arc the robot travels in one sensing period at v_ref (0.05 m"),
+    # a path monitor searching one point per check: its progress never moved, and a plant on the path
+    # failed once it was max_dev from the start
+    (lambda: nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01), window=1),
+     "PathMonitor.window must be an integer in [2, inf), got 1"),
     # dual-rate design (nu7): a plant whose poles G2 cancels gave an internally unstable loop (lifted
     # eigenvalue e^{NT} for 1/(s - 1), 1 for an integrator) without a word; a discrete C was read as
     # continuous; a discrete, MIMO, zero or improper Gp failed in python-control without naming Gp; a
