@@ -113,6 +113,19 @@ def test_a_plant_faster_than_the_window_is_followed_not_failed(ds, v, done_step)
     np.testing.assert_allclose(tr.parts["monitor"][:done_step], 0.0, atol=1e-5)
 
 
+def test_a_path_of_two_points():
+    """from_waypoints with ds >= the length gives a path of two points (one segment): the
+    distance is to that segment (it failed in the trace: the distance read three points).
+    p_t = (0.25 t, 0.1): 0.1 m from the segment throughout, complete at its end (t = 4)."""
+    seg = from_waypoints(np.array([[0.0, 0.0], [1.0, 0.0]]), "segment", ds=1.0)
+    assert seg.M == 2
+    t = np.arange(6)
+    failed, done, dist = _watch(nc.PathMonitor(seg, max_dev=0.5, end_tol=0.2), np.stack([0.25 * t, 0.1 + 0 * t], 1))
+    np.testing.assert_allclose(dist, np.where(t <= 4, 0.1, np.hypot(0.25 * t - 1.0, 0.1)), atol=1e-6)
+    np.testing.assert_array_equal(done, t >= 4)
+    assert not np.any(failed)
+
+
 def test_track_index_is_the_nearest_point_ahead_on_a_curve():
     """On a quarter circle of radius 1 (ds = 0.01, 158 points), points near the arc at angles
     far beyond a window of 8 points from the start: the progress is the nearest path point
