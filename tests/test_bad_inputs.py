@@ -317,6 +317,9 @@ PYTHON_API = [
     # failed once it was max_dev from the start
     (lambda: nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01), window=1),
      "PathMonitor.window must be an integer in [2, inf), got 1"),
+    # a path monitor's tube of two widths failed when the Loop was built, naming the monitor's step, not the field
+    (lambda: nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01), max_dev=np.array([0.3, 0.5])),
+     "PathMonitor.max_dev must be a single number, got shape (2,)"),
     # seed 000's path follower: PI gains of another length than its three loops (Vx, Vy, W), or a vector
     # speed, failed inside the loop's trace with jax's message (or float()'s, for V_ref)
     (lambda: _follower(Kp=[0.2, 0.2]), "PathFollower.Kp must be a number or 3 numbers (the Vx, Vy and W loops), got shape (2,)"),

@@ -11,7 +11,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_bool, check_instance, check_int, check_range
+from jaxnc._validate import array_fields, check_bool, check_instance, check_int, check_range, scalar_fields
 from jaxnc.loop.base import AbstractMonitor, pytree_dataclass, static_field
 from jaxnc.metrics import local_distance
 from jaxnc.paths import Path, track_index
@@ -52,7 +52,7 @@ class PathMonitor(AbstractMonitor):
     Record the distance with ``Record(monitor=path_distance)``.
 
     Attributes:
-      path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0.
+      path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0, single numbers.
       xy: static, the index of the position's first coordinate in the state vector.
       window: static, >= 2, path points searched per check (a plant that moves farther
         between two checks costs repeated searches, see progress above).
@@ -74,6 +74,8 @@ class PathMonitor(AbstractMonitor):
 
     def __post_init__(self):
         check_instance("PathMonitor.path", self.path, Path, "a jaxnc.paths.Path")
+        array_fields(self, "max_dev", "end_tol")
+        scalar_fields(self, "max_dev", "end_tol")
         check_range("PathMonitor.max_dev", self.max_dev, 0.0, None, low_open=True)
         check_range("PathMonitor.end_tol", self.end_tol, 0.0, None, low_open=True)
         check_int("PathMonitor.xy", self.xy, 0, None)
