@@ -100,7 +100,7 @@ def test_a_plant_faster_than_the_window_is_followed_not_failed(ds, v, done_step)
     31 mm at ds = 1 mm). It reaches the end (4, 0) at t + 1 = 40 / v and never leaves the
     line. The progress used to fall behind by 0.1 v - 31 ds per check and the distance to its
     segments grew with the lead: at 4 m/s recorded 0.08, 0.17, ... m for a plant on the line,
-    failed at t + 1 = 6 and never completed (at 8 m/s failed at 2; at ds = 1 mm, 0.5 m/s failed at 26)."""
+    failed at t + 1 = 6 and never completed (at 8 m/s failed at 2; at ds = 1 mm, 0.5 m/s failed at 27)."""
     line = from_waypoints(np.array([[0.0, 0.0], [4.0, 0.0]]), "line4", ds=ds)
     A = np.array([[1.0, 0, 0.1, 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]])
     plant = nc.LTI(A=A, B=np.zeros((4, 1)), C=np.eye(4), x0=[0.0, 0.0, v, 0.0], T=0.1)
