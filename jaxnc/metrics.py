@@ -80,7 +80,8 @@ def _masked(dist, mask):
 
 
 def local_distance(path: Path, xy, idx) -> jax.Array:
-    """Distance from ``xy[2]`` to the two path segments that meet at point ``idx``.
+    """Distance from ``xy[2]`` to the two path segments that meet at point ``idx`` (the
+    one segment of a path of two points).
 
     With ``idx`` the nearest path point (``closest_index``, monotone along the run)
     this is the distance to the polyline on the robot's own branch, O(1) per
@@ -89,8 +90,9 @@ def local_distance(path: Path, xy, idx) -> jax.Array:
     difference on whole runs). Differentiable in ``xy``; ``idx`` carries no gradient.
     """
     M = path.points.shape[0]
-    i0 = jnp.clip(jnp.asarray(idx, jnp.int32) - 1, 0, M - 3)
-    a = jax.lax.dynamic_slice(path.points, (i0, jnp.zeros((), jnp.int32)), (3, 2)).astype(_DTYPE)
+    n = min(3, M)       # a path of two points has one segment
+    i0 = jnp.clip(jnp.asarray(idx, jnp.int32) - 1, 0, M - n)
+    a = jax.lax.dynamic_slice(path.points, (i0, jnp.zeros((), jnp.int32)), (n, 2)).astype(_DTYPE)
     d = a[1:] - a[:-1]
     len2 = jnp.sum(d * d, axis=-1)
     inv = jnp.where(len2 > 0.0, 1.0 / jnp.where(len2 > 0.0, len2, 1.0), 0.0)

@@ -41,6 +41,7 @@ __all__ = [
     "get_path",
     "scaled",
     "closest_index",
+    "track_index",
     "point_at",
     "heading_at",
 ]
@@ -214,6 +215,28 @@ def closest_index(path: Path, p, idx_prev, window: int):
     pos = d2j > 0.0
     dist = jnp.where(pos, jnp.sqrt(jnp.where(pos, d2j, 1.0)), 0.0)
     return start + j, dist.astype(_DTYPE)
+
+
+def track_index(path: Path, p, idx_prev, window: int):
+    """The monotone progress of a plant at ``p`` float[2]: :func:`closest_index`
+    from ``idx_prev`` over ``window`` (static, >= 2) points, repeated from its result while
+    that is the window's last point and not the path's end (the distance still falls there:
+    the plant is beyond the window). Returns the index, int32. Each repeat advances at least
+    ``min(window, M) - 1`` points, so it ends.
+    """
+    w = min(int(window), path.M)
+    if w < 2:
+        raise ValueError(f"track_index: window must be >= 2 (and the path have 2 points), got {window}")
+
+    def ahead(c):
+        prev, idx = c
+        return (idx == prev + (w - 1)) & (idx < path.M - 1)
+
+    def again(c):
+        return c[1], closest_index(path, p, c[1], w)[0]
+
+    idx_prev = jnp.clip(jnp.asarray(idx_prev, jnp.int32), 0, path.M - 1)
+    return jax.lax.while_loop(ahead, again, (idx_prev, closest_index(path, p, idx_prev, w)[0]))[1]
 
 
 def point_at(path: Path, s) -> jax.Array:

@@ -83,6 +83,11 @@ _F = lambda x, u, w: x + w            # noqa: E731
 _H = lambda x, v: x[:1] + v           # noqa: E731
 
 
+def _follower(**kw):
+    from jaxnc.controllers.path_following import PathFollower
+    return PathFollower(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01), **kw)
+
+
 def _pursuit(pi=None, ns=1, path=None, **kw):
     pi = DiscreteSS.from_tf(single_rate_pi(6.0, 0.12, ns * 0.1)) if pi is None else pi
     path = diffdrive.four_right_angles() if path is None else path
@@ -308,6 +313,17 @@ PYTHON_API = [
     (lambda: _pursuit(path=from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.001), v_ref=0.5),
      "PursuitPI.window (40 path points, 0.039 m of progress per sensing period at the path's spacing 0.001 m) must "
      "cover the arc the robot travels in one sensing period at v_ref (0.05 m"),
+    # a path monitor searching one point per check: its progress never moved, and a plant on the path
+    # failed once it was max_dev from the start
+    (lambda: nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01), window=1),
+     "PathMonitor.window must be an integer in [2, inf), got 1"),
+    # a path monitor's tube of two widths failed when the Loop was built, naming the monitor's step, not the field
+    (lambda: nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01), max_dev=np.array([0.3, 0.5])),
+     "PathMonitor.max_dev must be a single number, got shape (2,)"),
+    # seed 000's path follower: PI gains of another length than its three loops (Vx, Vy, W), or a vector
+    # speed, failed inside the loop's trace with jax's message (or float()'s, for V_ref)
+    (lambda: _follower(Kp=[0.2, 0.2]), "PathFollower.Kp must be a number or 3 numbers (the Vx, Vy and W loops), got shape (2,)"),
+    (lambda: _follower(V_ref=[0.2, 0.3]), "PathFollower.V_ref must be a single number, got shape (2,)"),
     # dual-rate design (nu7): a plant whose poles G2 cancels gave an internally unstable loop (lifted
     # eigenvalue e^{NT} for 1/(s - 1), 1 for an integrator) without a word; a discrete C was read as
     # continuous; a discrete, MIMO, zero or improper Gp failed in python-control without naming Gp; a

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from jaxnc import loop as nc
-from jaxnc.paths import from_waypoints
+from jaxnc.paths import from_waypoints, track_index
 
 LINE = from_waypoints(np.array([[0.0, 0.0], [10.0, 0.0]]), "line", ds=0.1)     # 101 points on y = 0
 CTX = nc.Context(N=1, steps=10, T=0.1, state_dim=2, input_dim=1, output_dim=2)
@@ -93,10 +93,59 @@ def test_in_a_loop_the_runner_records_first_failure_and_completion():
     np.testing.assert_allclose(on.parts["monitor"][:20], 0.0, atol=1e-6)    # on the line up to its end
 
 
+@pytest.mark.parametrize("ds, v, done_step", [(0.01, 4.0, 10), (0.01, 8.0, 5), (0.001, 0.5, 80)])
+def test_a_plant_faster_than_the_window_is_followed_not_failed(ds, v, done_step):
+    """A plant exactly on a 4 m line at v m/s, T = 0.1, checked with the default window of 32
+    points: it moves 0.1 v m per check, more than the window's 31 ds (0.31 m at ds = 0.01 m,
+    31 mm at ds = 1 mm). It reaches the end (4, 0) at t + 1 = 40 / v and never leaves the
+    line. The progress used to fall behind by 0.1 v - 31 ds per check and the distance to its
+    segments grew with the lead: at 4 m/s recorded 0.08, 0.17, ... m for a plant on the line,
+    failed at t + 1 = 6 and never completed (at 8 m/s failed at 2; at ds = 1 mm, 0.5 m/s failed at 27)."""
+    line = from_waypoints(np.array([[0.0, 0.0], [4.0, 0.0]]), "line4", ds=ds)
+    A = np.array([[1.0, 0, 0.1, 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]])
+    plant = nc.LTI(A=A, B=np.zeros((4, 1)), C=np.eye(4), x0=[0.0, 0.0, v, 0.0], T=0.1)
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                   controller=nc.StateFeedback(np.zeros((1, 4))), downlink=nc.Link(), actuator=nc.HoldLast(),
+                   monitor=nc.PathMonitor(line, max_dev=0.5, end_tol=0.05, xy=0), N=1, steps=100, T=0.1,
+                   record=nc.Record(signals=("x",), monitor=nc.path_distance))
+    tr = jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0))
+    assert (bool(tr.failed), bool(tr.done), int(tr.done_step)) == (False, True, done_step)
+    np.testing.assert_allclose(tr.parts["monitor"][:done_step], 0.0, atol=1e-5)
+
+
+def test_a_path_of_two_points():
+    """from_waypoints with ds >= the length gives a path of two points (one segment): the
+    distance is to that segment (it failed in the trace: the distance read three points).
+    p_t = (0.25 t, 0.1): 0.1 m from the segment throughout, complete at its end (t = 4)."""
+    seg = from_waypoints(np.array([[0.0, 0.0], [1.0, 0.0]]), "segment", ds=1.0)
+    assert seg.M == 2
+    t = np.arange(6)
+    failed, done, dist = _watch(nc.PathMonitor(seg, max_dev=0.5, end_tol=0.2), np.stack([0.25 * t, 0.1 + 0 * t], 1))
+    np.testing.assert_allclose(dist, np.where(t <= 4, 0.1, np.hypot(0.25 * t - 1.0, 0.1)), atol=1e-6)
+    np.testing.assert_array_equal(done, t >= 4)
+    assert not np.any(failed)
+
+
+def test_track_index_is_the_nearest_point_ahead_on_a_curve():
+    """On a quarter circle of radius 1 (ds = 0.01, 158 points), points near the arc at angles
+    far beyond a window of 8 points from the start: the progress is the nearest path point
+    (numpy, over the whole path), found from index 0 in one call; a point before the
+    progress keeps it (monotone)."""
+    th = np.linspace(0.0, 0.5 * np.pi, 2001)
+    arc = from_waypoints(np.stack([np.cos(th), np.sin(th)], 1), "arc", ds=0.01)
+    pts = np.asarray(arc.points, np.float64)
+    for ang, r in ((0.3, 1.05), (0.9, 0.97), (1.5, 1.0), (1.57, 1.2)):
+        p = np.array([r * np.cos(ang), r * np.sin(ang)])
+        want = int(np.argmin(np.sum((pts - p) ** 2, axis=1)))
+        got = int(jax.jit(track_index, static_argnums=3)(arc, jnp.asarray(p, jnp.float32), 0, 8))
+        assert got == want, (ang, r, got, want)
+    assert int(track_index(arc, jnp.asarray([1.0, 0.0]), 100, 8)) == 100
+
+
 @pytest.mark.parametrize("kw, match", [
     (dict(max_dev=0.0), "PathMonitor.max_dev"),
     (dict(end_tol=-1.0), "PathMonitor.end_tol"),
-    (dict(window=0), "PathMonitor.window"),
+    (dict(window=1), r"PathMonitor.window must be an integer in \[2, inf\)"),
     (dict(xy=-1), "PathMonitor.xy"),
     (dict(every=0), "PathMonitor.every"),
 ])

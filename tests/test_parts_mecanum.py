@@ -105,3 +105,23 @@ def test_mecanum_loop_draws_scale_the_robots_noise_and_deliver_the_first_exchang
     lost = np.mean(up[:, 1:] < 0)
     m = up[:, 1:].size
     assert abs(lost - 0.4) <= 5 * math.sqrt(0.4 * 0.6 / m)
+
+
+def test_path_follower_takes_gains_as_lists():
+    """PathFollower's Kp, Ki as Python lists (one per loop: Vx, Vy, W) act as the same arrays
+    (a list failed in the trace: 'list' * tracer); the follower's first output by hand: at
+    rest at the start of a straight line with V_ref along it, the PI's first action is
+    (Kp + Ki Ts) V_ref on Vx, through eq. (9)."""
+    from jaxnc.controllers.path_following import PathFollower
+    from jaxnc.paths import from_waypoints
+    from jaxnc.plants.mecanum import Mecanum, inverse_kinematics
+    line = from_waypoints(np.array([[0.0, 0.0], [2.0, 0.0]]), "line", ds=0.01)
+    plant = Mecanum()
+    a = PathFollower(line, Kp=[0.2, 0.3, 0.4], Ki=(6.0, 5.0, 4.0))
+    b = PathFollower(line, Kp=np.asarray([0.2, 0.3, 0.4], np.float32), Ki=np.asarray([6.0, 5.0, 4.0], np.float32))
+    mean = jnp.zeros(6)
+    ua, _ = jax.jit(lambda f: f(plant, mean, f.init(), 0.1))(a)
+    ub, _ = jax.jit(lambda f: f(plant, mean, f.init(), 0.1))(b)
+    np.testing.assert_array_equal(np.asarray(ua), np.asarray(ub))
+    want = inverse_kinematics(plant, jnp.asarray([(0.2 + 6.0 * 0.1) * 0.2, 0.0, 0.0]))
+    np.testing.assert_allclose(np.asarray(ua), np.asarray(want), rtol=1e-5)

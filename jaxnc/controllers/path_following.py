@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, check_nonneg, check_positive
+from jaxnc._validate import array_fields, check_int, check_nonneg, check_positive, concrete, scalar_fields
 from jaxnc.controllers.pi import pi_step, wrap_angle
 from jaxnc.controllers.pure_pursuit import pure_pursuit_velocity
 from jaxnc.paths import Path
@@ -41,7 +41,10 @@ LOOKAHEAD = 0.08
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class PathFollower:
-    """Pure pursuit + PI loops + inverse kinematics (seed 000 eq. 8-9)."""
+    """Pure pursuit + PI loops + inverse kinematics (seed 000 eq. 8-9).
+
+    Kp, Ki: a number or float[3] (the Vx, Vy and W loops), >= 0; K_psi, V_ref, L_ref: single
+    numbers (lists become arrays). Raises ValueError naming the field."""
 
     path: Path
     Kp: jax.Array = dataclasses.field(default_factory=lambda: np.full(3, 0.2, np.float32))
@@ -57,6 +60,13 @@ class PathFollower:
     window_step: int = dataclasses.field(default=16, metadata=dict(static=True))
 
     def __post_init__(self):
+        array_fields(self, "Kp", "Ki", "K_psi", "V_ref", "L_ref")
+        for n in ("Kp", "Ki"):
+            v = getattr(self, n)
+            if concrete(v) and np.shape(v) not in ((), (3,)):
+                raise ValueError(f"PathFollower.{n} must be a number or 3 numbers (the Vx, Vy and W loops), "
+                                 f"got shape {np.shape(v)}")
+        scalar_fields(self, "K_psi", "V_ref", "L_ref")
         check_nonneg("PathFollower.Kp", self.Kp)
         check_nonneg("PathFollower.Ki", self.Ki)
         check_nonneg("PathFollower.K_psi", self.K_psi)

@@ -11,10 +11,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_bool, check_instance, check_int, check_range
+from jaxnc._validate import array_fields, check_bool, check_instance, check_int, check_range, scalar_fields
 from jaxnc.loop.base import AbstractMonitor, pytree_dataclass, static_field
 from jaxnc.metrics import local_distance
-from jaxnc.paths import Path, closest_index
+from jaxnc.paths import Path, track_index
 
 __all__ = ["PathMonitor", "PathMonitorState", "path_distance"]
 
@@ -36,7 +36,10 @@ class PathMonitor(AbstractMonitor):
 
     * progress: the nearest path point searched monotonically in a window of ``window``
       points ahead (:func:`jaxnc.paths.closest_index`), so the search stays on the plant's
-      own branch where the path crosses itself;
+      own branch where the path crosses itself; while the nearest point is the window's
+      last (not the path's end) the search goes on from it (:func:`jaxnc.paths.track_index`),
+      so the progress keeps up with a plant that moves more than the window between two
+      checks instead of falling behind it with a distance that grows with its lead;
     * distance: to the two segments meeting at that point (:func:`jaxnc.metrics.local_distance`);
     * complete: once the progress is in the path's last tenth and p within ``end_tol`` of
       its end (stays complete);
@@ -49,9 +52,10 @@ class PathMonitor(AbstractMonitor):
     Record the distance with ``Record(monitor=path_distance)``.
 
     Attributes:
-      path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0.
+      path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0, single numbers.
       xy: static, the index of the position's first coordinate in the state vector.
-      window: static, path points searched per check (more than the plant moves between two).
+      window: static, >= 2, path points searched per check (a plant that moves farther
+        between two checks costs repeated searches, see progress above).
       every: static, fast periods per check (>= 1; default 1, every fast period).
       freeze: static; hold the plant, and this monitor's progress, distance and completion,
         at their last good values once failed (default False: both run on).
@@ -70,10 +74,12 @@ class PathMonitor(AbstractMonitor):
 
     def __post_init__(self):
         check_instance("PathMonitor.path", self.path, Path, "a jaxnc.paths.Path")
+        array_fields(self, "max_dev", "end_tol")
+        scalar_fields(self, "max_dev", "end_tol")
         check_range("PathMonitor.max_dev", self.max_dev, 0.0, None, low_open=True)
         check_range("PathMonitor.end_tol", self.end_tol, 0.0, None, low_open=True)
         check_int("PathMonitor.xy", self.xy, 0, None)
-        check_int("PathMonitor.window", self.window, 1, None)
+        check_int("PathMonitor.window", self.window, 2, None)
         check_int("PathMonitor.every", self.every, 1, None)
         check_bool("PathMonitor.freeze", self.freeze)
 
@@ -87,7 +93,7 @@ class PathMonitor(AbstractMonitor):
         p, path = x[self.xy:self.xy + 2], self.path
 
         def check(s):
-            idx, _ = closest_index(path, p, s.idx, self.window)
+            idx = track_index(path, p, s.idx, self.window)
             dist = local_distance(path, p, idx)
             at_end = (idx >= (9 * path.M) // 10) & (jnp.sum((p - path.points[-1]) ** 2) < self.end_tol ** 2)
             done = s.done | at_end

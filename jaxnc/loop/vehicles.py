@@ -200,7 +200,10 @@ def integrated(robot: DiffDrive, x, u_fine, n1):
 
 
 def lifted_wheel_var(plant: DiffDrive, std_T, N: int):
-    """Variance over NT of wheel-speed noise of std ``std_T`` added every T and filtered by
-    the motor: std_T^2 sum_{c<N} a^{2c}, a = exp(-T/tau) (the n1 of eq. 7)."""
+    """Variance over NT of wheel-speed noise of std ``std_T`` entering as :class:`DiffDrive`'s
+    does (at the first fine step of each T, before that step, so the motor filters it over
+    the whole T): std_T^2 sum_{c=1..N} a^{2c}, a = exp(-T/tau) (the n1 of eq. 7 for this
+    plant; noise added at the end of each T, after the motor, as eq. (4) is printed, would
+    give sum_{c=0..N-1}, a^-2 ~ 5 times more)."""
     a, _ = motor(plant, plant.T)
-    return jnp.asarray(std_T, jnp.float32) ** 2 * jnp.sum(a ** (2 * jnp.arange(N, dtype=jnp.float32)))
+    return jnp.asarray(std_T, jnp.float32) ** 2 * jnp.sum(a ** (2 * jnp.arange(1, N + 1, dtype=jnp.float32)))

@@ -32,8 +32,9 @@ What the plant adds to the kinematic model
   torque ``tau = clip(kv (omega_ref - omega), +-tau_max)``, integrated implicitly, with
   a dead zone (dry friction: a torque below ``dead_zone`` does not turn the wheel) and
   the gearmotor's rotor inertia (``armature``);
-* encoders with ``cpr`` counts per revolution: a wheel speed measured from count
-  differences over one period T, i.e. quantised to 2 pi / (cpr T);
+* encoders with ``cpr`` counts per revolution: the wheel speed at the sampling instant
+  rounded to the resolution of a count difference over one period T, 2 pi / (cpr T) (not
+  the mean speed over the period that a count difference measures);
 * the gyro/yaw and beacon-distance noise of :class:`MecanumNoise` on the measurements;
 * domain randomisation per seed: the grip friction uniform in ``friction_range`` and
   the chassis mass (with its inertia) scaled uniformly in ``mass_range``.
@@ -220,7 +221,8 @@ class MjxMecanum(AbstractPlant):
         return jnp.stack([vx, vy, q[5], s.data.qpos[0], s.data.qpos[1], s.psi])
 
     def measure(self, s: MjxState, v):
-        """Encoders (quantised count differences), yaw and beacon distances, plus noise n2."""
+        """Encoders (the wheel speeds at this instant rounded to 2 pi / (cpr T), the
+        resolution of a count difference over T), yaw and beacon distances, plus noise n2."""
         res = 2.0 * jnp.pi / (self.cpr * self.kin.T)
         enc = jnp.round(wheel_speeds(s) / res) * res
         xy = s.data.qpos[0:2]
