@@ -78,6 +78,40 @@ def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
     assert len(f.stem.split("-")[-1]) == 12
 
 
+
+def test_a_cell_computed_by_other_library_code_is_not_reused(tmp_path, monkeypatch):
+    """A cell's configuration (the loop by ``config_of``, the settings) does not name the
+    library code it ran on: a cell stored before an edit of jaxnc (here the ``Quadratic`` cost
+    doubled) was reused by the edited library with its old numbers. The code's fingerprint
+    is part of the cell's name and record now; an edit of docstrings or comments alone keeps it."""
+    import shutil
+    from jaxnc import sweep
+    refresh = getattr(getattr(sweep, "code_fingerprint", None), "cache_clear", lambda: None)
+    lib = tmp_path / "lib" / "jaxnc"
+    shutil.copytree(Path(sweep.__file__).parent, lib, ignore=shutil.ignore_patterns("__pycache__", "experiments"))
+    runner = lib / "loop" / "runner.py"
+    monkeypatch.setattr(sweep, "__file__", str(lib / "sweep.py"))
+    refresh()
+    try:
+        cfg = {"loop": {"type": "Loop", "N": 2}, "seeds": 64}
+        f = sweep.cell_path(tmp_path / "cells", "c", cfg)
+        sweep.save_cell(f, {"config": cfg, "cost": 0.05})
+        assert sweep.load_cell(f, cfg)["cost"] == 0.05
+        text = runner.read_text()
+        assert text.count('"""Cost J = (1/K)') == 1 and text.count("return jnp.mean(qx + ru)") == 1
+        runner.write_text(text.replace('"""Cost J = (1/K)', '"""Cost (a docstring edited) J = (1/K)')
+                          .replace("return jnp.mean(qx + ru)", "return jnp.mean(qx + ru)  # a comment"))
+        refresh()
+        assert sweep.cell_path(tmp_path / "cells", "c", cfg) == f and sweep.load_cell(f, cfg)["cost"] == 0.05
+        runner.write_text(text.replace("return jnp.mean(qx + ru)", "return 2 * jnp.mean(qx + ru)"))
+        refresh()
+        assert sweep.load_cell(f, cfg) is None                          # the old library's number
+        assert sweep.cell_path(tmp_path / "cells", "c", cfg) != f       # beside it, not over it
+    finally:
+        monkeypatch.undo()
+        refresh()
+
+
 def test_missing_report_names_the_shards_that_owe_cells():
     cells = list(range(10))
     text = missing_report(cells, [5, 9], Shard(0, 3), describe=lambda c: f"cell {c}")
