@@ -92,25 +92,14 @@ def _json_default(v):
     raise TypeError(f"config_hash: a configuration value of type {type(v).__name__} is not JSON")
 
 
-@functools.lru_cache(maxsize=None)
-def code_fingerprint() -> str:
-    """A hex digest (16 characters of SHA-256) of the code that computes a cell: every Python
-    file of the ``jaxnc`` package (``jaxnc.experiments`` included, also where a source checkout
-    keeps it beside the package as ``experiments/``), each by its path in the package and its
-    syntax tree without docstrings (comments, blank lines and docstrings do not count; any change
-    to the code does), and the installed ``jax`` and ``jaxlib`` versions (XLA's rounding).
-
-    A cell's configuration names the loop and the settings (:func:`jaxnc.results.config_of`
-    hashes a user's own functions) but not the library code they run on: without this a cell
-    stored by another jaxnc -- before an upgrade or a fix, or by a shard on another checkout --
-    would be reused with its old numbers (:func:`cell_path`, :func:`load_cell`). Computed once per
-    process (about a second)."""
-    from importlib import metadata
-    root = pathlib.Path(__file__).resolve().parent
+def _package_sources(root: pathlib.Path) -> tuple:
+    """``((name, bytes), ...)``: every Python file of the package at ``root``, named by its path
+    in it (``jaxnc/loop/runner.py``), ``jaxnc.experiments`` included (installed in the package,
+    or beside it as ``experiments/`` in a source checkout, as ``experiment.load_builtin`` finds it)."""
     trees = [("jaxnc", root)]
     beside = root.parent / "experiments"
     if not (root / "experiments").exists() and (beside / "__init__.py").is_file():
-        trees.append(("jaxnc/experiments", beside))    # a source checkout: experiment.load_builtin loads it
+        trees.append(("jaxnc/experiments", beside))
     files, seen = [], set()
     for prefix, top in trees:
         for d, dirs, names in os.walk(top, followlinks=True):
@@ -119,10 +108,32 @@ def code_fingerprint() -> str:
                 f = pathlib.Path(d, n)
                 if n.endswith(".py") and f.resolve() not in seen:
                     seen.add(f.resolve())
-                    files.append((f"{prefix}/{f.relative_to(top).as_posix()}", f))
+                    files.append((f"{prefix}/{f.relative_to(top).as_posix()}", f.read_bytes()))
+    return tuple(sorted(files))
+
+
+#: the package's files as this process imported it (about 1 MB, read in milliseconds): what
+#: :func:`code_fingerprint` hashes, not the files as they may have been edited since
+_IMPORTED_SOURCES = _package_sources(pathlib.Path(__file__).resolve().parent)
+
+
+@functools.lru_cache(maxsize=None)
+def code_fingerprint() -> str:
+    """A hex digest (16 characters of SHA-256) of the code that computes a cell: every Python
+    file of the ``jaxnc`` package (``jaxnc.experiments`` included) as this process imported
+    it, each by its path in the package and its syntax tree without docstrings (comments, blank
+    lines and docstrings do not count; any change to the code does), and the installed ``jax``
+    and ``jaxlib`` versions (XLA's rounding).
+
+    A cell's configuration names the loop and the settings (:func:`jaxnc.results.config_of`
+    describes a user's own functions and part classes) but not the library code they run on:
+    without this a cell stored by another jaxnc -- before an upgrade or a fix, or by a shard
+    on another checkout -- would be reused with its old numbers (:func:`cell_path`,
+    :func:`load_cell`). Computed once per process (about a second on two cores)."""
+    from importlib import metadata
     h = hashlib.sha256()
-    for rel, f in sorted(files):
-        h.update(rel.encode() + b"\0" + _code_text(f.read_bytes()) + b"\0")
+    for name, source in _IMPORTED_SOURCES:
+        h.update(name.encode() + b"\0" + _code_text(source) + b"\0")
     for dist in ("jax", "jaxlib"):
         try:
             version = metadata.version(dist)

@@ -82,18 +82,21 @@ def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
 
 @pytest.fixture
 def library_copy(tmp_path, monkeypatch):
-    """A copy of the jaxnc package that the code fingerprint reads (the running code is
-    unchanged): returns ``edit(old, new)``, which replaces ``old`` by ``new`` in the copy's
-    ``loop/runner.py`` (the ``Quadratic`` cost), and ``edit()``, which restores it."""
+    """A copy of the jaxnc package as the code fingerprint's imported code (the running code
+    is unchanged): returns ``edit((old, new), ...)``, which replaces each ``old`` by ``new`` in
+    the copy's ``loop/runner.py`` (the ``Quadratic`` cost) as if that code had been imported."""
     import shutil
     from jaxnc import sweep
-    refresh = getattr(getattr(sweep, "code_fingerprint", None), "cache_clear", lambda: None)
     lib = tmp_path / "lib" / "jaxnc"
     shutil.copytree(Path(sweep.__file__).parent, lib, ignore=shutil.ignore_patterns("__pycache__", "experiments"))
     runner = lib / "loop" / "runner.py"
     text = runner.read_text()
     assert text.count('"""Cost J = (1/K)') == 1 and text.count("return jnp.mean(qx + ru)") == 1
-    monkeypatch.setattr(sweep, "__file__", str(lib / "sweep.py"))
+
+    def refresh():
+        if hasattr(sweep, "_package_sources"):
+            monkeypatch.setattr(sweep, "_IMPORTED_SOURCES", sweep._package_sources(lib))
+            sweep.code_fingerprint.cache_clear()
     refresh()
 
     def edit(*pairs):
@@ -104,7 +107,8 @@ def library_copy(tmp_path, monkeypatch):
         refresh()
     yield edit
     monkeypatch.undo()
-    refresh()
+    if hasattr(sweep, "code_fingerprint"):
+        sweep.code_fingerprint.cache_clear()
 
 
 def test_a_cell_computed_by_other_library_code_is_not_reused(tmp_path, library_copy):
