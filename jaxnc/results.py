@@ -531,7 +531,10 @@ def load(folder):
     """The per-seed metrics of the run in ``folder`` as an ``xarray.Dataset`` (module docstring).
 
     Dimensions: the run's own (``case``; ``severity``, ``design``; ``path``, ``N``,
-    ``case``, ``dp``) and ``seed`` (the seed index i of ``fold_in(PRNGKey(seed), i)``).
+    ``case``, ``dp``) and ``seed``, labelled 0 .. n - 1 in the order the per-seed arrays hold
+    them: the seed index i of ``fold_in(PRNGKey(seed), i)`` for a run of
+    ``seed_keys(seed, n)``, as every built-in experiment's; the files do not record a
+    ``start``, so a study run from ``seed_keys(seed, n, start=k)`` reads k + i as i.
     Variables: the experiment's per-seed metrics (float32 / int32 / bool as computed;
     a grid with combinations it did not compute has NaN there, ``unstable`` True and a
     boolean ``present`` variable). Attributes: ``experiment``, ``settings``, ``seeds``,
