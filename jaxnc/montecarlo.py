@@ -689,7 +689,7 @@ def stored_or_run(path, *, experiment: str, config: dict, compute, progress: boo
             doc = load_results(path)
         except ValueError:
             doc = None
-        if doc and doc.get("code") == code_fingerprint() and doc["config"] == json.loads(json.dumps(config)):
+        if doc and doc.get("code") == code_fingerprint() and doc["config"] == _restore(_jsonable(config)):
             if progress:
                 print(f"[{path.stem}] reusing {path}")
             return doc["results"]

@@ -185,12 +185,14 @@ def load_cell(f, config: dict, *, defaults: dict | None = None) -> dict | None:
     if not isinstance(stored, dict) or data.get("code") != code_fingerprint():
         return None
     stored = {**(defaults or {}), **stored}
-    return data if stored == json.loads(json.dumps(config)) else None     # tuples as the lists JSON stores
+    # tuples as the lists JSON stores, numpy values as their numbers
+    return data if stored == json.loads(json.dumps(config, default=_json_default)) else None
 
 
 def save_cell(f, record: dict, arrays: dict | None = None) -> None:
-    """Write cell file ``f`` (``record`` as JSON, with its ``"config"``, and ``"code"``: the
-    :func:`code_fingerprint` that :func:`load_cell` checks), atomically; ``arrays``
+    """Write cell file ``f`` (``record`` as JSON, numpy values as their numbers, with its
+    ``"config"``, and ``"code"``: the :func:`code_fingerprint` that :func:`load_cell` checks),
+    atomically; ``arrays``
     (per-seed metrics) go first to ``f`` with the suffix ``.npz``, so a cell whose JSON
     exists always has its arrays."""
     import numpy as np
@@ -199,7 +201,7 @@ def save_cell(f, record: dict, arrays: dict | None = None) -> None:
     if arrays is not None:
         atomic_write(f.with_suffix(".npz"), lambda fh: np.savez_compressed(fh, **arrays))
     # inf/nan as JSON's Infinity/NaN (read back by json)
-    text = json.dumps({**record, "code": code_fingerprint()}, indent=1)
+    text = json.dumps({**record, "code": code_fingerprint()}, indent=1, default=_json_default)
     atomic_write(f, lambda fh: fh.write(text.encode("utf-8")))
 
 

@@ -66,6 +66,18 @@ def test_cell_files_are_reused_only_with_their_configuration(tmp_path):
     assert load_cell(f, {"a": 1}) is None
 
 
+def test_a_cell_whose_configuration_holds_numpy_numbers_is_saved_and_reused(tmp_path):
+    """cell_path hashed numpy numbers (seeds from np.arange, a grid from np.linspace(dtype=
+    float32)) but save_cell raised TypeError on them, after the cell had been computed."""
+    import numpy as np
+    from jaxnc.sweep import cell_path
+    cfg = {"seeds": np.int64(1024), "p": np.float32(0.3), "grid": np.linspace(0.0, 1.0, 3)}
+    f = cell_path(tmp_path, "c", cfg)
+    save_cell(f, {"config": cfg, "cost": np.float32(0.25)})
+    assert load_cell(f, cfg)["cost"] == 0.25
+    assert load_cell(f, dict(cfg, p=np.float32(0.31))) is None
+
+
 def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
     from jaxnc.sweep import cell_path, config_hash
     a = {"dp": 0.1, "sigma": (0.1, 0.2), "seeds": 4}
