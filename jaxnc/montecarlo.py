@@ -36,6 +36,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxnc import __version__
+from jaxnc.sweep import code_fingerprint
 
 __all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
            "seeds_for_paired_interval", "describe", "save_results", "load_results",
@@ -599,7 +600,8 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
     """Write the results JSON file atomically.
 
     Fields: ``jaxnc_version, experiment, config, results, wall_time_s, created`` (ISO 8601,
-    UTC), ``jax_version, platform``.  numpy scalars/arrays, jax arrays, tuples, paths,
+    UTC), ``jax_version, platform`` and ``code``, the :func:`jaxnc.sweep.code_fingerprint`
+    of the library that wrote it (:func:`stored_or_run` reuses a file only with the same).  numpy scalars/arrays, jax arrays, tuples, paths,
     dataclasses (``Summary``) and NamedTuples are converted; ``inf``/``-inf``/``nan`` are
     written as those strings (:func:`load_results` turns them back into floats).  The file
     is written to a temporary file in the same directory, flushed and fsynced, then moved
@@ -616,6 +618,7 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "jax_version": jax.__version__,
         "platform": _platform_string(),
+        "code": code_fingerprint(),
     })
 
     def write(f):
@@ -675,16 +678,18 @@ def _restore(obj):
 
 def stored_or_run(path, *, experiment: str, config: dict, compute, progress: bool = True) -> dict:
     """The results stored at ``path`` when it was written by :func:`save_results` with this
-    very ``config`` (a resumed study reuses each finished part); otherwise ``compute()``, a
-    dict of results with a ``"wall_time_s"`` entry, saved there first. Returns the results as
-    :func:`load_results` reads them back (the same either way)."""
+    very ``config`` and by this code (its ``code``, :func:`jaxnc.sweep.code_fingerprint`: a
+    part stored by another jaxnc is computed again) -- a resumed study reuses each finished
+    part; otherwise ``compute()``, a dict of results with a ``"wall_time_s"`` entry, saved
+    there first. Returns the results as :func:`load_results` reads them back (the same
+    either way)."""
     path = pathlib.Path(path)
     if path.exists():
         try:
             doc = load_results(path)
         except ValueError:
             doc = None
-        if doc and doc["config"] == json.loads(json.dumps(config)):
+        if doc and doc.get("code") == code_fingerprint() and doc["config"] == _restore(_jsonable(config)):
             if progress:
                 print(f"[{path.stem}] reusing {path}")
             return doc["results"]

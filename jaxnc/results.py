@@ -65,8 +65,11 @@ def config_of(obj, special=None, _where: str = "config"):
     loop is then not reused).
 
     A dataclass (a :class:`jaxnc.loop.Loop` and every part in it) becomes ``{"type": its class
-    name, field: ...}`` over all its fields, static ones included; a mapping a dict with string
-    keys; a tuple or list a list; a number, numpy or jax array (concrete) a number or nested
+    name, field: ...}`` over all its fields, static ones included, and, for a class of the
+    user's own (defined outside jaxnc, whose code :func:`jaxnc.sweep.code_fingerprint` covers),
+    ``"class"``: its module and the code of its methods (:func:`_class_config`), so an edited
+    ``dynamics`` or another module's class of the same name is another configuration; a
+    mapping a dict with string keys; a tuple or list a list; a number, numpy or jax array (concrete) a number or nested
     lists of numbers; a string, bool or None itself; a callable (a plant's ``f``, a cost
     function) its module and qualified name, and for a Python function also a hash of its
     code (:func:`_code_hash`: an edited body, another lambda of the same module) and the
@@ -87,6 +90,9 @@ def config_of(obj, special=None, _where: str = "config"):
         out = {"type": type(obj).__qualname__}
         for f in dataclasses.fields(obj):
             out[f.name] = config_of(getattr(obj, f.name), special, f"{_where}.{f.name}")
+        own = _class_config(type(obj), special, _where)
+        if own is not None:
+            out["class"] = own
         return out
     if isinstance(obj, Mapping):
         return {str(k): config_of(v, special, f"{_where}[{k!r}]") for k, v in obj.items()}
@@ -127,6 +133,41 @@ def _global_names(code) -> set:
     return names
 
 
+def _class_config(cls, special, where, seen=frozenset()):
+    """The code of a user's class: ``{"module", "members": {"Class.name": ...}}`` over the
+    classes of its MRO defined outside jaxnc and the standard library, with the functions
+    each defines (methods, ``__call__``, static and class methods, properties' accessors: as
+    :func:`_function_config`) and its plain class-level data (``state_dim = 2``); dataclass
+    fields (described as fields), generated methods and other dunder data are left out. None
+    for a class of jaxnc or the standard library."""
+    import inspect
+    import sys
+    import types
+    lib = lambda c: (c.__module__ or "").split(".")[0] in ("jaxnc", "builtins", *sys.stdlib_module_names)
+    if lib(cls):
+        return None
+    members = {}
+    for c in cls.__mro__:
+        if lib(c):
+            continue
+        fields = set(getattr(c, "__dataclass_fields__", {}))
+        for name, v in sorted(vars(c).items()):
+            if name in fields or name.startswith("_abc"):
+                continue
+            if isinstance(v, (staticmethod, classmethod)):
+                v = v.__func__
+            fns = [v.fget, v.fset, v.fdel] if isinstance(v, property) else [v]
+            if any(isinstance(f, types.FunctionType) for f in fns):
+                fns = [f for f in fns if isinstance(f, types.FunctionType)   # not a method dataclasses made
+                       and inspect.unwrap(f).__code__.co_filename != "<string>"]
+                if fns:
+                    members[f"{c.__qualname__}.{name}"] = [_function_config(f, special, f"{where}.{name}", set(seen))
+                                                           for f in fns]
+            elif not name.startswith("__") and isinstance(v, (bool, int, float, str, tuple, np.ndarray, np.generic)):
+                members[f"{c.__qualname__}.{name}"] = _value_config(v, special, f"{where}.{name}", set(seen))
+    return {"module": cls.__module__, "members": members}
+
+
 def _function_config(fn, special, where, _seen=None):
     """:func:`config_of` of a callable (see there)."""
     import functools
@@ -145,6 +186,10 @@ def _function_config(fn, special, where, _seen=None):
     if inner is not None and callable(inner) and not isinstance(fn, types.FunctionType):
         return _function_config(inner, special, where, seen)
     if not isinstance(fn, types.FunctionType):
+        python_call = isinstance(getattr(type(fn), "__call__", None), types.FunctionType)
+        own = _class_config(type(fn), special, where, seen) if python_call and not isinstance(fn, type) else None
+        if own is not None and hasattr(fn, "__dict__"):  # an instance of a user's callable class
+            return {"object": name, "class": own, "attributes": _value_config(vars(fn), special, where, seen)}
         return name                                      # a builtin, ufunc or other compiled callable
     if id(fn) in seen:
         return name                                      # a function that refers to itself
@@ -486,7 +531,10 @@ def load(folder):
     """The per-seed metrics of the run in ``folder`` as an ``xarray.Dataset`` (module docstring).
 
     Dimensions: the run's own (``case``; ``severity``, ``design``; ``path``, ``N``,
-    ``case``, ``dp``) and ``seed`` (the seed index i of ``fold_in(PRNGKey(seed), i)``).
+    ``case``, ``dp``) and ``seed``, labelled 0 .. n - 1 in the order the per-seed arrays hold
+    them: the seed index i of ``fold_in(PRNGKey(seed), i)`` for a run of
+    ``seed_keys(seed, n)``, as every built-in experiment's; the files do not record a
+    ``start``, so a study run from ``seed_keys(seed, n, start=k)`` reads k + i as i.
     Variables: the experiment's per-seed metrics (float32 / int32 / bool as computed;
     a grid with combinations it did not compute has NaN there, ``unstable`` True and a
     boolean ``present`` variable). Attributes: ``experiment``, ``settings``, ``seeds``,

@@ -12,22 +12,28 @@ computed. A cell file is named by everything that makes it: a readable name and 
 hash of its whole configuration (:func:`cell_path`), so two cells whose settings differ
 anywhere (``dp=0.1`` and ``dp=0.104``, another ``sigma``, other seeds) are two files and
 never overwrite each other; a cell file whose configuration differs from the current
-run's is not used.
+run's is not used. The code that computes a cell is part of what makes it: the name's hash
+and the stored record include :func:`code_fingerprint` (jaxnc's own code, its experiments,
+the JAX and jaxlib versions), so a cell computed by other library code -- an upgrade, a fix,
+a local edit -- is another file and is computed again, never reused.
 
 This module does not import jax.
 """
 from __future__ import annotations
 
+import ast
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
+import os
 import pathlib
 import re
 from typing import Callable, Iterator, Sequence
 
-__all__ = ["Shard", "parse_shard", "config_hash", "cell_path", "load_cell", "save_cell", "missing_report",
-           "assembly_lock", "folder_lock"]
+__all__ = ["Shard", "parse_shard", "config_hash", "code_fingerprint", "cell_path", "load_cell", "save_cell",
+           "missing_report", "assembly_lock", "folder_lock"]
 
 _SHARD_RE = re.compile(r"\s*([0-9]+)\s*/\s*([0-9]+)\s*\Z")
 
@@ -86,18 +92,88 @@ def _json_default(v):
     raise TypeError(f"config_hash: a configuration value of type {type(v).__name__} is not JSON")
 
 
+def _package_sources(root: pathlib.Path) -> tuple:
+    """``((name, bytes), ...)``: every Python file of the package at ``root``, named by its path
+    in it (``jaxnc/loop/runner.py``), ``jaxnc.experiments`` included (installed in the package,
+    or beside it as ``experiments/`` in a source checkout, as ``experiment.load_builtin`` finds it)."""
+    trees = [("jaxnc", root)]
+    beside = root.parent / "experiments"
+    if not (root / "experiments").exists() and (beside / "__init__.py").is_file():
+        trees.append(("jaxnc/experiments", beside))
+    files, seen = [], set()
+    for prefix, top in trees:
+        for d, dirs, names in os.walk(top, followlinks=True):
+            dirs[:] = sorted(x for x in dirs if x != "__pycache__")
+            for n in sorted(names):
+                f = pathlib.Path(d, n)
+                if n.endswith(".py") and f.resolve() not in seen:
+                    seen.add(f.resolve())
+                    files.append((f"{prefix}/{f.relative_to(top).as_posix()}", f.read_bytes()))
+    return tuple(sorted(files))
+
+
+#: the package's files as this process imported it (about 1 MB, read in milliseconds): what
+#: :func:`code_fingerprint` hashes, not the files as they may have been edited since
+_IMPORTED_SOURCES = _package_sources(pathlib.Path(__file__).resolve().parent)
+
+
+@functools.lru_cache(maxsize=None)
+def code_fingerprint() -> str:
+    """A hex digest (16 characters of SHA-256) of the code that computes a cell: every Python
+    file of the ``jaxnc`` package (``jaxnc.experiments`` included) as this process imported
+    it, each by its path in the package and its syntax tree without docstrings (comments, blank
+    lines and docstrings do not count; any change to the code does), and the installed ``jax``
+    and ``jaxlib`` versions (XLA's rounding).
+
+    A cell's configuration names the loop and the settings (:func:`jaxnc.results.config_of`
+    describes a user's own functions and part classes) but not the library code they run on:
+    without this a cell stored by another jaxnc -- before an upgrade or a fix, or by a shard
+    on another checkout -- would be reused with its old numbers (:func:`cell_path`,
+    :func:`load_cell`). Computed once per process (about a second on two cores)."""
+    from importlib import metadata
+    h = hashlib.sha256()
+    for name, source in _IMPORTED_SOURCES:
+        h.update(name.encode() + b"\0" + _code_text(source) + b"\0")
+    for dist in ("jax", "jaxlib"):
+        try:
+            version = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            version = "none"
+        h.update(f"{dist}=={version}\0".encode())
+    return h.hexdigest()[:16]
+
+
+def _code_text(source: bytes) -> bytes:
+    """A module's syntax tree without docstrings, as text (its bytes when it does not parse)."""
+    try:
+        tree = ast.parse(source)
+    except (SyntaxError, ValueError):
+        return source
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree).encode()
+
+
 def cell_path(folder, name: str, config: dict, suffix: str = ".json") -> pathlib.Path:
-    """``folder/<name>-<config_hash(config)><suffix>``: the file of the cell that
-    ``config`` makes, ``name`` being its readable part (e.g. ``N02_DRH_dp0.1``)."""
+    """``folder/<name>-<hash><suffix>``: the file of the cell that ``config`` makes with this
+    code, ``name`` being its readable part (e.g. ``N02_DRH_dp0.1``); the hash is
+    :func:`config_hash` of ``config`` and :func:`code_fingerprint` together, so another
+    configuration or other library code names another file."""
     if not name or "/" in name or "\\" in name:
         raise ValueError(f"cell_path: name must be a non-empty file name, got {name!r}")
-    return pathlib.Path(folder) / f"{name}-{config_hash(config)}{suffix}"
+    return pathlib.Path(folder) / f"{name}-{config_hash({'config': config, 'code': code_fingerprint()})}{suffix}"
 
 
 def load_cell(f, config: dict, *, defaults: dict | None = None) -> dict | None:
-    """The record stored in cell file ``f`` (JSON) if its ``"config"`` equals ``config``;
-    None when the file is missing, damaged or was computed with another configuration
-    (``defaults`` fill keys that older files lack)."""
+    """The record stored in cell file ``f`` (JSON) if its ``"config"`` equals ``config`` and
+    its ``"code"`` is this process's :func:`code_fingerprint`; None when the file is missing,
+    damaged, or was computed with another configuration or by other code (a file without
+    ``"code"``, written before it was stored, is not reused either). ``defaults`` fill
+    configuration keys that older files lack."""
     try:
         with open(f, encoding="utf-8") as fh:
             data = json.load(fh)
@@ -106,22 +182,26 @@ def load_cell(f, config: dict, *, defaults: dict | None = None) -> dict | None:
     if not isinstance(data, dict):
         return None
     stored = data.get("config")
-    if not isinstance(stored, dict):
+    if not isinstance(stored, dict) or data.get("code") != code_fingerprint():
         return None
     stored = {**(defaults or {}), **stored}
-    return data if stored == json.loads(json.dumps(config)) else None     # tuples as the lists JSON stores
+    # tuples as the lists JSON stores, numpy values as their numbers
+    return data if stored == json.loads(json.dumps(config, default=_json_default)) else None
 
 
 def save_cell(f, record: dict, arrays: dict | None = None) -> None:
-    """Write cell file ``f`` (``record`` as JSON, with its ``"config"``), atomically;
-    ``arrays`` (per-seed metrics) go first to ``f`` with the suffix ``.npz``, so a cell
-    whose JSON exists always has its arrays."""
+    """Write cell file ``f`` (``record`` as JSON, numpy values as their numbers, with its
+    ``"config"``, and ``"code"``: the :func:`code_fingerprint` that :func:`load_cell` checks),
+    atomically; ``arrays``
+    (per-seed metrics) go first to ``f`` with the suffix ``.npz``, so a cell whose JSON
+    exists always has its arrays."""
     import numpy as np
     from jaxnc.montecarlo import atomic_write
     f = pathlib.Path(f)
     if arrays is not None:
         atomic_write(f.with_suffix(".npz"), lambda fh: np.savez_compressed(fh, **arrays))
-    text = json.dumps(record, indent=1)          # inf/nan as JSON's Infinity/NaN (read back by json)
+    # inf/nan as JSON's Infinity/NaN (read back by json)
+    text = json.dumps({**record, "code": code_fingerprint()}, indent=1, default=_json_default)
     atomic_write(f, lambda fh: fh.write(text.encode("utf-8")))
 
 

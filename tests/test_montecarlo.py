@@ -449,6 +449,10 @@ def test_stored_study_writes_every_part_and_reuses_them(tmp_path, capsys):
     assert calls == ["ab", "cde"] and again == res and "reusing" in capsys.readouterr().out
     mc.stored_study(tmp_path / "o", **dict(kw, config={"seeds": 8}))
     assert calls == ["ab", "cde", "ab", "cde"]
+    # numpy numbers in the configuration (saved as numbers): reused, not a TypeError on resuming
+    mc.stored_study(tmp_path / "p", **dict(kw, config={"seeds": np.int64(8), "p": np.float32(0.3)}))
+    mc.stored_study(tmp_path / "p", **dict(kw, config={"seeds": np.int64(8), "p": np.float32(0.3)}))
+    assert calls == ["ab", "cde"] * 3
 
 
 def test_uniform_dtypes_lets_configurations_share_one_program():

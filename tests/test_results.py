@@ -366,3 +366,61 @@ def test_config_of_a_function_tells_an_edited_body_a_closure_a_partial_and_a_rea
     def rec(n):                                             # refers to itself: no endless recursion
         return 1 if n <= 0 else rec(n - 1)
     assert results.config_of(rec)["closure"]["rec"].endswith("rec")
+
+
+_USER_PARTS = """
+import jax.numpy as jnp
+from jaxnc import loop as nc
+from jaxnc.loop.base import AbstractPlant
+
+
+@nc.pytree_dataclass
+class Integrator(AbstractPlant):
+    a: float = 1.0
+    state_dim = 1
+    input_dim = 1
+    noise_dim = 1
+    output_dim = 1
+
+    def dynamics(self, x, u, w):
+        return self.a * x + u + w
+
+    def measure(self, x, v):
+        return x + v
+
+
+class Gain:
+    def __init__(self, k):
+        self.k = k
+
+    def __call__(self, x, u):
+        return self.k * jnp.mean(x * x)
+"""
+
+
+def _user_module(name, source=_USER_PARTS):
+    import types
+    module = types.ModuleType(name)
+    exec(compile(source, f"/users/{name}.py", "exec"), module.__dict__)
+    return module
+
+
+def test_config_of_a_users_part_tells_an_edited_method_and_another_modules_class_apart():
+    """A part a user writes (a dataclass subclassing a role's base class, as
+    docs/build_your_own_loop.md shows) was described by its class name and fields only: its
+    edited ``dynamics``, or a class of the same name in another module, gave the same
+    configuration, so a sweep cell of the old plant was reused (and two such sweeps shared
+    one cell file). A callable object of the user's (a cost) was its type name only, whatever
+    its attributes. Now its module, its methods' code and its class-level data count."""
+    a = _user_module("user_a")
+    same = _user_module("user_a")
+    edited = _user_module("user_a", _USER_PARTS.replace("return self.a * x + u + w", "return self.a * x + 2 * u + w"))
+    other = _user_module("user_b")
+    config = lambda m: results.config_of(m.Integrator(a=1.0))
+    assert config(a) == config(same) and json.loads(json.dumps(config(a))) == config(a)
+    assert config(a) != config(edited)                      # its dynamics edited
+    assert config(a) != config(other)                       # another module's Integrator
+    assert config(a)["a"] == 1.0 and config(a)["type"] == "Integrator"
+    gain = lambda m, k: results.config_of(m.Gain(k))
+    assert gain(a, 1.0) == gain(same, 1.0) and gain(a, 1.0) != gain(a, 2.0)
+    assert gain(a, 1.0) != gain(_user_module("user_a", _USER_PARTS.replace("self.k * jnp.mean", "self.k * jnp.sum")), 1.0)

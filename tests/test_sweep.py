@@ -66,6 +66,18 @@ def test_cell_files_are_reused_only_with_their_configuration(tmp_path):
     assert load_cell(f, {"a": 1}) is None
 
 
+def test_a_cell_whose_configuration_holds_numpy_numbers_is_saved_and_reused(tmp_path):
+    """cell_path hashed numpy numbers (seeds from np.arange, a grid from np.linspace(dtype=
+    float32)) but save_cell raised TypeError on them, after the cell had been computed."""
+    import numpy as np
+    from jaxnc.sweep import cell_path
+    cfg = {"seeds": np.int64(1024), "p": np.float32(0.3), "grid": np.linspace(0.0, 1.0, 3)}
+    f = cell_path(tmp_path, "c", cfg)
+    save_cell(f, {"config": cfg, "cost": np.float32(0.25)})
+    assert load_cell(f, cfg)["cost"] == 0.25
+    assert load_cell(f, dict(cfg, p=np.float32(0.31))) is None
+
+
 def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
     from jaxnc.sweep import cell_path, config_hash
     a = {"dp": 0.1, "sigma": (0.1, 0.2), "seeds": 4}
@@ -77,6 +89,69 @@ def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
     assert f.parent == tmp_path / "cells" and f.name.startswith("N02_DRH_dp0.1-") and f.suffix == ".json"
     assert len(f.stem.split("-")[-1]) == 12
 
+
+
+
+@pytest.fixture
+def library_copy(tmp_path, monkeypatch):
+    """A copy of the jaxnc package as the code fingerprint's imported code (the running code
+    is unchanged): returns ``edit((old, new), ...)``, which replaces each ``old`` by ``new`` in
+    the copy's ``loop/runner.py`` (the ``Quadratic`` cost) as if that code had been imported."""
+    import shutil
+    from jaxnc import sweep
+    lib = tmp_path / "lib" / "jaxnc"
+    shutil.copytree(Path(sweep.__file__).parent, lib, ignore=shutil.ignore_patterns("__pycache__", "experiments"))
+    runner = lib / "loop" / "runner.py"
+    text = runner.read_text()
+    assert text.count('"""Cost J = (1/K)') == 1 and text.count("return jnp.mean(qx + ru)") == 1
+
+    def refresh():
+        if hasattr(sweep, "_package_sources"):
+            monkeypatch.setattr(sweep, "_IMPORTED_SOURCES", sweep._package_sources(lib))
+            sweep.code_fingerprint.cache_clear()
+    refresh()
+
+    def edit(*pairs):
+        edited = text
+        for old, new in pairs:
+            edited = edited.replace(old, new)
+        runner.write_text(edited)
+        refresh()
+    yield edit
+    monkeypatch.undo()
+    if hasattr(sweep, "code_fingerprint"):
+        sweep.code_fingerprint.cache_clear()
+
+
+def test_a_cell_computed_by_other_library_code_is_not_reused(tmp_path, library_copy):
+    """A cell's configuration (the loop by ``config_of``, the settings) does not name the
+    library code it ran on: a cell stored before an edit of jaxnc (here the ``Quadratic`` cost
+    doubled) was reused by the edited library with its old numbers. The code's fingerprint
+    is part of the cell's name and record now; an edit of docstrings or comments alone keeps it."""
+    from jaxnc import sweep
+    cfg = {"loop": {"type": "Loop", "N": 2}, "seeds": 64}
+    f = sweep.cell_path(tmp_path / "cells", "c", cfg)
+    sweep.save_cell(f, {"config": cfg, "cost": 0.05})
+    assert sweep.load_cell(f, cfg)["cost"] == 0.05
+    library_copy(('"""Cost J = (1/K)', '"""Cost (a docstring edited) J = (1/K)'),
+                 ("return jnp.mean(qx + ru)", "return jnp.mean(qx + ru)  # a comment"))
+    assert sweep.cell_path(tmp_path / "cells", "c", cfg) == f and sweep.load_cell(f, cfg)["cost"] == 0.05
+    library_copy(("return jnp.mean(qx + ru)", "return 2 * jnp.mean(qx + ru)"))
+    assert sweep.load_cell(f, cfg) is None                          # the old library's number
+    assert sweep.cell_path(tmp_path / "cells", "c", cfg) != f       # beside it, not over it
+
+
+def test_a_stored_part_of_other_library_code_is_computed_again(tmp_path, library_copy):
+    """``montecarlo.stored_or_run`` (the parts of tune-loops and tune-study) reused a part
+    whose configuration matched whatever code had written it."""
+    from jaxnc import montecarlo
+    calls = []
+    compute = lambda: calls.append(1) or {"cost": 0.05 * len(calls), "wall_time_s": 0.0}
+    run = lambda: montecarlo.stored_or_run(tmp_path / "part.json", experiment="demo", config={"seeds": 4},
+                                           compute=compute, progress=False)
+    assert run()["cost"] == 0.05 and run()["cost"] == 0.05 and len(calls) == 1
+    library_copy(("return jnp.mean(qx + ru)", "return 2 * jnp.mean(qx + ru)"))
+    assert run()["cost"] == 0.1 and len(calls) == 2
 
 def test_missing_report_names_the_shards_that_owe_cells():
     cells = list(range(10))
