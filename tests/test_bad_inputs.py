@@ -768,6 +768,22 @@ class _FitRingActuator(nc.AbstractActuator):
 
 
 @nc.pytree_dataclass
+class _FitSecondsStamp(nc.AbstractController):
+    """u = -x[0], stamped in seconds (the link truncated the stamp to an int) or, with ``vector``, sent with a
+    decision of shape (1,)."""
+
+    vector: bool = nc.static_field(False)
+
+    def init(self, ctx):
+        return ()
+
+    def step(self, state, xhat, fresh, k, ctx):
+        if self.vector:
+            return state, nc.Packet(-xhat[None, :1], k * ctx.N), jnp.ones((1,), jnp.float32)
+        return state, nc.Packet(-xhat[None, :1], k * ctx.N * ctx.T), jnp.ones((), jnp.float32)
+
+
+@nc.pytree_dataclass
 class _FitFloatFlags(nc.AbstractMonitor):
     """Failure as a 0/1 float."""
 
@@ -947,6 +963,8 @@ LOOP_FIT = [
      "Loop.controller's packet is float32[1, 1, 1]; its actions must be float[horizon, input_dim] = float[1, 1]"),
     (lambda: _fit_loop(actuator=_FitRingActuator()), "Loop.actuator's receive returns a state of float32[2, 1]"),
     (lambda: _fit_loop(monitor=_FitFloatFlags()), "Loop.monitor's step must return scalar bool flags"),
+    (lambda: _fit_loop(controller=_FitSecondsStamp()), "Loop.controller's packet stamp is float32[]; it must be an int32"),
+    (lambda: _fit_loop(controller=_FitSecondsStamp(vector=True)), "Loop.controller's send decision is float32[1]"),
 ]
 
 

@@ -28,7 +28,7 @@ from jaxnc._validate import (array_fields, check_bool, check_callable, check_fin
                              check_int, check_range, concrete)
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractMonitor, AbstractPlant,
-                             AbstractTrigger, Inbox)
+                             AbstractTrigger, Inbox, Packet)
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
@@ -508,6 +508,15 @@ def _check_fit(loop: Loop) -> None:
     c1, pkt, send_ca = _stage("Loop.controller", f"cannot act on the estimator's estimate {shapes}",
                               lambda: loop.controller.step(_zeros(c0), _zeros(xhat), jnp.float32(1), jnp.int32(0), ctx))
     _same_structure("Loop.controller's step", c0, c1)
+    if not isinstance(pkt, Packet):
+        raise ValueError(f"Loop.controller's step must return (state, jaxnc.loop.Packet(actions, stamp), send), got "
+                         f"{type(pkt).__name__} as its packet")
+    if not (isinstance(send_ca, jax.ShapeDtypeStruct) and send_ca.shape == ()):
+        raise ValueError(f"Loop.controller's send decision is {_shapes(send_ca)}; it must be a scalar 0/1 float")
+    if not (isinstance(pkt.stamp, jax.ShapeDtypeStruct) and pkt.stamp.shape == ()
+            and jnp.issubdtype(pkt.stamp.dtype, jnp.integer)):
+        raise ValueError(f"Loop.controller's packet stamp is {_shapes(pkt.stamp)}; it must be an int32 scalar, the fast "
+                         f"instant of the packet's first action (e.g. k * ctx.N), not seconds")
     u = pkt.data
     if isinstance(u, jax.ShapeDtypeStruct) and u.ndim != 2:
         raise ValueError(f"Loop.controller's packet is {_shapes(u)}; its actions must be float[horizon, input_dim] = "
