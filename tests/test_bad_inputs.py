@@ -965,6 +965,10 @@ LOOP_FIT = [
     (lambda: _fit_loop(monitor=_FitFloatFlags()), "Loop.monitor's step must return scalar bool flags"),
     (lambda: _fit_loop(controller=_FitSecondsStamp()), "Loop.controller's packet stamp is float32[]; it must be an int32"),
     (lambda: _fit_loop(controller=_FitSecondsStamp(vector=True)), "Loop.controller's send decision is float32[1]"),
+    # a round trip of 1 + 1 whole periods declared a lower bound of 1: the EKF(buffer=1) never corrected
+    (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=1),
+                       uplink=nc.Link(delay=nc.RoundTrip(nc.PmfDelay([0.0, 1.0]), nc.PmfDelay([0.0, 1.0])))),
+     "Loop.uplink delays every packet at least 2 fast periods (N=1), so each is read 2 slow periods late"),
 ]
 
 
