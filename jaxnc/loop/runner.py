@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Any, ClassVar, NamedTuple
 
 import dataclasses
+import hashlib
 import warnings
 
 import jax
@@ -385,9 +386,22 @@ class Loop:
             self._check_dims()      # also with leaves that are not arrays (a plain-object law)
 
     def _check_dims(self):
-        """The roles fit together (:func:`_check_fit`), once per loop structure."""
+        """The roles fit together (:func:`_check_fit`), once per loop: its structure and its
+        numbers, since a part's ``init(ctx)`` may check values against the loop's N (a
+        ``Luenberger`` gain, a ``SteadyStateKF``'s detectability): keyed on shapes alone, a
+        loop whose numbers failed that check was accepted once one of the same shapes had
+        passed it."""
         leaves, treedef = jax.tree.flatten(self)
-        key = (treedef, tuple((np.shape(a), str(getattr(a, "dtype", type(a)))) for a in leaves))
+
+        def value(a):
+            try:
+                v = np.asarray(a) if isinstance(a, (np.ndarray, np.generic, jax.Array, int, float, complex)) else None
+            except TypeError:       # e.g. a typed PRNG key
+                v = None
+            if v is None or v.dtype == object:
+                return type(a), id(a)       # a plain Python object: checked once per object
+            return v.shape, str(v.dtype), hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()
+        key = (treedef, tuple(value(a) for a in leaves))
         if key in _FITTED:
             return
         _check_fit(self)
@@ -609,7 +623,7 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
           ("actuator", AbstractActuator, "an actuator (a jaxnc.loop.AbstractActuator: PacketActuator, HoldLast)"))
 
 
-_FITTED: set = set()     # loop structures (treedef, leaf shapes) whose roles were found to fit
+_FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
 
 
 def _one_line(e: BaseException) -> str:
