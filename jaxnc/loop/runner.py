@@ -584,17 +584,18 @@ def _check_draws(loop: Loop) -> None:
     protocol's types (:class:`~jaxnc.loop.AbstractLoss`, :class:`~jaxnc.loop.AbstractDelay`):
     a scalar would be broadcast to every packet (all lost, or all equally late), and float
     steps would be truncated, not quantised up."""
-    S, key = loop.steps // loop.N, jax.random.PRNGKey(0)
+    S = loop.steps // loop.N
+    key = lambda: jax.random.split(unrolled(jax.random.PRNGKey(0)))[0]     # a key of the kind draw() passes
     for name in ("uplink", "downlink"):
         link = getattr(loop, name)
         where = f"Loop.{name}.loss ({type(link.loss).__name__})"
-        lost = _stage(where, f"cannot draw the run's {S} packets (sample(key, {S}))", lambda: link.loss.sample(key, S))
+        lost = _stage(where, f"cannot draw the run's {S} packets (sample(key, {S}))", lambda: link.loss.sample(key(), S))
         if not isinstance(lost, jax.ShapeDtypeStruct) or lost.shape != (S,) or lost.dtype != bool:
             raise ValueError(f"{where}.sample(key, n) draws {_shapes(lost)} for the run's n = {S} slow instants "
                              f"(steps={loop.steps} / N={loop.N}); it must return bool[n] = bool[{S}], one per packet")
         where = f"Loop.{name}.delay ({type(link.delay).__name__})"
         drawn = _stage(where, f"cannot draw the run's {S} packets (sample(key, {S}, T))",
-                       lambda: link.delay.sample(key, S, loop.T))
+                       lambda: link.delay.sample(key(), S, loop.T))
         ok = isinstance(drawn, (tuple, list)) and len(drawn) == 2 and all(
             isinstance(a, jax.ShapeDtypeStruct) and a.shape == (S,) for a in drawn)
         if not (ok and jnp.issubdtype(drawn[0].dtype, jnp.integer) and jnp.issubdtype(drawn[1].dtype, jnp.floating)):
