@@ -755,6 +755,84 @@ def _fit_cost_vector(x, u):
     return jnp.sum(x, axis=0)
 
 
+# parts of a user's own, each breaking its role's protocol in one way (nx3)
+@nc.pytree_dataclass
+class _FitOneLoss(nc.AbstractLoss):
+    """One draw for the whole run: every packet lost, or none."""
+
+    def sample(self, key, n):
+        return jax.random.uniform(key) < 0.5
+
+
+@nc.pytree_dataclass
+class _FitFloatDelay(nc.AbstractDelay):
+    """Delays in fractional fast periods: the link truncated them."""
+
+    def sample(self, key, n, T):
+        s = 2.0 * T * jax.random.uniform(key, (n,))
+        return s / T, s
+
+    def bounds(self, T):
+        return 0, 2
+
+
+@nc.pytree_dataclass
+class _FitSecondsBounds(nc.AbstractDelay):
+    """Up to 0.3 s (3 fast periods of 0.1 s), bounds declared in seconds: the ring was sized for 0.3 periods."""
+
+    def sample(self, key, n, T):
+        s = 0.3 * jax.random.uniform(key, (n,))
+        return jnp.ceil(s / T).astype(jnp.int32), s
+
+    def bounds(self, T):
+        return 0.0, 0.3
+
+
+def _fit_row_law(K, x):
+    return -(K @ x)[None, :]          # float[1, m]: the packet became float[1, 1, m]
+
+
+@nc.pytree_dataclass
+class _FitRingActuator(nc.AbstractActuator):
+    """Keeps the whole ring it is given instead of one packet."""
+
+    def init(self, ctx):
+        return jnp.zeros((1, ctx.input_dim), jnp.float32)
+
+    def receive(self, u, inbox):
+        return inbox.data[:, 0]
+
+    def output(self, u, t):
+        return u, u[0]
+
+
+@nc.pytree_dataclass
+class _FitSecondsStamp(nc.AbstractController):
+    """u = -x[0], stamped in seconds (the link truncated the stamp to an int) or, with ``vector``, sent with a
+    decision of shape (1,)."""
+
+    vector: bool = nc.static_field(False)
+
+    def init(self, ctx):
+        return ()
+
+    def step(self, state, xhat, fresh, k, ctx):
+        if self.vector:
+            return state, nc.Packet(-xhat[None, :1], k * ctx.N), jnp.ones((1,), jnp.float32)
+        return state, nc.Packet(-xhat[None, :1], k * ctx.N * ctx.T), jnp.ones((), jnp.float32)
+
+
+@nc.pytree_dataclass
+class _FitFloatFlags(nc.AbstractMonitor):
+    """Failure as a 0/1 float."""
+
+    def init(self, ctx):
+        return ()
+
+    def step(self, state, x, u, t):
+        return state, (jnp.abs(x[0]) > 1.0).astype(jnp.float32), jnp.zeros((), bool)
+
+
 LOOP_FIT = [
     # an EKF re-running its window on a ring too short for it
     (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=2),
@@ -916,6 +994,25 @@ LOOP_FIT = [
     # records
     (lambda: _fit_loop(record=("x", "plant")), "Loop.record must be True, False, a tuple of names"),
     (lambda: nc.Record(estimator=3), "Record.estimator must be"),
+    # a user's part that breaks its protocol (nx3): a loss model's single draw was broadcast to every packet
+    # (all lost or none in a run), fractional delays were truncated, bounds in seconds sized a ring that lost
+    # packets, a packet float[1, 1, m] and a ring kept whole failed inside tracing, float flags in the run
+    (lambda: _fit_loop(uplink=nc.Link(_FitOneLoss())),
+     "Loop.uplink.loss (_FitOneLoss).sample(key, n) draws bool[] for the run's n = 100 slow instants"),
+    (lambda: _fit_loop(downlink=nc.Link(delay=_FitFloatDelay())),
+     "Loop.downlink.delay (_FitFloatDelay).sample(key, n, T) draws (float32[100], float32[100])"),
+    (lambda: _fit_loop(uplink=nc.Link(delay=_FitSecondsBounds())),
+     "_FitSecondsBounds.bounds(T) must return (lo, hi), the shortest and longest delay in whole fast periods"),
+    (lambda: _fit_loop(controller=nc.Function(np.array([[1.0, 0.5]], np.float32), _fit_row_law)),
+     "Loop.controller's packet is float32[1, 1, 1]; its actions must be float[horizon, input_dim] = float[1, 1]"),
+    (lambda: _fit_loop(actuator=_FitRingActuator()), "Loop.actuator's receive returns a state of float32[2, 1]"),
+    (lambda: _fit_loop(monitor=_FitFloatFlags()), "Loop.monitor's step must return scalar bool flags"),
+    (lambda: _fit_loop(controller=_FitSecondsStamp()), "Loop.controller's packet stamp is float32[]; it must be an int32"),
+    (lambda: _fit_loop(controller=_FitSecondsStamp(vector=True)), "Loop.controller's send decision is float32[1]"),
+    # a round trip of 1 + 1 whole periods declared a lower bound of 1: the EKF(buffer=1) never corrected
+    (lambda: _fit_loop(estimator=nc.EKF(_FIT_PLANT, Q=np.eye(2), R=np.eye(1), mean0=[0.0, 0.0], cov0=np.eye(2), buffer=1),
+                       uplink=nc.Link(delay=nc.RoundTrip(nc.PmfDelay([0.0, 1.0]), nc.PmfDelay([0.0, 1.0])))),
+     "Loop.uplink delays every packet at least 2 fast periods (N=1), so each is read 2 slow periods late"),
 ]
 
 

@@ -514,11 +514,21 @@ def _luenberger_loop():
                    controller=nc.StateFeedback(K2), downlink=nc.Link(), actuator=nc.HoldLast(), steps=40, T=0.1)
 
 
-@pytest.mark.parametrize("build", [lambda: _lti_loop(uplink=nc.Link(nc.Bernoulli(0.3)), buffer=1), _luenberger_loop])
+def _limited_loop():
+    loop = _lti_loop(uplink=nc.Link(nc.Bernoulli(0.3)))
+    plant = nc.LimitedSensor(loop.plant, (nc.Saturation(np.float64(-0.8), np.array([0.8])), nc.Quantizer(np.float64(0.01))))
+    act = nc.LimitedActuator(nc.HoldLast(), (nc.Saturation(np.array([-0.5]), np.float64(0.5)), nc.DeadZone(np.float64(-0.01),
+                                                                                                          np.float64(0.01))))
+    return dataclasses.replace(loop, plant=plant, actuator=act)
+
+
+@pytest.mark.parametrize("build", [lambda: _lti_loop(uplink=nc.Link(nc.Bernoulli(0.3)), buffer=1), _luenberger_loop,
+                                   _limited_loop])
 def test_a_loop_built_under_x64_from_float64_numbers_runs_as_in_float32(build):
     # the runner works in float32; an EKF's Q, R, mean0, cov0 or a Luenberger gain given as
     # numpy float64 used to make the filter's state float64 under jax_enable_x64, a scan
-    # carry type error inside tracing
+    # carry type error inside tracing; so did a limit's float64 numbers (nx3: the action and
+    # the measurement became float64)
     ref = nc.simulate(build(), jax.random.PRNGKey(4))
     with jax.enable_x64(True):
         tr = nc.simulate(build(), jax.random.PRNGKey(4))

@@ -132,3 +132,17 @@ def test_the_ukf_has_the_ekfs_window_of_late_measurements():
     u0 = xhat(nc.UKF(plant, **est))
     np.testing.assert_allclose(u3, e3, rtol=2e-4, atol=2e-5)
     assert np.max(np.abs(u3 - u0)) > 1e-3
+
+
+def test_a_gain_that_does_not_converge_is_refused_also_after_one_of_the_same_shape_that_does():
+    """The Loop checks each loop once (jaxnc.loop.runner._FITTED); keyed on shapes alone, a
+    Luenberger L = 0 (A_N - L C with a mode at 1) built after a good L of the same shape was
+    accepted, and its estimate never converged (nx3). Both orders refuse it now."""
+    good, bad = np.array([[0.6], [0.8]]), np.zeros((2, 1))
+    for first in (good, bad):
+        for L in (first, bad if first is good else good):
+            if L is bad:
+                with pytest.raises(ValueError, match="Luenberger.L: A_N - L C .* spectral radius 1"):
+                    _loop(nc.Luenberger(_plant(), L=L), steps=20)
+            else:
+                _loop(nc.Luenberger(_plant(), L=L), steps=20)

@@ -304,6 +304,24 @@ def test_arrival_actuator_starts_at_arrival():
         nc.ArrivalActuator(horizon=0)
 
 
+def test_arrival_actuator_does_not_play_an_older_packet_arriving_late():
+    """Over a link of order="all" the packet stamped 0 can arrive (t = 6) after the one stamped
+    4 (t = 4): the newer one's actions go on, 12 and 13 at t = 6, 7 (nx3: the older packet
+    replaced it and, its period over, the plant held 11)."""
+    ctx = Context(N=4, steps=12, T=0.1, state_dim=1, input_dim=1, output_dim=1)
+    act = nc.ArrivalActuator(horizon=4)
+    old, new = (np.array([[10.0 * k + j] for j in range(4)], np.float32) for k in (0, 1))
+    s, us = act.init(ctx), []
+    for t in range(4, 9):
+        if t == 4:
+            s = _deliver(act, s, new, 4)
+        if t == 6:
+            s = _deliver(act, s, old, 0)
+        s, u = act.output(s, t)
+        us.append(float(u[0]))
+    assert us == [10.0, 11.0, 12.0, 13.0, 13.0]
+
+
 def test_truncated_exponential_delay_law():
     """The downlink's delay model (section 5.1): eta + phi Exp(1) truncated to [eta, tau_max]:
     bounds, the mean of the truncated law (closed form) within 4 standard errors, the steps

@@ -64,6 +64,21 @@ def test_round_trip_loses_a_packet_lost_in_either_direction():
     np.testing.assert_array_equal(np.asarray(steps), [-1, 2, -1, 0, 1])
 
 
+@pytest.mark.parametrize("a, b", [(3, 4), (1, 6), (2, 5)])
+def test_a_round_trip_of_whole_periods_is_kept_up_to_tau_max_as_one_law_of_the_sum(a, b):
+    """Two laws in whole fast periods (``in_steps``), a + b = 7 periods, tau_max = 7 T: every
+    packet is delivered 7 periods late, as a PmfDelay of 7 periods is, and the declared bounds
+    are (7, 7). (nx3: compared in float32 seconds, 3 T + 4 T > 0.7 and every packet was
+    discarded; the lower bound 6 let an EKF(buffer=1) at N = 1 behind a 1 + 1 period round trip
+    run without ever correcting.)"""
+    rt = nc.RoundTrip(nc.PmfDelay([0.0] * a + [1.0]), nc.PmfDelay([0.0] * b + [1.0]))
+    assert rt.in_steps and rt.bounds(T) == (7, 7)
+    for delay in (rt, nc.PmfDelay([0.0] * 7 + [1.0])):
+        d = nc.draw_link(nc.Link(delay=delay, tau_max=7 * T, capacity=9), jax.random.PRNGKey(0), 50, T)
+        np.testing.assert_array_equal(np.asarray(d.delay), np.full(50, 7))
+    assert not nc.RoundTrip(nc.PmfDelay([0.0, 1.0]), nc.ShiftedExponential(0.1, 0.0)).in_steps
+
+
 def test_round_trip_refuses_a_non_delay_model():
     with pytest.raises(ValueError, match="RoundTrip.back"):
         nc.RoundTrip(nc.NoDelay(), 0.02)

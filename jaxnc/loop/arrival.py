@@ -43,8 +43,10 @@ class ArrivalActuator(AbstractActuator):
     Attributes:
       horizon: static H >= 1, actions per packet (the controller's horizon).
 
-    ``receive``: installs the newest delivered packet; ``output(state, t)``: its action
-    ``data[t - arrival]`` while t < stamp + H, else the last action applied.
+    ``receive``: installs the newest delivered packet if it is newer (by stamp) than the one
+    it holds (over a link of ``order="all"`` an older packet arriving after a newer one would
+    cut the newer one's actions); ``output(state, t)``: its action ``data[t - arrival]``
+    while t < stamp + H, else the last action applied.
 
     Raises:
       ValueError: ``horizon`` not an integer >= 1.
@@ -63,8 +65,8 @@ class ArrivalActuator(AbstractActuator):
 
     def receive(self, state: ArrivalState, inbox: Inbox) -> ArrivalState:
         data, stamp, w = inbox.newest()
-        take = w > 0.5
-        return state._replace(u=blend(w, jnp.asarray(data, jnp.float32), state.u),
+        take = (w > 0.5) & (stamp > state.stamp)    # an older packet arriving late (order="all") is not played
+        return state._replace(u=blend(jnp.where(take, w, 0.0), jnp.asarray(data, jnp.float32), state.u),
                               stamp=jnp.where(take, stamp, state.stamp), pending=state.pending | take)
 
     def output(self, state: ArrivalState, t):

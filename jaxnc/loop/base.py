@@ -467,8 +467,9 @@ class AbstractDelay(abc.ABC):
         (quantised up, negative = lost) and in seconds."""
 
     def bounds(self, T: float):
-        """(lo, hi): the delay's smallest and largest value in fast periods when concrete
-        and known (hi None: unbounded or unknown). Default (0, None)."""
+        """(lo, hi): the delay's smallest and largest value in whole fast periods (ints,
+        0 <= lo <= hi; a Loop refuses others) when concrete and known (hi None: unbounded or
+        unknown). Default (0, None)."""
         return 0, None
 
     def packets(self):

@@ -175,9 +175,15 @@ def _check_sizes(owner, limits, dim: int, what: str):
 
 
 def _apply(limits, states, s):
+    """The limits applied in order, in the signal's dtype: a limit's float numbers are cast to
+    it (float64 numbers under ``jax_enable_x64`` would otherwise promote a float32 action or
+    measurement to float64), and so is each output."""
     out = []
+    cast = lambda a: jnp.asarray(a, s.dtype) if isinstance(a, (float, np.floating, np.ndarray, jax.Array)) \
+        and jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a
     for lim, st in zip(limits, states):
-        st, s = lim.apply(st, s)
+        st, y = jax.tree.map(cast, lim).apply(st, s)
+        s = jnp.asarray(y, s.dtype)
         out.append(st)
     return tuple(out), s
 

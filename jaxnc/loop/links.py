@@ -466,8 +466,17 @@ class Link:
 def link_delay_bounds(link: Link, T: float):
     """(lo, hi): the delay of a packet ``link`` delivers, in fast periods of T seconds, from
     its delay model's declared :meth:`~jaxnc.loop.AbstractDelay.bounds` and ``tau_max``
-    (hi None: no known bound)."""
+    (hi None: no known bound).
+
+    Raises:
+      ValueError: the delay model's ``bounds(T)`` is not (lo, hi) in whole fast periods with
+        0 <= lo <= hi (hi None): e.g. seconds (0.0, 0.2) would size the ring for 0.2 fast
+        periods and lose the packets still in flight when their slot is reused."""
     lo, hi = link.delay.bounds(T)
+    whole = lambda v: isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+    if not (whole(lo) and lo >= 0 and (hi is None or (whole(hi) and hi >= lo))):
+        raise ValueError(f"{type(link.delay).__name__}.bounds(T) must return (lo, hi), the shortest and longest "
+                         f"delay in whole fast periods (ints, 0 <= lo <= hi; hi None: unbounded), got {(lo, hi)!r}")
     if link.tau_max is not None:
         cap = _periods(link.tau_max, T)
         if cap is not None:

@@ -33,8 +33,9 @@ class RoundTrip(AbstractDelay):
         independently.
 
     ``sample(key, n, T)`` returns ``(steps int32[n], seconds float32[n])`` with
-    ``seconds = forward_seconds + back_seconds`` and ``steps = ceil(seconds / T)``; the
-    two directions use ``split(key)``'s two keys. A packet lost in either direction (a
+    ``seconds = forward_seconds + back_seconds`` and ``steps = ceil(seconds / T)`` (the sum
+    of the parts' steps where both draw whole fast periods, ``in_steps``); the two
+    directions use ``split(key)``'s two keys. A packet lost in either direction (a
     part's steps negative: :class:`~jaxnc.loop.TraceDelay`, :class:`~jaxnc.loop.WifiModel`)
     is lost: steps -1, seconds 0.
 
@@ -45,16 +46,24 @@ class RoundTrip(AbstractDelay):
     forward: Any
     back: Any
 
+    @property
+    def in_steps(self) -> bool:
+        """Declared (:class:`~jaxnc.loop.AbstractDelay`): both parts draw whole fast periods, so
+        the sum does and a link compares it with ``tau_max`` in periods (in float32 seconds
+        3 T + 4 T can round above tau_max = 7 T and every packet would be discarded)."""
+        return bool(self.forward.in_steps and self.back.in_steps)
+
     def __post_init__(self):
         check_instance("RoundTrip.forward", self.forward, AbstractDelay, "a delay model (AbstractDelay)")
         check_instance("RoundTrip.back", self.back, AbstractDelay, "a delay model (AbstractDelay)")
 
     def bounds(self, T):
         """(lo, hi) in fast periods: ceil(a + b) >= ceil(a) + ceil(b) - 1 gives the
-        lower bound; the upper bound is the sum of the parts' (None if either is)."""
+        lower bound (the sum of the parts' where both draw whole periods, ``in_steps``); the
+        upper bound is the sum of the parts' (None if either is)."""
         lo_f, hi_f = self.forward.bounds(T)
         lo_b, hi_b = self.back.bounds(T)
-        lo = max(lo_f, lo_b, lo_f + lo_b - 1, 0)
+        lo = lo_f + lo_b if self.in_steps else max(lo_f, lo_b, lo_f + lo_b - 1, 0)
         hi = None if hi_f is None or hi_b is None else hi_f + hi_b
         return lo, hi
 
@@ -69,4 +78,5 @@ class RoundTrip(AbstractDelay):
         db, sb = self.back.sample(kb, n, T)
         lost = (df < 0) | (db < 0)
         tau = jnp.where(lost, 0.0, sf + sb)
-        return jnp.where(lost, -1, quantise_delay(tau, T)).astype(jnp.int32), tau
+        steps = df + db if self.in_steps else quantise_delay(tau, T)
+        return jnp.where(lost, -1, steps).astype(jnp.int32), tau

@@ -18,6 +18,7 @@ from __future__ import annotations
 from typing import Any, ClassVar, NamedTuple
 
 import dataclasses
+import hashlib
 import warnings
 
 import jax
@@ -28,7 +29,7 @@ from jaxnc._validate import (array_fields, check_bool, check_callable, check_fin
                              check_int, check_range, concrete)
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractMonitor, AbstractPlant,
-                             AbstractTrigger, Inbox)
+                             AbstractTrigger, Inbox, Packet)
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
@@ -385,9 +386,22 @@ class Loop:
             self._check_dims()      # also with leaves that are not arrays (a plain-object law)
 
     def _check_dims(self):
-        """The roles fit together (:func:`_check_fit`), once per loop structure."""
+        """The roles fit together (:func:`_check_fit`), once per loop: its structure and its
+        numbers, since a part's ``init(ctx)`` may check values against the loop's N (a
+        ``Luenberger`` gain, a ``SteadyStateKF``'s detectability): keyed on shapes alone, a
+        loop whose numbers failed that check was accepted once one of the same shapes had
+        passed it."""
         leaves, treedef = jax.tree.flatten(self)
-        key = (treedef, tuple((np.shape(a), str(getattr(a, "dtype", type(a)))) for a in leaves))
+
+        def value(a):
+            try:
+                v = np.asarray(a) if isinstance(a, (np.ndarray, np.generic, jax.Array, int, float, complex)) else None
+            except TypeError:       # e.g. a typed PRNG key
+                v = None
+            if v is None or v.dtype == object:
+                return type(a), id(a)       # a plain Python object: checked once per object
+            return v.shape, str(v.dtype), hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()
+        key = (treedef, tuple(value(a) for a in leaves))
         if key in _FITTED:
             return
         _check_fit(self)
@@ -447,10 +461,13 @@ def _check_field_shapes(name: str, part, dims: dict) -> None:
 def _check_fit(loop: Loop) -> None:
     """Every role fits the others, checked on shapes and dtypes only (``jax.eval_shape``
     over one step of every role), when the loop is built: the plant's step keeps its
-    state and returns floats, its measurement has ``output_dim`` floats; each part's
+    state and returns floats, its measurement has ``output_dim`` floats; each link's loss
+    and delay models draw one value per slow instant (:func:`_check_draws`); each part's
     declared ``field_shapes`` match the loop's sizes; every role's state keeps its shapes
-    from step to step; the controller acts on the estimator's output and its actions have
-    the plant's ``input_dim``; the cost is a scalar. A mismatch raises a ValueError naming
+    and dtypes from step to step (the actuator's when it receives packets too); the
+    controller acts on the estimator's output and its packets are float[horizon, input_dim];
+    the actuator outputs float32[input_dim]; the monitor's flags are bool scalars; the cost
+    is a scalar. A mismatch raises a ValueError naming
     the part, the field and both sizes."""
     ctx = loop.ctx
     n, m, p = ctx.state_dim, ctx.input_dim, ctx.output_dim
@@ -473,6 +490,7 @@ def _check_fit(loop: Loop) -> None:
     z = _stage("Loop.plant", f"cannot measure (v float32[{p}])", lambda: plant.measure(_zeros(x0), f32((p,))))
     if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (p,) or z.dtype != jnp.float32:
         raise ValueError(f"Loop.plant's measurement is {_shapes(z)}; it must be float32[{p}] (output_dim={p})")
+    _check_draws(loop)
     dims = dict(state=n, input=m, output=p)
     for name in ("plant", "trigger", "estimator", "actuator", "controller_trigger", "monitor", "cost"):
         part = getattr(loop, name)
@@ -504,7 +522,19 @@ def _check_fit(loop: Loop) -> None:
     c1, pkt, send_ca = _stage("Loop.controller", f"cannot act on the estimator's estimate {shapes}",
                               lambda: loop.controller.step(_zeros(c0), _zeros(xhat), jnp.float32(1), jnp.int32(0), ctx))
     _same_structure("Loop.controller's step", c0, c1)
+    if not isinstance(pkt, Packet):
+        raise ValueError(f"Loop.controller's step must return (state, jaxnc.loop.Packet(actions, stamp), send), got "
+                         f"{type(pkt).__name__} as its packet")
+    if not (isinstance(send_ca, jax.ShapeDtypeStruct) and send_ca.shape == ()):
+        raise ValueError(f"Loop.controller's send decision is {_shapes(send_ca)}; it must be a scalar 0/1 float")
+    if not (isinstance(pkt.stamp, jax.ShapeDtypeStruct) and pkt.stamp.shape == ()
+            and jnp.issubdtype(pkt.stamp.dtype, jnp.integer)):
+        raise ValueError(f"Loop.controller's packet stamp is {_shapes(pkt.stamp)}; it must be an int32 scalar, the fast "
+                         f"instant of the packet's first action (e.g. k * ctx.N), not seconds")
     u = pkt.data
+    if isinstance(u, jax.ShapeDtypeStruct) and u.ndim != 2:
+        raise ValueError(f"Loop.controller's packet is {_shapes(u)}; its actions must be float[horizon, input_dim] = "
+                         f"float[{loop.controller.horizon}, {m}]")
     if isinstance(u, jax.ShapeDtypeStruct) and u.shape[-1:] != (m,):
         raise ValueError(f"Loop.controller's actions have shape {u.shape[1:]}, the plant takes input_dim={m} inputs")
     if isinstance(u, jax.ShapeDtypeStruct) and u.shape[:1] != (loop.controller.horizon,):
@@ -526,22 +556,52 @@ def _check_fit(loop: Loop) -> None:
         _same_structure("Loop.controller_trigger's step", ct0, ct1)
     # actuator
     a0 = _stage("Loop.actuator", "cannot build its state", lambda: loop.actuator.init(ctx))
+    box = _stage("Loop.downlink", f"cannot carry the controller's packets {_shapes(pkt.data)}",
+                 lambda: loop.downlink.inbox(loop.downlink.init(_zeros(pkt.data)), jnp.int32(0))[0])
+    ar = _stage("Loop.actuator", f"cannot receive the controller's packets {_shapes(pkt.data)}",
+                lambda: loop.actuator.receive(_zeros(a0), _zeros(box)))
+    _same_structure("Loop.actuator's receive", a0, ar)
     a1, ua = _stage("Loop.actuator", "cannot output an action", lambda: loop.actuator.output(_zeros(a0), jnp.int32(0)))
     _same_structure("Loop.actuator's output", a0, a1)
-    if ua.shape != (m,):
+    if not isinstance(ua, jax.ShapeDtypeStruct) or ua.shape != (m,) or ua.dtype != jnp.float32:
         raise ValueError(f"Loop.actuator's action is {_shapes(ua)}; the plant takes float32[{m}]")
     m0 = _stage("Loop.monitor", "cannot build its state", lambda: loop.monitor.init(ctx))
     m1, bad, done = _stage("Loop.monitor", f"cannot watch a state vector float32[{n}]",
                            lambda: loop.monitor.step(_zeros(m0), f32((n,)), f32((m,)), jnp.int32(0)))
     _same_structure("Loop.monitor's step", m0, m1)
-    if bad.shape != () or done.shape != ():
-        raise ValueError(f"Loop.monitor's step must return scalar flags (failed, done), got {_shapes((bad, done))}")
+    if bad.shape != () or done.shape != () or bad.dtype != bool or done.dtype != bool:
+        raise ValueError(f"Loop.monitor's step must return scalar bool flags (failed, done), got {_shapes((bad, done))}")
     if loop.cost is not None:
         K = loop.steps
         J = _stage("Loop.cost", f"cannot evaluate cost(x float32[{K}, {n}], u float32[{K}, {m}])",
                    lambda: loop.cost(f32((K, n)), f32((K, m))))
         if not isinstance(J, jax.ShapeDtypeStruct) or J.shape != ():
             raise ValueError(f"Loop.cost must return a scalar, got {_shapes(J)}")
+
+
+def _check_draws(loop: Loop) -> None:
+    """Each link's loss and delay models draw one value per slow instant of the run, of the
+    protocol's types (:class:`~jaxnc.loop.AbstractLoss`, :class:`~jaxnc.loop.AbstractDelay`):
+    a scalar would be broadcast to every packet (all lost, or all equally late), and float
+    steps would be truncated, not quantised up."""
+    S = loop.steps // loop.N
+    key = lambda: jax.random.split(unrolled(jax.random.PRNGKey(0)))[0]     # a key of the kind draw() passes
+    for name in ("uplink", "downlink"):
+        link = getattr(loop, name)
+        where = f"Loop.{name}.loss ({type(link.loss).__name__})"
+        lost = _stage(where, f"cannot draw the run's {S} packets (sample(key, {S}))", lambda: link.loss.sample(key(), S))
+        if not isinstance(lost, jax.ShapeDtypeStruct) or lost.shape != (S,) or lost.dtype != bool:
+            raise ValueError(f"{where}.sample(key, n) draws {_shapes(lost)} for the run's n = {S} slow instants "
+                             f"(steps={loop.steps} / N={loop.N}); it must return bool[n] = bool[{S}], one per packet")
+        where = f"Loop.{name}.delay ({type(link.delay).__name__})"
+        drawn = _stage(where, f"cannot draw the run's {S} packets (sample(key, {S}, T))",
+                       lambda: link.delay.sample(key(), S, loop.T))
+        ok = isinstance(drawn, (tuple, list)) and len(drawn) == 2 and all(
+            isinstance(a, jax.ShapeDtypeStruct) and a.shape == (S,) for a in drawn)
+        if not (ok and jnp.issubdtype(drawn[0].dtype, jnp.integer) and jnp.issubdtype(drawn[1].dtype, jnp.floating)):
+            raise ValueError(f"{where}.sample(key, n, T) draws {_shapes(drawn)} for the run's n = {S} slow instants "
+                             f"(steps={loop.steps} / N={loop.N}); it must return (steps int32[n], seconds float32[n]) "
+                             f"= (int32[{S}], float32[{S}]): whole fast periods, quantised up, and seconds")
 
 
 def _zeros(tree):
@@ -564,7 +624,7 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
           ("actuator", AbstractActuator, "an actuator (a jaxnc.loop.AbstractActuator: PacketActuator, HoldLast)"))
 
 
-_FITTED: set = set()     # loop structures (treedef, leaf shapes) whose roles were found to fit
+_FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
 
 
 def _one_line(e: BaseException) -> str:
