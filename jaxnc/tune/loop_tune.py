@@ -9,7 +9,8 @@ configuration (a paper's scheme: ``run=mecanum.run``), and a tuple of paths ties
 one parameter. It
 
 1. checks everything before tracing: the paths exist and are dynamic numeric leaves (not
-   a part, not None; an integer that shapes arrays is static: give it in ``search``), the
+   a part, not None; an integer that shapes arrays is static, and an integer-valued leaf
+   such as ``Petc.max_silence`` has no gradient: give either in ``search``), the
    starts lie inside their constraints, the budgets, the objective is a scalar (and, on
    the start's evaluation seeds, not NaN);
 2. with ``search={"path": [values, ...]}`` first runs successive halving with common
@@ -278,7 +279,9 @@ def point_objective(loop, objective: Callable, run: Callable, names: dict | None
 
 def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     """The numeric value at ``path``; ValueError when it names a part (a configuration
-    object: name one of its fields) or a field that holds None or no number."""
+    object: name one of its fields), a field that holds None or no number, or one that
+    holds an integer array or a bool (a count or a switch, e.g. ``Petc.max_silence``:
+    searched, not tuned by gradient; a Python int is taken as a number)."""
     v = get_path(loop, path)
     if dataclasses.is_dataclass(v):
         raise ValueError(f"{fn_name}: {path!r} is a part ({type(v).__name__}), not a leaf: name one of its fields "
@@ -290,6 +293,12 @@ def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     if a.dtype.kind not in "biuf" or a.size == 0:
         raise ValueError(f"{fn_name}: {path!r} must hold a number or a non-empty array of numbers to be tuned, "
                          f"got {type(v).__name__}")
+    if isinstance(v, bool) or (a.dtype.kind != "f" and not isinstance(v, int)):
+        # an integer array or a bool: the part stores a count or a switch (Petc.max_silence is
+        # int32); a Python int is a number a person wrote for a continuous field (Petc(delta=1))
+        raise ValueError(f"{fn_name}: {path!r} holds {a.dtype} values, a count or a switch (e.g. Petc.max_silence) "
+                         f"with no gradient: the tuner would simulate fractional values the part refuses; give its "
+                         f"candidate values in search={{{path!r}: [...]}}, or a float start if the leaf is continuous")
     return a
 
 
