@@ -322,6 +322,37 @@ def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
         check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=4)
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Nested:
+    """A configuration whose gains are a nested dict, as a ``Function`` controller's params."""
+    params: dict = dataclasses.field(default_factory=lambda: {"gains": {"kp": 2.0, "kd": 0.5}})
+
+
+def _nested_run(cfg, key):
+    """E[J] = 10 kp + kd (noise keeps the standard errors positive)."""
+    g, eps = cfg.params["gains"], jax.random.normal(key, (2,))
+    return 10.0 * g["kp"] * (1.0 + 0.01 * eps[0]) + g["kd"] * (1.0 + 0.01 * eps[1])
+
+
+def test_paths_reach_the_entries_of_a_nested_dict():
+    """A gain inside a dict (``Function(params={"gains": {"kp": ...}})``) is named by its
+    keys: ``"params.gains.kp"`` (it was refused: a dict has no field). The check's table
+    carries each entry's own label and its gradient in the entry's units; a missing key is
+    refused, not added."""
+    cfg = _Nested()
+    assert get_path(cfg, "params.gains.kp") == 2.0 and not is_static(cfg, "params.gains.kd")
+    cfg2 = set_paths(cfg, {"params.gains.kp": 3.0})
+    assert cfg2.params == {"gains": {"kp": 3.0, "kd": 0.5}} and cfg.params["gains"]["kp"] == 2.0
+    with pytest.raises(ValueError, match=r"'params.gains.ki'.*no field 'ki'.*fields: kp, kd"):
+        set_paths(cfg, {"params.gains.ki": 1.0})
+    c = check_loop(cfg, {"params.gains.kp": Positive(), "params.gains.kd": Positive()}, lambda j: j,
+                   run=_nested_run, seeds=8)
+    assert c.names == ("params.gains.kd", "params.gains.kp")
+    np.testing.assert_allclose(c.in_units("finite_difference")[0], [1.0, 10.0], rtol=0.02)
+    np.testing.assert_allclose(c.values, [0.5, 2.0])
+
+
 def _linear(theta, key, temperature):
     """J = theta_0 (1 + e_0) + 0.3 theta_1 (1 + e_1), e ~ N(0, I) per seed: the gradient of
     the mean is (1, 0.3). The score function's paired difference to the finite differences

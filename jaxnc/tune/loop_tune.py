@@ -76,41 +76,53 @@ def _split(path: str) -> list[str]:
 
 
 def _fields(obj):
+    if isinstance(obj, dict):
+        return [k for k in obj if isinstance(k, str)]
     return [f.name for f in dataclasses.fields(obj)] if dataclasses.is_dataclass(obj) else []
 
 
+def _child(obj, name: str):
+    """The field ``name`` of a configuration object, or the entry ``name`` of a dict."""
+    return obj[name] if isinstance(obj, dict) else getattr(obj, name)
+
+
 def get_path(loop, path: str):
-    """The value at attribute ``path`` of ``loop``; ValueError naming the missing part."""
+    """The value at attribute ``path`` of ``loop``: fields of configuration objects, and
+    string keys of dicts inside them (``"controller.params.gains.kp"`` for a
+    ``Function(params={"gains": {"kp": ...}})``); ValueError naming the missing part."""
     obj = loop
     parts = _split(path)
     for i, name in enumerate(parts):
-        if not dataclasses.is_dataclass(obj) or name not in _fields(obj):
+        if name not in _fields(obj):
             where = ".".join(parts[:i]) or type(loop).__name__
             avail = ", ".join(_fields(obj)) or "(none: not a configuration object)"
             raise ValueError(f"{path!r}: {where} ({type(obj).__name__}) has no field {name!r}; fields: {avail}")
-        obj = getattr(obj, name)
+        obj = _child(obj, name)
     return obj
 
 
 def is_static(loop, path: str) -> bool:
-    """True when the field at ``path`` is static (it shapes arrays or picks code)."""
+    """True when the field at ``path`` is static (it shapes arrays or picks code); a dict's
+    entry is a leaf, never static."""
     parts = _split(path)
     parent = get_path(loop, ".".join(parts[:-1])) if len(parts) > 1 else loop
     get_path(loop, path)
+    if isinstance(parent, dict):
+        return False
     f = next(f for f in dataclasses.fields(parent) if f.name == parts[-1])
     return bool(f.metadata.get("static", False))
 
 
 def set_paths(loop, values: dict):
     """``loop`` with the values at the given attribute paths replaced (nested
-    ``dataclasses.replace``; works on traced values)."""
+    ``dataclasses.replace``, a dict copied with the entry replaced; works on traced values)."""
     for path, v in values.items():
         parts = _split(path)
+        get_path(loop, path)                    # names what is missing (a dict would take a new key)
 
         def rep(obj, ps):
-            if len(ps) == 1:
-                return dataclasses.replace(obj, **{ps[0]: v})
-            return dataclasses.replace(obj, **{ps[0]: rep(getattr(obj, ps[0]), ps[1:])})
+            new = v if len(ps) == 1 else rep(_child(obj, ps[0]), ps[1:])
+            return {**obj, ps[0]: new} if isinstance(obj, dict) else dataclasses.replace(obj, **{ps[0]: new})
         loop = rep(loop, parts)
     return loop
 
