@@ -70,26 +70,43 @@ RESOLVE_AT, RESOLVE_MIN_STEPS = 0.25, 8   # tune_loop's budget rule: when its st
 
 
 def _split(path: str) -> list[str]:
-    if not isinstance(path, str) or not path or any(not p.isidentifier() for p in path.split(".")):
-        raise ValueError(f"a tuned parameter is named by an attribute path like 'trigger.delta', got {path!r}")
+    if not isinstance(path, str) or not path or \
+            any(not (p.isidentifier() or (p.isdigit() and p.isascii())) for p in path.split(".")):
+        raise ValueError(f"a tuned parameter is named by an attribute path like 'trigger.delta' (a tuple's "
+                         f"entry by its index: 'actuator.limits.0.high'), got {path!r}")
     return path.split(".")
 
 
 def _fields(obj):
     if isinstance(obj, dict):
         return [k for k in obj if isinstance(k, str)]
+    if isinstance(obj, (tuple, list)) and not hasattr(obj, "_fields"):
+        return [str(i) for i in range(len(obj))]
     return [f.name for f in dataclasses.fields(obj)] if dataclasses.is_dataclass(obj) else []
 
 
 def _child(obj, name: str):
-    """The field ``name`` of a configuration object, or the entry ``name`` of a dict."""
-    return obj[name] if isinstance(obj, dict) else getattr(obj, name)
+    """The field ``name`` of a configuration object, the entry ``name`` of a dict, or the
+    entry at index ``name`` of a tuple or list."""
+    if isinstance(obj, dict):
+        return obj[name]
+    return obj[int(name)] if isinstance(obj, (tuple, list)) else getattr(obj, name)
+
+
+def _replaced(obj, name: str, new):
+    """``obj`` with its field, dict entry or tuple entry ``name`` replaced by ``new``."""
+    if isinstance(obj, dict):
+        return {**obj, name: new}
+    if isinstance(obj, (tuple, list)):
+        return type(obj)(new if i == int(name) else v for i, v in enumerate(obj))
+    return dataclasses.replace(obj, **{name: new})
 
 
 def get_path(loop, path: str):
-    """The value at attribute ``path`` of ``loop``: fields of configuration objects, and
-    string keys of dicts inside them (``"controller.params.gains.kp"`` for a
-    ``Function(params={"gains": {"kp": ...}})``); ValueError naming the missing part."""
+    """The value at attribute ``path`` of ``loop``: fields of configuration objects, string
+    keys of dicts inside them (``"controller.params.gains.kp"`` for a
+    ``Function(params={"gains": {"kp": ...}})``) and indices of tuples
+    (``"actuator.limits.1.rising"``); ValueError naming the missing part."""
     obj = loop
     parts = _split(path)
     for i, name in enumerate(parts):
@@ -107,7 +124,7 @@ def is_static(loop, path: str) -> bool:
     parts = _split(path)
     parent = get_path(loop, ".".join(parts[:-1])) if len(parts) > 1 else loop
     get_path(loop, path)
-    if isinstance(parent, dict):
+    if not dataclasses.is_dataclass(parent):     # a dict's or a tuple's entry
         return False
     f = next(f for f in dataclasses.fields(parent) if f.name == parts[-1])
     return bool(f.metadata.get("static", False))
@@ -115,14 +132,14 @@ def is_static(loop, path: str) -> bool:
 
 def set_paths(loop, values: dict):
     """``loop`` with the values at the given attribute paths replaced (nested
-    ``dataclasses.replace``, a dict copied with the entry replaced; works on traced values)."""
+    ``dataclasses.replace``, a dict or tuple copied with the entry replaced; works on
+    traced values)."""
     for path, v in values.items():
         parts = _split(path)
         get_path(loop, path)                    # names what is missing (a dict would take a new key)
 
         def rep(obj, ps):
-            new = v if len(ps) == 1 else rep(_child(obj, ps[0]), ps[1:])
-            return {**obj, ps[0]: new} if isinstance(obj, dict) else dataclasses.replace(obj, **{ps[0]: new})
+            return _replaced(obj, ps[0], v if len(ps) == 1 else rep(_child(obj, ps[0]), ps[1:]))
         loop = rep(loop, parts)
     return loop
 
