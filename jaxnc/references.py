@@ -19,7 +19,7 @@ import numpy as np
 
 from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, check_positive, checked_pytree
 
-__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate"]
+__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end"]
 
 # a step or ramp time on a sample instant is reached at that instant despite the rounding
 # of t * T: the comparison is made within this fraction of a period
@@ -307,3 +307,34 @@ def evaluate(reference: AbstractReference, steps: int, T, *, start: int = 0) -> 
     check_positive("evaluate: T", T)
     t = jnp.arange(start, start + steps, dtype=jnp.int32)
     return jax.vmap(reference.at, in_axes=(0, None))(t, T)
+
+
+def held_at_end(reference: AbstractReference, steps: int, T) -> jax.Array:
+    """Whether r holds its value at the run's last instant from then on: bool[p], per
+    channel, for a run of ``steps`` fast instants at period T (so that r_{steps-1} is a
+    final value to step to). A ``Step`` once applied (:meth:`Step.applied` at steps - 1), a
+    ``PiecewiseLinear`` whose last breakpoint is at or before (steps - 1) T (within 1e-4 T),
+    a ``Recorded`` of at most ``steps`` rows; never a reference that does not settle
+    (``Ramp``, ``Sine``); a reference of another class that settles, always. ``steps`` is a
+    static int >= 1; the reference's fields may be traced.
+
+    Raises:
+      ValueError: ``steps`` < 1, or ``reference`` not a reference.
+    """
+    if not isinstance(reference, AbstractReference):
+        raise ValueError(f"held_at_end: reference must be a jaxnc.references reference, got "
+                         f"{type(reference).__name__}")
+    check_int("held_at_end: steps", steps, 1)
+    p = reference.dim
+    if not reference.settles:
+        return jnp.zeros((p,), bool)
+    if isinstance(reference, Step):
+        return reference.applied(steps - 1, T)
+    if isinstance(reference, PiecewiseLinear):
+        v = jnp.asarray(reference.values)
+        last = jnp.asarray(reference.times, v.dtype)[-1]
+        end = _time(steps - 1, T, v.dtype) + _TIME_TOL * jnp.asarray(T, v.dtype)
+        return jnp.broadcast_to(last <= end, (p,))
+    if isinstance(reference, Recorded):
+        return jnp.full((p,), np.shape(reference.values)[0] <= steps)
+    return jnp.ones((p,), bool)

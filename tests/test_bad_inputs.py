@@ -3,6 +3,7 @@
 
 Every case is one distinct bad input; ``test_the_battery_has_at_least_60_cases`` counts
 them (issue 25 asks for at least 60)."""
+import dataclasses
 import json
 
 import jax
@@ -1064,10 +1065,14 @@ def _tuning_cases():
          "search['controller.K'] value [1.0, 2.0, 3.0] has shape (3,), the leaf 'controller.K' has shape (1, 2)"),
         (lambda: tune_loop(_tune_loop_fixture(), {"trigger.delta": Positive()}, search={"uplink.loss.p": [0.5, 1.5]}),
          "search['uplink.loss.p'] value 1.5: Bernoulli.p must be in [0, 1)"),
+        # an integer leaf (a count) was tuned as a continuous parameter: fractional values simulated
+        (lambda: check_loop(dataclasses.replace(_tune_loop_fixture(), trigger=nc.Petc(delta=1e-3, max_silence=3)),
+                            {"trigger.max_silence": Positive()}, seeds=4),
+         "'trigger.max_silence' holds int32 values, a count or a switch"),
     ]
 
 
-@pytest.mark.parametrize("i", range(11))
+@pytest.mark.parametrize("i", range(12))
 def test_tuning_inputs_are_refused_naming_the_parameter(i):
     call, fragment = _tuning_cases()[i]
     with pytest.raises(ValueError) as e:

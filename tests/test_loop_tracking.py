@@ -165,3 +165,34 @@ def test_a_reference_that_does_not_settle_has_no_step_metrics(reference):
         itae = tr.itae(jnp.asarray(r - y), T)
     np.testing.assert_allclose(m.itae[0], float(itae), rtol=1e-12)
     np.testing.assert_allclose(m.ise[0], np.sum((r - y) ** 2) * T, rtol=1e-9)
+
+
+@pytest.mark.parametrize("reference", [refs.PiecewiseLinear([0.0, 10.0], [0.0, 1.0]),
+                                       refs.Recorded(np.linspace(0.0, 1.0, 120)[:, None])])
+def test_a_reference_still_moving_after_the_run_has_no_step_metrics(reference):
+    # a profile whose last breakpoint (or record) ends after the run has no final value yet:
+    # a perfect tracker of it read rise time 4 s and settling time 4.9 s toward wherever the
+    # run stopped; like a Ramp's, its step metrics are nan, the integral metrics unchanged
+    T, K = 0.1, 80
+    tracking = nc.Tracking(reference, index=0)
+    y = np.asarray(refs.evaluate(reference, K, T))[:, 0] + 0.01
+    m = _metrics(tracking, y, T)
+    for f in ("overshoot", "rise_time", "settling_time"):
+        assert np.isnan(getattr(m, f)[0]), f
+    np.testing.assert_allclose(m.ise[0], 0.01 ** 2 * K * T, rtol=1e-4)
+    assert not bool(refs.held_at_end(reference, K, T)[0])
+
+
+def test_held_at_end_at_the_boundary_and_traced():
+    T, K = 0.1, 80
+    last = (K - 1) * T                                  # a breakpoint on the run's last instant is held
+    assert bool(refs.held_at_end(refs.PiecewiseLinear([0.0, last], [0.0, 1.0]), K, T)[0])
+    assert not bool(refs.held_at_end(refs.PiecewiseLinear([0.0, last + 0.5 * T], [0.0, 1.0]), K, T)[0])
+    assert bool(refs.held_at_end(refs.Recorded(np.zeros(K)), K, T)[0])
+    assert not bool(refs.held_at_end(refs.Recorded(np.zeros(K + 1)), K, T)[0])
+    assert np.asarray(refs.held_at_end(refs.Step([1.0, 1.0], time=[1.0, 9.0]), K, T)).tolist() == [True, False]
+    assert not np.any(np.asarray(refs.held_at_end(refs.Sine([1.0, 2.0], 0.0), K, T)))
+    ends = jnp.asarray([5.0, 10.0])
+    held = jax.jit(jax.vmap(lambda e: refs.held_at_end(refs.PiecewiseLinear(jnp.stack([0.0 * e, e]),
+                                                                            jnp.asarray([0.0, 1.0])), K, T)))(ends)
+    assert np.asarray(held)[:, 0].tolist() == [True, False]

@@ -322,6 +322,44 @@ def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
         check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=4)
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Nested:
+    """A configuration whose gains are a nested dict, as a ``Function`` controller's params."""
+    params: dict = dataclasses.field(default_factory=lambda: {"gains": {"kp": 2.0, "kd": 0.5}})
+    limits: tuple = (1.0, 4.0)
+
+
+def _nested_run(cfg, key):
+    """E[J] = 10 kp + kd + 3 limits[1] (noise keeps the standard errors positive)."""
+    g, eps = cfg.params["gains"], jax.random.normal(key, (3,))
+    return (10.0 * g["kp"] * (1.0 + 0.01 * eps[0]) + g["kd"] * (1.0 + 0.01 * eps[1])
+            + 3.0 * cfg.limits[1] * (1.0 + 0.01 * eps[2]))
+
+
+def test_paths_reach_the_entries_of_a_nested_dict_and_a_tuple():
+    """A gain inside a dict (``Function(params={"gains": {"kp": ...}})``) is named by its
+    keys, ``"params.gains.kp"``, and an entry of a tuple (``LimitedActuator.limits``) by its
+    index, ``"limits.1"`` (both were refused: a dict has no field, "1" is no attribute). The
+    check's table carries each entry's own label and its gradient in the entry's units; a
+    missing key or index is refused, not added."""
+    cfg = _Nested()
+    assert get_path(cfg, "params.gains.kp") == 2.0 and not is_static(cfg, "params.gains.kd")
+    assert get_path(cfg, "limits.1") == 4.0 and not is_static(cfg, "limits.1")
+    cfg2 = set_paths(cfg, {"params.gains.kp": 3.0, "limits.1": 5.0})
+    assert cfg2.params == {"gains": {"kp": 3.0, "kd": 0.5}} and cfg.params["gains"]["kp"] == 2.0
+    assert cfg2.limits == (1.0, 5.0) and cfg.limits == (1.0, 4.0)
+    with pytest.raises(ValueError, match=r"'params.gains.ki'.*no field 'ki'.*fields: kp, kd"):
+        set_paths(cfg, {"params.gains.ki": 1.0})
+    with pytest.raises(ValueError, match=r"'limits.2'.*no field '2'.*fields: 0, 1"):
+        set_paths(cfg, {"limits.2": 1.0})
+    c = check_loop(cfg, {"params.gains.kp": Positive(), "limits.1": Positive(), "params.gains.kd": Positive()},
+                   lambda j: j, run=_nested_run, seeds=8)
+    assert c.names == ("limits.1", "params.gains.kd", "params.gains.kp")
+    np.testing.assert_allclose(c.in_units("finite_difference")[0], [3.0, 1.0, 10.0], rtol=0.02)
+    np.testing.assert_allclose(c.values, [4.0, 0.5, 2.0])
+
+
 def _linear(theta, key, temperature):
     """J = theta_0 (1 + e_0) + 0.3 theta_1 (1 + e_1), e ~ N(0, I) per seed: the gradient of
     the mean is (1, 0.3). The score function's paired difference to the finite differences

@@ -21,9 +21,11 @@ sample, k0 = 0:
 * ``steady_state_error``: :func:`jaxnc.tracking.steady_state_error` of e over the last
   ``window`` samples.
 
-A reference that does not settle (``AbstractReference.settles`` False: ``Ramp``, ``Sine``)
-has no final value to step to: its ``overshoot``, ``rise_time`` and ``settling_time`` are
-nan (measured toward r's last sample they changed with where the run stops); ISE, IAE,
+A reference that does not hold its last sample's value from then on
+(:func:`jaxnc.references.held_at_end`: a ``Ramp`` or a ``Sine``, which do not settle, and a
+``PiecewiseLinear`` whose last breakpoint, or a ``Recorded`` whose record, ends after the
+run) has no final value to step to: its ``overshoot``, ``rise_time`` and ``settling_time``
+are nan (measured toward r's last sample they changed with where the run stops); ISE, IAE,
 ITAE and the steady-state error are as above.
 
 A ``Step`` not applied within the run (``time`` after the last instant) has no step
@@ -46,7 +48,7 @@ from jaxnc._validate import check_components, check_instance, check_int, check_r
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
-from jaxnc.references import AbstractReference, Step, evaluate
+from jaxnc.references import AbstractReference, Step, evaluate, held_at_end
 
 __all__ = ["Tracking", "TrackingMetrics", "run_tracking"]
 
@@ -133,9 +135,10 @@ class Tracking:
         info = _tr.step_info(post, T, y_final=jnp.where(stepped, r[-1], jnp.nan), y_initial=post[0],
                              reference=r[-1], settling_threshold=self.settling_threshold)
         itae = jnp.where(stepped, _tr.itae(e, T, start=k0), jnp.nan)
-        overshoot, rise, settling = info.overshoot, info.rise_time, info.settling_time
-        if not self.reference.settles:          # no final value to step to: nan, not r's last sample
-            overshoot, rise, settling = (jnp.full_like(v, jnp.nan) for v in (overshoot, rise, settling))
+        # no final value to step to (r still moves after the run): nan, not r's last sample
+        held = jnp.broadcast_to(held_at_end(self.reference, K, T), k0.shape)
+        overshoot, rise, settling = (jnp.where(held, v, jnp.nan)
+                                     for v in (info.overshoot, info.rise_time, info.settling_time))
         return TrackingMetrics(_tr.ise(e, T), _tr.iae(e, T), itae, overshoot, rise,
                                settling, _tr.steady_state_error(e, window=self.window))
 

@@ -43,7 +43,10 @@ with the finite differences when
    (2 %) of the largest finite-difference component (the finite differences are
    themselves biased by O(h^2) and float32 rounding, so an exact gradient differs from
    them by a tiny but, over many seeds, *significant* amount: that is agreement, not a
-   failure);
+   failure) *and* no larger than the gradient on that coordinate, max(|estimate_j|,
+   |finite difference_j|): the two do not have opposite signs (a derivative read with the
+   wrong sign on a small coordinate, seen at any |z|, is a disagreement however small
+   beside the largest component);
 2. its standard error is at most ``max_noise`` (10) times the finite differences' (an
    estimator so noisy that it agrees with anything, e.g. a straight-through gradient
    through a very sharp sigmoid, is flagged as too noisy, not passed);
@@ -240,7 +243,7 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
         out["resolution"][name], out["resolved"][name], out["needed"][name] = resolution, resolved, needed
         if not np.all(np.isfinite(g)):
             reason = "non-finite values"
-        elif not np.all((np.abs(zz) <= z) | (np.abs(diff.mean(0)) <= margin)):
+        elif not np.all((np.abs(zz) <= z) | ((np.abs(diff.mean(0)) <= margin) & (np.abs(diff.mean(0)) <= size))):
             reason = f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
         elif np.any(estimates[name][1] > max_noise * np.maximum(estimates[ref][1], 1e-30)):
             ratio = float(np.max(estimates[name][1] / np.maximum(estimates[ref][1], 1e-30)))
@@ -296,7 +299,8 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
       max_noise: the largest ratio of an estimator's standard error to the finite
         differences' for it to count as consistent.
       rel_tol: differences below this fraction of max_j |finite-difference mean_j| agree
-        whatever their z (>= 0).
+        whatever their z (>= 0), unless estimate and finite difference have opposite signs
+        on the coordinate.
       estimators: which of ``"straight_through"``, ``"score"``, ``"richardson"``,
         ``"hybrid"``, ``"corrected"`` to check; default all that apply (``"hybrid"`` only
         for a pair objective, ``"corrected"`` only with ``corrected``).

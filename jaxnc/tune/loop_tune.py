@@ -9,7 +9,8 @@ configuration (a paper's scheme: ``run=mecanum.run``), and a tuple of paths ties
 one parameter. It
 
 1. checks everything before tracing: the paths exist and are dynamic numeric leaves (not
-   a part, not None; an integer that shapes arrays is static: give it in ``search``), the
+   a part, not None; an integer that shapes arrays is static, and an integer-valued leaf
+   such as ``Petc.max_silence`` has no gradient: give either in ``search``), the
    starts lie inside their constraints, the budgets, the objective is a scalar (and, on
    the start's evaluation seeds, not NaN);
 2. with ``search={"path": [values, ...]}`` first runs successive halving with common
@@ -69,47 +70,76 @@ RESOLVE_AT, RESOLVE_MIN_STEPS = 0.25, 8   # tune_loop's budget rule: when its st
 
 
 def _split(path: str) -> list[str]:
-    if not isinstance(path, str) or not path or any(not p.isidentifier() for p in path.split(".")):
-        raise ValueError(f"a tuned parameter is named by an attribute path like 'trigger.delta', got {path!r}")
+    if not isinstance(path, str) or not path or \
+            any(not (p.isidentifier() or (p.isdigit() and p.isascii())) for p in path.split(".")):
+        raise ValueError(f"a tuned parameter is named by an attribute path like 'trigger.delta' (a tuple's "
+                         f"entry by its index: 'actuator.limits.0.high'), got {path!r}")
     return path.split(".")
 
 
 def _fields(obj):
+    if isinstance(obj, dict):
+        return [k for k in obj if isinstance(k, str)]
+    if isinstance(obj, (tuple, list)) and not hasattr(obj, "_fields"):
+        return [str(i) for i in range(len(obj))]
     return [f.name for f in dataclasses.fields(obj)] if dataclasses.is_dataclass(obj) else []
 
 
+def _child(obj, name: str):
+    """The field ``name`` of a configuration object, the entry ``name`` of a dict, or the
+    entry at index ``name`` of a tuple or list."""
+    if isinstance(obj, dict):
+        return obj[name]
+    return obj[int(name)] if isinstance(obj, (tuple, list)) else getattr(obj, name)
+
+
+def _replaced(obj, name: str, new):
+    """``obj`` with its field, dict entry or tuple entry ``name`` replaced by ``new``."""
+    if isinstance(obj, dict):
+        return {**obj, name: new}
+    if isinstance(obj, (tuple, list)):
+        return type(obj)(new if i == int(name) else v for i, v in enumerate(obj))
+    return dataclasses.replace(obj, **{name: new})
+
+
 def get_path(loop, path: str):
-    """The value at attribute ``path`` of ``loop``; ValueError naming the missing part."""
+    """The value at attribute ``path`` of ``loop``: fields of configuration objects, string
+    keys of dicts inside them (``"controller.params.gains.kp"`` for a
+    ``Function(params={"gains": {"kp": ...}})``) and indices of tuples
+    (``"actuator.limits.1.rising"``); ValueError naming the missing part."""
     obj = loop
     parts = _split(path)
     for i, name in enumerate(parts):
-        if not dataclasses.is_dataclass(obj) or name not in _fields(obj):
+        if name not in _fields(obj):
             where = ".".join(parts[:i]) or type(loop).__name__
             avail = ", ".join(_fields(obj)) or "(none: not a configuration object)"
             raise ValueError(f"{path!r}: {where} ({type(obj).__name__}) has no field {name!r}; fields: {avail}")
-        obj = getattr(obj, name)
+        obj = _child(obj, name)
     return obj
 
 
 def is_static(loop, path: str) -> bool:
-    """True when the field at ``path`` is static (it shapes arrays or picks code)."""
+    """True when the field at ``path`` is static (it shapes arrays or picks code); a dict's
+    entry is a leaf, never static."""
     parts = _split(path)
     parent = get_path(loop, ".".join(parts[:-1])) if len(parts) > 1 else loop
     get_path(loop, path)
+    if not dataclasses.is_dataclass(parent):     # a dict's or a tuple's entry
+        return False
     f = next(f for f in dataclasses.fields(parent) if f.name == parts[-1])
     return bool(f.metadata.get("static", False))
 
 
 def set_paths(loop, values: dict):
     """``loop`` with the values at the given attribute paths replaced (nested
-    ``dataclasses.replace``; works on traced values)."""
+    ``dataclasses.replace``, a dict or tuple copied with the entry replaced; works on
+    traced values)."""
     for path, v in values.items():
         parts = _split(path)
+        get_path(loop, path)                    # names what is missing (a dict would take a new key)
 
         def rep(obj, ps):
-            if len(ps) == 1:
-                return dataclasses.replace(obj, **{ps[0]: v})
-            return dataclasses.replace(obj, **{ps[0]: rep(getattr(obj, ps[0]), ps[1:])})
+            return _replaced(obj, ps[0], v if len(ps) == 1 else rep(_child(obj, ps[0]), ps[1:]))
         loop = rep(loop, parts)
     return loop
 
@@ -278,7 +308,9 @@ def point_objective(loop, objective: Callable, run: Callable, names: dict | None
 
 def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     """The numeric value at ``path``; ValueError when it names a part (a configuration
-    object: name one of its fields) or a field that holds None or no number."""
+    object: name one of its fields), a field that holds None or no number, or one that
+    holds an integer array or a bool (a count or a switch, e.g. ``Petc.max_silence``:
+    searched, not tuned by gradient; a Python int is taken as a number)."""
     v = get_path(loop, path)
     if dataclasses.is_dataclass(v):
         raise ValueError(f"{fn_name}: {path!r} is a part ({type(v).__name__}), not a leaf: name one of its fields "
@@ -290,6 +322,12 @@ def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
     if a.dtype.kind not in "biuf" or a.size == 0:
         raise ValueError(f"{fn_name}: {path!r} must hold a number or a non-empty array of numbers to be tuned, "
                          f"got {type(v).__name__}")
+    if isinstance(v, bool) or (a.dtype.kind != "f" and not isinstance(v, int)):
+        # an integer array or a bool: the part stores a count or a switch (Petc.max_silence is
+        # int32); a Python int is a number a person wrote for a continuous field (Petc(delta=1))
+        raise ValueError(f"{fn_name}: {path!r} holds {a.dtype} values, a count or a switch (e.g. Petc.max_silence) "
+                         f"with no gradient: the tuner would simulate fractional values the part refuses; give its "
+                         f"candidate values in search={{{path!r}: [...]}}, or a float start if the leaf is continuous")
     return a
 
 
