@@ -19,7 +19,7 @@ import numpy as np
 
 from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, check_positive, checked_pytree
 
-__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end"]
+__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end", "at_channels"]
 
 # a step or ramp time on a sample instant is reached at that instant despite the rounding
 # of t * T: the comparison is made within this fraction of a period
@@ -338,3 +338,13 @@ def held_at_end(reference: AbstractReference, steps: int, T) -> jax.Array:
     if isinstance(reference, Recorded):
         return jnp.full((p,), np.shape(reference.values)[0] <= steps)
     return jnp.ones((p,), bool)
+
+
+def at_channels(reference: AbstractReference | None, t, T, channels: int) -> jax.Array:
+    """float[channels]: ``reference.at(t, T)`` broadcast to ``channels`` (a reference of 1 or
+    ``channels`` channels), or float32 zeros when ``reference`` is None: what a controller of
+    ``channels`` loops tracks at fast instant ``t``."""
+    if reference is None:
+        return jnp.zeros((channels,), jnp.float32)
+    return jnp.broadcast_to(reference.at(t, T), (channels,))
+

@@ -39,7 +39,7 @@ from jaxnc._validate import check_components, check_given, check_instance, check
 from jaxnc.loop.base import AbstractController, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.references import AbstractReference
+from jaxnc.references import AbstractReference, at_channels
 
 __all__ = ["LinearController"]
 
@@ -206,10 +206,7 @@ class LinearController(AbstractController):
         check_components("LinearController.index", self.index, xhat.shape[-1], "the estimator's estimate")
         dt = self.dtype
         y = xhat[jnp.asarray(self.index)].astype(dt)
-        if self.reference is None:
-            r = jnp.zeros((self.channels,), dt)
-        else:
-            r = jnp.broadcast_to(self.reference.at(k * ctx.N, ctx.T), (self.channels,)).astype(dt)
+        r = at_channels(self.reference, k * ctx.N, ctx.T, self.channels).astype(dt)
         A, B, C = (jnp.asarray(getattr(self, n), dt) for n in ("A", "B", "C"))
         e = r - y
         v = C @ state

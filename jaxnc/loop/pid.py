@@ -54,7 +54,7 @@ from jaxnc._validate import check_bool, check_components, check_given, check_ins
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.references import AbstractReference
+from jaxnc.references import AbstractReference, at_channels
 
 __all__ = ["PID", "PIDState", "pid_update"]
 
@@ -183,7 +183,7 @@ class PID(AbstractController):
         h = jnp.asarray(ctx.N * ctx.T, dt)
         if self.hold:
             h = h * jnp.where(state.started > 0.5, k - state.last, 1).astype(dt)
-        new, u = pid_update(self, state, y, _reference(self, k, ctx).astype(dt), h)
+        new, u = pid_update(self, state, y, at_channels(self.reference, k * ctx.N, ctx.T, self.channels).astype(dt), h)
         new = new._replace(last=jnp.asarray(k, jnp.int32))
         if self.hold:
             w = jnp.asarray(fresh, jnp.float32)
@@ -191,13 +191,6 @@ class PID(AbstractController):
         else:
             send = jnp.ones((), jnp.float32)
         return new, Packet(new.u[None, :], (k * ctx.N).astype(jnp.int32)), send
-
-
-def _reference(pid: PID, k, ctx):
-    if pid.reference is None:
-        return jnp.zeros((pid.channels,), jnp.float32)
-    r = pid.reference.at(k * ctx.N, ctx.T)
-    return jnp.broadcast_to(r, (pid.channels,))
 
 
 def pid_update(pid: PID, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]:
