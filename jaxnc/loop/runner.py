@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from typing import Any, ClassVar, NamedTuple
 
+import contextlib
+import contextvars
 import dataclasses
 import hashlib
 import warnings
@@ -401,13 +403,19 @@ class Loop:
             if v is None or v.dtype == object:
                 return type(a), id(a)       # a plain Python object: checked once per object
             return v.shape, str(v.dtype), hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()
-        key = (treedef, tuple(value(a) for a in leaves))
+        values = tuple(value(a) for a in leaves)
+        key = (treedef, values)
         if key in _FITTED:
+            return
+        shapes = (treedef, tuple(v[:2] for v in values))      # (type, id) for an object: kept whole
+        if _BY_SHAPE.get() and shapes in _FITTED_SHAPES:
             return
         _check_fit(self)
         if len(_FITTED) > 256:
             _FITTED.clear()
+            _FITTED_SHAPES.clear()
         _FITTED.add(key)
+        _FITTED_SHAPES.add(shapes)
 
     @property
     def ctx(self) -> Context:
@@ -625,6 +633,25 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
 
 
 _FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
+_FITTED_SHAPES: set = set()     # the same loops keyed on (treedef, leaf shapes and dtypes) alone
+_BY_SHAPE = contextvars.ContextVar("jaxnc_fit_by_shape", default=False)
+
+
+@contextlib.contextmanager
+def fit_checked_by_shape():
+    """A block in which a :class:`Loop` built with new numbers in the leaves of a loop that
+    already passed the fit check (:func:`_check_fit`: the same tree structure, leaf shapes
+    and dtypes) is not checked again. The parts' own checks (their ``__post_init__``) still
+    run; what is skipped is re-tracing every role with the new numbers, which a loop rebuilt
+    from traced leaves inside ``jit`` skips too. For a tuner's host-side rebuilds of one
+    loop at each of its iterates (:mod:`jaxnc.tune.loop_tune`): values a part's ``init(ctx)``
+    would check against the loop (a ``Luenberger`` gain, a ``SteadyStateKF``'s
+    detectability) are checked at the loop the user built, not at every iterate."""
+    token = _BY_SHAPE.set(True)
+    try:
+        yield
+    finally:
+        _BY_SHAPE.reset(token)
 
 
 def _one_line(e: BaseException) -> str:
