@@ -1008,6 +1008,9 @@ LOOP_FIT = [
      "Loop.controller's packet is float32[1, 1, 1]; its actions must be float[horizon, input_dim] = float[1, 1]"),
     (lambda: _fit_loop(actuator=_FitRingActuator()), "Loop.actuator's receive returns a state of float32[2, 1]"),
     (lambda: _fit_loop(monitor=_FitFloatFlags()), "Loop.monitor's step must return scalar bool flags"),
+    # PathMonitor's position defaulted to xy = 0 on any plant: a DiffDrive's wheel speeds were read as its position
+    (lambda: _fit_loop(monitor=nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01))),
+     "Loop.monitor.xy must be given: PathMonitor watches a planar position and the plant LTI declares none"),
     (lambda: _fit_loop(controller=_FitSecondsStamp()), "Loop.controller's packet stamp is float32[]; it must be an int32"),
     (lambda: _fit_loop(controller=_FitSecondsStamp(vector=True)), "Loop.controller's send decision is float32[1]"),
     # a round trip of 1 + 1 whole periods declared a lower bound of 1: the EKF(buffer=1) never corrected
