@@ -5,7 +5,8 @@ values are leaves (differentiable, vmappable); :meth:`AbstractReference.at` give
 r at the fast instant ``t`` (an integer, time t T) as ``float[p]``, and :func:`evaluate`
 gives the whole run ``float[K, p]``. A scalar amplitude is a one-channel reference
 (p = 1); vector fields of one reference broadcast to a common p at construction.
-Python numbers and lists become float32 arrays; arrays keep their dtype.
+Python numbers and lists become float32 arrays; numpy arrays and scalars keep their float
+dtype (a reference given float64 numbers under ``jax_enable_x64`` is float64).
 """
 from __future__ import annotations
 
@@ -27,11 +28,14 @@ _TIME_TOL = 1e-4
 
 
 def _leaf(cls, name, v, *, ndim_max=1, scalar_ok=True):
-    """``v`` as an array leaf: Python numbers and lists to float32, arrays as they are;
-    at least 1-d when ``scalar_ok`` (a scalar is one channel); finite when concrete."""
+    """``v`` as an array leaf: Python numbers and lists to float32, numpy arrays and scalars
+    in their float dtype (a float64 scalar stays float64), other dtypes to float32; at least
+    1-d when ``scalar_ok`` (a scalar is one channel); finite when concrete."""
     check_given(f"{cls}.{name}", v)
     check_finite(f"{cls}.{name}", v)
-    if isinstance(v, (bool, int, float, np.number, list, tuple)):
+    if isinstance(v, np.generic):           # before float: np.float64 is a Python float too
+        v = np.asarray(v)
+    elif isinstance(v, (bool, int, float, list, tuple)):
         v = np.asarray(v, np.float32)
     if isinstance(v, np.ndarray):
         if v.ndim == 0 and scalar_ok:
