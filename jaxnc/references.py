@@ -20,7 +20,8 @@ import numpy as np
 
 from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, check_positive, checked_pytree
 
-__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end", "at_channels"]
+__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end", "at_channels",
+           "check_channels"]
 
 # a step or ramp time on a sample instant is reached at that instant despite the rounding
 # of t * T: the comparison is made within this fraction of a period
@@ -342,6 +343,18 @@ def held_at_end(reference: AbstractReference, steps: int, T) -> jax.Array:
     if isinstance(reference, Recorded):
         return jnp.full((p,), np.shape(reference.values)[0] <= steps)
     return jnp.ones((p,), bool)
+
+
+def check_channels(owner: str, reference, channels: int) -> None:
+    """Refuse a ``reference`` that a part of ``channels`` loops (``len(index)``) cannot track:
+    it must have 1 channel (shared by every loop) or ``channels``; None, or a reference that
+    is not an :class:`AbstractReference`, passes (checked elsewhere).
+
+    Raises:
+      ValueError: "``owner``.reference must have 1 or c channels (len(index) = c), got p"."""
+    if isinstance(reference, AbstractReference) and reference.dim not in (1, channels):
+        want = "1 channel" if channels == 1 else f"1 or {channels} channels"
+        raise ValueError(f"{owner}.reference must have {want} (len(index) = {channels}), got {reference.dim}")
 
 
 def at_channels(reference: AbstractReference | None, t, T, channels: int) -> jax.Array:

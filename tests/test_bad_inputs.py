@@ -397,6 +397,13 @@ PYTHON_API = [
     (lambda: _numre(Bw=np.ones(3)), "Numre.Bw must be float[2] or float[2, k] (A is 2x2), got shape (3,)"),
     (lambda: _numre(cov0=np.eye(3)), "Numre.cov0 must be 2x2 (a covariance), got shape (3, 3)"),
     (lambda: _numre(mean0=[0.0, 0.0, 1.0]), "Numre.mean0 must have 2 entries (A is 2x2), got shape (3,)"),
+    # a reference a part of c loops cannot track (one check for the three parts; LinearController said "1 or 1 channels")
+    (lambda: nc.PID(Kp=1.0, index=(0, 1), reference=nc_refs.Step([1.0, 2.0, 3.0])),
+     "PID.reference must have 1 or 2 channels (len(index) = 2), got 3"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], reference=nc_refs.Step([1.0, 2.0])),
+     "LinearController.reference must have 1 channel (len(index) = 1), got 2"),
+    (lambda: nc.Tracking(nc_refs.Step([1.0, 2.0]), index=(0, 1, 2)),
+     "Tracking.reference must have 1 or 3 channels (len(index) = 3), got 2"),
     # LinearController (a compensator in state-space form): sizes that do not fit, limits, periods
     (lambda: nc.LinearController(A=[[1.0, 0.0]], B=[[1.0]], C=[[1.0]]),
      "LinearController.A must be a square matrix (n x n, n >= 1), got shape (1, 2)"),
