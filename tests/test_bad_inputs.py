@@ -1011,6 +1011,9 @@ LOOP_FIT = [
      "Loop.downlink.delay (_FitFloatDelay).sample(key, n, T) draws (float32[100], float32[100])"),
     (lambda: _fit_loop(uplink=nc.Link(delay=_FitSecondsBounds())),
      "_FitSecondsBounds.bounds(T) must return (lo, hi), the shortest and longest delay in whole fast periods"),
+    # the loop's draws outside a Loop: a reliable first packet took max(int(lo or 0), 0) of such bounds silently
+    (lambda: nc.draw_link(nc.Link(delay=_FitSecondsBounds(), reliable_first=True), jax.random.PRNGKey(0), 3, 0.1),
+     "_FitSecondsBounds.bounds(T) must return (lo, hi), the shortest and longest delay in whole fast periods"),
     (lambda: _fit_loop(controller=nc.Function(np.array([[1.0, 0.5]], np.float32), _fit_row_law)),
      "Loop.controller's packet is float32[1, 1, 1]; its actions must be float[horizon, input_dim] = float[1, 1]"),
     (lambda: _fit_loop(actuator=_FitRingActuator()), "Loop.actuator's receive returns a state of float32[2, 1]"),

@@ -455,12 +455,9 @@ class AbstractMonitor(abc.ABC):
         vector x float[n] (``plant.state_vector``) reached with the action u float[m]."""
 
 
-class AbstractLoss(abc.ABC):
-    """A packet-loss model of a :class:`~jaxnc.loop.links.Link` (drawn before the run)."""
-
-    @abc.abstractmethod
-    def sample(self, key, n: int):
-        """bool[n]: whether the packet of each of ``n`` slow instants is lost (n static)."""
+class _LinkModel(abc.ABC):
+    """What the two models a :class:`~jaxnc.loop.links.Link` draws before the run, its loss
+    and its delay, share: :meth:`packets`."""
 
     def packets(self):
         """The most packets the model can draw (a recorded trace's length; a
@@ -469,7 +466,15 @@ class AbstractLoss(abc.ABC):
         return None
 
 
-class AbstractDelay(abc.ABC):
+class AbstractLoss(_LinkModel):
+    """A packet-loss model of a :class:`~jaxnc.loop.links.Link` (drawn before the run)."""
+
+    @abc.abstractmethod
+    def sample(self, key, n: int):
+        """bool[n]: whether the packet of each of ``n`` slow instants is lost (n static)."""
+
+
+class AbstractDelay(_LinkModel):
     """A delay model of a :class:`~jaxnc.loop.links.Link` (drawn before the run).
 
     ``in_steps`` (declared): the model draws whole fast periods (the link then compares
@@ -487,9 +492,3 @@ class AbstractDelay(abc.ABC):
         0 <= lo <= hi; a Loop refuses others) when concrete and known (hi None: unbounded or
         unknown). Default (0, None)."""
         return 0, None
-
-    def packets(self):
-        """The most packets the model can draw (a recorded trace's length; a
-        :class:`~jaxnc.loop.Loop` refuses a run with more slow instants when it is built), or
-        None: any number (the default)."""
-        return None
