@@ -5,7 +5,8 @@ values are leaves (differentiable, vmappable); :meth:`AbstractReference.at` give
 r at the fast instant ``t`` (an integer, time t T) as ``float[p]``, and :func:`evaluate`
 gives the whole run ``float[K, p]``. A scalar amplitude is a one-channel reference
 (p = 1); vector fields of one reference broadcast to a common p at construction.
-Python numbers and lists become float32 arrays; arrays keep their dtype.
+Python numbers and lists become float32 arrays; numpy arrays and scalars keep their float
+dtype (a reference given float64 numbers under ``jax_enable_x64`` is float64).
 """
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ import numpy as np
 
 from jaxnc._validate import check_finite, check_given, check_int, check_nonneg, check_positive, checked_pytree
 
-__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end", "at_channels"]
+__all__ = ["AbstractReference", "Step", "Ramp", "Sine", "PiecewiseLinear", "Recorded", "evaluate", "held_at_end", "at_channels",
+           "check_channels"]
 
 # a step or ramp time on a sample instant is reached at that instant despite the rounding
 # of t * T: the comparison is made within this fraction of a period
@@ -27,11 +29,14 @@ _TIME_TOL = 1e-4
 
 
 def _leaf(cls, name, v, *, ndim_max=1, scalar_ok=True):
-    """``v`` as an array leaf: Python numbers and lists to float32, arrays as they are;
-    at least 1-d when ``scalar_ok`` (a scalar is one channel); finite when concrete."""
+    """``v`` as an array leaf: Python numbers and lists to float32, numpy arrays and scalars
+    in their float dtype (a float64 scalar stays float64), other dtypes to float32; at least
+    1-d when ``scalar_ok`` (a scalar is one channel); finite when concrete."""
     check_given(f"{cls}.{name}", v)
     check_finite(f"{cls}.{name}", v)
-    if isinstance(v, (bool, int, float, np.number, list, tuple)):
+    if isinstance(v, np.generic):           # before float: np.float64 is a Python float too
+        v = np.asarray(v)
+    elif isinstance(v, (bool, int, float, list, tuple)):
         v = np.asarray(v, np.float32)
     if isinstance(v, np.ndarray):
         if v.ndim == 0 and scalar_ok:
@@ -338,6 +343,18 @@ def held_at_end(reference: AbstractReference, steps: int, T) -> jax.Array:
     if isinstance(reference, Recorded):
         return jnp.full((p,), np.shape(reference.values)[0] <= steps)
     return jnp.ones((p,), bool)
+
+
+def check_channels(owner: str, reference, channels: int) -> None:
+    """Refuse a ``reference`` that a part of ``channels`` loops (``len(index)``) cannot track:
+    it must have 1 channel (shared by every loop) or ``channels``; None, or a reference that
+    is not an :class:`AbstractReference`, passes (checked elsewhere).
+
+    Raises:
+      ValueError: "``owner``.reference must have 1 or c channels (len(index) = c), got p"."""
+    if isinstance(reference, AbstractReference) and reference.dim not in (1, channels):
+        want = "1 channel" if channels == 1 else f"1 or {channels} channels"
+        raise ValueError(f"{owner}.reference must have {want} (len(index) = {channels}), got {reference.dim}")
 
 
 def at_channels(reference: AbstractReference | None, t, T, channels: int) -> jax.Array:

@@ -397,6 +397,13 @@ PYTHON_API = [
     (lambda: _numre(Bw=np.ones(3)), "Numre.Bw must be float[2] or float[2, k] (A is 2x2), got shape (3,)"),
     (lambda: _numre(cov0=np.eye(3)), "Numre.cov0 must be 2x2 (a covariance), got shape (3, 3)"),
     (lambda: _numre(mean0=[0.0, 0.0, 1.0]), "Numre.mean0 must have 2 entries (A is 2x2), got shape (3,)"),
+    # a reference a part of c loops cannot track (one check for the three parts; LinearController said "1 or 1 channels")
+    (lambda: nc.PID(Kp=1.0, index=(0, 1), reference=nc_refs.Step([1.0, 2.0, 3.0])),
+     "PID.reference must have 1 or 2 channels (len(index) = 2), got 3"),
+    (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], reference=nc_refs.Step([1.0, 2.0])),
+     "LinearController.reference must have 1 channel (len(index) = 1), got 2"),
+    (lambda: nc.Tracking(nc_refs.Step([1.0, 2.0]), index=(0, 1, 2)),
+     "Tracking.reference must have 1 or 3 channels (len(index) = 3), got 2"),
     # LinearController (a compensator in state-space form): sizes that do not fit, limits, periods
     (lambda: nc.LinearController(A=[[1.0, 0.0]], B=[[1.0]], C=[[1.0]]),
      "LinearController.A must be a square matrix (n x n, n >= 1), got shape (1, 2)"),
@@ -1004,10 +1011,16 @@ LOOP_FIT = [
      "Loop.downlink.delay (_FitFloatDelay).sample(key, n, T) draws (float32[100], float32[100])"),
     (lambda: _fit_loop(uplink=nc.Link(delay=_FitSecondsBounds())),
      "_FitSecondsBounds.bounds(T) must return (lo, hi), the shortest and longest delay in whole fast periods"),
+    # the loop's draws outside a Loop: a reliable first packet took max(int(lo or 0), 0) of such bounds silently
+    (lambda: nc.draw_link(nc.Link(delay=_FitSecondsBounds(), reliable_first=True), jax.random.PRNGKey(0), 3, 0.1),
+     "_FitSecondsBounds.bounds(T) must return (lo, hi), the shortest and longest delay in whole fast periods"),
     (lambda: _fit_loop(controller=nc.Function(np.array([[1.0, 0.5]], np.float32), _fit_row_law)),
      "Loop.controller's packet is float32[1, 1, 1]; its actions must be float[horizon, input_dim] = float[1, 1]"),
     (lambda: _fit_loop(actuator=_FitRingActuator()), "Loop.actuator's receive returns a state of float32[2, 1]"),
     (lambda: _fit_loop(monitor=_FitFloatFlags()), "Loop.monitor's step must return scalar bool flags"),
+    # PathMonitor's position defaulted to xy = 0 on any plant: a DiffDrive's wheel speeds were read as its position
+    (lambda: _fit_loop(monitor=nc.PathMonitor(from_waypoints([[0.0, 0.0], [1.0, 0.0]], "line", ds=0.01))),
+     "Loop.monitor.xy must be given: PathMonitor watches a planar position and the plant LTI declares none"),
     (lambda: _fit_loop(controller=_FitSecondsStamp()), "Loop.controller's packet stamp is float32[]; it must be an int32"),
     (lambda: _fit_loop(controller=_FitSecondsStamp(vector=True)), "Loop.controller's send decision is float32[1]"),
     # a round trip of 1 + 1 whole periods declared a lower bound of 1: the EKF(buffer=1) never corrected

@@ -51,6 +51,27 @@ def test_rate_limit_follows_the_hand_computed_sequence():
     np.testing.assert_allclose(y, [0.7, 0.9, 0.9, 0.9, 0.5, 0.1, -0.3], atol=1e-6)
 
 
+def test_rate_limit_keeps_a_float64_signal_float64_under_x64():
+    """init(dim, T, dtype) builds the state in the signal's dtype: under jax_enable_x64 a float64
+    command is limited in float64 (state and output), equal to the float64 numpy recursion to
+    1e-15, and the scan keeps its carry's type. The state used to be float32 always, so the first
+    apply promoted it to float64 and the scan refused the carry (or, outside a scan, rounded
+    y_{-1} and the steps to float32)."""
+    lim = nc.RateLimit(rising=2.0, falling=4.0, initial=np.float64(1.0 / 3.0))
+    cmd = np.asarray([[3.0], [3.0], [0.9], [0.9], [-1.0], [-1.0], [-1.0]]) + 1.0 / 7.0
+    want, y = [], 1.0 / 3.0
+    for s in cmd[:, 0]:
+        y = y + min(max(s - y, -4.0 * 0.1), 2.0 * 0.1)
+        want.append(y)
+    with jax.enable_x64(True):
+        def run(cmd):
+            return jax.lax.scan(lambda st, s: lim.apply(st, s), lim.init(1, 0.1, jnp.float64), cmd)
+        state, out = jax.jit(run)(jnp.asarray(cmd, jnp.float64))
+        assert out.dtype == jnp.float64 and all(a.dtype == jnp.float64 for a in state)
+        np.testing.assert_allclose(np.asarray(out)[:, 0], want, rtol=1e-15, atol=0)
+        assert all(a.dtype == jnp.float32 for a in lim.init(1, 0.1))      # the default: a loop's float32 actions
+
+
 def _loop(actuator, plant=None, u=5.0, steps=8):
     plant = plant or nc.LTI(A=[[1.0]], B=[[1.0]], C=[[1.0]], x0=[0.0])
     return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),

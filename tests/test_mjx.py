@@ -103,6 +103,7 @@ def test_closed_loop_runs_unchanged_on_mjx_plant():
     """The schemes run unchanged with the MJX plant as the truth: same key, same run;
     finite states; a short DRHE run starts following the path."""
     loop = mec.mecanum_loop("DRHE", 5, 0.3, truth=mjx_mecanum(), horizon_s=4.0, full=True)
+    assert loop.monitor.xy == 3           # the path monitor reads (X, Y), the MJX plant's declared position_index
     sim = jax.jit(jax.vmap(nc.simulate, in_axes=(None, 0)))
     keys = jax.random.split(jax.random.PRNGKey(3), 2)
     a, b = sim(loop, keys), sim(loop, keys)

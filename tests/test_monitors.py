@@ -25,7 +25,7 @@ def _watch(monitor, xs):
 def test_leaving_the_tube_fails_at_the_first_state_beyond_max_dev():
     """p_t = (0.05 t, 0.12 t): the distance to y = 0 is 0.12 t, beyond max_dev = 0.5 from t = 5 on."""
     t = np.arange(10)
-    failed, done, dist = _watch(nc.PathMonitor(LINE, max_dev=0.5), np.stack([0.05 * t, 0.12 * t], 1))
+    failed, done, dist = _watch(nc.PathMonitor(LINE, max_dev=0.5, xy=0), np.stack([0.05 * t, 0.12 * t], 1))
     np.testing.assert_allclose(dist, 0.12 * t, atol=1e-5)
     np.testing.assert_array_equal(failed, t >= 5)
     assert not np.any(done)
@@ -35,7 +35,7 @@ def test_completion_at_the_end_and_no_tube_afterwards():
     """A plant on the path reaches its end (10, 0) at t = 10 (done from then on; not before,
     though (9, 0) is in the last tenth, 1 m from the end); leaving sideways afterwards is no failure."""
     xs = np.concatenate([np.stack([np.arange(11.0), np.zeros(11)], 1), [[10.0, 3.0]]])
-    failed, done, _ = _watch(nc.PathMonitor(LINE, max_dev=0.5, end_tol=0.1, window=32), xs)
+    failed, done, _ = _watch(nc.PathMonitor(LINE, max_dev=0.5, end_tol=0.1, window=32, xy=0), xs)
     np.testing.assert_array_equal(done, np.arange(12) >= 10)
     assert not np.any(failed)
 
@@ -46,16 +46,16 @@ def test_every_checks_tube_and_end_after_each_multiple_and_holds_between():
     0.5 m tube at t = 5 (0.6 m) and is first seen there; the end (10, 0) is reached at t = 10,
     first checked at t = 11. A non-finite state fails at once, between checks too."""
     t = np.arange(12)
-    failed, _, dist = _watch(nc.PathMonitor(LINE, max_dev=0.5, every=3), np.stack([0.5 * t, 0.12 * t], 1))
+    failed, _, dist = _watch(nc.PathMonitor(LINE, max_dev=0.5, every=3, xy=0), np.stack([0.5 * t, 0.12 * t], 1))
     checked = np.maximum((t + 1) // 3 * 3 - 1, -1)                 # the last checked instant (-1: none yet)
     np.testing.assert_allclose(dist, np.where(checked >= 0, 0.12 * checked, 0.0), atol=1e-5)
     np.testing.assert_array_equal(failed, (checked >= 5) & ((t + 1) % 3 == 0))
     xs = np.concatenate([np.stack([np.arange(11.0), np.zeros(11)], 1), [[10.0, 0.0]]])
-    _, done, _ = _watch(nc.PathMonitor(LINE, end_tol=0.1, window=32, every=3), xs)
+    _, done, _ = _watch(nc.PathMonitor(LINE, end_tol=0.1, window=32, every=3, xy=0), xs)
     np.testing.assert_array_equal(done, t >= 11)
     xs = np.stack([0.1 * t, 0.0 * t], 1)
     xs[4, 0] = np.nan                                              # t = 4 is not a check
-    failed, _, _ = _watch(nc.PathMonitor(LINE, every=3), xs)
+    failed, _, _ = _watch(nc.PathMonitor(LINE, every=3, xy=0), xs)
     np.testing.assert_array_equal(failed, t == 4)
 
 
@@ -120,7 +120,7 @@ def test_a_path_of_two_points():
     seg = from_waypoints(np.array([[0.0, 0.0], [1.0, 0.0]]), "segment", ds=1.0)
     assert seg.M == 2
     t = np.arange(6)
-    failed, done, dist = _watch(nc.PathMonitor(seg, max_dev=0.5, end_tol=0.2), np.stack([0.25 * t, 0.1 + 0 * t], 1))
+    failed, done, dist = _watch(nc.PathMonitor(seg, max_dev=0.5, end_tol=0.2, xy=0), np.stack([0.25 * t, 0.1 + 0 * t], 1))
     np.testing.assert_allclose(dist, np.where(t <= 4, 0.1, np.hypot(0.25 * t - 1.0, 0.1)), atol=1e-6)
     np.testing.assert_array_equal(done, t >= 4)
     assert not np.any(failed)
@@ -227,3 +227,58 @@ def test_a_failed_runs_transmissions_and_rates_stop_at_the_failure():
     assert not bool(ok.failed) and int(nc.live_periods(ok.failed, ok.fail_step, 2, 15)) == 15
     assert float(ok.tx_ca) == 15.0 and float(nc.evaluate(loop(1e6), ok).rate_ca) == 1.0
     assert float(nc.evaluate(loop(1e6), ok).rate_sc) == pytest.approx(float(np.sum(ok.sent_sc)) / 15)
+
+
+def test_a_path_monitor_reads_the_position_its_plant_declares():
+    """A DiffDrive, state (w_r, w_l, x, y, psi), coasting from wheel speeds (10, 10) rad/s at
+    the origin along +x (no command): its position stays on the line y = 0. PathMonitor(line)
+    without ``xy`` reads (x, y) = state[2:4], the plant's declared position_index, the same
+    run bit for bit as xy=2 given. It used to default to xy = 0 and read the wheel speeds
+    (10, 10) as the position, 10 m off the line: failed after the first fast period (fail_step 1)."""
+    line = from_waypoints(np.array([[0.0, 0.0], [2.0, 0.0]]), "line2", ds=0.01)
+    plant = nc.DiffDrive(x0=(10.0, 10.0, 0.0, 0.0, 0.0), T=0.1, sub=10)
+
+    def loop(monitor):
+        return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                       controller=nc.StateFeedback(np.zeros((2, 5))), downlink=nc.Link(), actuator=nc.HoldLast(),
+                       monitor=monitor, N=10, steps=50, T=0.01, record=nc.Record(signals=("x",), monitor=nc.path_distance))
+
+    declared, given = loop(nc.PathMonitor(line, max_dev=0.5)), loop(nc.PathMonitor(line, max_dev=0.5, xy=2))
+    assert nc.DiffDrive.position_index == 2 and declared.monitor.xy == 2
+    sim = jax.jit(nc.simulate)
+    a, b = sim(declared, jax.random.PRNGKey(0)), sim(given, jax.random.PRNGKey(0))
+    x = np.asarray(a.x)
+    assert x[-1, 2] > 0.02 and np.abs(x[:, 3]).max() < 1e-9       # it moved along the line
+    assert (bool(a.failed), int(a.fail_step)) == (False, 50)
+    np.testing.assert_array_equal(np.asarray(a.parts["monitor"]), np.asarray(b.parts["monitor"]))
+    assert (int(a.fail_step), int(a.done_step)) == (int(b.fail_step), int(b.done_step))
+
+
+def test_the_declared_positions_are_the_vehicles_planar_positions():
+    """Each vehicle's position_index points at the (x, y) of its initial pose in the state
+    vector (DiffDrive: (w_r, w_l, x, y, psi); Mecanum: (Vx, Vy, W, X, Y, psi)); a wrapped
+    plant declares its inner plant's; a plant without a planar position declares None."""
+    from jaxnc.plants.mecanum import Mecanum
+
+    key = jax.random.PRNGKey(0)
+    for plant in (nc.DiffDrive(x0=(0.0, 0.0, 1.5, -0.5, 0.3)),
+                  Mecanum(x0=np.asarray([0.0, 0.0, 0.0, 1.5, -0.5, 0.3], np.float32)),
+                  nc.LimitedSensor(nc.DiffDrive(x0=(0.0, 0.0, 1.5, -0.5, 0.3)), nc.Saturation(-9.0, 9.0))):
+        i = plant.position_index
+        np.testing.assert_array_equal(np.asarray(plant.state_vector(plant.init(key)))[i:i + 2], [1.5, -0.5])
+    assert nc.LTI(A=[[1.0]], B=[[1.0]], C=[[1.0]]).position_index is None
+
+
+def test_a_loop_refuses_a_path_monitor_without_xy_on_a_plant_without_a_position():
+    """An LTI declares no planar position: PathMonitor(line) without xy is refused when the
+    Loop is built, naming xy; with xy given it is built; outside a Loop, init refuses xy None."""
+    A = np.array([[1.0, 0, 0.1, 0], [0, 1, 0, 0.1], [0, 0, 1, 0], [0, 0, 0, 1]])
+    plant = nc.LTI(A=A, B=np.zeros((4, 1)), C=np.eye(4), T=0.1)
+    loop = lambda **kw: nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                                controller=nc.StateFeedback(np.zeros((1, 4))), downlink=nc.Link(),
+                                actuator=nc.HoldLast(), monitor=nc.PathMonitor(LINE, **kw), T=0.1, steps=10)
+    with pytest.raises(ValueError, match="Loop.monitor.xy must be given: PathMonitor watches a planar position"):
+        loop()
+    assert loop(xy=0).monitor.xy == 0
+    with pytest.raises(ValueError, match="PathMonitor.xy must be given"):
+        nc.PathMonitor(LINE).init(CTX)

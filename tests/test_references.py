@@ -81,6 +81,22 @@ def test_recorded_holds_last():
     np.testing.assert_allclose(_run(pl, 30)[:, 0], np.minimum(2.0 * TIMES[:30], 2.0), rtol=1e-6)
 
 
+def test_numpy_float64_numbers_give_a_float64_reference_under_x64():
+    """Numpy float64 scalars (e.g. a setpoint computed with numpy) keep float64, as float64 arrays
+    do: under jax_enable_x64 r is float64 and equals the float64 closed form to 1e-15. They used to
+    become float32 (r = 0.1 + 1/3 rounded by 1e-8, and a float32 reference under x64)."""
+    a, r0, f = np.float64(1.0 / 3.0), np.float64(0.1), np.float64(0.7)
+    with jax.enable_x64(True):
+        refs = {"Step": (rf.Step(a, time=np.float64(0.5), initial=r0), r0 + a),
+                "Ramp": (rf.Ramp(a, time=np.float64(0.5), initial=r0), r0 + a * (0.75 - 0.5)),
+                "Sine": (rf.Sine(a, f, phase=r0, offset=r0), r0 + a * np.sin(2 * np.pi * f * 0.75 + r0))}
+        for name, (ref, want) in refs.items():
+            r = jax.jit(ref.at)(15, T)                                      # t T = 0.75 s
+            assert r.dtype == jnp.float64, name
+            np.testing.assert_allclose(np.asarray(r), [want], rtol=1e-15, atol=0, err_msg=name)
+        assert rf.Step(1.0).at(0, T).dtype == jnp.float32                    # Python numbers: float32
+
+
 def test_leaves_are_differentiable_and_vmappable():
     """d r / d amplitude of a sine is sin(.); vmap over a batch of steps' amplitudes."""
     ref = rf.Sine(amplitude=jnp.ones(1), frequency=jnp.full(1, 0.5))

@@ -26,7 +26,8 @@ period T):
    if delivered at once), over the period.
 
 Optional behaviour is declared, never discovered: by class attributes (``inputs``,
-``horizon``, ``stamps_ahead``, ``period_steps``, ``keeps_copy``, ``in_steps``, ``freeze``). A controller that declares
+``horizon``, ``stamps_ahead``, ``period_steps``, ``keeps_copy``, ``in_steps``, ``freeze``,
+``position_index``, ``position_field``). A controller that declares
 ``keeps_copy`` keeps the sender's copy of what it sent in its own state and says, with
 ``sent(state)``, which actions that copy applies over the period (seed 000's prediction
 chains); otherwise the runner keeps that copy for it (the actuator role fed the
@@ -158,6 +159,13 @@ class AbstractPlant(abc.ABC):
     #: fast period T equals it; e.g. a sampled LTI's T); None: the plant takes the loop's
     step_period = None
 
+    #: int or None (declared): the index in the state vector (:meth:`state_vector`) of the
+    #: first of the two entries that are the plant's planar position (x, y), in m, e.g. a
+    #: vehicle's (``DiffDrive``: 2, ``Mecanum`` and ``MjxMecanum``: 3); None: the plant
+    #: declares none. A monitor that watches a position (``AbstractMonitor.position_field``,
+    #: ``PathMonitor``) reads it there unless told otherwise
+    position_index: ClassVar[int | None] = None
+
     #: int: the process noise enters every ``noise_period`` fast periods (at fast instants
     #: t = 0, P, 2P, ...; zero in between), e.g. a disturbance once per actuation period of a
     #: plant simulated on a finer grid (static; a field or property may override it)
@@ -222,7 +230,7 @@ class AbstractWrappedPlant(AbstractPlant):
     ``AbstractWrappedSolver`` wraps a solver: everything the wrapper does not override is
     the inner plant's, its methods (``dynamics``, ``measure``, ``init``, ``state_vector``)
     and its declared data (dimensions, ``w_std``, ``v_std``, ``x0``, ``x0_std``,
-    ``step_period``, ``noise_period``). A wrapper overrides only what it changes, e.g.
+    ``step_period``, ``noise_period``, ``position_index``). A wrapper overrides only what it changes, e.g.
     :class:`jaxnc.loop.LimitedSensor` the measurement."""
 
     plant: AbstractPlant
@@ -237,6 +245,7 @@ class AbstractWrappedPlant(AbstractPlant):
     x0_std = property(lambda self: self.plant.x0_std)
     step_period = property(lambda self: self.plant.step_period)
     noise_period = property(lambda self: self.plant.noise_period)
+    position_index = property(lambda self: self.plant.position_index)
 
     def dynamics(self, x, u, w):
         """The inner plant's ``dynamics``."""
@@ -429,6 +438,13 @@ class AbstractMonitor(abc.ABC):
     field_shapes: ClassVar[dict] = {}
     freeze = True
 
+    #: str or None (declared): the name of the monitor's static field holding the index of
+    #: the plant's planar position in its state vector (``PathMonitor``: ``"xy"``). Where
+    #: that field is None, a Loop sets it, when it is built, to its plant's declared
+    #: ``AbstractPlant.position_index``, and refuses a plant that declares none. None: the
+    #: monitor reads no position.
+    position_field: ClassVar[str | None] = None
+
     @abc.abstractmethod
     def init(self, ctx):
         """State before the first fast period."""
@@ -439,12 +455,9 @@ class AbstractMonitor(abc.ABC):
         vector x float[n] (``plant.state_vector``) reached with the action u float[m]."""
 
 
-class AbstractLoss(abc.ABC):
-    """A packet-loss model of a :class:`~jaxnc.loop.links.Link` (drawn before the run)."""
-
-    @abc.abstractmethod
-    def sample(self, key, n: int):
-        """bool[n]: whether the packet of each of ``n`` slow instants is lost (n static)."""
+class _LinkModel(abc.ABC):
+    """What the two models a :class:`~jaxnc.loop.links.Link` draws before the run, its loss
+    and its delay, share: :meth:`packets`."""
 
     def packets(self):
         """The most packets the model can draw (a recorded trace's length; a
@@ -453,7 +466,15 @@ class AbstractLoss(abc.ABC):
         return None
 
 
-class AbstractDelay(abc.ABC):
+class AbstractLoss(_LinkModel):
+    """A packet-loss model of a :class:`~jaxnc.loop.links.Link` (drawn before the run)."""
+
+    @abc.abstractmethod
+    def sample(self, key, n: int):
+        """bool[n]: whether the packet of each of ``n`` slow instants is lost (n static)."""
+
+
+class AbstractDelay(_LinkModel):
     """A delay model of a :class:`~jaxnc.loop.links.Link` (drawn before the run).
 
     ``in_steps`` (declared): the model draws whole fast periods (the link then compares
@@ -471,9 +492,3 @@ class AbstractDelay(abc.ABC):
         0 <= lo <= hi; a Loop refuses others) when concrete and known (hi None: unbounded or
         unknown). Default (0, None)."""
         return 0, None
-
-    def packets(self):
-        """The most packets the model can draw (a recorded trace's length; a
-        :class:`~jaxnc.loop.Loop` refuses a run with more slow instants when it is built), or
-        None: any number (the default)."""
-        return None

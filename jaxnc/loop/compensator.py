@@ -39,7 +39,7 @@ from jaxnc._validate import check_components, check_given, check_instance, check
 from jaxnc.loop.base import AbstractController, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.references import AbstractReference, at_channels
+from jaxnc.references import AbstractReference, at_channels, check_channels
 
 __all__ = ["LinearController"]
 
@@ -130,9 +130,7 @@ class LinearController(AbstractController):
         if lo is not None and hi is not None and np.any(np.asarray(lo) > np.asarray(hi)):
             raise ValueError(f"LinearController.u_min must be <= u_max, got {np.asarray(lo).tolist()} and "
                              f"{np.asarray(hi).tolist()}")
-        if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, p):
-            raise ValueError(f"LinearController.reference must have 1 or {p} channels (len(index) = {p}), "
-                             f"got {self.reference.dim}")
+        check_channels("LinearController", self.reference, p)
         for name in _MATRICES:                    # numbers and lists become arrays (float32 unless float64 given)
             v = getattr(self, name)
             if v is not None and not isinstance(v, np.ndarray):

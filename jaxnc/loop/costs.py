@@ -48,7 +48,7 @@ from jaxnc._validate import check_components, check_instance, check_int, check_r
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
-from jaxnc.references import AbstractReference, Step, evaluate, held_at_end
+from jaxnc.references import AbstractReference, Step, check_channels, evaluate, held_at_end
 
 __all__ = ["Tracking", "TrackingMetrics", "run_tracking"]
 
@@ -97,10 +97,7 @@ class Tracking:
         check_instance("Tracking.reference", self.reference, AbstractReference,
                        "a jaxnc.references object (Step, Ramp, Sine, PiecewiseLinear, Recorded)")
         object.__setattr__(self, "index", index_tuple("Tracking.index", self.index))
-        if self.reference.dim not in (1, len(self.index)):
-            c = len(self.index)
-            want = "1 channel" if c == 1 else f"1 or {c} channels"
-            raise ValueError(f"Tracking.reference must have {want} (len(index) = {c}), got {self.reference.dim}")
+        check_channels("Tracking", self.reference, len(self.index))
         check_range("Tracking.settling_threshold", self.settling_threshold, 0.0, 1.0, low_open=True, high_open=True)
         check_int("Tracking.window", self.window, 1)
 

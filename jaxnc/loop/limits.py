@@ -7,7 +7,8 @@ same names):
 * :class:`DeadZone`: y = s - end for s > end, s - start for s < start, 0 in between;
 * :class:`Quantizer`: y = q round(s / q) (round half to even);
 * :class:`RateLimit`: y_t = y_{t-1} + clip(s_t - y_{t-1}, -falling T, rising T), with
-  y_{-1} = ``initial`` (rates per second, T the fast period): the only one with a state.
+  y_{-1} = ``initial`` (rates per second, T the fast period): the only one with a state,
+  built by ``init(dim, T, dtype)`` in the signal's dtype.
 
 Two parts apply limits in the given order: :class:`LimitedActuator` wraps an actuator
 (every fast instant, to the action it outputs: what the plant receives and
@@ -42,8 +43,9 @@ __all__ = ["AbstractLimit", "Saturation", "DeadZone", "Quantizer", "RateLimit", 
 class AbstractLimit(abc.ABC):
     """An element-wise nonlinearity on a signal float[d], with an optional state."""
 
-    def init(self, dim: int, T: float):
-        """State before the first sample, for a signal of ``dim`` entries at period T (s)."""
+    def init(self, dim: int, T: float, dtype=jnp.float32):
+        """State before the first sample, for a signal of ``dim`` entries of ``dtype`` (the
+        signal's float dtype; a loop's actions are float32) at period T (s)."""
         return ()
 
     @abc.abstractmethod
@@ -136,8 +138,11 @@ class RateLimit(AbstractLimit):
         check_finite("RateLimit.initial", self.initial)
         array_fields(self, "rising", "falling", "initial")
 
-    def init(self, dim, T):
-        full = lambda v: jnp.broadcast_to(jnp.asarray(v, jnp.float32), (dim,))
+    def init(self, dim, T, dtype=jnp.float32):
+        """The state in the signal's ``dtype`` (float64 under ``jax_enable_x64`` for a float64
+        signal), so that :meth:`apply` keeps it: y_{-1} = ``initial``, the steps rising T and
+        falling T."""
+        full = lambda v: jnp.broadcast_to(jnp.asarray(v, dtype), (dim,))
         falling = self.rising if self.falling is None else self.falling
         return RateLimitState(full(self.initial), full(self.rising) * T, full(falling) * T)
 

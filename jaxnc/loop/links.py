@@ -493,7 +493,11 @@ def steps_within(tau_max, T):
 
 def draw_link(link: Link, key, n: int, T) -> LinkDraws:
     """Before the run: the delays (fast periods of T seconds) of the packets of ``n`` slow
-    instants over ``link``; -1 when lost or later than ``tau_max`` (n static)."""
+    instants over ``link``; -1 when lost or later than ``tau_max`` (n static).
+
+    Raises:
+      ValueError: for a ``reliable_first`` link, the delay model's ``bounds(T)`` is not
+        (lo, hi) in whole fast periods (:func:`link_delay_bounds`)."""
     kl, kd = jax.random.split(key)
     lost = link.loss.sample(kl, n)
     steps, seconds = link.delay.sample(kd, n, T)
@@ -507,6 +511,6 @@ def draw_link(link: Link, key, n: int, T) -> LinkDraws:
         first = jnp.arange(n) == 0
         bad = bad & ~first
         # a model that marks the first packet lost itself (a trace's -1, the Wi-Fi channel's loss) has no
-        # delay for it: the handshake's packet takes the model's shortest delay
-        steps = jnp.where(first & (steps < 0), max(int(link.delay.bounds(T)[0] or 0), 0), steps)
+        # delay for it: the handshake's packet takes the model's shortest delay (an int >= 0, checked)
+        steps = jnp.where(first & (steps < 0), link_delay_bounds(link, T)[0], steps)
     return LinkDraws(jnp.where(bad, -1, steps).astype(jnp.int32))

@@ -6,7 +6,7 @@ the runner records the first instant of each (``Trajectory.fail_step``, ``done_s
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +53,10 @@ class PathMonitor(AbstractMonitor):
 
     Attributes:
       path: the :class:`~jaxnc.paths.Path`; max_dev, end_tol: m, > 0, single numbers.
-      xy: static, the index of the position's first coordinate in the state vector.
+      xy: static, the index of the position's first coordinate in the state vector; None
+        (the default): the plant's declared ``position_index`` (``DiffDrive``: 2,
+        ``Mecanum``: 3), set by the :class:`~jaxnc.loop.Loop` when it is built, which
+        refuses a plant that declares none (give ``xy`` then).
       window: static, >= 2, path points searched per check (a plant that moves farther
         between two checks costs repeated searches, see progress above).
       every: static, fast periods per check (>= 1; default 1, every fast period).
@@ -61,13 +64,16 @@ class PathMonitor(AbstractMonitor):
         at their last good values once failed (default False: both run on).
 
     Raises:
-      ValueError: naming the field, for a value outside its range.
+      ValueError: naming the field, for a value outside its range; from :meth:`init`, ``xy``
+        None (not set by a Loop) or beyond the state vector.
     """
+
+    position_field: ClassVar[str] = "xy"    # declared: a Loop fills xy=None from its plant's position_index
 
     path: Any
     max_dev: Any = 0.5
     end_tol: Any = 0.1
-    xy: int = static_field(0)
+    xy: int | None = static_field(None)
     window: int = static_field(32)
     every: int = static_field(1)
     freeze: bool = static_field(False)
@@ -78,12 +84,16 @@ class PathMonitor(AbstractMonitor):
         scalar_fields(self, "max_dev", "end_tol")
         check_range("PathMonitor.max_dev", self.max_dev, 0.0, None, low_open=True)
         check_range("PathMonitor.end_tol", self.end_tol, 0.0, None, low_open=True)
-        check_int("PathMonitor.xy", self.xy, 0, None)
+        if self.xy is not None:
+            check_int("PathMonitor.xy", self.xy, 0, None)
         check_int("PathMonitor.window", self.window, 2, None)
         check_int("PathMonitor.every", self.every, 1, None)
         check_bool("PathMonitor.freeze", self.freeze)
 
     def init(self, ctx) -> PathMonitorState:
+        if self.xy is None:
+            raise ValueError("PathMonitor.xy must be given (the index of the position's first coordinate in the "
+                             "state vector) outside a Loop, which sets it from its plant's position_index")
         if self.xy + 2 > ctx.state_dim:
             raise ValueError(f"PathMonitor.xy must be at most {ctx.state_dim - 2} for a state of "
                              f"{ctx.state_dim} entries, got {self.xy}")

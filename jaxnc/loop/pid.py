@@ -54,7 +54,7 @@ from jaxnc._validate import check_bool, check_components, check_given, check_ins
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
-from jaxnc.references import AbstractReference, at_channels
+from jaxnc.references import AbstractReference, at_channels, check_channels
 
 __all__ = ["PID", "PIDState", "pid_update"]
 
@@ -149,9 +149,7 @@ class PID(AbstractController):
             raise ValueError(f"PID.u_max must be in (-inf, inf] (inf: unbounded above), got {hi.tolist()}")
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
             raise ValueError(f"PID.u_min must be <= u_max, got {lo.tolist()} and {hi.tolist()}")
-        if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
-            want = "1 channel" if n == 1 else f"1 or {n} channels"
-            raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
+        check_channels("PID", self.reference, n)
 
     @property
     def channels(self) -> int:

@@ -209,7 +209,9 @@ class Loop:
       controller_trigger: optional trigger on the first action of each packet, evaluated
         only at the instants the controller would send (its state unchanged otherwise) (seed 003
         eq. 21-22); None: every computed packet is sent.
-      monitor: failure detection.
+      monitor: failure detection. A monitor that declares ``position_field`` (``PathMonitor``:
+        ``xy``) and leaves that field None is given the plant's declared ``position_index``
+        here (a plant that declares none is refused).
       cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`
         (a pytree whose numbers are leaves), a plain Python function (kept static: part of
         the compiled program, so define it at module level to reuse one program), or None.
@@ -279,6 +281,15 @@ class Loop:
                     and abs(float(model_T) - float(self.T)) > 1e-6 * float(self.T):      # float32 rounding
                 raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the {where}'s step period "
                                  f"({type(model).__name__}.step_period = {float(model_T):g} s)")
+        field = self.monitor.position_field      # declared (PathMonitor: "xy"); None: reads no position
+        if field is not None and getattr(self.monitor, field) is None:
+            at = self.plant.position_index       # declared by a plant with a planar position (DiffDrive, Mecanum)
+            if at is None:
+                raise ValueError(f"Loop.monitor.{field} must be given: {type(self.monitor).__name__} watches a planar "
+                                 f"position and the plant {type(self.plant).__name__} declares none (its "
+                                 f"position_index is None); give {type(self.monitor).__name__}({field}=i), i the index "
+                                 f"of the position's first coordinate in the plant's state vector")
+            object.__setattr__(self, "monitor", dataclasses.replace(self.monitor, **{field: int(at)}))
         if self.cost is not None and not ({"x", "u"} <= set(self.record.signals)):
             raise ValueError(f"Loop.cost needs the signals x and u recorded, but Loop.record keeps only "
                              f"{self.record.signals}: add them, or set cost=None")

@@ -82,6 +82,7 @@ class DiffDrive(AbstractLiftedPlant):
     input_dim = 2
     noise_dim = 2
     output_dim = 5
+    position_index = 2      # xi[2:4] = (x, y), m
 
     def __post_init__(self):
         for name in ("r", "b", "K", "tau", "u_max", "T"):

@@ -34,6 +34,7 @@ STATE_DIM = 6
 INPUT_DIM = 4
 PROCESS_NOISE_DIM = 7   # 4 wheel speeds + X, Y, psi slip
 OUTPUT_DIM = 9
+POSITION_INDEX = 3      # xi[3:5] = (X, Y), the planar position (AbstractPlant.position_index)
 
 DEFAULT_BEACONS = ((-2.5, -2.5), (2.5, -2.5), (2.5, 2.5), (-2.5, 2.5))
 
@@ -112,6 +113,7 @@ class Mecanum(AbstractPlant):
     input_dim = INPUT_DIM
     noise_dim = PROCESS_NOISE_DIM
     output_dim = OUTPUT_DIM
+    position_index = POSITION_INDEX
 
     @property
     def step_period(self) -> float:

@@ -59,7 +59,8 @@ import numpy as np
 
 from jaxnc._validate import check_int, check_nonneg, check_positive, check_range
 from jaxnc.loop.base import AbstractInitial, AbstractPlant, pytree_dataclass
-from jaxnc.plants.mecanum import INPUT_DIM, OUTPUT_DIM, PROCESS_NOISE_DIM, STATE_DIM, Mecanum, commanded, distances
+from jaxnc.plants.mecanum import (INPUT_DIM, OUTPUT_DIM, POSITION_INDEX, PROCESS_NOISE_DIM, STATE_DIM, Mecanum,
+                                   commanded, distances)
 
 try:   # optional extra
     import mujoco
@@ -170,6 +171,7 @@ class MjxMecanum(AbstractPlant):
     input_dim = INPUT_DIM
     noise_dim = PROCESS_NOISE_DIM
     output_dim = OUTPUT_DIM
+    position_index = POSITION_INDEX     # state_vector()[3:5] = (X, Y), the kinematic state's
 
     model: "mjx.Model"                 # motors (kv, tau_max, dead zone) live in the model
     kin: Mecanum

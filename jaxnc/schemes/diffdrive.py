@@ -123,7 +123,7 @@ def diffdrive_loop(scenario: str = "e", *, N: int = 2, h: int = 1, F: float | No
     n_slow = math.ceil(horizon_s / (N * T))
     return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=est, controller=ctrl,
                    downlink=down, actuator=act, N=ns * SUB,
-                   monitor=nc.PathMonitor(path, max_dev=MAX_DEV, end_tol=END_TOL, xy=2, window=ctrl.window, every=SUB),
+                   monitor=nc.PathMonitor(path, max_dev=MAX_DEV, end_tol=END_TOL, window=ctrl.window, every=SUB),
                    steps=n_slow * N * SUB, T=T / SUB, record=nc.Record(("x", "u"), controller=controller_trace))
 
 

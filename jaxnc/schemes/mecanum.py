@@ -177,7 +177,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
                                                                     nc.ShiftedExponential(0.0, 0.0)),
                          tau_max=N * T if tau_max is None else tau_max, reliable_first=True, capacity=2),
         actuator=actuator,
-        monitor=nc.PathMonitor(p, max_dev=MAX_DEV, end_tol=END_TOL, xy=3, window=TRACK_WINDOW),
+        monitor=nc.PathMonitor(p, max_dev=MAX_DEV, end_tol=END_TOL, window=TRACK_WINDOW),
         N=N, steps=steps, T=T, record=FULL_RECORD if full else METRICS_RECORD)
 
 
