@@ -162,6 +162,11 @@ PYTHON_API = [
     (lambda: nc.LTI(A=np.ones((2, 3)), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be square"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[1.0]), "LTI.x0 must have 2 entries"),
     (lambda: nc.LTI.from_continuous(np.eye(2), [[0.0], [1.0]], [[1.0, 0.0]], T=0.0), "T must be in (0, inf)"),
+    # a transposed B (m x n) was reshaped into n x m without an error: scrambled input columns
+    (lambda: nc.LTI.from_continuous(np.eye(3), np.ones((2, 3)), [[1.0, 0.0, 0.0]], T=0.1),
+     "LTI.from_continuous: B must have 3 rows"),
+    (lambda: nc.LTI.from_continuous(np.ones((2, 3)), [[0.0], [1.0]], [[1.0, 0.0]], T=0.1),
+     "LTI.from_continuous: A must be square"),
     (lambda: nc.Discrete(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=lambda x, u, w: x[:1], h=lambda x, v: x[:1] + v),
      "f(x, u, w) must return the state's shape"),
     (lambda: nc.Discrete(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=lambda x, u, w: x, h=lambda x, v: x + v[0]),

@@ -89,3 +89,22 @@ def test_from_control_bad_inputs():
         LTI(A=np.eye(2), B=np.ones((2, 1)), C=np.ones((1, 2)), state_names=("a",))
     with pytest.raises(ValueError, match="distinct strings"):
         LTI(A=np.eye(2), B=np.ones((2, 1)), C=np.ones((1, 2)), state_names=("a", "a"))
+
+
+def test_from_continuous_against_scipy_and_refuses_a_transposed_B():
+    """ZOH of a 3-state, 2-input model equals scipy's cont2discrete. A B given transposed
+    (2 x 3 for n = 3) was reshaped into 3 x 2 without an error: a plant with scrambled
+    input columns. It is refused now, naming B; a 1-D B of n entries is one input."""
+    import scipy.signal
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    B = np.array([[0.0, 1.0], [0.0, 0.0], [1.0, 0.5]])
+    C = np.array([[1.0, 0.0, 0.0]])
+    Ad, Bd, *_ = scipy.signal.cont2discrete((A, B, C, np.zeros((1, 2))), T, "zoh")
+    p = LTI.from_continuous(A, B, C, T)
+    np.testing.assert_allclose(p.A, Ad, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(p.B, Bd, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(LTI.from_continuous(A, B[:, 0], C, T).B[:, 0], Bd[:, 0], rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match=r"from_continuous: B must have 3 rows .* got shape \(2, 3\)"):
+        LTI.from_continuous(A, B.T, C, T)
+    with pytest.raises(ValueError, match=r"from_continuous: A must be square"):
+        LTI.from_continuous(A[:2], B, C, T)

@@ -271,11 +271,22 @@ class LTI(AbstractPlant):
 
     @classmethod
     def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":
-        """Exact ZOH discretisation of dx/dt = A x + B u: Ad = e^{A T}, Bd = int_0^T e^{A s} ds B."""
+        """Exact ZOH discretisation of dx/dt = A x + B u: Ad = e^{A T}, Bd = int_0^T e^{A s} ds B.
+
+        A float[n, n]; B float[n, m] (or n entries: one input); C float[p, n]; T > 0 seconds;
+        other keywords are :class:`LTI`'s (``G``, ``w_std``, ``v_std`` describe the discrete
+        noise as given). Raises ValueError naming the argument for a non-square A, a B
+        without n rows, or T <= 0 (B of shape (m, n) was reshaped into n x m without an error,
+        scrambling its entries)."""
         check_positive("T", T)
         A = np.atleast_2d(np.asarray(A, float))
         n = A.shape[0]
-        B = np.asarray(B, float).reshape(n, -1)
+        if A.ndim != 2 or A.shape != (n, n):
+            raise ValueError(f"LTI.from_continuous: A must be square (n x n), got shape {A.shape}")
+        B = np.asarray(B, float)
+        if B.ndim > 2 or (B.ndim == 2 and B.shape[0] != n) or (B.ndim < 2 and B.size != n):
+            raise ValueError(f"LTI.from_continuous: B must have {n} rows (one per state of A), got shape {B.shape}")
+        B = B.reshape(n, -1)
         m = B.shape[1]
         M = np.zeros((n + m, n + m))
         M[:n, :n], M[:n, n:] = A, B
