@@ -443,9 +443,12 @@ def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
     where change is the relative change of the last iteration, max |P_k - P_{k-1}| /
     max |P_k| (small: converged; not small, non-finite or a growing trace: no fixed point,
     lam below lambda_max). Matrices are cast to one floating dtype (integers to the default
-    float). Shapes and lam as :func:`mare_step` (ValueError otherwise)."""
+    float). Shapes and lam as :func:`mare_step`; ``steps`` an integer >= 1 (ValueError
+    otherwise; -1 returned P0 with change inf)."""
     A, C, Q, R = _system_jax("mare_iterate", A, C, Q, R)
     _check_lam("mare_iterate", lam)
+    if not isinstance(steps, jax.core.Tracer):
+        check_int("mare_iterate: steps", steps, 1)
     lam = jnp.asarray(lam, Q.dtype)       # a float64 lam with float32 matrices under x64: one carry dtype
     P0 = jnp.zeros_like(Q) if P0 is None else _fit_p0("mare_iterate", P0, A.shape[0], Q.dtype)
 
@@ -678,9 +681,11 @@ def random_riccati(key, A, C, Q, R, lam, steps: int, P0=None):
     Returns trace(P_k), k = 1..steps. vmap over keys for a Monte-Carlo; lam may be traced.
     Overflow gives inf: divergence is data. Shapes as :func:`mare_step` (scalars are 1 x 1;
     R may be singular where C P C' is not, e.g. R = 0 with an invertible C and P0 = Q > 0);
-    ValueError when they do not fit, or for a concrete lam outside [0, 1]."""
+    ValueError when they do not fit, for a concrete lam outside [0, 1], or ``steps`` not an
+    integer >= 1 (-1 failed inside XLA with "invalid tensor dimension size")."""
     A, C, Q, R = _system_jax("random_riccati", A, C, Q, R)
     _check_lam("random_riccati", lam)
+    check_int("random_riccati: steps", steps, 1)
     P0 = Q if P0 is None else _fit_p0("random_riccati", P0, A.shape[0], Q.dtype)
     gam = (jax.random.uniform(key, (steps,)) < lam).astype(Q.dtype)
 

@@ -288,6 +288,11 @@ PYTHON_API = [
     (lambda: stability.random_riccati(jax.random.PRNGKey(0), 1.3, 1.0, 1.0, 1.0, 1.5, 3),
      "random_riccati: lam must be in [0, 1]"),
     (lambda: stability.mare_iterate(np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3), "mare_iterate: R must be p x p"),
+    # steps = -1: the Monte-Carlo failed inside XLA ("invalid tensor dimension size"), the MARE
+    # iteration returned P0 as if iterated
+    (lambda: stability.random_riccati(jax.random.PRNGKey(0), 1.3, 1.0, 1.0, 1.0, 0.5, -1),
+     "random_riccati: steps must be an integer in [1, inf)"),
+    (lambda: stability.mare_iterate(1.3, 1.0, 1.0, 1.0, 0.5, -1), "mare_iterate: steps must be an integer in [1, inf)"),
     (lambda: stability.mare_step(np.eye(2), np.eye(2), np.eye(2), -np.eye(2), np.eye(2), 0.5),
      "mare_step: Q must be symmetric positive semi-definite"),
     # Theorem 1's check: N = 0 failed with ZeroDivisionError, a negative arrival rate ran
@@ -419,13 +424,18 @@ PYTHON_API = [
                                          "required to discretise a continuous-time system"),
     (lambda: _linear_from_control(0.1, dt=0.2), "LinearController.from_control: the system is discrete with dt=0.2, "
                                                 "h=0.1 differs"),
+    # a Tustin prewarp frequency at or above Nyquist, or with another method (python-control warns and ignores it)
+    (lambda: _linear_from_control(0.1, prewarp_frequency=40.0),
+     "LinearController.from_control: prewarp_frequency must be in (0, 31.4"),
+    (lambda: _linear_from_control(0.1, method="zoh", prewarp_frequency=10.0),
+     "LinearController.from_control: prewarp_frequency applies to method='tustin'"),
 ]
 
 
-def _linear_from_control(h, dt=None):
+def _linear_from_control(h, dt=None, **kw):
     import control
     sys = control.tf([1.0], [1.0, 1.0]) if dt is None else control.tf([1.0], [1.0, 0.5], dt=dt)
-    return nc.LinearController.from_control(sys, h)
+    return nc.LinearController.from_control(sys, h, **kw)
 
 
 @pytest.mark.parametrize("call, fragment", PYTHON_API)
