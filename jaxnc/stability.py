@@ -568,7 +568,7 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
         diverge; relative, so that it does not depend on the scale of Q and R.
     Returns:
       0.0 when the iteration converges without any measurement (lam = 0: A's noisy modes are
-      stable); ``inf`` when it does not converge even with every measurement (lam = 1: an
+      stable; decided by doubling, however slowly they decay, not by ``steps``); ``inf`` when it does not converge even with every measurement (lam = 1: an
       unstable or marginal mode that the noise excites and C does not see, i.e. (A, C) not
       detectable): no arrival rate bounds the error covariance.
     Raises:
