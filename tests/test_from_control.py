@@ -1,4 +1,5 @@
 """LTI.from_control: state coordinates kept, realisations chosen, state names carried."""
+import dataclasses
 import warnings
 
 import control
@@ -108,3 +109,19 @@ def test_from_continuous_against_scipy_and_refuses_a_transposed_B():
         LTI.from_continuous(A, B.T, C, T)
     with pytest.raises(ValueError, match=r"from_continuous: A must be square"):
         LTI.from_continuous(A[:2], B, C, T)
+
+
+def test_a_discrete_model_of_unspecified_period_takes_the_loops():
+    """python-control's dt=True (a discrete model, period unspecified) became T = 1 s, and a Loop at
+    T = 0.05 s refused the plant ("must equal the plant's step period (... = 1 s)"). Its T is now None
+    (the loop's), or the T given."""
+    sysd = control.ss([[0.9]], [[1.0]], [[1.0]], 0, dt=True)
+    assert LTI.from_control(sysd).T is None
+    assert LTI.from_control(sysd, 0.05).T == 0.05
+    from jaxnc import loop as nc
+    loop = nc.Loop(plant=LTI.from_control(sysd), trigger=nc.Periodic(), uplink=nc.Link(),
+                   estimator=nc.Passthrough(), controller=nc.StateFeedback(K=[[0.5]]), downlink=nc.Link(),
+                   actuator=nc.HoldLast(), T=0.05, N=1, steps=4)
+    x = np.asarray(nc.simulate(dataclasses.replace(loop, plant=dataclasses.replace(loop.plant, x0=[1.0])),
+                               jax.random.PRNGKey(0)).x[:, 0])
+    np.testing.assert_allclose(x, 0.4 ** np.arange(4), rtol=1e-6)   # x_k from x_0 = 1, x+ = 0.9 x - 0.5 x

@@ -299,7 +299,8 @@ class LTI(AbstractPlant):
 
         A continuous-time system is discretised at ``T`` with ``control.c2d(sys, T,
         "zoh")``, which keeps its state coordinates; a discrete one must have ``dt == T``
-        (or T None).
+        (or T None); one of unspecified period (``dt=True``) takes ``T``, or the loop's
+        period when T is None.
 
         State coordinates:
 
@@ -351,7 +352,9 @@ class LTI(AbstractPlant):
             ss = control.c2d(ss, T, "zoh")
         elif T is not None and ss.dt is not True and abs(float(ss.dt) - float(T)) > 1e-12:
             raise ValueError(f"the system is discrete with dt={ss.dt}, T={T} differs")
-        dt = float(T if T is not None else (1.0 if ss.dt is True else ss.dt))
+        # a discrete model of unspecified period (dt=True) takes the loop's (None); it read 1 s, and a
+        # Loop at any other T refused it ("must equal the plant's step period (... = 1 s)")
+        dt = float(T) if T is not None else (None if ss.dt is True else float(ss.dt))
         if np.any(np.asarray(ss.D) != 0):
             raise ValueError("from_control: the system has a direct feedthrough D != 0; a sampled "
                              "networked loop needs D = 0")
