@@ -556,7 +556,9 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     [lambda_min, 1] to ``tol`` in float64 NumPy, an analysis-time computation. Near the
     threshold the iteration slows down, so the value is an upper estimate within ``tol``
     plus the effect of the finite ``steps``. As in Sinopoli et al. (2004), (A, Q^1/2) is
-    taken controllable: a mode the noise does not excite stays known exactly from P = 0.
+    taken controllable: a mode the noise does not excite stays known exactly from P = 0
+    (so for an unstable mode that Q does not excite, e.g. A = diag(1.5, 0.5) with
+    Q = diag(0, 1), the result, 0, lies below :func:`lambda_min`, which assumes P0 > 0).
     The result does not depend on the scale of the noise: (Q, R) and c (Q, R) give the same.
 
     Args:
