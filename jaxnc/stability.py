@@ -425,9 +425,9 @@ def mare_step(P, A, C, Q, R, lam):
     p > 1 would otherwise be added to every entry of C P C'). Raises ValueError when the
     shapes do not fit (naming the matrix), or a concrete lam is outside [0, 1]."""
     A, C, Q, R = _system_jax("mare_step", A, C, Q, R)
-    P = _fit_p0("mare_step", P, A.shape[0])
+    P = _fit_p0("mare_step", P, A.shape[0], Q.dtype)
     _check_lam("mare_step", lam)
-    return _mare(P, A, C, Q, R, lam)
+    return _mare(P, A, C, Q, R, jnp.asarray(lam, Q.dtype))
 
 
 def _mare(P, A, C, Q, R, lam):
@@ -440,17 +440,25 @@ def _mare(P, A, C, Q, R, lam):
 
 def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
     """``steps`` iterations of :func:`mare_step` from P0 (0 by default). Returns (P, change)
-    where change is the relative change of the last iteration (small: converged; non-finite
-    or growing trace: no fixed point, lam below lambda_max). Shapes and lam as
-    :func:`mare_step` (ValueError otherwise)."""
+    where change is the relative change of the last iteration, max |P_k - P_{k-1}| /
+    max |P_k| (small: converged; not small, non-finite or a growing trace: no fixed point,
+    lam below lambda_max). Matrices are cast to one floating dtype (integers to the default
+    float). Shapes and lam as :func:`mare_step`; ``steps`` an integer >= 1 (ValueError
+    otherwise; -1 returned P0 with change inf)."""
     A, C, Q, R = _system_jax("mare_iterate", A, C, Q, R)
     _check_lam("mare_iterate", lam)
-    P0 = jnp.zeros_like(Q) if P0 is None else _fit_p0("mare_iterate", P0, A.shape[0])
+    if not isinstance(steps, jax.core.Tracer):
+        check_int("mare_iterate: steps", steps, 1)
+    lam = jnp.asarray(lam, Q.dtype)       # a float64 lam with float32 matrices under x64: one carry dtype
+    P0 = jnp.zeros_like(Q) if P0 is None else _fit_p0("mare_iterate", P0, A.shape[0], Q.dtype)
 
     def body(_, c):
         P, _d = c
         Pn = _mare(P, A, C, Q, R, lam)
-        return Pn, jnp.linalg.norm(Pn - P) / jnp.maximum(jnp.linalg.norm(Pn), 1e-30)
+        # largest entries, not Frobenius norms: the square in ||Pn|| overflowed to inf once Pn
+        # passed 1.8e19 (float32), and a diverging iteration read change = finite / inf = 0
+        big = jnp.max(jnp.abs(Pn))
+        return Pn, jnp.max(jnp.abs(Pn - P)) / jnp.maximum(big, jnp.finfo(Pn.dtype).tiny)
 
     return jax.lax.fori_loop(0, steps, body, (P0, jnp.asarray(jnp.inf, Q.dtype)))
 
@@ -497,11 +505,12 @@ def _check_lam(fn: str, lam) -> None:
         check_range(f"{fn}: lam", lam, 0.0, 1.0)
 
 
-def _fit_p0(fn: str, P0, n: int):
+def _fit_p0(fn: str, P0, n: int, dtype):
+    """P0 as a 2-D array of ``dtype`` (the system's), n x n; ValueError otherwise."""
     P0 = jnp.atleast_2d(jnp.asarray(P0))
     if P0.shape != (n, n):
         raise ValueError(f"{fn}: P must be n x n = {n} x {n} (A's size), got shape {P0.shape}")
-    return P0
+    return P0.astype(dtype)
 
 
 def _system_jax(fn: str, A, C, Q, R) -> tuple:
@@ -510,7 +519,10 @@ def _system_jax(fn: str, A, C, Q, R) -> tuple:
     A, C, Q, R = (jnp.atleast_2d(jnp.asarray(a)) for a in (A, C, Q, R))
     _fit(fn, A, C, Q, R)
     _check_values(fn, False, A=A, C=C, Q=Q, R=R)
-    return A, C, Q, R
+    # one floating dtype (integers such as mare_iterate(2, 1, 1, 1, ...) become the default float):
+    # an integer Q made the iteration's carry an integer and failed with OverflowError
+    dt = jnp.result_type(A, C, Q, R, float)
+    return tuple(m.astype(dt) for m in (A, C, Q, R))
 
 
 def _system(fn: str, A, C=None, Q=None, R=None) -> tuple:
@@ -533,7 +545,9 @@ def lambda_min(A) -> float:
     ``A`` float[n, n] (a scalar is 1 x 1); ValueError when it is not square."""
     (A,) = _system("lambda_min", A)
     rho = float(np.max(np.abs(np.linalg.eigvals(A))))
-    return max(0.0, 1.0 - 1.0 / rho ** 2)
+    if rho < 1.0:           # stable (a nilpotent A, rho = 0, divided by zero)
+        return 0.0
+    return 1.0 - 1.0 / rho ** 2
 
 
 def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: float = 1e12) -> float:
@@ -542,7 +556,9 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     [lambda_min, 1] to ``tol`` in float64 NumPy, an analysis-time computation. Near the
     threshold the iteration slows down, so the value is an upper estimate within ``tol``
     plus the effect of the finite ``steps``. As in Sinopoli et al. (2004), (A, Q^1/2) is
-    taken controllable: a mode the noise does not excite stays known exactly from P = 0.
+    taken controllable: a mode the noise does not excite stays known exactly from P = 0
+    (so for an unstable mode that Q does not excite, e.g. A = diag(1.5, 0.5) with
+    Q = diag(0, 1), the result, 0, lies below :func:`lambda_min`, which assumes P0 > 0).
     The result does not depend on the scale of the noise: (Q, R) and c (Q, R) give the same.
 
     Args:
@@ -554,7 +570,7 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
         diverge; relative, so that it does not depend on the scale of Q and R.
     Returns:
       0.0 when the iteration converges without any measurement (lam = 0: A's noisy modes are
-      stable); ``inf`` when it does not converge even with every measurement (lam = 1: an
+      stable; decided by doubling, however slowly they decay, not by ``steps``); ``inf`` when it does not converge even with every measurement (lam = 1: an
       unstable or marginal mode that the noise excites and C does not see, i.e. (A, C) not
       detectable): no arrival rate bounds the error covariance.
     Raises:
@@ -594,6 +610,13 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     if not ok1:                  # then no lam <= 1 converges either (monotone in lam)
         return float("inf")
     limit = blowup * np.trace(P1)
+    # lam = 0 (no measurement) by doubling too: the iteration is then the Lyapunov sum
+    # sum_i A^i Q A'^i, bounded iff the modes Q excites are stable. The plain iteration from 0
+    # settles only as fast as rho(A)^2k: a stable A with rho = 0.9999 read about ``tol``, and a
+    # stable A with a slow mode C does not see was refused ("raise steps")
+    ok0, _ = _dare_doubling(A, np.zeros_like(C), Q, R)
+    if ok0:
+        return 0.0
 
     def converges(lam):
         return iterate(lam, limit)[0]
@@ -601,9 +624,6 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     if not converges(1.0):
         raise ValueError(f"lambda_max: the Riccati iteration from 0 does not settle within steps={steps} even "
                          f"with every measurement (its limit exists); raise steps")
-
-    if converges(0.0):
-        return 0.0
     lo, hi = lambda_min(A), 1.0
     if converges(lo + 1e-12) and lo > 0:
         return lo
@@ -663,10 +683,12 @@ def random_riccati(key, A, C, Q, R, lam, steps: int, P0=None):
     Returns trace(P_k), k = 1..steps. vmap over keys for a Monte-Carlo; lam may be traced.
     Overflow gives inf: divergence is data. Shapes as :func:`mare_step` (scalars are 1 x 1;
     R may be singular where C P C' is not, e.g. R = 0 with an invertible C and P0 = Q > 0);
-    ValueError when they do not fit, or for a concrete lam outside [0, 1]."""
+    ValueError when they do not fit, for a concrete lam outside [0, 1], or ``steps`` not an
+    integer >= 1 (-1 failed inside XLA with "invalid tensor dimension size")."""
     A, C, Q, R = _system_jax("random_riccati", A, C, Q, R)
     _check_lam("random_riccati", lam)
-    P0 = Q if P0 is None else _fit_p0("random_riccati", P0, A.shape[0])
+    check_int("random_riccati: steps", steps, 1)
+    P0 = Q if P0 is None else _fit_p0("random_riccati", P0, A.shape[0], Q.dtype)
     gam = (jax.random.uniform(key, (steps,)) < lam).astype(Q.dtype)
 
     def body(P, g):

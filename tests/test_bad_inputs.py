@@ -162,6 +162,11 @@ PYTHON_API = [
     (lambda: nc.LTI(A=np.ones((2, 3)), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be square"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[1.0]), "LTI.x0 must have 2 entries"),
     (lambda: nc.LTI.from_continuous(np.eye(2), [[0.0], [1.0]], [[1.0, 0.0]], T=0.0), "T must be in (0, inf)"),
+    # a transposed B (m x n) was reshaped into n x m without an error: scrambled input columns
+    (lambda: nc.LTI.from_continuous(np.eye(3), np.ones((2, 3)), [[1.0, 0.0, 0.0]], T=0.1),
+     "LTI.from_continuous: B must have 3 rows"),
+    (lambda: nc.LTI.from_continuous(np.ones((2, 3)), [[0.0], [1.0]], [[1.0, 0.0]], T=0.1),
+     "LTI.from_continuous: A must be square"),
     (lambda: nc.Discrete(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=lambda x, u, w: x[:1], h=lambda x, v: x[:1] + v),
      "f(x, u, w) must return the state's shape"),
     (lambda: nc.Discrete(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=lambda x, u, w: x, h=lambda x, v: x + v[0]),
@@ -283,6 +288,11 @@ PYTHON_API = [
     (lambda: stability.random_riccati(jax.random.PRNGKey(0), 1.3, 1.0, 1.0, 1.0, 1.5, 3),
      "random_riccati: lam must be in [0, 1]"),
     (lambda: stability.mare_iterate(np.eye(2), np.eye(2), np.eye(2), 1.0, 0.5, 3), "mare_iterate: R must be p x p"),
+    # steps = -1: the Monte-Carlo failed inside XLA ("invalid tensor dimension size"), the MARE
+    # iteration returned P0 as if iterated
+    (lambda: stability.random_riccati(jax.random.PRNGKey(0), 1.3, 1.0, 1.0, 1.0, 0.5, -1),
+     "random_riccati: steps must be an integer in [1, inf)"),
+    (lambda: stability.mare_iterate(1.3, 1.0, 1.0, 1.0, 0.5, -1), "mare_iterate: steps must be an integer in [1, inf)"),
     (lambda: stability.mare_step(np.eye(2), np.eye(2), np.eye(2), -np.eye(2), np.eye(2), 0.5),
      "mare_step: Q must be symmetric positive semi-definite"),
     # Theorem 1's check: N = 0 failed with ZeroDivisionError, a negative arrival rate ran
@@ -421,13 +431,18 @@ PYTHON_API = [
                                          "required to discretise a continuous-time system"),
     (lambda: _linear_from_control(0.1, dt=0.2), "LinearController.from_control: the system is discrete with dt=0.2, "
                                                 "h=0.1 differs"),
+    # a Tustin prewarp frequency at or above Nyquist, or with another method (python-control warns and ignores it)
+    (lambda: _linear_from_control(0.1, prewarp_frequency=40.0),
+     "LinearController.from_control: prewarp_frequency must be in (0, 31.4"),
+    (lambda: _linear_from_control(0.1, method="zoh", prewarp_frequency=10.0),
+     "LinearController.from_control: prewarp_frequency applies to method='tustin'"),
 ]
 
 
-def _linear_from_control(h, dt=None):
+def _linear_from_control(h, dt=None, **kw):
     import control
     sys = control.tf([1.0], [1.0, 1.0]) if dt is None else control.tf([1.0], [1.0, 0.5], dt=dt)
-    return nc.LinearController.from_control(sys, h)
+    return nc.LinearController.from_control(sys, h, **kw)
 
 
 @pytest.mark.parametrize("call, fragment", PYTHON_API)

@@ -125,3 +125,42 @@ def test_a_compensator_designed_for_another_period_or_with_the_wrong_size_is_ref
         _servo_loop(two)                                              # 2 actions, 1 plant input
     with pytest.raises(ValueError, match="LinearController.index"):
         _servo_loop(nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], index=5))
+
+
+def _freq(ctrl, w):
+    """C (e^{jwh} I - A)^-1 B + D of a SISO compensator, in complex128 from its stored matrices."""
+    z = np.exp(1j * w * ctrl.dt)
+    A, B, C, D = (np.asarray(m, np.float64) for m in (ctrl.A, ctrl.B, ctrl.C, ctrl.D))
+    return (C @ np.linalg.solve(z * np.eye(A.shape[0]) - A, B) + D).item()
+
+
+def test_a_prewarped_tustin_notch_keeps_its_centre():
+    """A notch (s^2 + w0^2) / (s^2 + 2 zeta w0 s + w0^2) at 10 Hz, h = 10 ms. Tustin maps s = j w to
+    z = e^{j (2/h) atan(w h / 2) h}: the plain notch moves to 60.9 rad/s and passes 11 % at w0; prewarped at
+    w0 (s = (w0 / tan(w0 h / 2)) (z - 1) / (z + 1)) it maps s = j w0 to z = e^{j w0 h} exactly, zero gain there
+    (prewarp_frequency could not be passed: it went to LinearController and failed with a TypeError)."""
+    w0, zeta, h = 2 * np.pi * 10, 0.3, 0.01
+    notch = control.tf([1.0, 0.0, w0 ** 2], [1.0, 2 * zeta * w0, w0 ** 2])
+    plain = nc.LinearController.from_control(notch, h)
+    warped = nc.LinearController.from_control(notch, h, prewarp_frequency=w0)
+    w_plain = (2 / h) * np.arctan(w0 * h / 2)
+    assert abs(_freq(plain, w_plain)) < 1e-5 and abs(_freq(plain, w0)) > 0.1
+    assert abs(_freq(warped, w0)) < 1e-5
+    assert abs(_freq(warped, 0.0) - 1.0) < 1e-5                      # unit DC gain, as the continuous notch
+    with pytest.raises(ValueError, match="prewarp_frequency applies to method='tustin'"):
+        nc.LinearController.from_control(notch, h, method="zoh", prewarp_frequency=w0)
+    with pytest.raises(ValueError, match=r"prewarp_frequency must be in \(0, 314"):
+        nc.LinearController.from_control(notch, h, prewarp_frequency=np.pi / h)
+
+
+def test_from_control_under_x64_keeps_float64():
+    """A lag (s + 0.1) / (s + 0.01), DC gain 10, Tustin at h = 1 ms: its pole 0.99999 rounded to float32
+    gave a DC gain of 9.9877 under x64 too (from_control cast to float32 always); under x64 the
+    matrices are now float64 (DC gain 10 to 1e-9, the class computes in float64), float32 without."""
+    lag = control.tf([1.0, 0.1], [1.0, 0.01])
+    with jax.enable_x64(True):
+        c64 = nc.LinearController.from_control(lag, 1e-3)
+        assert c64.A.dtype == np.float64 and c64.dtype == jnp.float64
+        assert abs(_freq(c64, 0.0) - 10.0) < 1e-9
+    c32 = nc.LinearController.from_control(lag, 1e-3)
+    assert c32.A.dtype == np.float32 and c32.dtype == jnp.float32

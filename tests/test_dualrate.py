@@ -229,3 +229,16 @@ def test_closed_loop_helpers():
     assert abs(M(0) - 1.0) < 1e-12
     Md = c2d_zoh(M, 0.2)
     assert Md.dt == 0.2
+
+
+def test_controller_takes_a_float64_error_under_x64(design):
+    """Under x64 an error computed in float64 (r - y with NumPy numbers) made G2's state float64
+    inside the controller's scan over the N fast periods: a carry type error. It computes in the
+    state's dtype (float32 from init) and gives the float32 call's actions."""
+    ctrl = DualRateController.from_design(design)
+    ref, _ = ctrl(ctrl.init(), 1.0)
+    with jax.enable_x64(True):
+        for e in (np.float64(1.0), jnp.float64(1.0)):
+            us, state = ctrl(ctrl.init(), e)
+            assert us.dtype == jnp.float32 and state.g2.dtype == jnp.float32
+            np.testing.assert_array_equal(np.asarray(us), np.asarray(ref))

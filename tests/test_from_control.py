@@ -1,4 +1,5 @@
 """LTI.from_control: state coordinates kept, realisations chosen, state names carried."""
+import dataclasses
 import warnings
 
 import control
@@ -89,3 +90,38 @@ def test_from_control_bad_inputs():
         LTI(A=np.eye(2), B=np.ones((2, 1)), C=np.ones((1, 2)), state_names=("a",))
     with pytest.raises(ValueError, match="distinct strings"):
         LTI(A=np.eye(2), B=np.ones((2, 1)), C=np.ones((1, 2)), state_names=("a", "a"))
+
+
+def test_from_continuous_against_scipy_and_refuses_a_transposed_B():
+    """ZOH of a 3-state, 2-input model equals scipy's cont2discrete. A B given transposed
+    (2 x 3 for n = 3) was reshaped into 3 x 2 without an error: a plant with scrambled
+    input columns. It is refused now, naming B; a 1-D B of n entries is one input."""
+    import scipy.signal
+    A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, -2.0, -3.0]])
+    B = np.array([[0.0, 1.0], [0.0, 0.0], [1.0, 0.5]])
+    C = np.array([[1.0, 0.0, 0.0]])
+    Ad, Bd, *_ = scipy.signal.cont2discrete((A, B, C, np.zeros((1, 2))), T, "zoh")
+    p = LTI.from_continuous(A, B, C, T)
+    np.testing.assert_allclose(p.A, Ad, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(p.B, Bd, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(LTI.from_continuous(A, B[:, 0], C, T).B[:, 0], Bd[:, 0], rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match=r"from_continuous: B must have 3 rows .* got shape \(2, 3\)"):
+        LTI.from_continuous(A, B.T, C, T)
+    with pytest.raises(ValueError, match=r"from_continuous: A must be square"):
+        LTI.from_continuous(A[:2], B, C, T)
+
+
+def test_a_discrete_model_of_unspecified_period_takes_the_loops():
+    """python-control's dt=True (a discrete model, period unspecified) became T = 1 s, and a Loop at
+    T = 0.05 s refused the plant ("must equal the plant's step period (... = 1 s)"). Its T is now None
+    (the loop's), or the T given."""
+    sysd = control.ss([[0.9]], [[1.0]], [[1.0]], 0, dt=True)
+    assert LTI.from_control(sysd).T is None
+    assert LTI.from_control(sysd, 0.05).T == 0.05
+    from jaxnc import loop as nc
+    loop = nc.Loop(plant=LTI.from_control(sysd), trigger=nc.Periodic(), uplink=nc.Link(),
+                   estimator=nc.Passthrough(), controller=nc.StateFeedback(K=[[0.5]]), downlink=nc.Link(),
+                   actuator=nc.HoldLast(), T=0.05, N=1, steps=4)
+    x = np.asarray(nc.simulate(dataclasses.replace(loop, plant=dataclasses.replace(loop.plant, x0=[1.0])),
+                               jax.random.PRNGKey(0)).x[:, 0])
+    np.testing.assert_allclose(x, 0.4 ** np.arange(4), rtol=1e-6)   # x_k from x_0 = 1, x+ = 0.9 x - 0.5 x

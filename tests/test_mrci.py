@@ -123,3 +123,23 @@ def test_repeated_pole_and_improper_rejected():
         mrci.decompose([1.0, 0.0, 0.0], [1.0, -0.5], 2)
     with pytest.raises(ValueError, match="m must be"):
         mrci.decompose([1.0], [1.0, -0.5], 0)
+
+
+def test_step_takes_a_float64_error_under_x64():
+    """A float32 design and state (as_jax(), mrci_init()) fed a float64 error under x64 made the
+    state float64 and a scan over k failed with a carry type error. It computes in the state's
+    dtype and gives the float32 run's actions."""
+    c = mrci.decompose(*_cd(), 2).as_jax()
+    e = np.random.default_rng(1).normal(size=12)
+
+    def run(e):
+        def step(s, ke):
+            u, s = mrci.mrci_step(c, s, ke[0], ke[1])
+            return s, u
+        return jax.lax.scan(step, mrci.mrci_init(c), (jnp.arange(12), e))[1]
+
+    ref = run(jnp.asarray(e, jnp.float32))
+    with jax.enable_x64(True):
+        u = run(jnp.asarray(e, jnp.float64))
+    assert u.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(u), np.asarray(ref))

@@ -324,3 +324,47 @@ def test_eigvalsh_jacobi_against_numpy():
     got = np.asarray(jax.jit(st._eigvalsh)(batch))
     want = np.linalg.eigvalsh(np.asarray(batch, np.float64))
     np.testing.assert_allclose(got, want, atol=1e-4 * np.abs(want).max())
+
+
+def test_critical_rate_of_a_slow_stable_plant_is_exactly_zero():
+    """A stable A bounds E[P] with no measurement at all: lambda_max = 0 exactly (its
+    docstring's contract). lam = 0 was decided by the plain iteration from 0, which settles
+    as rho(A)^2k: a = 0.9999 read 0.00098 (about tol, after 5 s of bisection), and a stable
+    A with a slow mode C does not see (0.9999) was refused with "raise steps". The closed
+    form: the Lyapunov sum converges iff rho(A) < 1, whatever C."""
+    assert st.lambda_max(0.9999, 1.0, 1.0, 1.0) == 0.0
+    assert st.lambda_max(np.array([[0.9999, 0.1], [0.0, 0.5]]), [[0.0, 1.0]], np.eye(2), [[1.0]]) == 0.0
+    # a mode the noise does not excite stays known exactly, whatever its eigenvalue
+    assert st.lambda_max(np.diag([1.5, 0.5]), [[0.0, 1.0]], np.diag([0.0, 1.0]), [[1.0]]) == 0.0
+    # a nilpotent A (a shift register) is stable: lambda_min divided by rho = 0
+    assert st.lambda_min([[0.0, 1.0], [0.0, 0.0]]) == 0.0
+
+
+def test_mare_iterate_change_of_a_diverging_iteration_is_not_zero():
+    """Scalar a = 2, c = q = r = 1 at lam = 0.5 < lambda_c = 0.75: the iterates grow as
+    P+ = a^2 (1 - lam) P + O(1) = 2 P + O(1), so the relative change tends to 1/2. The change
+    was a ratio of Frobenius norms, whose square overflowed in float32 once P passed 1.8e19:
+    from step 62 on it read 0.0, "converged", for a diverging iteration."""
+    for steps in (60, 100):
+        P, change = st.mare_iterate(2.0, 1.0, 1.0, 1.0, 0.5, steps)
+        assert np.isfinite(float(P[0, 0])) and float(P[0, 0]) > 1e17
+        assert float(change) == pytest.approx(0.5, abs=1e-3)
+
+
+def test_riccati_maps_accept_integers_and_mixed_float_widths():
+    """Integer matrices (mare_iterate(2, 1, 1, 1, ...)) failed with "OverflowError: cannot
+    convert float infinity to integer", an integer P0 or, under x64, float32 matrices with a
+    float64 lam with a scan carry type error. The scalar MARE's fixed point at a = 2,
+    q = r = c = 1, lam = 0.9 solves 0.6 P^2 - 4 P - 1 = 0."""
+    exact = (4 + math.sqrt(16 + 2.4)) / 1.2
+    P, change = st.mare_iterate(2, 1, 1, 1, 0.9, 500)
+    assert float(P[0, 0]) == pytest.approx(exact, rel=1e-5) and float(change) < 1e-5
+    A, C = np.array([[1.2, 0.3], [0.0, 0.8]], np.float32), np.eye(2, dtype=np.float32)
+    ref, _ = st.mare_iterate(A, C, C, C, 0.7, 300)
+    P_int, _ = st.mare_iterate(A, C, C, C, 0.7, 300, P0=np.eye(2, dtype=int))
+    np.testing.assert_allclose(P_int, ref, rtol=1e-5)
+    with jax.enable_x64(True):
+        P32, _ = st.mare_iterate(A, C, C, C, np.float64(0.7), 300)
+        tr = st.random_riccati(jax.random.PRNGKey(0), A, C, C, C, 0.7, 5, P0=np.eye(2, dtype=int))
+    assert P32.dtype == np.float32 and tr.dtype == np.float32
+    np.testing.assert_allclose(P32, ref, rtol=1e-5)

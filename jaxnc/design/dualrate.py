@@ -236,7 +236,9 @@ class DiscreteSS:
         return jnp.zeros(batch + (self.order,), jnp.float32)
 
     def step(self, x, e):
-        """One sample: returns (y, x_next)."""
+        """One sample: returns (y, x_next), in the state's dtype (float32 from :meth:`init`; a
+        float64 ``e`` under x64 made x_next float64 and a scan over steps failed)."""
+        e = jnp.asarray(e, jnp.result_type(x))
         y = jnp.einsum("...j,j->...", x, self.C) + self.D * e
         x_next = jnp.einsum("ij,...j->...i", self.A, x) + jnp.einsum("i,...->...i", self.B, e)
         return y, x_next

@@ -243,10 +243,12 @@ def mrci_step(c: Mrci, s: MrciState, k, e) -> tuple[jax.Array, MrciState]:
     Slow mode i outputs C_i x_i + D_i e_k and updates x_i <- A_i^m x_i + B_i^m e_k only at
     k = m j + phase_i (Fig. 4); otherwise its output is held. The fast part runs every period.
     ``e`` is one number (shape () or (1,): the controller is SISO); ValueError otherwise (a
-    vector broadcast into the modes' states).
+    vector broadcast into the modes' states). It computes in the state's dtype (``mrci_init``'s:
+    a float64 ``e`` under x64 made a float32 state float64 and a scan over k failed).
     """
     if jnp.size(e) != 1:
         raise ValueError(f"mrci_step: e must be a single number (the controller is SISO), got shape {jnp.shape(e)}")
+    e = jnp.asarray(e, jnp.result_type(s.us))
     ph = jnp.mod(k, c.m)
     upd_x = c.state_phase == ph
     upd_u = c.mode_phase == ph

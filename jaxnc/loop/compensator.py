@@ -137,18 +137,27 @@ class LinearController(AbstractController):
                 object.__setattr__(self, name, np.asarray(v, np.float32))
 
     @classmethod
-    def from_control(cls, sys, h: float | None = None, *, method: str = "tustin", **kw) -> "LinearController":
+    def from_control(cls, sys, h: float | None = None, *, method: str = "tustin",
+                     prewarp_frequency: float | None = None, **kw) -> "LinearController":
         """From a python-control ``StateSpace`` or ``TransferFunction`` (the compensator C(z) or C(s)).
 
         A continuous-time system is discretised at the loop's slow period ``h`` with
-        ``control.c2d(sys, h, method)`` (``"tustin"`` by default, the usual choice for a
-        controller; ``"zoh"``, ``"foh"``, ``"backward_diff"``... as python-control); a discrete
-        one must have ``dt == h`` (or h None). ``dt`` is set to the period, so a Loop running
-        at another period is refused. Other keywords are :class:`LinearController`'s.
+        ``control.c2d(sys, h, method, prewarp_frequency=...)`` (``"tustin"`` by default, the
+        usual choice for a controller; ``"zoh"``, ``"foh"``, ``"backward_diff"``... as
+        python-control); a discrete one must have ``dt == h`` (or h None). ``dt`` is set to
+        the period, so a Loop running at another period is refused. ``prewarp_frequency``
+        (rad/s, Tustin only, below the Nyquist frequency pi / h): the frequency at which the
+        discrete response equals the continuous one, e.g. a notch's centre (plain Tustin moves
+        it to (2 / h) atan(w h / 2)). The matrices are float32 arrays, float64 under
+        ``jax_enable_x64`` (then it computes in float64: a float32 realisation of a slow
+        pole, e.g. a lag's 0.99999 at h = 1 ms, moves the DC gain by 0.1 %). Other keywords
+        are :class:`LinearController`'s.
 
         Raises:
           ValueError: ``h`` missing for a continuous-time system, differing from a discrete
-            system's dt, or not positive; a system python-control cannot convert.
+            system's dt, or not positive; a ``prewarp_frequency`` that is not in (0, pi / h),
+            given with a method other than Tustin or for a discrete system; a system
+            python-control cannot convert.
         """
         import control
         try:
@@ -162,7 +171,16 @@ class LinearController(AbstractController):
             if h is None:
                 raise ValueError("LinearController.from_control: h (the loop's slow period N T, seconds) is required "
                                  "to discretise a continuous-time system")
-            ss = control.c2d(ss, float(h), method)
+            if prewarp_frequency is not None:
+                if method not in ("tustin", "bilinear"):
+                    raise ValueError(f"LinearController.from_control: prewarp_frequency applies to method='tustin', "
+                                     f"got method={method!r}")
+                check_range("LinearController.from_control: prewarp_frequency", prewarp_frequency, 0.0,
+                            np.pi / float(h), low_open=True, high_open=True)
+            ss = control.c2d(ss, float(h), method, prewarp_frequency=prewarp_frequency)
+        elif prewarp_frequency is not None:
+            raise ValueError("LinearController.from_control: prewarp_frequency applies to discretising a "
+                             "continuous-time system; this one is discrete already")
         elif ss.dt is True:
             if h is None:
                 raise ValueError("LinearController.from_control: the system is discrete with an unspecified period "
@@ -173,7 +191,8 @@ class LinearController(AbstractController):
         if ss.nstates < 1:
             raise ValueError("LinearController.from_control: the system has no states (a static gain: use "
                              "StateFeedback or PID with Kp)")
-        f = lambda a: np.asarray(a, np.float32)
+        # float32, or float64 under x64 (it then computes in float64, as the class does for float64 arrays)
+        f = lambda a: np.asarray(a, jax.dtypes.canonicalize_dtype(np.float64))
         kw.setdefault("index", tuple(range(ss.ninputs)) if ss.ninputs > 1 else 0)
         return cls(A=f(ss.A), B=f(ss.B), C=f(ss.C), D=f(ss.D), dt=dt, **kw)
 

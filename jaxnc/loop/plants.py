@@ -271,11 +271,22 @@ class LTI(AbstractPlant):
 
     @classmethod
     def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":
-        """Exact ZOH discretisation of dx/dt = A x + B u: Ad = e^{A T}, Bd = int_0^T e^{A s} ds B."""
+        """Exact ZOH discretisation of dx/dt = A x + B u: Ad = e^{A T}, Bd = int_0^T e^{A s} ds B.
+
+        A float[n, n]; B float[n, m] (or n entries: one input); C float[p, n]; T > 0 seconds;
+        other keywords are :class:`LTI`'s (``G``, ``w_std``, ``v_std`` describe the discrete
+        noise as given). Raises ValueError naming the argument for a non-square A, a B
+        without n rows, or T <= 0 (B of shape (m, n) was reshaped into n x m without an error,
+        scrambling its entries)."""
         check_positive("T", T)
         A = np.atleast_2d(np.asarray(A, float))
         n = A.shape[0]
-        B = np.asarray(B, float).reshape(n, -1)
+        if A.ndim != 2 or A.shape != (n, n):
+            raise ValueError(f"LTI.from_continuous: A must be square (n x n), got shape {A.shape}")
+        B = np.asarray(B, float)
+        if B.ndim > 2 or (B.ndim == 2 and B.shape[0] != n) or (B.ndim < 2 and B.size != n):
+            raise ValueError(f"LTI.from_continuous: B must have {n} rows (one per state of A), got shape {B.shape}")
+        B = B.reshape(n, -1)
         m = B.shape[1]
         M = np.zeros((n + m, n + m))
         M[:n, :n], M[:n, n:] = A, B
@@ -288,7 +299,8 @@ class LTI(AbstractPlant):
 
         A continuous-time system is discretised at ``T`` with ``control.c2d(sys, T,
         "zoh")``, which keeps its state coordinates; a discrete one must have ``dt == T``
-        (or T None).
+        (or T None); one of unspecified period (``dt=True``) takes ``T``, or the loop's
+        period when T is None.
 
         State coordinates:
 
@@ -340,7 +352,9 @@ class LTI(AbstractPlant):
             ss = control.c2d(ss, T, "zoh")
         elif T is not None and ss.dt is not True and abs(float(ss.dt) - float(T)) > 1e-12:
             raise ValueError(f"the system is discrete with dt={ss.dt}, T={T} differs")
-        dt = float(T if T is not None else (1.0 if ss.dt is True else ss.dt))
+        # a discrete model of unspecified period (dt=True) takes the loop's (None); it read 1 s, and a
+        # Loop at any other T refused it ("must equal the plant's step period (... = 1 s)")
+        dt = float(T) if T is not None else (None if ss.dt is True else float(ss.dt))
         if np.any(np.asarray(ss.D) != 0):
             raise ValueError("from_control: the system has a direct feedthrough D != 0; a sampled "
                              "networked loop needs D = 0")
