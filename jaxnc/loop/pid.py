@@ -99,7 +99,8 @@ class PID(AbstractController):
         u_min = +inf or u_max = -inf, a field that is neither a number nor float[1] /
         float[c] (JAX arrays are not checked: batched leaves), a reference that is not a :mod:`jaxnc.references` object, an index that is not
         a non-negative int or tuple of distinct ones, gains whose channel count differs
-        from ``len(index)``, or an unknown ``anti_windup``; when a ``Loop`` is built
+        from ``len(index)``, an unknown ``anti_windup``, ``"back_calculation"`` with u_min and
+        u_max unbounded (None or inf: it would never act); when a ``Loop`` is built
         (its fit check traces one step), an index beyond the estimator's estimate.
     """
 
@@ -149,6 +150,11 @@ class PID(AbstractController):
             raise ValueError(f"PID.u_max must be in (-inf, inf] (inf: unbounded above), got {hi.tolist()}")
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
             raise ValueError(f"PID.u_min must be <= u_max, got {lo.tolist()} and {hi.tolist()}")
+        unbounded = lambda v: v is None or (isinstance(v, np.ndarray) and bool(np.all(np.isinf(v))))
+        if self.anti_windup == "back_calculation" and unbounded(lo) and unbounded(hi):
+            raise ValueError("PID.anti_windup='back_calculation' acts through u - v, u = clip(v, u_min, u_max), and "
+                             "u_min and u_max are unbounded: it would never act (a saturation in a LimitedActuator "
+                             "does not reach it); give u_min / u_max (the actuator's limits)")
         if isinstance(self.reference, AbstractReference) and self.reference.dim not in (1, n):
             want = "1 channel" if n == 1 else f"1 or {n} channels"
             raise ValueError(f"PID.reference must have {want} (len(index) = {n}), got {self.reference.dim}")
