@@ -154,7 +154,9 @@ class LinearController(AbstractController):
         ``control.c2d(sys, h, method)`` (``"tustin"`` by default, the usual choice for a
         controller; ``"zoh"``, ``"foh"``, ``"backward_diff"``... as python-control); a discrete
         one must have ``dt == h`` (or h None). ``dt`` is set to the period, so a Loop running
-        at another period is refused. Other keywords are :class:`LinearController`'s.
+        at another period is refused. Other keywords are :class:`LinearController`'s. The
+        matrices are float32, or float64 when built with ``jax_enable_x64`` on (then it
+        computes in float64, :attr:`dtype`).
 
         Raises:
           ValueError: ``h`` missing for a continuous-time system, differing from a discrete
@@ -183,7 +185,8 @@ class LinearController(AbstractController):
         if ss.nstates < 1:
             raise ValueError("LinearController.from_control: the system has no states (a static gain: use "
                              "StateFeedback or PID with Kp)")
-        f = lambda a: np.asarray(a, np.float32)
+        dtype = np.float64 if jax.config.jax_enable_x64 else np.float32     # python-control's float64 under x64
+        f = lambda a: np.asarray(a, dtype)
         kw.setdefault("index", tuple(range(ss.ninputs)) if ss.ninputs > 1 else 0)
         return cls(A=f(ss.A), B=f(ss.B), C=f(ss.C), D=f(ss.D), dt=dt, **kw)
 
