@@ -396,6 +396,8 @@ PYTHON_API = [
     # PID: limits that clip every output to +-inf ran (the plant got inf)
     (lambda: nc.PID(Kp=1.0, u_min=np.inf), "PID.u_min must be in [-inf, inf) (-inf: unbounded below), got [inf]"),
     (lambda: nc.PID(Kp=1.0, u_max=-np.inf), "PID.u_max must be in (-inf, inf] (inf: unbounded above), got [-inf]"),
+    (lambda: nc.PID(Kp=1.0, Ki=1.0, anti_windup="back_calculation"),
+     "PID.anti_windup='back_calculation' acts through u - v, u = clip(v, u_min, u_max), and u_min and u_max are unbounded"),
     # Numre.design: a negative or non-PSD covariance ran to nan estimates; a NaN model ran
     (lambda: _numre(cov0=-np.eye(2)), "Numre.cov0 must be positive semi-definite (a covariance)"),
     (lambda: _numre(cov0=np.array([[1.0, 0.5], [0.0, 1.0]])), "Numre.cov0 must be symmetric"),
@@ -423,6 +425,10 @@ PYTHON_API = [
     (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], K_aw=[1.0]), "LinearController.K_aw must have shape (1, 1)"),
     (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], u_min=1.0, u_max=0.0),
      "LinearController.u_min must be <= u_max"),
+    (lambda: nc.LinearController(A=[[1.0]], B=[[0.1]], C=[[1.0]], K_aw=[[0.2]]),
+     "LinearController.K_aw acts through u - v, u = clip(v, u_min, u_max), and u_min and u_max are unbounded"),
+    (lambda: nc.LinearController(A=[[1.0]], B=[[0.1]], C=[[1.0]], K_aw=[[0.2]], u_min=-np.inf, u_max=np.inf),
+     "LinearController.K_aw acts through u - v"),
     (lambda: nc.LinearController(A=[[np.nan]], B=[[1.0]], C=[[1.0]]), "LinearController.A must be finite"),
     (lambda: nc.LinearController(A=[[0.5]], B=[[1.0]], C=[[1.0]], dt=-0.1),
      "LinearController.dt must be a positive number of seconds or None, got -0.1"),

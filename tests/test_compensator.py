@@ -164,3 +164,25 @@ def test_from_control_under_x64_keeps_float64():
         assert abs(_freq(c64, 0.0) - 10.0) < 1e-9
     c32 = nc.LinearController.from_control(lag, 1e-3)
     assert c32.A.dtype == np.float32 and c32.dtype == jnp.float32
+
+
+def test_from_control_keeps_python_controls_float64_matrices_under_x64():
+    """Under jax_enable_x64, from_control's matrices are python-control's float64 c2d ones and the
+    compensator computes in float64 (as LinearController given float64 arrays); otherwise float32.
+    It used to store float32 always (the lead's pole 0.6 became 0.60000002384)."""
+    lead = control.tf([4.0, 8.0], [0.1, 1.0])
+    Cd = control.ss(control.c2d(control.ss(lead), H, "tustin"))
+    with jax.enable_x64(True):
+        ctrl = nc.LinearController.from_control(lead, H)
+        assert ctrl.dtype == jnp.float64
+        for name in ("A", "B", "C", "D"):
+            np.testing.assert_array_equal(getattr(ctrl, name), getattr(Cd, name))
+        state, packet, _ = ctrl.step(ctrl.init(_Ctx()), jnp.asarray([0.25]), 1.0, jnp.int32(0), _Ctx())
+        np.testing.assert_array_equal(packet.data[0], Cd.D @ [-0.25])       # e = 0 - 0.25, x_c = 0
+        np.testing.assert_array_equal(state, Cd.B @ [-0.25])
+    with jax.enable_x64(False):
+        assert nc.LinearController.from_control(lead, H).dtype == jnp.float32
+
+
+class _Ctx:
+    N, T = 1, H

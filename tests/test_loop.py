@@ -602,3 +602,24 @@ def test_zero_order_applies_each_action_over_its_period_and_zero_when_it_is_miss
     ideal = dataclasses.replace(loop, downlink=nc.Link())
     u_ideal = np.asarray(nc.simulate(ideal, key).u).reshape(-1, N)
     assert np.all(u_ideal[:, :1] != 0) and np.all(u_ideal == u_ideal[:, :1])
+
+
+@pytest.mark.parametrize("order", ["newest", "all"])
+def test_passthrough_holds_the_newest_measurement_by_stamp(order):
+    """Passthrough behind a link whose packets overtake one another (N = 1, x_t = t, z = x): at
+    each instant it holds the arrived measurement with the newest stamp. Behind order="all" it
+    used to take an older packet delivered after a newer one (x̂ went back in time: 1 after 2)."""
+    delays = [0, 2, 0, -1, 0, 3, 0, 0, -1, 0]     # stamp 1 arrives alone at 3 (after 2), 5 at 8 (after 6, 7)
+    K = len(delays)
+    plant = nc.Discrete(x0=[0.0], w_std=[0.0], v_std=[0.0], f=lambda x, u, w: x + 1.0, h=lambda x, v: x + v,
+                        input_dim=1, noise_dim=1, output_dim=1)
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(delay=nc.TraceDelay(delays), order=order),
+                   estimator=nc.Passthrough(), controller=nc.StateFeedback(K=[[0.0]]), downlink=nc.Link(),
+                   actuator=nc.HoldLast(), N=1, T=0.1, steps=K, record=True)
+    tr = nc.simulate(loop, jax.random.PRNGKey(0))
+    want, held = [], 0.0
+    for k in range(K):                          # the newest stamp among the packets arrived by k
+        arrived = [s for s in range(k + 1) if delays[s] >= 0 and s + delays[s] <= k]
+        held = float(max(arrived)) if arrived else held
+        want.append(held)
+    np.testing.assert_array_equal(np.asarray(tr.xhat)[:, 0], want)

@@ -30,10 +30,10 @@ def test_a_state_that_changes_shape_between_steps_is_named():
     class Growing(nc.Passthrough):
         def correct(self, state, inbox, k):
             z, _, w = inbox.newest()
-            return PassthroughState(jnp.concatenate([state.z, z])), state.z
+            return state._replace(z=jnp.concatenate([state.z, z])), state.z
 
-    with pytest.raises(ValueError, match=r"Loop.estimator's correct returns a state of float32\[2\], but its init "
-                                         r"gave float32\[1\]"):
+    with pytest.raises(ValueError, match=r"Loop.estimator's correct returns a state of \(float32\[2\], int32\[\]\), "
+                                         r"but its init gave \(float32\[1\], int32\[\]\)"):
         _loop(estimator=nc.pytree_dataclass(Growing)(), controller=nc.StateFeedback(K=[[1.0]]))
 
 

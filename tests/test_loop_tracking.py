@@ -196,3 +196,36 @@ def test_held_at_end_at_the_boundary_and_traced():
     held = jax.jit(jax.vmap(lambda e: refs.held_at_end(refs.PiecewiseLinear(jnp.stack([0.0 * e, e]),
                                                                             jnp.asarray([0.0, 1.0])), K, T)))(ends)
     assert np.asarray(held)[:, 0].tolist() == [True, False]
+
+
+def test_a_failed_run_is_left_out_of_the_tracking_summary():
+    """A run whose state leaves Monitor.bounds (a random initial velocity) has no tracking
+    metrics (its integrals inf, the rest nan, as Metrics.cost is inf): print(tm) and
+    summarize average the runs that did not fail. Before, the frozen state's numbers were
+    averaged in (ISE 2.6x the stable runs', overshoot 0 %)."""
+    from jaxnc import montecarlo
+    T, N = 0.005, 2
+    A, B, C = np.array([[0, 1.0], [0, -10.0]]), np.array([[0.0], [100.0]]), np.array([[1.0, 0]])
+    ref = refs.Step(1.0, time=0.02)
+    plant = nc.LTI.from_continuous(A, B, C, T=T, x0=[0.0, 0], x0_std=[0.0, 6.0], w_std=np.zeros(2),
+                                   v_std=np.zeros(1))
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
+                   controller=nc.PID(Kp=2.0, Ki=1.0, Kd=0.05, Tf=0.01, reference=ref, index=0),
+                   downlink=nc.Link(), actuator=nc.HoldLast(), monitor=nc.Monitor(bounds=[5.0, 12.0]),
+                   N=N, T=T, steps=200, record=True)
+    tracking = nc.Tracking(ref, index=0)
+    keys = montecarlo.seed_keys(0, 48)
+    m, tm = jax.jit(jax.vmap(nc.run_tracking, in_axes=(0, None, None)))(keys, loop, tracking)
+    failed = np.asarray(m.unstable)
+    assert 0 < failed.sum() < failed.size                  # some runs fail, most do not
+    raw = jax.vmap(lambda k: tracking.metrics(nc.simulate(loop, k).x, T))(keys)   # the frozen runs' numbers
+    for f in tm._fields:
+        got, frozen = np.asarray(getattr(tm, f))[:, 0], np.asarray(getattr(raw, f))[:, 0]
+        np.testing.assert_allclose(got[~failed], frozen[~failed], rtol=1e-5)   # another program: float32 sums rounded otherwise
+        want = np.inf if f in ("ise", "iae", "itae") else np.nan
+        np.testing.assert_array_equal(got[failed], np.full(failed.sum(), want))
+        s = montecarlo.summarize(got, np.zeros_like(failed))   # no unstable flag needed: left out as not finite
+        ok = ~failed & np.isfinite(frozen)
+        np.testing.assert_allclose(s.mean, frozen[ok].mean(), rtol=1e-5)
+        assert s.n_stable == ok.sum()
+    assert f"({failed.sum()} left out" in repr(tm).splitlines()[1]      # the ise line

@@ -54,7 +54,8 @@ class LinearController(AbstractController):
       A: float[n, n], B: float[n, p], C: float[m, n], D: float[m, p] (None: zero), the
         compensator's discrete state-space matrices at the loop's slow period h = N T;
         n >= 1 states, p = ``len(index)`` measured entries, m actions.
-      K_aw: float[n, m] or None (zero), the anti-windup (back-calculation) gain.
+      K_aw: float[n, m] or None (zero), the anti-windup (back-calculation) gain; it acts only
+        through the controller's own limits u_min / u_max (a nonzero K_aw without them is refused).
       x0: float[n] or None (zero), the compensator's initial state.
       reference: a :class:`jaxnc.references.AbstractReference` with 1 or p channels; None: 0.
       u_min, u_max: float, float[m] or None (unbounded), the output limits, u_min <= u_max.
@@ -70,7 +71,8 @@ class LinearController(AbstractController):
         does not fit the others (A square, B with n rows and p columns, C with n columns,
         D m x p, K_aw n x m, x0 n entries), an index that is not a non-negative int or a
         tuple of distinct ones, a reference that is not a :mod:`jaxnc.references` object or
-        has neither 1 nor p channels, u_min > u_max, a ``dt`` that is not a positive number;
+        has neither 1 nor p channels, u_min > u_max, a nonzero K_aw with u_min and u_max
+        unbounded (None or inf: it would never act), a ``dt`` that is not a positive number;
         when a Loop is built, a ``dt`` that differs from N T, an index beyond the estimate,
         or m differing from the plant's input size.
     """
@@ -131,6 +133,12 @@ class LinearController(AbstractController):
             raise ValueError(f"LinearController.u_min must be <= u_max, got {np.asarray(lo).tolist()} and "
                              f"{np.asarray(hi).tolist()}")
         check_channels("LinearController", self.reference, p)
+        unbounded = lambda v: v is None or (not isinstance(v, jax.Array) and bool(np.all(np.isinf(np.asarray(v)))))
+        if self.K_aw is not None and not isinstance(self.K_aw, jax.Array) and np.any(np.asarray(self.K_aw) != 0) \
+                and unbounded(lo) and unbounded(hi):
+            raise ValueError("LinearController.K_aw acts through u - v, u = clip(v, u_min, u_max), and u_min and u_max "
+                             "are unbounded: it would never act (a saturation in a LimitedActuator does not reach "
+                             "it); give u_min / u_max (the actuator's limits) or leave K_aw None")
         for name in _MATRICES:                    # numbers and lists become arrays (float32 unless float64 given)
             v = getattr(self, name)
             if v is not None and not isinstance(v, np.ndarray):

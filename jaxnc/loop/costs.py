@@ -142,8 +142,24 @@ class Tracking:
 
 def run_tracking(key, loop, tracking: Tracking):
     """(Metrics, TrackingMetrics) of one seed: ``run_batched(run_tracking, keys, args=(loop,
-    tracking))``. Raises ValueError when the loop does not record ``"x"``."""
+    tracking))``. Raises ValueError when the loop does not record ``"x"``.
+
+    A run that failed (``Metrics.unstable``: the plant frozen at its last good state) has no
+    tracking metrics, as its ``Metrics.cost`` is inf: its ``ise``, ``iae`` and ``itae`` are inf
+    and its other fields nan, so that a summary of the batch (``print(tm)``,
+    :func:`jaxnc.montecarlo.summarize`) leaves it out and counts it instead of averaging the
+    frozen state's numbers with the others (the gradient of a mean flows through the runs that
+    did not fail). ``tracking.metrics(traj.x, loop.T)`` of the run's trajectory gives the frozen
+    run's numbers (as ``Metrics.cost_raw`` does for the cost)."""
     if "x" not in loop.record.signals:
         raise ValueError("run_tracking: the loop must record 'x' (Loop.record)")
     traj = _runner.simulate(loop, key)
-    return _runner.evaluate(loop, traj), tracking.metrics(traj.x, loop.T)
+    return _runner.evaluate(loop, traj), _failed(tracking.metrics(traj.x, loop.T), traj.failed)
+
+
+def _failed(tm: TrackingMetrics, failed) -> TrackingMetrics:
+    """``tm`` of a run, with a failed run's (``failed`` a bool scalar) integrals (``ise``,
+    ``iae``, ``itae``) inf and its other fields nan (:func:`run_tracking`)."""
+    integrals = ("ise", "iae", "itae")
+    return TrackingMetrics(**{f: jnp.where(failed, jnp.inf if f in integrals else jnp.nan, v)
+                              for f, v in tm._asdict().items()})

@@ -56,7 +56,8 @@ def _recomputed_predict(f, g: Gaussian, u, Q, noise_dim: int) -> Gaussian:
 
 
 class PassthroughState(NamedTuple):
-    z: jax.Array
+    z: jax.Array        # float[p] the held measurement
+    stamp: jax.Array    # int32: its time stamp (-1 before the first)
 
 
 @_dataclass
@@ -243,7 +244,10 @@ class EKF(AbstractEstimator):
 
 @_dataclass
 class Passthrough(AbstractEstimator):
-    """The newest delivered measurement, held (no model). ``z0``: float[p] before the first."""
+    """The newest delivered measurement by time stamp, held (no model). ``z0``: float[p] before
+    the first. A measurement older than the one it holds (delivered after it by a link of
+    ``order="all"`` or ``"arrival"``) is ignored (receivers without time stamps, which take every
+    arrival: :mod:`jaxnc.loop.unstamped`)."""
 
     field_shapes = {"z0": ((), ("output",))}
 
@@ -254,12 +258,14 @@ class Passthrough(AbstractEstimator):
         check_finite("Passthrough.z0", self.z0)
 
     def init(self, ctx):
-        return PassthroughState(jnp.broadcast_to(jnp.asarray(self.z0, jnp.float32), (ctx.output_dim,)))
+        return PassthroughState(jnp.broadcast_to(jnp.asarray(self.z0, jnp.float32), (ctx.output_dim,)),
+                                jnp.asarray(-1, jnp.int32))
 
     def correct(self, state, inbox: Inbox, k):
-        z, _, w = inbox.newest()
+        z, stamp, w = inbox.newest()
+        w = w * (stamp > state.stamp)           # only a newer measurement replaces the held one
         z = blend(w, z, state.z)
-        return PassthroughState(z), z
+        return PassthroughState(z, jnp.where(w > 0.5, stamp, state.stamp).astype(jnp.int32)), z
 
     def predict(self, state, u_applied, u_believed, k):
         return state

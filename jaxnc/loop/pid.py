@@ -99,7 +99,8 @@ class PID(AbstractController):
         u_min = +inf or u_max = -inf, a field that is neither a number nor float[1] /
         float[c] (JAX arrays are not checked: batched leaves), a reference that is not a :mod:`jaxnc.references` object, an index that is not
         a non-negative int or tuple of distinct ones, gains whose channel count differs
-        from ``len(index)``, or an unknown ``anti_windup``; when a ``Loop`` is built
+        from ``len(index)``, an unknown ``anti_windup``, ``"back_calculation"`` with u_min and
+        u_max unbounded (None or inf: it would never act); when a ``Loop`` is built
         (its fit check traces one step), an index beyond the estimator's estimate.
     """
 
@@ -150,6 +151,11 @@ class PID(AbstractController):
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
             raise ValueError(f"PID.u_min must be <= u_max, got {lo.tolist()} and {hi.tolist()}")
         check_channels("PID", self.reference, n)
+        unbounded = lambda v: v is None or (isinstance(v, np.ndarray) and bool(np.all(np.isinf(v))))
+        if self.anti_windup == "back_calculation" and unbounded(lo) and unbounded(hi):
+            raise ValueError("PID.anti_windup='back_calculation' acts through u - v, u = clip(v, u_min, u_max), and "
+                             "u_min and u_max are unbounded: it would never act (a saturation in a LimitedActuator "
+                             "does not reach it); give u_min / u_max (the actuator's limits)")
 
     @property
     def channels(self) -> int:
