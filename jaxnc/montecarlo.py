@@ -601,7 +601,9 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
 
     Fields: ``jaxnc_version, experiment, config, results, wall_time_s, created`` (ISO 8601,
     UTC), ``jax_version, platform`` and ``code``, the :func:`jaxnc.sweep.code_fingerprint`
-    of the library that wrote it (:func:`stored_or_run` reuses a file only with the same).  numpy scalars/arrays, jax arrays, tuples, paths,
+    of the library that wrote it (:func:`stored_or_run` reuses a file only with the same), and
+    ``run``, the id of the run that claimed the folder (:func:`jaxnc.results.run_id`), where it
+    has one: :func:`jaxnc.results.load` checks it against the per-seed file's.  numpy scalars/arrays, jax arrays, tuples, paths,
     dataclasses (``Summary``) and NamedTuples are converted; ``inf``/``-inf``/``nan`` are
     written as those strings (:func:`load_results` turns them back into floats).  The file
     is written to a temporary file in the same directory, flushed and fsynced, then moved
@@ -620,6 +622,10 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
         "platform": _platform_string(),
         "code": code_fingerprint(),
     })
+    from jaxnc.results import run_id
+    run = run_id(path.parent)
+    if run is not None:
+        doc["run"] = run
 
     def write(f):
         text = io.TextIOWrapper(f, encoding="utf-8")

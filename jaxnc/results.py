@@ -26,7 +26,8 @@ A results folder belongs to one experiment: ``run.json`` (:func:`claim`, written
 the run that last wrote there. :func:`load` refuses a folder whose files come from two
 experiments or two runs (``run.json``, ``results.json`` and ``seeds.npz`` naming
 different experiments, a grid's cells beside a single run's ``seeds.npz``, a seed count
-that does not match the per-seed files).
+that does not match the per-seed files, ``results.json`` and ``seeds.npz`` of two runs that
+:func:`claim` gave different ids: a run stopped between writing the two).
 
 Writing needs only numpy; reading needs xarray (and pandas), imported when first used.
 """
@@ -41,7 +42,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 __all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "config_of", "save_per_seed", "per_seed_index", "claim",
-           "folder_owner", "load", "summary", "to_pandas"]
+           "folder_owner", "run_id", "load", "summary", "to_pandas"]
 
 PER_SEED_FILE = "seeds.npz"
 #: the record of the experiment, settings and seeds that a folder's results come from
@@ -338,13 +339,20 @@ def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, exp
     single label for one dimension) to its metrics: a NamedTuple or mapping of 1-D arrays,
     one value per seed (all runs the same fields and seed count), with a boolean
     ``unstable`` field. Raises ValueError / TypeError for runs that do not fit that shape.
-    ``experiment`` (the name in ``results.json``) is stored too, and :func:`load` checks it.
+    ``experiment`` (the name in ``results.json``) is stored too, and :func:`load` checks it;
+    so is the id of the run that claimed ``folder`` (:func:`run_id`), which
+    :func:`jaxnc.montecarlo.save_results` stores in ``results.json`` too: :func:`load` refuses
+    a ``seeds.npz`` of one run beside a ``results.json`` of another (a run stopped between
+    writing the two).
     """
     from jaxnc.montecarlo import atomic_write
     coords, data, present = _stack(runs, dims)
     meta = {"format": FORMAT, "dims": list(dims), "coords": coords, "variables": sorted(data)}
     if experiment is not None:
         meta["experiment"] = str(experiment)
+    run = run_id(folder)
+    if run is not None:
+        meta["run"] = run
     if not present.all():
         data["present"] = present
     arrays = {_META: np.asarray(json.dumps(meta)), **data}
@@ -424,9 +432,21 @@ def _differences(there: dict, here: dict) -> list[str]:
             for k in keys if there.get(k) != here.get(k)]
 
 
+def run_id(folder) -> str | None:
+    """The id that :func:`claim` gave the run that last claimed ``folder`` (``run.json``'s
+    ``"run"``, new at every claim); None for a folder without one (never claimed, or claimed
+    by a jaxnc before run ids). :func:`save_per_seed` and
+    :func:`jaxnc.montecarlo.save_results` store it in the files they write there, so that
+    :func:`load` tells a folder whose files come from two runs of the same settings apart."""
+    run = _read_json(pathlib.Path(folder) / RUN_FILE)
+    rid = run.get("run") if isinstance(run, dict) and run.get("format") == RUN_FORMAT else None
+    return rid if isinstance(rid, str) else None
+
+
 def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells: bool = False) -> list[str]:
     """Record in ``folder/run.json`` that ``folder`` receives the results of ``experiment``
-    run with ``settings`` and ``seeds`` (atomically; the folder must exist).
+    run with ``settings`` and ``seeds`` (atomically; the folder must exist), under a new
+    run id (:func:`run_id`).
 
     Raises :class:`FolderError`, writing nothing, when the folder holds the results of
     another experiment (:func:`folder_owner`), or when it holds finished results
@@ -454,7 +474,8 @@ def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells
         if diff and not keeps_cells and (folder / "results.json").exists():
             raise FolderError(f"{folder} holds the results of {experiment} with other settings ({'; '.join(diff)}), "
                               f"which this run would overwrite; choose another folder (or remove this one)")
-    doc = {"format": RUN_FORMAT, "experiment": experiment, **here}
+    import uuid
+    doc = {"format": RUN_FORMAT, "experiment": experiment, **here, "run": uuid.uuid4().hex}
     text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
     atomic_write(folder / RUN_FILE, lambda fh: fh.write(text.encode("utf-8")))
     return diff if keeps_cells else []
@@ -489,7 +510,8 @@ def _load_single(f: pathlib.Path):
             assert a.ndim == len(dims) + 1 and a.shape[:-1] == shape, f"{name} has shape {a.shape}"
     except (KeyError, TypeError, ValueError, AssertionError) as e:
         raise ValueError(f"{f}: damaged per-seed file ({type(e).__name__}: {e})") from None
-    return dims, coords, z, meta.get("experiment")
+    run = meta.get("run")
+    return dims, coords, z, meta.get("experiment"), run if isinstance(run, str) else None
 
 
 def _load_cells(folder: pathlib.Path, index: dict, results_file: pathlib.Path):
@@ -589,10 +611,14 @@ def load(folder):
                          f"{rj.name} does not list, beside a single run's {PER_SEED_FILE}; rerun the experiment "
                          f"into a folder of its own")
     else:
-        dims, coords, data, stored = _load_single(single)
+        dims, coords, data, stored, run = _load_single(single)
         if stored is not None and stored != experiment:
             raise ValueError(f"{folder} mixes the files of two experiments: {rj.name} is {experiment!r}'s, "
                              f"{PER_SEED_FILE} {stored!r}'s; rerun the experiment into a folder of its own")
+        if run != doc.get("run"):
+            raise ValueError(f"{folder} mixes the files of two runs: {PER_SEED_FILE} was written by run "
+                             f"{run or '(no id)'}, {rj.name} by run {doc.get('run') or '(no id)'} (a run stopped "
+                             f"after writing one and before the other?); rerun the experiment")
     n = next(iter(data.values())).shape[-1]
     if seeds is not None and seeds != n:
         raise ValueError(f"{rj}: config.seeds is {seeds} but the per-seed files hold {n} seeds (the files of two "

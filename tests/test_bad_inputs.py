@@ -591,6 +591,15 @@ def _with_cells_beside(folder):
     (folder / "cells").mkdir()
 
 
+def _per_seed_of_a_later_run(folder):
+    from jaxnc import results
+    results.claim(folder, "toy", {}, 5)
+    _toy_folder(folder)
+    results.claim(folder, "toy", {}, 5)              # the same settings again, stopped after its seeds.npz
+    results.save_per_seed(folder, {"A": {"J1": np.ones(5, np.float32), "unstable": np.zeros(5, bool)}},
+                          experiment="toy")
+
+
 def _index_and_single(folder):
     _toy_folder(folder, experiment="grid")
     _grid_folder(folder, [["A", "cells/a.npz"]])
@@ -622,6 +631,7 @@ RESULTS_FOLDERS = [
      "mixes the files of two experiments: results.json is 'toy''s, seeds.npz 'hdd''s"),
     (_index_and_single, "mixes the files of two runs: results.json lists per-seed cells and seeds.npz"),
     (_with_cells_beside, "mixes the files of two runs: cells/ holds a sweep's cells"),
+    (_per_seed_of_a_later_run, "mixes the files of two runs: seeds.npz was written by run"),
 ]
 
 

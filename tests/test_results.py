@@ -227,7 +227,9 @@ def test_balancing_dataset_means_are_the_printed_table(tmp_path, capsys):
 def test_claim_records_the_run_and_refuses_what_would_mix_or_overwrite(tmp_path):
     results.claim(tmp_path, "toy", {"k": 1, "t": (0.1, 0.2)}, 5)
     doc = json.loads((tmp_path / results.RUN_FILE).read_text())
+    run = doc.pop("run")
     assert doc == {"format": "jaxnc-run-1", "experiment": "toy", "settings": {"k": 1, "t": [0.1, 0.2]}, "seeds": 5}
+    assert results.run_id(tmp_path) == run and re.fullmatch("[0-9a-f]{32}", run)
     assert results.folder_owner(tmp_path) == {"experiment": "toy", "settings": {"k": 1, "t": [0.1, 0.2]}, "seeds": 5}
     results.claim(tmp_path, "toy", {"k": 2, "t": (0.1, 0.2)}, 5)     # nothing finished yet: nothing to lose
     montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
@@ -252,6 +254,47 @@ def test_a_folder_without_run_file_is_owned_by_its_results_file(tmp_path):
     (tmp_path / results.RUN_FILE).write_text("{damaged")                 # unreadable: the results file says
     with pytest.raises(results.FolderError, match="not 'hdd'"):
         results.claim(tmp_path, "hdd", {}, 4)
+
+
+def test_a_run_stopped_between_its_two_files_is_not_loaded_with_the_former_runs_summary(tmp_path):
+    # run A finished; run B of the same settings (other code: other numbers) claimed the folder
+    # and wrote its seeds.npz, then stopped before results.json: load gave B's seeds under A's summary
+    results.claim(tmp_path, "toy", {"k": 1}, 4)
+    results.save_per_seed(tmp_path, {"A": _metrics(4)}, experiment="toy")
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 4},
+                            results={"J1": 1.5}, wall_time_s=0.0)
+    assert float(jaxnc.load(tmp_path).J1.mean()) == 1.5
+    results.claim(tmp_path, "toy", {"k": 1}, 4)
+    results.save_per_seed(tmp_path, {"A": _metrics(4, 10.0)}, experiment="toy")
+    with pytest.raises(ValueError, match="mixes the files of two runs: seeds.npz was written by run [0-9a-f]{32}, "
+                                         "results.json by run [0-9a-f]{32}"):
+        jaxnc.load(tmp_path)
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 4},
+                            results={"J1": 11.5}, wall_time_s=0.0)
+    assert float(jaxnc.load(tmp_path).J1.mean()) == 11.5            # B finished: its own files
+
+
+def test_a_run_killed_by_a_signal_after_its_per_seed_file_leaves_a_folder_load_refuses(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    results.claim(tmp_path, "toy", {"k": 1}, 4)
+    results.save_per_seed(tmp_path, {"A": _metrics(4)}, experiment="toy")
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 4},
+                            results={}, wall_time_s=0.0)
+    script = ("import os, signal, sys, numpy as np\n"
+              "from jaxnc import results\n"
+              "results.claim(sys.argv[1], 'toy', {'k': 1}, 4)\n"
+              "results.save_per_seed(sys.argv[1], {'A': {'J1': np.full(4, 7.0, np.float32), "
+              "'unstable': np.zeros(4, bool)}}, experiment='toy')\n"
+              "os.kill(os.getpid(), signal.SIGKILL)\n")
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, capture_output=True, timeout=120)
+    assert done.returncode == -signal.SIGKILL, done.stderr.decode()
+    with pytest.raises(ValueError, match="mixes the files of two runs"):
+        jaxnc.load(tmp_path)
+    assert not list(tmp_path.glob(".*.tmp"))
 
 
 def test_per_seed_file_names_its_experiment(tmp_path):
