@@ -18,7 +18,8 @@ not hold the results of another experiment, or finished results of other setting
 this run would overwrite (:func:`jaxnc.results.claim`, which then records the run in
 ``OUT/run.json``; a sweep's cells, named by their whole configuration, are kept apart
 instead). A run of an experiment that is not a sweep holds a lock on ``OUT`` while it runs,
-so a second run into the same folder meanwhile is refused.
+so a second run into the same folder meanwhile is refused; it removes the temporary files a
+killed run left there (:func:`jaxnc.montecarlo.stale_temporaries`).
 
 :func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
 ends by raising ``SystemExit(code)``: 0 on success, 2 for a bad command line or setting
@@ -202,6 +203,10 @@ def _sole_writer(out: pathlib.Path, exp, distributed: bool):
         except BlockingIOError:
             raise ConfigError(f"--out: {out} is being written by another jaxnc run right now (it holds a lock "
                               f"on the folder); choose another folder, or wait for that run to end") from None
+        from jaxnc.montecarlo import stale_temporaries
+        for f in stale_temporaries(out):        # a killed run's unfinished files; no one else writes here now
+            with contextlib.suppress(FileNotFoundError):
+                f.unlink()
         yield
 
 
