@@ -331,8 +331,30 @@ def _stack(runs: Mapping[tuple, Mapping], dims: Sequence[str]):
     return coords, data, present
 
 
-def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, experiment: str | None = None
-                  ) -> pathlib.Path:
+def _units(metrics: Sequence, given: Mapping | None, names: Sequence[str], where: str) -> dict[str, str]:
+    """``{metric: unit}``: the ``UNITS`` of the metrics' NamedTuple classes, then ``given``;
+    ValueError naming ``where`` for a name that is not one of ``names`` or a unit that is not
+    a non-empty string."""
+    out = {}
+    for m in metrics:
+        own = getattr(type(m), "UNITS", None)
+        if hasattr(m, "_asdict") and isinstance(own, Mapping):
+            out.update({k: v for k, v in own.items() if k in names})
+    if given is not None:
+        if not isinstance(given, Mapping):
+            raise ValueError(f"{where}: units must be a mapping of metric name to unit, e.g. {{'J1': 'm'}}, "
+                             f"got {type(given).__name__}")
+        for k, v in given.items():
+            if k not in names:
+                raise ValueError(f"{where}: units names {k!r}, which is not one of the metrics {list(names)}")
+            if not isinstance(v, str) or not v.strip():
+                raise ValueError(f"{where}: the unit of {k!r} must be a non-empty string, got {v!r}")
+        out.update({str(k): v for k, v in given.items()})
+    return out
+
+
+def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, experiment: str | None = None,
+                  units: Mapping[str, str] | None = None) -> pathlib.Path:
     """Write the per-seed metrics of a run to ``folder/seeds.npz`` (atomically); returns the file.
 
     ``runs`` maps a run's coordinates (a tuple with one label per entry of ``dims``, or a
@@ -344,12 +366,21 @@ def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, exp
     :func:`jaxnc.montecarlo.save_results` stores in ``results.json`` too: :func:`load` refuses
     a ``seeds.npz`` of one run beside a ``results.json`` of another (a run stopped between
     writing the two).
+
+    ``units`` maps a metric's name to its unit (``{"J1": "m"}``); a run's metrics given as a
+    NamedTuple whose class has a ``UNITS`` mapping (:class:`jaxnc.loop.Metrics`, the papers'
+    ``Metrics``) add theirs. :func:`load` gives each such variable ``attrs["units"]``. Raises
+    ValueError for a unit of a name that is not one of the metrics, or one that is not a
+    non-empty string.
     """
     from jaxnc.montecarlo import atomic_write
     coords, data, present = _stack(runs, dims)
+    units = _units([*runs.values()], units, sorted(data), "save_per_seed")
     meta = {"format": FORMAT, "dims": list(dims), "coords": coords, "variables": sorted(data)}
     if experiment is not None:
         meta["experiment"] = str(experiment)
+    if units:
+        meta["units"] = units
     run = run_id(folder)
     if run is not None:
         meta["run"] = run
@@ -361,7 +392,8 @@ def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, exp
     return f
 
 
-def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -> dict:
+def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str], *,
+                   units: Mapping[str, str] | None = None) -> dict:
     """The ``results["per_seed"]`` entry of a grid: ``{"dims", "cells": [[*coords, file]]}``,
     each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``.
 
@@ -369,7 +401,9 @@ def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -
     single label for one dimension) to its file inside ``folder``. Raises ValueError (naming
     ``per_seed_index`` and the cell) for dims that are not a sequence of names, a cell with
     another number of coordinates, or a file outside ``folder``: checked here, when the
-    index is written, rather than by :func:`load` after the sweep."""
+    index is written, rather than by :func:`load` after the sweep. ``units``: ``{metric: unit}``
+    (as :func:`save_per_seed`'s; the names are not checked against the cells' files here,
+    :func:`load` ignores a unit of a name they do not hold)."""
     folder = pathlib.Path(folder)
     dims = _dims(dims, "per_seed_index")
     rows = []
@@ -381,7 +415,11 @@ def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -
             raise ValueError(f"per_seed_index: the file of cell {key!r}, {f}, must be inside the folder "
                              f"{folder}") from None
         rows.append([*key, rel])
-    return {"format": FORMAT, "dims": list(dims), "cells": rows}
+    index = {"format": FORMAT, "dims": list(dims), "cells": rows}
+    if units is not None:
+        names = list(units) if isinstance(units, Mapping) else []
+        index["units"] = _units([], units, names, "per_seed_index")
+    return index
 
 
 # ----------------------------------------------------------------------------- folders
@@ -511,7 +549,7 @@ def _load_single(f: pathlib.Path):
     except (KeyError, TypeError, ValueError, AssertionError) as e:
         raise ValueError(f"{f}: damaged per-seed file ({type(e).__name__}: {e})") from None
     run = meta.get("run")
-    return dims, coords, z, meta.get("experiment"), run if isinstance(run, str) else None
+    return dims, coords, z, meta.get("experiment"), run if isinstance(run, str) else None, meta.get("units")
 
 
 def _load_cells(folder: pathlib.Path, index: dict, results_file: pathlib.Path):
@@ -559,7 +597,9 @@ def load(folder):
     ``start``, so a study run from ``seed_keys(seed, n, start=k)`` reads k + i as i.
     Variables: the experiment's per-seed metrics (float32 / int32 / bool as computed;
     a grid with combinations it did not compute has NaN there, ``unstable`` True and a
-    boolean ``present`` variable). Attributes: ``experiment``, ``settings``, ``seeds``,
+    boolean ``present`` variable), each with ``attrs["units"]`` where the run stored its unit
+    (:func:`save_per_seed`'s ``units``: the built-in experiments' and
+    :class:`jaxnc.loop.Metrics`' rates; a cost's unit is the user's). Attributes: ``experiment``, ``settings``, ``seeds``,
     ``config`` (the whole configuration), ``jaxnc_version``, ``jax_version``,
     ``platform``, ``created``, ``wall_time_s``.
 
@@ -601,8 +641,10 @@ def load(folder):
     if index is not None and single.exists():
         raise ValueError(f"{folder} mixes the files of two runs: {rj.name} lists per-seed cells and {PER_SEED_FILE} "
                          f"holds a single run's; rerun the experiment into a folder of its own")
+    units = None
     if index is not None:
         dims, coords, data = _load_cells(folder, index, rj)
+        units = index.get("units") if isinstance(index, dict) else None
     elif cell_dirs and not single.exists():
         raise FileNotFoundError(f"{rj}: lists no per-seed cells (written by a jaxnc older than per-seed results); "
                                 f"rerun the same command: the stored cells are reused and indexed")
@@ -611,7 +653,7 @@ def load(folder):
                          f"{rj.name} does not list, beside a single run's {PER_SEED_FILE}; rerun the experiment "
                          f"into a folder of its own")
     else:
-        dims, coords, data, stored, run = _load_single(single)
+        dims, coords, data, stored, run, units = _load_single(single)
         if stored is not None and stored != experiment:
             raise ValueError(f"{folder} mixes the files of two experiments: {rj.name} is {experiment!r}'s, "
                              f"{PER_SEED_FILE} {stored!r}'s; rerun the experiment into a folder of its own")
@@ -628,7 +670,11 @@ def load(folder):
     attrs = {"experiment": experiment, "settings": config.get("settings", {}),
              "seeds": config.get("seeds", n), "config": config}
     attrs |= {k: doc[k] for k in ("jaxnc_version", "jax_version", "platform", "created", "wall_time_s") if k in doc}
-    return xr.Dataset(variables, coords={**{d: list(coords[d]) for d in dims}, "seed": np.arange(n)}, attrs=attrs)
+    ds = xr.Dataset(variables, coords={**{d: list(coords[d]) for d in dims}, "seed": np.arange(n)}, attrs=attrs)
+    for name, unit in (units.items() if isinstance(units, dict) else ()):
+        if name in ds.data_vars and isinstance(unit, str):
+            ds[name].attrs["units"] = unit
+    return ds
 
 
 # ----------------------------------------------------------------------------- summaries
@@ -645,7 +691,8 @@ def summary(ds):
     other dimensions are kept. Boolean metrics other than ``unstable`` are averaged over
     all seeds (the fraction of runs where they hold). A combination no run computed
     (``present`` False) has ``n`` and the ``_n_stable`` counts 0 and every other statistic
-    nan."""
+    nan. A metric's ``attrs["units"]`` (:func:`load`) is kept on its mean, ``_ci95`` and
+    ``_std``."""
     xr = _xarray()
     from jaxnc.montecarlo import summarize
 
@@ -662,9 +709,11 @@ def summary(ds):
             out[name] = v.astype(float).mean("seed")
             continue
         r = xr.apply_ufunc(stats, v, unstable, input_core_dims=[["seed"], ["seed"]], output_core_dims=[["stat"]],
-                           vectorize=True, dask_gufunc_kwargs={"output_sizes": {"stat": len(_STATS)}})
+                           vectorize=True, keep_attrs=False, dask_gufunc_kwargs={"output_sizes": {"stat": len(_STATS)}})
         for i, s in enumerate(_STATS):
-            out[name if s == "mean" else f"{name}_{s}"] = r.isel(stat=i, drop=True)
+            stat = r.isel(stat=i, drop=True)
+            unit = v.attrs.get("units") if s != "n_stable" else None        # a count has none
+            out[name if s == "mean" else f"{name}_{s}"] = stat.assign_attrs(units=unit) if unit else stat
     out["n"] = xr.full_like(unstable.isel(seed=0, drop=True), ds.sizes["seed"], dtype=int)
     out["unstable_fraction"] = unstable.astype(float).mean("seed")
     if "present" in ds:

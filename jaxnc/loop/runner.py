@@ -871,6 +871,10 @@ class Metrics(NamedTuple):
     rate_ca: jax.Array    # controller transmissions per slow period (as rate_sc)
     unstable: jax.Array   # bool: the run failed
 
+    #: units of the fields the library knows (the cost's are the user's Q and R's), for
+    #: :func:`jaxnc.results.save_per_seed` and the Dataset of :func:`jaxnc.load`
+    UNITS = {"rate_sc": "transmissions per slow period", "rate_ca": "transmissions per slow period"}
+
     def __repr__(self) -> str:
         from jaxnc.montecarlo import describe
         return describe(self)
