@@ -65,6 +65,29 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
+class _RunHelp(argparse.Action):
+    """``jaxnc run [EXPERIMENT] --help``: the run command's help, then, when an experiment is
+    named before ``--help``, its settings, defaults and ranges (as ``jaxnc list`` shows them);
+    exits 0, or 2 with one line for an experiment that cannot be resolved."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.print_help()
+        spec = getattr(namespace, "experiment", None)
+        if spec is not None:
+            try:
+                _load_builtin()
+                exp = _exp.resolve_experiment(spec)
+            except ConfigError as e:
+                sys.stdout.flush()
+                sys.stderr.write(f"{PROG}: error: {' '.join(str(e).split())}\n")
+                raise SystemExit(2) from None
+            print(f"\nsettings of {format_experiment(exp)}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description="Monte-Carlo simulation of networked control systems (JAX).")
     p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
@@ -73,9 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("list", help="list the experiments and their settings",
                    description="List the registered experiments, their settings, defaults and ranges.")
 
-    r = sub.add_parser("run", help="run an experiment",
+    r = sub.add_parser("run", help="run an experiment", add_help=False,
                        description="Run an experiment over many seeds: a registered one, or one "
-                                   "defined in your own module, given as MODULE:ATTR.")
+                                   "defined in your own module, given as MODULE:ATTR. "
+                                   "'jaxnc run EXPERIMENT --help' adds its settings.")
+    r.add_argument("-h", "--help", action=_RunHelp,
+                   help="show this help message (and EXPERIMENT's settings when one is given before it) and exit")
     r.add_argument("experiment", metavar="EXPERIMENT",
                    help="a registered experiment name (see 'jaxnc list'), or MODULE:ATTR: an "
                         "Experiment, or a zero-argument callable returning one, in an importable "

@@ -228,6 +228,18 @@ def test_a_folder_of_other_settings_or_another_experiment_is_refused_before_runn
     assert run(["run", "dummy", "--seeds", "4", "--out", str(fresh), "--set", "N=4"]) == 0
 
 
+def test_run_help_of_an_experiment_lists_its_settings(capsys):
+    assert run(["run", "dummy", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: jaxnc run") and "--seeds N" in out
+    assert "settings of dummy: a test experiment" in out
+    assert "    N      default 10; an integer in [1, 12]. multiplicity" in out
+    assert run(["run", "-h"]) == 0 and "settings of" not in capsys.readouterr().out
+    assert run(["run", "nosuch", "-h"]) == 2
+    assert_one_line_error(capsys, "unknown experiment 'nosuch'")
+    assert CALLS == []
+
+
 def test_a_run_removes_the_temporary_file_a_killed_write_left(tmp_path):
     import os
     import signal
