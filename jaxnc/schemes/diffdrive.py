@@ -161,7 +161,7 @@ class Metrics(NamedTuple):
 
     #: the fields' units (jaxnc.results.save_per_seed, jaxnc.load)
     UNITS = {"J1": "mm", "J1_mean": "mm", "J2": "mm", "J1_ref": "mm", "J2_ref": "mm", "J3": "s",
-             "packets": "packets", "l": "fast periods"}
+             "packets": "packets", "l": "actuation periods T"}   # T = plant.T, not the runner's T / sub
 
 
 def metrics(loop: nc.Loop, traj: nc.Trajectory, *, N: int = 2) -> Metrics:
