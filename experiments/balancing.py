@@ -203,7 +203,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           f"tilt sensor={settings['tilt_sensor']}, filter's tilt R={settings['kf_tilt']}\n")
     print(table(summary))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, runs, dims=("severity", "design"), experiment="balancing")
+    per_seed.save_per_seed(out, runs, dims=("severity", "design"), experiment="balancing", units=bal.Metrics.UNITS)
     figs = [fig7(loops, keys[0], out, _sevs(settings))]
     f5, loopback = fig5(jax.random.fold_in(jax.random.PRNGKey(settings["seed"]), 5), out)
     figs.append(f5)

@@ -176,7 +176,7 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
           " path; 'paper' Table 2's values\n")
     print(table(summary, printed=True))
     out.mkdir(parents=True, exist_ok=True)
-    per_seed.save_per_seed(out, results, dims=("case",), experiment="diffdrive")
+    per_seed.save_per_seed(out, results, dims=("case",), experiment="diffdrive", units=dd.Metrics.UNITS)
     f1, f2 = plot_paths({n: l for n, l in loops.items() if n in FIGURE_ROWS}, keys[0], out)
     wall = time.perf_counter() - t0
     config = {"settings": settings, "seeds": seeds,

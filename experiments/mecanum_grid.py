@@ -218,7 +218,8 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
                "files": [str(f) for f in written],
                # the stored cells of this configuration, for jaxnc.load
                "per_seed": per_seed.per_seed_index(out, {c: cell_file(out, cfgs[c]).with_suffix(".npz")
-                                                         for c in results}, dims=("path", "N", "case", "dp"))}
+                                                         for c in results}, dims=("path", "N", "case", "dp"),
+                                                        units=mec.Metrics.UNITS)}
     montecarlo.save_results(out / "results.json", experiment="mecanum-grid",
                             config={"settings": settings, "seeds": seeds}, results=summary, wall_time_s=elapsed)
     print(f"\n{computed} cells computed, {done_before} reused, in {elapsed:.1f} s")

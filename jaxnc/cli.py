@@ -18,7 +18,8 @@ not hold the results of another experiment, or finished results of other setting
 this run would overwrite (:func:`jaxnc.results.claim`, which then records the run in
 ``OUT/run.json``; a sweep's cells, named by their whole configuration, are kept apart
 instead). A run of an experiment that is not a sweep holds a lock on ``OUT`` while it runs,
-so a second run into the same folder meanwhile is refused.
+so a second run into the same folder meanwhile is refused; it removes the temporary files a
+killed run left there (:func:`jaxnc.montecarlo.stale_temporaries`).
 
 :func:`main` is the console-script entry point (``jaxnc = "jaxnc.cli:main"``).  It always
 ends by raising ``SystemExit(code)``: 0 on success, 2 for a bad command line or setting
@@ -64,6 +65,29 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
+class _RunHelp(argparse.Action):
+    """``jaxnc run [EXPERIMENT] --help``: the run command's help, then, when an experiment is
+    named before ``--help``, its settings, defaults and ranges (as ``jaxnc list`` shows them);
+    exits 0, or 2 with one line for an experiment that cannot be resolved."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.print_help()
+        spec = getattr(namespace, "experiment", None)
+        if spec is not None:
+            try:
+                _load_builtin()
+                exp = _exp.resolve_experiment(spec)
+            except ConfigError as e:
+                sys.stdout.flush()
+                sys.stderr.write(f"{PROG}: error: {' '.join(str(e).split())}\n")
+                raise SystemExit(2) from None
+            print(f"\nsettings of {format_experiment(exp)}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description="Monte-Carlo simulation of networked control systems (JAX).")
     p.add_argument("--version", action="version", version=f"{PROG} {__version__}")
@@ -72,9 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("list", help="list the experiments and their settings",
                    description="List the registered experiments, their settings, defaults and ranges.")
 
-    r = sub.add_parser("run", help="run an experiment",
+    r = sub.add_parser("run", help="run an experiment", add_help=False,
                        description="Run an experiment over many seeds: a registered one, or one "
-                                   "defined in your own module, given as MODULE:ATTR.")
+                                   "defined in your own module, given as MODULE:ATTR. "
+                                   "'jaxnc run EXPERIMENT --help' adds its settings.")
+    r.add_argument("-h", "--help", action=_RunHelp,
+                   help="show this help message (and EXPERIMENT's settings when one is given before it) and exit")
     r.add_argument("experiment", metavar="EXPERIMENT",
                    help="a registered experiment name (see 'jaxnc list'), or MODULE:ATTR: an "
                         "Experiment, or a zero-argument callable returning one, in an importable "
@@ -202,6 +229,10 @@ def _sole_writer(out: pathlib.Path, exp, distributed: bool):
         except BlockingIOError:
             raise ConfigError(f"--out: {out} is being written by another jaxnc run right now (it holds a lock "
                               f"on the folder); choose another folder, or wait for that run to end") from None
+        from jaxnc.montecarlo import stale_temporaries
+        for f in stale_temporaries(out):        # a killed run's unfinished files; no one else writes here now
+            with contextlib.suppress(FileNotFoundError):
+                f.unlink()
         yield
 
 

@@ -24,6 +24,7 @@ import math
 import os
 import pathlib
 import platform as _platform
+import re
 import sys
 import tempfile
 import time
@@ -41,7 +42,7 @@ from jaxnc.sweep import code_fingerprint
 __all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
            "seeds_for_paired_interval", "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
-           "stored_or_run", "stored_study", "uniform_dtypes"]
+           "stored_or_run", "stored_study", "uniform_dtypes", "stale_temporaries"]
 
 
 # ----------------------------------------------------------------------------- memory
@@ -601,7 +602,9 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
 
     Fields: ``jaxnc_version, experiment, config, results, wall_time_s, created`` (ISO 8601,
     UTC), ``jax_version, platform`` and ``code``, the :func:`jaxnc.sweep.code_fingerprint`
-    of the library that wrote it (:func:`stored_or_run` reuses a file only with the same).  numpy scalars/arrays, jax arrays, tuples, paths,
+    of the library that wrote it (:func:`stored_or_run` reuses a file only with the same), and
+    ``run``, the id of the run that claimed the folder (:func:`jaxnc.results.run_id`), where it
+    has one: :func:`jaxnc.results.load` checks it against the per-seed file's.  numpy scalars/arrays, jax arrays, tuples, paths,
     dataclasses (``Summary``) and NamedTuples are converted; ``inf``/``-inf``/``nan`` are
     written as those strings (:func:`load_results` turns them back into floats).  The file
     is written to a temporary file in the same directory, flushed and fsynced, then moved
@@ -620,6 +623,10 @@ def save_results(path, *, experiment: str, config: dict, results: dict, wall_tim
         "platform": _platform_string(),
         "code": code_fingerprint(),
     })
+    from jaxnc.results import run_id
+    run = run_id(path.parent)
+    if run is not None:
+        doc["run"] = run
 
     def write(f):
         text = io.TextIOWrapper(f, encoding="utf-8")
@@ -636,7 +643,11 @@ def atomic_write(path, write: Callable) -> None:
     same directory, which is flushed, fsynced and moved over ``path`` with ``os.replace``
     (the directory is fsynced too). A reader sees the old file or the complete new one;
     an exception (Ctrl-C included) leaves the old file untouched and no temporary file
-    behind. Parent directories are created; the file gets the usual mode (umask)."""
+    behind. Parent directories are created; the file gets the usual mode (umask).
+
+    A process killed outright (SIGKILL, a machine's crash) leaves its temporary file,
+    ``.<name>.<8 characters>.tmp`` beside ``path``: no reader opens it (every reader names
+    its file), and :func:`stale_temporaries` lists such files for removal."""
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -664,6 +675,20 @@ def atomic_write(path, write: Callable) -> None:
                 os.close(dfd)
         except OSError:
             pass
+
+
+_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp\Z")
+
+
+def stale_temporaries(folder) -> list[pathlib.Path]:
+    """The temporary files :func:`atomic_write` left in ``folder`` (not its subfolders) when
+    its process was killed while writing (``.<name>.<8 characters>.tmp``, sorted). Only
+    safe to remove while no other process writes in ``folder``: ``jaxnc run`` removes them
+    from its ``--out`` while it holds the folder's lock (an experiment that is not a sweep)."""
+    folder = pathlib.Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted(f for f in folder.iterdir() if _TEMPORARY.match(f.name) and f.is_file())
 
 
 def _restore(obj):

@@ -26,7 +26,8 @@ A results folder belongs to one experiment: ``run.json`` (:func:`claim`, written
 the run that last wrote there. :func:`load` refuses a folder whose files come from two
 experiments or two runs (``run.json``, ``results.json`` and ``seeds.npz`` naming
 different experiments, a grid's cells beside a single run's ``seeds.npz``, a seed count
-that does not match the per-seed files).
+that does not match the per-seed files, ``results.json`` and ``seeds.npz`` of two runs that
+:func:`claim` gave different ids: a run stopped between writing the two).
 
 Writing needs only numpy; reading needs xarray (and pandas), imported when first used.
 """
@@ -41,7 +42,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 __all__ = ["PER_SEED_FILE", "RUN_FILE", "FORMAT", "FolderError", "config_of", "save_per_seed", "per_seed_index", "claim",
-           "folder_owner", "load", "summary", "to_pandas"]
+           "folder_owner", "run_id", "load", "summary", "to_pandas"]
 
 PER_SEED_FILE = "seeds.npz"
 #: the record of the experiment, settings and seeds that a folder's results come from
@@ -330,21 +331,59 @@ def _stack(runs: Mapping[tuple, Mapping], dims: Sequence[str]):
     return coords, data, present
 
 
-def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, experiment: str | None = None
-                  ) -> pathlib.Path:
+def _units(metrics: Sequence, given: Mapping | None, names: Sequence[str], where: str) -> dict[str, str]:
+    """``{metric: unit}``: the ``UNITS`` of the metrics' NamedTuple classes, then ``given``;
+    ValueError naming ``where`` for a name that is not one of ``names`` or a unit that is not
+    a non-empty string."""
+    out = {}
+    for m in metrics:
+        own = getattr(type(m), "UNITS", None)
+        if hasattr(m, "_asdict") and isinstance(own, Mapping):
+            out.update({k: v for k, v in own.items() if k in names})
+    if given is not None:
+        if not isinstance(given, Mapping):
+            raise ValueError(f"{where}: units must be a mapping of metric name to unit, e.g. {{'J1': 'm'}}, "
+                             f"got {type(given).__name__}")
+        for k, v in given.items():
+            if k not in names:
+                raise ValueError(f"{where}: units names {k!r}, which is not one of the metrics {list(names)}")
+            if not isinstance(v, str) or not v.strip():
+                raise ValueError(f"{where}: the unit of {k!r} must be a non-empty string, got {v!r}")
+        out.update({str(k): v for k, v in given.items()})
+    return out
+
+
+def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, experiment: str | None = None,
+                  units: Mapping[str, str] | None = None) -> pathlib.Path:
     """Write the per-seed metrics of a run to ``folder/seeds.npz`` (atomically); returns the file.
 
     ``runs`` maps a run's coordinates (a tuple with one label per entry of ``dims``, or a
     single label for one dimension) to its metrics: a NamedTuple or mapping of 1-D arrays,
     one value per seed (all runs the same fields and seed count), with a boolean
     ``unstable`` field. Raises ValueError / TypeError for runs that do not fit that shape.
-    ``experiment`` (the name in ``results.json``) is stored too, and :func:`load` checks it.
+    ``experiment`` (the name in ``results.json``) is stored too, and :func:`load` checks it;
+    so is the id of the run that claimed ``folder`` (:func:`run_id`), which
+    :func:`jaxnc.montecarlo.save_results` stores in ``results.json`` too: :func:`load` refuses
+    a ``seeds.npz`` of one run beside a ``results.json`` of another (a run stopped between
+    writing the two).
+
+    ``units`` maps a metric's name to its unit (``{"J1": "m"}``); a run's metrics given as a
+    NamedTuple whose class has a ``UNITS`` mapping (:class:`jaxnc.loop.Metrics`, the papers'
+    ``Metrics``) add theirs. :func:`load` gives each such variable ``attrs["units"]``. Raises
+    ValueError for a unit of a name that is not one of the metrics, or one that is not a
+    non-empty string.
     """
     from jaxnc.montecarlo import atomic_write
     coords, data, present = _stack(runs, dims)
+    units = _units([*runs.values()], units, sorted(data), "save_per_seed")
     meta = {"format": FORMAT, "dims": list(dims), "coords": coords, "variables": sorted(data)}
     if experiment is not None:
         meta["experiment"] = str(experiment)
+    if units:
+        meta["units"] = units
+    run = run_id(folder)
+    if run is not None:
+        meta["run"] = run
     if not present.all():
         data["present"] = present
     arrays = {_META: np.asarray(json.dumps(meta)), **data}
@@ -353,7 +392,8 @@ def save_per_seed(folder, runs: Mapping, dims: Sequence[str] = ("case",), *, exp
     return f
 
 
-def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -> dict:
+def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str], *,
+                   units: Mapping[str, str] | None = None) -> dict:
     """The ``results["per_seed"]`` entry of a grid: ``{"dims", "cells": [[*coords, file]]}``,
     each cell's ``.npz`` (of its metrics' fields, one value per seed) relative to ``folder``.
 
@@ -361,7 +401,9 @@ def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -
     single label for one dimension) to its file inside ``folder``. Raises ValueError (naming
     ``per_seed_index`` and the cell) for dims that are not a sequence of names, a cell with
     another number of coordinates, or a file outside ``folder``: checked here, when the
-    index is written, rather than by :func:`load` after the sweep."""
+    index is written, rather than by :func:`load` after the sweep. ``units``: ``{metric: unit}``
+    (as :func:`save_per_seed`'s; the names are not checked against the cells' files here,
+    :func:`load` ignores a unit of a name they do not hold)."""
     folder = pathlib.Path(folder)
     dims = _dims(dims, "per_seed_index")
     rows = []
@@ -373,7 +415,11 @@ def per_seed_index(folder, cells: Mapping[tuple, object], dims: Sequence[str]) -
             raise ValueError(f"per_seed_index: the file of cell {key!r}, {f}, must be inside the folder "
                              f"{folder}") from None
         rows.append([*key, rel])
-    return {"format": FORMAT, "dims": list(dims), "cells": rows}
+    index = {"format": FORMAT, "dims": list(dims), "cells": rows}
+    if units is not None:
+        names = list(units) if isinstance(units, Mapping) else []
+        index["units"] = _units([], units, names, "per_seed_index")
+    return index
 
 
 # ----------------------------------------------------------------------------- folders
@@ -424,9 +470,21 @@ def _differences(there: dict, here: dict) -> list[str]:
             for k in keys if there.get(k) != here.get(k)]
 
 
+def run_id(folder) -> str | None:
+    """The id that :func:`claim` gave the run that last claimed ``folder`` (``run.json``'s
+    ``"run"``, new at every claim); None for a folder without one (never claimed, or claimed
+    by a jaxnc before run ids). :func:`save_per_seed` and
+    :func:`jaxnc.montecarlo.save_results` store it in the files they write there, so that
+    :func:`load` tells a folder whose files come from two runs of the same settings apart."""
+    run = _read_json(pathlib.Path(folder) / RUN_FILE)
+    rid = run.get("run") if isinstance(run, dict) and run.get("format") == RUN_FORMAT else None
+    return rid if isinstance(rid, str) else None
+
+
 def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells: bool = False) -> list[str]:
     """Record in ``folder/run.json`` that ``folder`` receives the results of ``experiment``
-    run with ``settings`` and ``seeds`` (atomically; the folder must exist).
+    run with ``settings`` and ``seeds`` (atomically; the folder must exist), under a new
+    run id (:func:`run_id`).
 
     Raises :class:`FolderError`, writing nothing, when the folder holds the results of
     another experiment (:func:`folder_owner`), or when it holds finished results
@@ -454,7 +512,8 @@ def claim(folder, experiment: str, settings: Mapping, seeds: int, *, keeps_cells
         if diff and not keeps_cells and (folder / "results.json").exists():
             raise FolderError(f"{folder} holds the results of {experiment} with other settings ({'; '.join(diff)}), "
                               f"which this run would overwrite; choose another folder (or remove this one)")
-    doc = {"format": RUN_FORMAT, "experiment": experiment, **here}
+    import uuid
+    doc = {"format": RUN_FORMAT, "experiment": experiment, **here, "run": uuid.uuid4().hex}
     text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
     atomic_write(folder / RUN_FILE, lambda fh: fh.write(text.encode("utf-8")))
     return diff if keeps_cells else []
@@ -489,7 +548,8 @@ def _load_single(f: pathlib.Path):
             assert a.ndim == len(dims) + 1 and a.shape[:-1] == shape, f"{name} has shape {a.shape}"
     except (KeyError, TypeError, ValueError, AssertionError) as e:
         raise ValueError(f"{f}: damaged per-seed file ({type(e).__name__}: {e})") from None
-    return dims, coords, z, meta.get("experiment")
+    run = meta.get("run")
+    return dims, coords, z, meta.get("experiment"), run if isinstance(run, str) else None, meta.get("units")
 
 
 def _load_cells(folder: pathlib.Path, index: dict, results_file: pathlib.Path):
@@ -537,7 +597,9 @@ def load(folder):
     ``start``, so a study run from ``seed_keys(seed, n, start=k)`` reads k + i as i.
     Variables: the experiment's per-seed metrics (float32 / int32 / bool as computed;
     a grid with combinations it did not compute has NaN there, ``unstable`` True and a
-    boolean ``present`` variable). Attributes: ``experiment``, ``settings``, ``seeds``,
+    boolean ``present`` variable), each with ``attrs["units"]`` where the run stored its unit
+    (:func:`save_per_seed`'s ``units``: the built-in experiments' and
+    :class:`jaxnc.loop.Metrics`' rates; a cost's unit is the user's). Attributes: ``experiment``, ``settings``, ``seeds``,
     ``config`` (the whole configuration), ``jaxnc_version``, ``jax_version``,
     ``platform``, ``created``, ``wall_time_s``.
 
@@ -579,8 +641,10 @@ def load(folder):
     if index is not None and single.exists():
         raise ValueError(f"{folder} mixes the files of two runs: {rj.name} lists per-seed cells and {PER_SEED_FILE} "
                          f"holds a single run's; rerun the experiment into a folder of its own")
+    units = None
     if index is not None:
         dims, coords, data = _load_cells(folder, index, rj)
+        units = index.get("units") if isinstance(index, dict) else None
     elif cell_dirs and not single.exists():
         raise FileNotFoundError(f"{rj}: lists no per-seed cells (written by a jaxnc older than per-seed results); "
                                 f"rerun the same command: the stored cells are reused and indexed")
@@ -589,10 +653,14 @@ def load(folder):
                          f"{rj.name} does not list, beside a single run's {PER_SEED_FILE}; rerun the experiment "
                          f"into a folder of its own")
     else:
-        dims, coords, data, stored = _load_single(single)
+        dims, coords, data, stored, run, units = _load_single(single)
         if stored is not None and stored != experiment:
             raise ValueError(f"{folder} mixes the files of two experiments: {rj.name} is {experiment!r}'s, "
                              f"{PER_SEED_FILE} {stored!r}'s; rerun the experiment into a folder of its own")
+        if run != doc.get("run"):
+            raise ValueError(f"{folder} mixes the files of two runs: {PER_SEED_FILE} was written by run "
+                             f"{run or '(no id)'}, {rj.name} by run {doc.get('run') or '(no id)'} (a run stopped "
+                             f"after writing one and before the other?); rerun the experiment")
     n = next(iter(data.values())).shape[-1]
     if seeds is not None and seeds != n:
         raise ValueError(f"{rj}: config.seeds is {seeds} but the per-seed files hold {n} seeds (the files of two "
@@ -602,7 +670,11 @@ def load(folder):
     attrs = {"experiment": experiment, "settings": config.get("settings", {}),
              "seeds": config.get("seeds", n), "config": config}
     attrs |= {k: doc[k] for k in ("jaxnc_version", "jax_version", "platform", "created", "wall_time_s") if k in doc}
-    return xr.Dataset(variables, coords={**{d: list(coords[d]) for d in dims}, "seed": np.arange(n)}, attrs=attrs)
+    ds = xr.Dataset(variables, coords={**{d: list(coords[d]) for d in dims}, "seed": np.arange(n)}, attrs=attrs)
+    for name, unit in (units.items() if isinstance(units, dict) else ()):
+        if name in ds.data_vars and isinstance(unit, str):
+            ds[name].attrs["units"] = unit
+    return ds
 
 
 # ----------------------------------------------------------------------------- summaries
@@ -619,7 +691,8 @@ def summary(ds):
     other dimensions are kept. Boolean metrics other than ``unstable`` are averaged over
     all seeds (the fraction of runs where they hold). A combination no run computed
     (``present`` False) has ``n`` and the ``_n_stable`` counts 0 and every other statistic
-    nan."""
+    nan. A metric's ``attrs["units"]`` (:func:`load`) is kept on its mean, ``_ci95`` and
+    ``_std``."""
     xr = _xarray()
     from jaxnc.montecarlo import summarize
 
@@ -636,9 +709,11 @@ def summary(ds):
             out[name] = v.astype(float).mean("seed")
             continue
         r = xr.apply_ufunc(stats, v, unstable, input_core_dims=[["seed"], ["seed"]], output_core_dims=[["stat"]],
-                           vectorize=True, dask_gufunc_kwargs={"output_sizes": {"stat": len(_STATS)}})
+                           vectorize=True, keep_attrs=False, dask_gufunc_kwargs={"output_sizes": {"stat": len(_STATS)}})
         for i, s in enumerate(_STATS):
-            out[name if s == "mean" else f"{name}_{s}"] = r.isel(stat=i, drop=True)
+            stat = r.isel(stat=i, drop=True)
+            unit = v.attrs.get("units") if s != "n_stable" else None        # a count has none
+            out[name if s == "mean" else f"{name}_{s}"] = stat.assign_attrs(units=unit) if unit else stat
     out["n"] = xr.full_like(unstable.isel(seed=0, drop=True), ds.sizes["seed"], dtype=int)
     out["unstable_fraction"] = unstable.astype(float).mean("seed")
     if "present" in ds:

@@ -619,6 +619,15 @@ def _with_cells_beside(folder):
     (folder / "cells").mkdir()
 
 
+def _per_seed_of_a_later_run(folder):
+    from jaxnc import results
+    results.claim(folder, "toy", {}, 5)
+    _toy_folder(folder)
+    results.claim(folder, "toy", {}, 5)              # the same settings again, stopped after its seeds.npz
+    results.save_per_seed(folder, {"A": {"J1": np.ones(5, np.float32), "unstable": np.zeros(5, bool)}},
+                          experiment="toy")
+
+
 def _index_and_single(folder):
     _toy_folder(folder, experiment="grid")
     _grid_folder(folder, [["A", "cells/a.npz"]])
@@ -650,6 +659,7 @@ RESULTS_FOLDERS = [
      "mixes the files of two experiments: results.json is 'toy''s, seeds.npz 'hdd''s"),
     (_index_and_single, "mixes the files of two runs: results.json lists per-seed cells and seeds.npz"),
     (_with_cells_beside, "mixes the files of two runs: cells/ holds a sweep's cells"),
+    (_per_seed_of_a_later_run, "mixes the files of two runs: seeds.npz was written by run"),
 ]
 
 
@@ -688,6 +698,16 @@ FILES_API = [
      "per_seed_index: cell (0.1,) has 1 coordinates, dims are ('p', 'delta')"),
     (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/x.npz"}, ("p",)),
      "per_seed_index: the file of cell (0.1,), /tmp/x.npz, must be inside the folder /tmp/o"),
+    # units of the per-seed metrics: a name that is none of them (a typo would give no unit), a unit
+    # that is not text, units that are not a mapping
+    (lambda: _results.save_per_seed("/nonexistent-dir", {"a": {"J1": np.zeros(2), "unstable": np.zeros(2, bool)}},
+                                    units={"j1": "m"}),
+     "save_per_seed: units names 'j1', which is not one of the metrics ['J1', 'unstable']"),
+    (lambda: _results.save_per_seed("/nonexistent-dir", {"a": {"J1": np.zeros(2), "unstable": np.zeros(2, bool)}},
+                                    units={"J1": 1.0}),
+     "save_per_seed: the unit of 'J1' must be a non-empty string, got 1.0"),
+    (lambda: _results.per_seed_index("/tmp/o", {(0.1,): "/tmp/o/a.npz"}, ("p",), units=["m"]),
+     "per_seed_index: units must be a mapping of metric name to unit"),
     # a batch of Wi-Fi traces written as one (ravelled: B n packets in one file), a delay of 1.7 steps as 1
     (lambda: wifi.write_trace("/nonexistent-dir/t.csv", np.zeros((2, 5), np.int32)),
      "write_trace: trace must be a 1-D array of integer delays in steps"),

@@ -228,6 +228,41 @@ def test_a_folder_of_other_settings_or_another_experiment_is_refused_before_runn
     assert run(["run", "dummy", "--seeds", "4", "--out", str(fresh), "--set", "N=4"]) == 0
 
 
+def test_run_help_of_an_experiment_lists_its_settings(capsys):
+    assert run(["run", "dummy", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: jaxnc run") and "--seeds N" in out
+    assert "settings of dummy: a test experiment" in out
+    assert "    N      default 10; an integer in [1, 12]. multiplicity" in out
+    assert run(["run", "-h"]) == 0 and "settings of" not in capsys.readouterr().out
+    assert run(["run", "nosuch", "-h"]) == 2
+    assert_one_line_error(capsys, "unknown experiment 'nosuch'")
+    assert CALLS == []
+
+
+def test_a_run_removes_the_temporary_file_a_killed_write_left(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    from jaxnc import montecarlo
+    (tmp_path / "results.json").write_text("{}")
+    script = ("import os, signal, sys\n"
+              "from jaxnc import montecarlo\n"
+              "def write(f):\n"
+              "    f.write(b'{\"half'); f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n"
+              "montecarlo.atomic_write(sys.argv[1], write)\n")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path / "results.json")], capture_output=True,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=120)
+    assert done.returncode == -signal.SIGKILL, done.stderr.decode()
+    left = montecarlo.stale_temporaries(tmp_path)
+    assert [f.name[:14] for f in left] == [".results.json."] and left[0].read_bytes() == b'{"half'
+    assert (tmp_path / "results.json").read_text() == "{}"          # the old file untouched
+    (tmp_path / ".notes.tmp").write_text("mine")                     # not atomic_write's: kept
+    assert run(["run", "dummy", "--seeds", "3", "--out", str(tmp_path)]) == 0
+    assert montecarlo.stale_temporaries(tmp_path) == [] and (tmp_path / ".notes.tmp").exists()
+
+
 def test_a_sweep_keeps_the_cells_of_other_settings_apart(tmp_path, capsys):
     ex.register(Experiment("writer", "", WRITER.options, _writer, keeps_cells=True))
     out = str(tmp_path)

@@ -150,6 +150,7 @@ def test_mecanum_dataset_means_are_the_printed_table(tmp_path, capsys):
     ds = jaxnc.load(tmp_path)
     assert ds.attrs["experiment"] == "mecanum" and ds.attrs["settings"]["N"] == 1
     assert list(ds["case"].values) == ["SR nominal", "DRH"] and ds.sizes["seed"] == 4
+    assert [ds[j].attrs["units"] for j in ("J1", "J2", "J3", "l")] == ["m", "m", "s", "fast periods"]
     s = ds.jaxnc.summary()
     for case in ("SR nominal", "DRH"):
         for j in ("J1", "J2", "J3"):                   # exactly the numbers in results.json
@@ -212,6 +213,7 @@ def test_balancing_dataset_means_are_the_printed_table(tmp_path, capsys):
     printed = capsys.readouterr().out
     ds = jaxnc.load(tmp_path)
     assert ds["tilt_rms_deg"].dims == ("severity", "design", "seed")
+    assert [ds[k].attrs.get("units") for k in ("tilt_rms_deg", "track_rms_mm", "upright")] == ["deg", "mm", None]
     s = ds.jaxnc.summary()
     for d in ds["design"].values:
         name = f"nominal / {d}"
@@ -227,7 +229,9 @@ def test_balancing_dataset_means_are_the_printed_table(tmp_path, capsys):
 def test_claim_records_the_run_and_refuses_what_would_mix_or_overwrite(tmp_path):
     results.claim(tmp_path, "toy", {"k": 1, "t": (0.1, 0.2)}, 5)
     doc = json.loads((tmp_path / results.RUN_FILE).read_text())
+    run = doc.pop("run")
     assert doc == {"format": "jaxnc-run-1", "experiment": "toy", "settings": {"k": 1, "t": [0.1, 0.2]}, "seeds": 5}
+    assert results.run_id(tmp_path) == run and re.fullmatch("[0-9a-f]{32}", run)
     assert results.folder_owner(tmp_path) == {"experiment": "toy", "settings": {"k": 1, "t": [0.1, 0.2]}, "seeds": 5}
     results.claim(tmp_path, "toy", {"k": 2, "t": (0.1, 0.2)}, 5)     # nothing finished yet: nothing to lose
     montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={}, results={}, wall_time_s=0.0)
@@ -252,6 +256,79 @@ def test_a_folder_without_run_file_is_owned_by_its_results_file(tmp_path):
     (tmp_path / results.RUN_FILE).write_text("{damaged")                 # unreadable: the results file says
     with pytest.raises(results.FolderError, match="not 'hdd'"):
         results.claim(tmp_path, "hdd", {}, 4)
+
+
+def test_a_run_stopped_between_its_two_files_is_not_loaded_with_the_former_runs_summary(tmp_path):
+    # run A finished; run B of the same settings (other code: other numbers) claimed the folder
+    # and wrote its seeds.npz, then stopped before results.json: load gave B's seeds under A's summary
+    results.claim(tmp_path, "toy", {"k": 1}, 4)
+    results.save_per_seed(tmp_path, {"A": _metrics(4)}, experiment="toy")
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 4},
+                            results={"J1": 1.5}, wall_time_s=0.0)
+    assert float(jaxnc.load(tmp_path).J1.mean()) == 1.5
+    results.claim(tmp_path, "toy", {"k": 1}, 4)
+    results.save_per_seed(tmp_path, {"A": _metrics(4, 10.0)}, experiment="toy")
+    with pytest.raises(ValueError, match="mixes the files of two runs: seeds.npz was written by run [0-9a-f]{32}, "
+                                         "results.json by run [0-9a-f]{32}"):
+        jaxnc.load(tmp_path)
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 4},
+                            results={"J1": 11.5}, wall_time_s=0.0)
+    assert float(jaxnc.load(tmp_path).J1.mean()) == 11.5            # B finished: its own files
+
+
+def test_a_run_killed_by_a_signal_after_its_per_seed_file_leaves_a_folder_load_refuses(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    results.claim(tmp_path, "toy", {"k": 1}, 4)
+    results.save_per_seed(tmp_path, {"A": _metrics(4)}, experiment="toy")
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"settings": {"k": 1}, "seeds": 4},
+                            results={}, wall_time_s=0.0)
+    script = ("import os, signal, sys, numpy as np\n"
+              "from jaxnc import results\n"
+              "results.claim(sys.argv[1], 'toy', {'k': 1}, 4)\n"
+              "results.save_per_seed(sys.argv[1], {'A': {'J1': np.full(4, 7.0, np.float32), "
+              "'unstable': np.zeros(4, bool)}}, experiment='toy')\n"
+              "os.kill(os.getpid(), signal.SIGKILL)\n")
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, capture_output=True, timeout=120)
+    assert done.returncode == -signal.SIGKILL, done.stderr.decode()
+    with pytest.raises(ValueError, match="mixes the files of two runs"):
+        jaxnc.load(tmp_path)
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_units_reach_the_dataset_and_its_summary(tmp_path):
+    from jaxnc import loop as nc
+    m = nc.Metrics(cost=np.arange(4, dtype=np.float32), cost_raw=np.arange(4, dtype=np.float32),
+                   rate_sc=np.full(4, 0.5, np.float32), rate_ca=np.ones(4, np.float32), unstable=np.zeros(4, bool))
+    results.save_per_seed(tmp_path, {"A": m}, units={"cost": "m^2"})          # the runner's rates: its own units
+    montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"seeds": 4}, results={},
+                            wall_time_s=0.0)
+    ds = jaxnc.load(tmp_path)
+    assert {k: v.attrs.get("units") for k, v in ds.data_vars.items()} == {
+        "cost": "m^2", "cost_raw": None, "rate_sc": "transmissions per slow period",
+        "rate_ca": "transmissions per slow period", "unstable": None}
+    s = ds.jaxnc.summary()
+    assert [s[k].attrs.get("units") for k in ("cost", "cost_ci95", "cost_std", "cost_n_stable", "n")] == [
+        "m^2", "m^2", "m^2", None, None]
+    assert float(s["rate_sc"].sel(case="A")) == 0.5
+    # a sweep's index carries them too, through a combination never run (present False)
+    cells = {}
+    for k in ("a", "b"):
+        np.savez(tmp_path / f"{k}.npz", J1=np.ones(3, np.float32), unstable=np.zeros(3, bool))
+        cells[(k, 1)] = tmp_path / f"{k}.npz"
+    del cells[("b", 1)]
+    cells[("b", 2)] = tmp_path / "b.npz"
+    (tmp_path / "seeds.npz").unlink()
+    montecarlo.save_results(tmp_path / "results.json", experiment="grid", config={"seeds": 3}, wall_time_s=0.0,
+                            results={"per_seed": results.per_seed_index(tmp_path, cells, ("x", "y"),
+                                                                        units={"J1": "mm"})})
+    ds = jaxnc.load(tmp_path)
+    assert ds.J1.attrs["units"] == "mm" and not bool(ds.present.sel(x="a", y=2))
+    s = ds.jaxnc.summary()
+    assert s.J1.attrs["units"] == "mm" and s.J1_ci95.attrs["units"] == "mm"
 
 
 def test_per_seed_file_names_its_experiment(tmp_path):

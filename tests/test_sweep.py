@@ -92,6 +92,10 @@ def test_cell_files_are_named_by_their_whole_configuration(tmp_path):
 
 
 
+#: the line of loop/runner.py that returns the Quadratic cost, edited in a copy of the library
+_COST_LINE = "return _pairwise_mean(_weighted_square(e, Q) + _weighted_square(u, R))"
+
+
 @pytest.fixture
 def library_copy(tmp_path, monkeypatch):
     """A copy of the jaxnc package as the code fingerprint's imported code (the running code
@@ -103,7 +107,7 @@ def library_copy(tmp_path, monkeypatch):
     shutil.copytree(Path(sweep.__file__).parent, lib, ignore=shutil.ignore_patterns("__pycache__", "experiments"))
     runner = lib / "loop" / "runner.py"
     text = runner.read_text()
-    assert text.count('"""Cost J = (1/K)') == 1 and text.count("return jnp.mean(qx + ru)") == 1
+    assert text.count('"""Cost J = (1/K)') == 1 and text.count(_COST_LINE) == 1
 
     def refresh():
         if hasattr(sweep, "_package_sources"):
@@ -134,9 +138,9 @@ def test_a_cell_computed_by_other_library_code_is_not_reused(tmp_path, library_c
     sweep.save_cell(f, {"config": cfg, "cost": 0.05})
     assert sweep.load_cell(f, cfg)["cost"] == 0.05
     library_copy(('"""Cost J = (1/K)', '"""Cost (a docstring edited) J = (1/K)'),
-                 ("return jnp.mean(qx + ru)", "return jnp.mean(qx + ru)  # a comment"))
+                 (_COST_LINE, _COST_LINE + "  # a comment"))
     assert sweep.cell_path(tmp_path / "cells", "c", cfg) == f and sweep.load_cell(f, cfg)["cost"] == 0.05
-    library_copy(("return jnp.mean(qx + ru)", "return 2 * jnp.mean(qx + ru)"))
+    library_copy((_COST_LINE, _COST_LINE.replace("return ", "return 2 * ")))
     assert sweep.load_cell(f, cfg) is None                          # the old library's number
     assert sweep.cell_path(tmp_path / "cells", "c", cfg) != f       # beside it, not over it
 
@@ -150,7 +154,7 @@ def test_a_stored_part_of_other_library_code_is_computed_again(tmp_path, library
     run = lambda: montecarlo.stored_or_run(tmp_path / "part.json", experiment="demo", config={"seeds": 4},
                                            compute=compute, progress=False)
     assert run()["cost"] == 0.05 and run()["cost"] == 0.05 and len(calls) == 1
-    library_copy(("return jnp.mean(qx + ru)", "return 2 * jnp.mean(qx + ru)"))
+    library_copy((_COST_LINE, _COST_LINE.replace("return ", "return 2 * ")))
     assert run()["cost"] == 0.1 and len(calls) == 2
 
 def test_missing_report_names_the_shards_that_owe_cells():

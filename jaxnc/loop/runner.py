@@ -158,11 +158,44 @@ class FunctionCost:
         return self.fn(x, u)
 
 
+def _weighted_square(v, W):
+    """v' W v over the last axis of ``v`` (W a vector: the diagonal), as elementwise products
+    and sums only: no dot product, whose summation order XLA chooses by the batch's shape."""
+    n = v.shape[-1]
+    if W.ndim == 1:
+        terms = [v[..., i] * v[..., i] * W[i] for i in range(n)]
+    else:
+        terms = [v[..., i] * W[i, j] * v[..., j] for i in range(n) for j in range(n)]
+    out = terms[0]
+    for t in terms[1:]:
+        out = out + t
+    return out
+
+
+def _pairwise_mean(values):
+    """The mean of every entry of ``values`` by pairwise summation written as elementwise
+    adds of halves (zero-padded to a power of two): the same bits in every lane of a
+    ``vmap`` whatever the batch's size (``jnp.mean``'s reduction is compiled per batch
+    shape and its order, hence its last bits, change with it), and as accurate as a
+    pairwise sum."""
+    a = jnp.ravel(values)
+    n = a.shape[0]
+    size = 1 << max(n - 1, 0).bit_length()
+    a = jnp.concatenate([a, jnp.zeros(size - n, a.dtype)])
+    while a.shape[0] > 1:
+        half = a.shape[0] // 2
+        a = a[:half] + a[half:]
+    return a[0] / n
+
+
 @_dataclass
 class Quadratic:
     """Cost J = (1/K) sum_t (x_t - x_ref)' Q (x_t - x_ref) + u_t' R u_t over the fast instants.
 
-    Q float[n, n] or float[n] (diagonal), R float[m, m] or float[m]."""
+    Q float[n, n] or float[n] (diagonal), R float[m, m] or float[m]. Computed with
+    elementwise operations only (a pairwise sum over t), so a seed's cost is the same bits
+    in a batch of any size (any ``chunk_size`` of :func:`jaxnc.montecarlo.run_batched`)
+    whenever its trajectory is."""
 
     field_shapes: ClassVar[dict] = {"Q": (("state",), ("state", "state")), "R": (("input",), ("input", "input")),
                                     "x_ref": ((), ("state",))}
@@ -189,9 +222,7 @@ class Quadratic:
     def __call__(self, x, u):
         e = x - jnp.asarray(self.x_ref, x.dtype)
         Q, R = jnp.asarray(self.Q), jnp.asarray(self.R)
-        qx = (e * e) @ Q if Q.ndim == 1 else jnp.einsum("...i,ij,...j->...", e, Q, e)
-        ru = (u * u) @ R if R.ndim == 1 else jnp.einsum("...i,ij,...j->...", u, R, u)
-        return jnp.mean(qx + ru)
+        return _pairwise_mean(_weighted_square(e, Q) + _weighted_square(u, R))
 
 
 @_dataclass
@@ -908,6 +939,10 @@ class Metrics(NamedTuple):
     #                       up to its failure, live_periods)
     rate_ca: jax.Array    # controller transmissions per slow period (as rate_sc)
     unstable: jax.Array   # bool: the run failed
+
+    #: units of the fields the library knows (the cost's are the user's Q and R's), for
+    #: :func:`jaxnc.results.save_per_seed` and the Dataset of :func:`jaxnc.load`
+    UNITS = {"rate_sc": "transmissions per slow period", "rate_ca": "transmissions per slow period"}
 
     def __repr__(self) -> str:
         from jaxnc.montecarlo import describe

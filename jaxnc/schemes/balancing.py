@@ -153,6 +153,9 @@ class Metrics(NamedTuple):
     track_rms_mm: jax.Array   # RMS position error over the last 5 s (the whole run if shorter), mm (inf when fallen)
     tilt_max_deg: jax.Array   # max |theta|, deg
 
+    #: the fields' units (jaxnc.results.save_per_seed, jaxnc.load)
+    UNITS = {"tilt_rms_deg": "deg", "track_rms_mm": "mm", "tilt_max_deg": "deg"}
+
 
 def reference(loop: nc.Loop) -> jax.Array:
     """float[K]: the wheel-angle reference (rad) at each step of ``loop``'s run."""

@@ -159,6 +159,10 @@ class Metrics(NamedTuple):
     l: jax.Array          # periods T until the end
     unstable: jax.Array
 
+    #: the fields' units (jaxnc.results.save_per_seed, jaxnc.load)
+    UNITS = {"J1": "mm", "J1_mean": "mm", "J2": "mm", "J1_ref": "mm", "J2_ref": "mm", "J3": "s",
+             "packets": "packets", "l": "actuation periods T"}   # T = plant.T, not the runner's T / sub
+
 
 def metrics(loop: nc.Loop, traj: nc.Trajectory, *, N: int = 2) -> Metrics:
     """Eq. (23)-(25) from the true positions every NT (every scenario on the same grid; ``N``

@@ -214,6 +214,9 @@ class Metrics(NamedTuple):
     l: jax.Array          # fast steps to completion (all of them if never)
     unstable: jax.Array   # bool
 
+    #: the fields' units (jaxnc.results.save_per_seed, jaxnc.load)
+    UNITS = {"J1": "m", "J2": "m", "J3": "s", "tx_sc": "transmissions", "tx_ca": "transmissions", "l": "fast periods"}
+
 
 def metrics(loop: nc.Loop, traj: nc.Trajectory) -> Metrics:
     """Eq. (21)-(24) of one run of a :func:`mecanum_loop` loop (either record); inf when unstable.
