@@ -82,7 +82,11 @@ def test_a_quadratic_cost_is_the_same_bits_at_every_lane_count_where_the_traject
     float64 from the trajectory."""
     import dataclasses
     loop = dataclasses.replace(_runner_loop(), steps=100)
-    fn = lambda k, lp: (nc.run(lp, k).cost_raw, nc.simulate(lp, k).x, nc.simulate(lp, k).u)
+    from jaxnc.loop.runner import evaluate
+
+    def fn(k, lp):              # nc.run's cost (evaluate of simulate), with the run it is computed on
+        t = nc.simulate(lp, k)
+        return evaluate(lp, t).cost_raw, t.x, t.u
     keys = montecarlo.seed_keys(0, 40)
     runs = {c: montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=c, progress=False) for c in (16, 20, 48)}
     cost, x, u = (np.asarray(a) for a in runs[20])
