@@ -148,10 +148,12 @@ def test_a_gain_that_does_not_converge_is_refused_also_after_one_of_the_same_sha
                 _loop(nc.Luenberger(_plant(), L=L), steps=20)
 
 
-def test_inside_fit_checked_by_shape_only_new_shapes_are_checked_again(monkeypatch):
-    """``fit_checked_by_shape`` (a tuner's host-side iterates): a loop with new numbers in the
-    leaves of one that passed the fit check is not re-traced, a loop of another shape still
-    is (and refused when it does not fit), and outside the block new numbers are checked again."""
+def test_a_loop_of_a_checked_shape_with_new_numbers_runs_only_the_value_checks(monkeypatch):
+    """The fit check (every role traced once, ``runner._check_fit``) runs once per structure:
+    a loop of the same tree, leaf shapes and dtypes with new numbers runs only
+    ``runner._check_values`` (the roles' ``init(ctx)``, where the Luenberger gain is checked
+    against N, and the links' draws), so a bad gain is still refused; a new static field is
+    another structure, traced again."""
     from jaxnc.loop import runner
     calls = []
     check = runner._check_fit
@@ -159,13 +161,11 @@ def test_inside_fit_checked_by_shape_only_new_shapes_are_checked_again(monkeypat
     L0 = np.array([[0.61], [0.79]], np.float32)
     _loop(nc.Luenberger(_plant(), L=L0), steps=21)
     assert len(calls) == 1
-    with runner.fit_checked_by_shape():
-        for s in (0.9, 1.1):                                  # new numbers, same shapes: not re-traced
-            _loop(nc.Luenberger(_plant(), L=L0 * np.float32(s)), steps=21)
-        assert len(calls) == 1
-        with pytest.raises(ValueError, match="Luenberger.L must be 2x1"):      # the part's own checks run
-            _loop(nc.Luenberger(_plant(), L=np.zeros((2, 2), np.float32)), steps=21)
-        _loop(nc.Luenberger(_plant(), L=L0), steps=22)        # a new static field: another structure
-        assert len(calls) == 2
-    with pytest.raises(ValueError, match="spectral radius 1"):              # outside: numbers checked
+    for s in (0.9, 1.1):                                    # new numbers, same shapes: not traced again
+        _loop(nc.Luenberger(_plant(), L=L0 * np.float32(s)), steps=21)
+    assert len(calls) == 1
+    with pytest.raises(ValueError, match="Luenberger.L: A_N - L C .* spectral radius 1"):   # but still checked
         _loop(nc.Luenberger(_plant(), L=np.zeros((2, 1), np.float32)), steps=21)
+    assert len(calls) == 1
+    _loop(nc.Luenberger(_plant(), L=L0), steps=22)          # a new static field: another structure
+    assert len(calls) == 2

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 from typing import Any, ClassVar, NamedTuple
 
-import contextlib
-import contextvars
 import dataclasses
 import hashlib
 import warnings
@@ -430,11 +428,12 @@ class Loop:
             self._check_dims()      # also with leaves that are not arrays (a plain-object law)
 
     def _check_dims(self):
-        """The roles fit together (:func:`_check_fit`), once per loop: its structure and its
-        numbers, since a part's ``init(ctx)`` may check values against the loop's N (a
-        ``Luenberger`` gain, a ``SteadyStateKF``'s detectability): keyed on shapes alone, a
-        loop whose numbers failed that check was accepted once one of the same shapes had
-        passed it."""
+        """The roles fit together (:func:`_check_fit`): traced once per structure (tree, leaf
+        shapes and dtypes); a loop of a structure that passed with other numbers in its leaves
+        runs only :func:`_check_values` (every role's ``init(ctx)``, where a part checks its
+        numbers against the loop's N: a ``Luenberger`` gain, a ``SteadyStateKF``'s
+        detectability; and the links' draws), and a loop already checked with the same
+        numbers nothing."""
         leaves, treedef = jax.tree.flatten(self)
 
         def value(a):
@@ -450,9 +449,10 @@ class Loop:
         if key in _FITTED:
             return
         shapes = (treedef, tuple(v[:2] for v in values))      # (type, id) for an object: kept whole
-        if _BY_SHAPE.get() and shapes in _FITTED_SHAPES:
-            return
-        _check_fit(self)
+        if shapes in _FITTED_SHAPES:
+            _check_values(self)
+        else:
+            _check_fit(self)
         if len(_FITTED) > 256:
             _FITTED.clear()
             _FITTED_SHAPES.clear()
@@ -540,23 +540,19 @@ def _check_fit(loop: Loop) -> None:
     z = _stage("Loop.plant", f"cannot measure (v float32[{p}])", lambda: plant.measure(_zeros(x0), f32((p,))))
     if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (p,) or z.dtype != jnp.float32:
         raise ValueError(f"Loop.plant's measurement is {_shapes(z)}; it must be float32[{p}] (output_dim={p})")
-    _check_draws(loop)
     dims = dict(state=n, input=m, output=p)
     for name in ("plant", "trigger", "estimator", "actuator", "controller_trigger", "monitor", "cost"):
         part = getattr(loop, name)
         if part is not None and (name != "cost" or isinstance(part, Quadratic)):
             _check_field_shapes(f"Loop.{name}", part, dict(dims, signal=p if name == "trigger" else m))
+    _, t0, e0, c0, ct0, a0, m0 = _check_values(loop)     # every role's init(ctx) and the links' draws
     # the sensor's trigger
-    tctx = ctx._replace(signal_dim=p)
-    t0 = _stage("Loop.trigger", "cannot build its state", lambda: loop.trigger.init(tctx))
     t1, send = _stage("Loop.trigger", f"cannot decide on a measurement float32[{p}]",
                       lambda: loop.trigger.step(_zeros(t0), f32((p,)), jnp.int32(1)))
     _same_structure("Loop.trigger's step", t0, t1)
     if send.shape != ():
         raise ValueError(f"Loop.trigger's send decision is {_shapes(send)}; it must be a scalar 0/1 float")
     # estimator and controller
-    e0 = _stage("Loop.estimator", f"cannot build its state (state_dim={n}, output_dim={p})",
-                lambda: loop.estimator.init(ctx))
     e1, xhat = _stage("Loop.estimator", f"does not fit the plant (state_dim={n}, output_dim={p}, input_dim={m})",
                       lambda: loop.estimator.correct(_zeros(e0), _first_inbox(loop, ctx), jnp.int32(0)))
     _same_structure("Loop.estimator's correct", e0, e1)
@@ -568,7 +564,6 @@ def _check_fit(loop: Loop) -> None:
         if isinstance(model, AbstractPlant) and isinstance(model.state_dim, int) and model.state_dim != xhat.shape[0]:
             raise ValueError(f"Loop.controller.{name} has state_dim={model.state_dim}; it predicts the estimator's "
                              f"estimate, which has {xhat.shape[0]} entries")
-    c0 = _stage("Loop.controller", "cannot build its state", lambda: loop.controller.init(ctx))
     c1, pkt, send_ca = _stage("Loop.controller", f"cannot act on the estimator's estimate {shapes}",
                               lambda: loop.controller.step(_zeros(c0), _zeros(xhat), jnp.float32(1), jnp.int32(0), ctx))
     _same_structure("Loop.controller's step", c0, c1)
@@ -599,13 +594,10 @@ def _check_fit(loop: Loop) -> None:
             raise ValueError(f"Loop.controller's sent actions are {_shapes(ub)}; they must be float32[{loop.N}, {m}] "
                              f"(N, input_dim)")
     if loop.controller_trigger is not None and isinstance(u, jax.ShapeDtypeStruct):
-        cctx = ctx._replace(signal_dim=m)
-        ct0 = _stage("Loop.controller_trigger", "cannot build its state", lambda: loop.controller_trigger.init(cctx))
         ct1, _ = _stage("Loop.controller_trigger", f"cannot decide on an action float32[{m}]",
                         lambda: loop.controller_trigger.step(_zeros(ct0), f32((m,)), jnp.int32(1)))
         _same_structure("Loop.controller_trigger's step", ct0, ct1)
     # actuator
-    a0 = _stage("Loop.actuator", "cannot build its state", lambda: loop.actuator.init(ctx))
     box = _stage("Loop.downlink", f"cannot carry the controller's packets {_shapes(pkt.data)}",
                  lambda: loop.downlink.inbox(loop.downlink.init(_zeros(pkt.data)), jnp.int32(0))[0])
     ar = _stage("Loop.actuator", f"cannot receive the controller's packets {_shapes(pkt.data)}",
@@ -615,7 +607,6 @@ def _check_fit(loop: Loop) -> None:
     _same_structure("Loop.actuator's output", a0, a1)
     if not isinstance(ua, jax.ShapeDtypeStruct) or ua.shape != (m,) or ua.dtype != jnp.float32:
         raise ValueError(f"Loop.actuator's action is {_shapes(ua)}; the plant takes float32[{m}]")
-    m0 = _stage("Loop.monitor", "cannot build its state", lambda: loop.monitor.init(ctx))
     m1, bad, done = _stage("Loop.monitor", f"cannot watch a state vector float32[{n}]",
                            lambda: loop.monitor.step(_zeros(m0), f32((n,)), f32((m,)), jnp.int32(0)))
     _same_structure("Loop.monitor's step", m0, m1)
@@ -627,6 +618,29 @@ def _check_fit(loop: Loop) -> None:
                    lambda: loop.cost(f32((K, n)), f32((K, m))))
         if not isinstance(J, jax.ShapeDtypeStruct) or J.shape != ():
             raise ValueError(f"Loop.cost must return a scalar, got {_shapes(J)}")
+
+
+def _check_values(loop: Loop) -> tuple:
+    """What of :func:`_check_fit` depends on a loop's numbers, not only on its shapes: every
+    role's ``init(ctx)`` (where a part checks its numbers against the loop, e.g. a
+    ``Luenberger`` gain against N) and the links' draws (:func:`_check_draws`), each
+    re-raised as a ValueError naming the role. Returns the initial states' shapes (plant,
+    trigger, estimator, controller, controller trigger or None, actuator, monitor)."""
+    ctx = loop.ctx
+    x0 = _stage("Loop.plant", "cannot build its initial state", lambda: loop.plant.init(jax.random.PRNGKey(0)))
+    _check_draws(loop)
+    t0 = _stage("Loop.trigger", "cannot build its state",
+                lambda: loop.trigger.init(ctx._replace(signal_dim=ctx.output_dim)))
+    e0 = _stage("Loop.estimator", f"cannot build its state (state_dim={ctx.state_dim}, output_dim={ctx.output_dim})",
+                lambda: loop.estimator.init(ctx))
+    c0 = _stage("Loop.controller", "cannot build its state", lambda: loop.controller.init(ctx))
+    ct0 = None
+    if loop.controller_trigger is not None:
+        ct0 = _stage("Loop.controller_trigger", "cannot build its state",
+                     lambda: loop.controller_trigger.init(ctx._replace(signal_dim=ctx.input_dim)))
+    a0 = _stage("Loop.actuator", "cannot build its state", lambda: loop.actuator.init(ctx))
+    m0 = _stage("Loop.monitor", "cannot build its state", lambda: loop.monitor.init(ctx))
+    return x0, t0, e0, c0, ct0, a0, m0
 
 
 def _check_draws(loop: Loop) -> None:
@@ -676,24 +690,6 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
 
 _FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
 _FITTED_SHAPES: set = set()     # the same loops keyed on (treedef, leaf shapes and dtypes) alone
-_BY_SHAPE = contextvars.ContextVar("jaxnc_fit_by_shape", default=False)
-
-
-@contextlib.contextmanager
-def fit_checked_by_shape():
-    """A block in which a :class:`Loop` built with new numbers in the leaves of a loop that
-    already passed the fit check (:func:`_check_fit`: the same tree structure, leaf shapes
-    and dtypes) is not checked again. The parts' own checks (their ``__post_init__``) still
-    run; what is skipped is re-tracing every role with the new numbers, which a loop rebuilt
-    from traced leaves inside ``jit`` skips too. For a tuner's host-side rebuilds of one
-    loop at each of its iterates (:mod:`jaxnc.tune.loop_tune`): values a part's ``init(ctx)``
-    would check against the loop (a ``Luenberger`` gain, a ``SteadyStateKF``'s
-    detectability) are checked at the loop the user built, not at every iterate."""
-    token = _BY_SHAPE.set(True)
-    try:
-        yield
-    finally:
-        _BY_SHAPE.reset(token)
 
 
 def _one_line(e: BaseException) -> str:

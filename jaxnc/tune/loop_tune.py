@@ -54,7 +54,6 @@ from jax.flatten_util import ravel_pytree
 from jaxnc import montecarlo
 from jaxnc.cache import compile_clock
 from jaxnc._validate import check_int, check_positive, check_range
-from jaxnc.loop.runner import fit_checked_by_shape
 from jaxnc.tune.check import GradientCheck, gradient_check, objective_total
 from jaxnc.tune.gradient import (Interval, Positive, TuneResult, Unconstrained, _rate_pair, constrain, tune,
                                  unconstrain)
@@ -490,8 +489,7 @@ def _as_f32(loop, spec: _Spec, values: dict | None = None):
     """``loop`` with every tuned leaf (``values``, default its own) as a float32 array, so
     that loops before and after tuning share one compiled program."""
     values = values or {n: get_path(loop, g[0]) for n, g in spec.paths.items()}
-    with fit_checked_by_shape():        # the tuner's iterates: the loop's fit was checked at its start
-        return _set(loop, spec, {n: np.asarray(v, np.float32) for n, v in values.items()})
+    return _set(loop, spec, {n: np.asarray(v, np.float32) for n, v in values.items()})
 
 
 def _score_step(hard: Callable, loop, spec: _Spec, n_pairs: int, scale: float, record: list | None = None) -> Callable:
