@@ -1,5 +1,7 @@
 """The `balancing` experiment end to end through the CLI (quick size: 2 seeds, one
 severity, the shortest horizon): table, results.json and the Fig. 5 / Fig. 7 figures."""
+import contextlib
+import io
 import json
 
 import numpy as np
@@ -8,6 +10,7 @@ import pytest
 import jaxnc
 from jaxnc.schemes import balancing as bal
 from tests.test_cli import assert_one_line_error, run
+from tests.test_results import _row, _same
 
 
 def test_bad_derivative_is_a_one_line_error(tmp_path, capsys):
@@ -15,11 +18,21 @@ def test_bad_derivative_is_a_one_line_error(tmp_path, capsys):
     assert_one_line_error(capsys, "derivative", "simple, filtered")
 
 
-def test_quick_run_writes_fig5_and_fig7(tmp_path, capsys):
-    code = run(["run", "balancing", "--seeds", "2", "--no-progress", "--out", str(tmp_path),
-                 "--set", "severity=nominal", "horizon=16"])
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    """One quick run of the command (2 seeds, the nominal network, 16 s), shared by the tests
+    of its figures and of its dataset: (folder, what it printed)."""
+    folder = tmp_path_factory.mktemp("balancing")
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = run(["run", "balancing", "--seeds", "2", "--no-progress", "--out", str(folder),
+                    "--set", "severity=nominal", "horizon=16"])
     assert code == 0
-    out = capsys.readouterr().out
+    return folder, buf.getvalue()
+
+
+def test_quick_run_writes_fig5_and_fig7(quick_run):
+    tmp_path, out = quick_run
     assert "nominal / emulation" in out and "emulation derivative=simple" in out
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["config"]["settings"]["derivative"] == "simple"
@@ -40,6 +53,22 @@ def test_quick_run_writes_fig5_and_fig7(tmp_path, capsys):
     assert lb["no noise"]["stats"]["delay_median"] == 3.0                     # Table 1
     csv = (tmp_path / "fig5_loopback_cdf.csv").read_text().splitlines()
     assert csv[0] == "delay_steps,no noise,-21 dBm,-19 dBm" and len(csv) == 1 + 21
+
+
+def test_the_dataset_means_are_the_printed_table(quick_run):
+    """``jaxnc.load`` of the run's folder: its per-seed dataset's means are the results.json
+    summary and the printed table's numbers, with the metrics' units."""
+    folder, printed = quick_run
+    summary = json.loads((folder / "results.json").read_text())["results"]
+    ds = jaxnc.load(folder)
+    assert ds["tilt_rms_deg"].dims == ("severity", "design", "seed")
+    assert [ds[k].attrs.get("units") for k in ("tilt_rms_deg", "track_rms_mm", "upright")] == ["deg", "mm", None]
+    s = ds.jaxnc.summary()
+    for d in ds["design"].values:
+        name = f"nominal / {d}"
+        assert float(s["upright"].sel(severity="nominal", design=d)) == summary[name]["upright_fraction"]
+        assert _same(float(s["tilt_rms_deg"].sel(severity="nominal", design=d)), summary[name]["tilt_rms_deg"]["mean"])
+        assert _row(printed, name)[1].startswith(f"{100 * float(s['upright'].sel(severity='nominal', design=d)):.1f}")
 
 
 SWEEP = ["run", "balancing-sweep", "--seeds", "4", "--no-progress", "--set", "axis=delay", "horizon=16"]
