@@ -64,3 +64,23 @@ def test_an_unbounded_delay_without_tau_max_is_allowed_and_said_once():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _loop(uplink=nc.Link(delay=nc.ShiftedExponential(eta=0.0, phi=0.05), tau_max=0.2, capacity=3))
+
+
+def test_a_plant_is_traced_once_for_the_loops_that_share_it(monkeypatch):
+    """The plant's part of the fit check (its init, state vector, step, noise and measurement,
+    traced) runs once per plant and numbers: loops that share a plant (a paper's schemes, the
+    MJX robot's costly settling) do not trace it again; a plant with other numbers runs its
+    ``init`` again (where a plant may check its numbers)."""
+    from jaxnc.loop import runner
+    traced = []
+    stage = runner._stage
+    monkeypatch.setattr(runner, "_stage", lambda name, what, fn: (traced.append((name, what)), stage(name, what, fn))[1])
+    plant = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[0.25, 0.0], T=0.1)
+    plant_stages = lambda: [w for n, w in traced if n == "Loop.plant"]
+    _loop(plant=plant)
+    assert "cannot build its initial state" in plant_stages() and any(w.startswith("cannot step") for w in plant_stages())
+    traced.clear()
+    _loop(plant=plant, controller=nc.StateFeedback(K=[[2.0, 0.5]]), steps=37)     # another loop, the same plant
+    assert plant_stages() == []
+    _loop(plant=nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[0.5, 0.0], T=0.1), steps=37)
+    assert plant_stages() == ["cannot build its initial state"]     # new numbers, a checked structure

@@ -435,16 +435,7 @@ class Loop:
         detectability; and the links' draws), and a loop already checked with the same
         numbers nothing."""
         leaves, treedef = jax.tree.flatten(self)
-
-        def value(a):
-            try:
-                v = np.asarray(a) if isinstance(a, (np.ndarray, np.generic, jax.Array, int, float, complex)) else None
-            except TypeError:       # e.g. a typed PRNG key
-                v = None
-            if v is None or v.dtype == object:
-                return type(a), id(a)       # a plain Python object: checked once per object
-            return v.shape, str(v.dtype), hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()
-        values = tuple(value(a) for a in leaves)
+        values = tuple(_leaf_key(a) for a in leaves)
         key = (treedef, values)
         if key in _FITTED:
             return
@@ -523,23 +514,29 @@ def _check_fit(loop: Loop) -> None:
     n, m, p = ctx.state_dim, ctx.input_dim, ctx.output_dim
     plant = loop.plant
     f32 = lambda shape: jnp.zeros(shape, jnp.float32)
-    x0 = _stage("Loop.plant", "cannot build its initial state", lambda: plant.init(jax.random.PRNGKey(0)))
-    xv = _stage("Loop.plant", "cannot give its state vector", lambda: plant.state_vector(_zeros(x0)))
-    if not isinstance(xv, jax.ShapeDtypeStruct) or xv.shape != (n,):
-        raise ValueError(f"Loop.plant's state vector is {_shapes(xv)}, its state_dim is {n}: the initial state "
-                         f"(e.g. x0) must be a vector of {n} numbers")
-    x1 = _stage("Loop.plant", f"cannot step (u float32[{m}], w float32[{plant.noise_dim}])",
-                lambda: plant.dynamics(_zeros(x0), f32((m,)), f32((plant.noise_dim,))))
-    _same_structure("Loop.plant's step", x0, x1)
-    for name, size, what, read in (("w_std", plant.noise_dim, "noise_dim", lambda: plant.w_std),
-                                   ("v_std", p, "output_dim", lambda: plant.v_std)):
-        std = _stage("Loop.plant", f"has no {name} (the std of its noise, declared data)",
-                     lambda read=read: jnp.asarray(read(), jnp.float32))
-        if std.shape != (size,):
-            raise ValueError(f"Loop.plant.{name} has shape {std.shape}, its {what} is {size}: one std per entry")
-    z = _stage("Loop.plant", f"cannot measure (v float32[{p}])", lambda: plant.measure(_zeros(x0), f32((p,))))
-    if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (p,) or z.dtype != jnp.float32:
-        raise ValueError(f"Loop.plant's measurement is {_shapes(z)}; it must be float32[{p}] (output_dim={p})")
+    pkey = _plant_key(plant)
+    x0 = _PLANTS.get(pkey)      # a plant already checked with these numbers (one plant in several loops)
+    if x0 is None:
+        x0 = _stage("Loop.plant", "cannot build its initial state", lambda: plant.init(jax.random.PRNGKey(0)))
+        xv = _stage("Loop.plant", "cannot give its state vector", lambda: plant.state_vector(_zeros(x0)))
+        if not isinstance(xv, jax.ShapeDtypeStruct) or xv.shape != (n,):
+            raise ValueError(f"Loop.plant's state vector is {_shapes(xv)}, its state_dim is {n}: the initial state "
+                             f"(e.g. x0) must be a vector of {n} numbers")
+        x1 = _stage("Loop.plant", f"cannot step (u float32[{m}], w float32[{plant.noise_dim}])",
+                    lambda: plant.dynamics(_zeros(x0), f32((m,)), f32((plant.noise_dim,))))
+        _same_structure("Loop.plant's step", x0, x1)
+        for name, size, what, read in (("w_std", plant.noise_dim, "noise_dim", lambda: plant.w_std),
+                                       ("v_std", p, "output_dim", lambda: plant.v_std)):
+            std = _stage("Loop.plant", f"has no {name} (the std of its noise, declared data)",
+                         lambda read=read: jnp.asarray(read(), jnp.float32))
+            if std.shape != (size,):
+                raise ValueError(f"Loop.plant.{name} has shape {std.shape}, its {what} is {size}: one std per entry")
+        z = _stage("Loop.plant", f"cannot measure (v float32[{p}])", lambda: plant.measure(_zeros(x0), f32((p,))))
+        if not isinstance(z, jax.ShapeDtypeStruct) or z.shape != (p,) or z.dtype != jnp.float32:
+            raise ValueError(f"Loop.plant's measurement is {_shapes(z)}; it must be float32[{p}] (output_dim={p})")
+        if len(_PLANTS) > 64:
+            _PLANTS.clear()
+        _PLANTS[pkey] = x0
     dims = dict(state=n, input=m, output=p)
     for name in ("plant", "trigger", "estimator", "actuator", "controller_trigger", "monitor", "cost"):
         part = getattr(loop, name)
@@ -627,7 +624,9 @@ def _check_values(loop: Loop) -> tuple:
     re-raised as a ValueError naming the role. Returns the initial states' shapes (plant,
     trigger, estimator, controller, controller trigger or None, actuator, monitor)."""
     ctx = loop.ctx
-    x0 = _stage("Loop.plant", "cannot build its initial state", lambda: loop.plant.init(jax.random.PRNGKey(0)))
+    x0 = _PLANTS.get(_plant_key(loop.plant))
+    if x0 is None:
+        x0 = _stage("Loop.plant", "cannot build its initial state", lambda: loop.plant.init(jax.random.PRNGKey(0)))
     _check_draws(loop)
     t0 = _stage("Loop.trigger", "cannot build its state",
                 lambda: loop.trigger.init(ctx._replace(signal_dim=ctx.output_dim)))
@@ -689,6 +688,23 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
 
 
 _FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
+_PLANTS: dict = {}       # plants (treedef, leaf values) found to fit -> their initial state's shapes
+
+
+def _leaf_key(a):
+    """A leaf as (shape, dtype, hash of its bytes); a plain Python object as (type, id)."""
+    try:
+        v = np.asarray(a) if isinstance(a, (np.ndarray, np.generic, jax.Array, int, float, complex)) else None
+    except TypeError:       # e.g. a typed PRNG key
+        v = None
+    if v is None or v.dtype == object:
+        return type(a), id(a)       # a plain Python object: checked once per object
+    return v.shape, str(v.dtype), hashlib.sha1(np.ascontiguousarray(v).tobytes()).hexdigest()
+
+
+def _plant_key(plant) -> tuple:
+    leaves, treedef = jax.tree.flatten(plant)
+    return treedef, tuple(_leaf_key(a) for a in leaves)
 _FITTED_SHAPES: set = set()     # the same loops keyed on (treedef, leaf shapes and dtypes) alone
 
 
