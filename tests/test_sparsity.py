@@ -101,7 +101,7 @@ def test_structured_prediction_equals_dense_float64(diag_q):
         loss = lambda structure: lambda b, u: jnp.sum(jnp.sin(run(structure, b, u).cov))
         sym = lambda g: g + g.T - np.diag(np.diag(g))          # (i, j) and (j, i) summed, upper
         b0 = jax.tree.map(lambda a: a[0], b)
-        (gbs, gus), (gbd, gud) = (jax.grad(loss(s), argnums=(0, 1))(b0, u[0]) for s in (st, None))
+        (gbs, gus), (gbd, gud) = (jax.jit(jax.grad(loss(s), argnums=(0, 1)))(b0, u[0]) for s in (st, None))
         for a, c in ((gbs.mean, gbd.mean), (gus, gud), (np.triu(sym(np.asarray(gbs.cov))), np.triu(sym(np.asarray(gbd.cov))))):
             assert np.max(np.abs(c)) > 0
             np.testing.assert_allclose(a, c, rtol=1e-10, atol=1e-12)
