@@ -218,7 +218,7 @@ def test_a_failed_run_is_left_out_of_the_tracking_summary():
     m, tm = jax.jit(jax.vmap(nc.run_tracking, in_axes=(0, None, None)))(keys, loop, tracking)
     failed = np.asarray(m.unstable)
     assert 0 < failed.sum() < failed.size                  # some runs fail, most do not
-    raw = jax.vmap(lambda k: tracking.metrics(nc.simulate(loop, k).x, T))(keys)   # the frozen runs' numbers
+    raw = jax.jit(jax.vmap(lambda k: tracking.metrics(nc.simulate(loop, k).x, T)))(keys)   # the frozen runs' numbers
     for f in tm._fields:
         got, frozen = np.asarray(getattr(tm, f))[:, 0], np.asarray(getattr(raw, f))[:, 0]
         np.testing.assert_allclose(got[~failed], frozen[~failed], rtol=1e-5)   # another program: float32 sums rounded otherwise
