@@ -140,7 +140,7 @@ def test_ukf_gradient():
             b = ukf_predict(f, Gaussian(m0, jnp.diag(jnp.array([0.3, 0.5]))), jnp.asarray(us[0]), Q, 2, alpha=0.5)
             b = ukf_update(h, b, z, r, 2, alpha=0.5)
             return jnp.sum(b.mean ** 2) + jnp.trace(b.cov)
-        check_grads(loss, (jnp.array([1.0, 0.2]), jnp.asarray(zs[0]), jnp.asarray(np.diag(R))), order=1,
+        check_grads(jax.jit(loss), (jnp.array([1.0, 0.2]), jnp.asarray(zs[0]), jnp.asarray(np.diag(R))), order=1,
                     modes=("rev",), eps=1e-6, atol=1e-6, rtol=1e-6)
 
 
