@@ -66,7 +66,7 @@ def test_jump_weights_give_the_derivative_of_a_gaussian_exceedance(x):
     def gaps_delta(t):
         v = jnp.asarray([[0.0]], jnp.float32)
         return (jnp.zeros((1, 1)), x + v, v, jnp.asarray([s], jnp.float32), 0.0, t[0], "sum", jnp.zeros((1,), bool))
-    w, _, _, _ = crossing_weights(gaps_delta, jnp.asarray([delta], jnp.float32))
+    w, _, _, _ = jax.jit(lambda t: crossing_weights(gaps_delta, t))(jnp.asarray([delta], jnp.float32))
     exact_d = -(norm.pdf((a - x) / s) + norm.pdf((a + x) / s)) / (2 * s * a)
     assert float(jnp.sum(w)) == pytest.approx(exact_d, rel=1e-4)
 
