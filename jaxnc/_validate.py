@@ -160,6 +160,13 @@ def concrete(*values) -> bool:
     return True
 
 
+def unbounded(limit) -> bool:
+    """True when an output limit is None or, looked at on the host, +-inf in every entry;
+    a JAX array (a traced or batched leaf) is not looked at and counts as a bound."""
+    import jax
+    return limit is None or (not isinstance(limit, jax.Array) and bool(np.all(np.isinf(np.asarray(limit)))))
+
+
 def fields_concrete(obj) -> bool:
     """:func:`concrete` over a dataclass's fields."""
     import dataclasses

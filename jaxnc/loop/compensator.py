@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_components, check_given, check_instance, check_range, index_tuple
+from jaxnc._validate import check_components, check_given, check_instance, check_range, index_tuple, unbounded
 from jaxnc.loop.base import AbstractController, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -133,7 +133,6 @@ class LinearController(AbstractController):
             raise ValueError(f"LinearController.u_min must be <= u_max, got {np.asarray(lo).tolist()} and "
                              f"{np.asarray(hi).tolist()}")
         check_channels("LinearController", self.reference, p)
-        unbounded = lambda v: v is None or (not isinstance(v, jax.Array) and bool(np.all(np.isinf(np.asarray(v)))))
         if self.K_aw is not None and not isinstance(self.K_aw, jax.Array) and np.any(np.asarray(self.K_aw) != 0) \
                 and unbounded(lo) and unbounded(hi):
             raise ValueError("LinearController.K_aw acts through u - v, u = clip(v, u_min, u_max), and u_min and u_max "

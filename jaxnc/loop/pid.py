@@ -50,7 +50,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_bool, check_components, check_given, check_instance, check_range, index_tuple
+from jaxnc._validate import (check_bool, check_components, check_given, check_instance, check_range, index_tuple,
+                             unbounded)
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -151,7 +152,6 @@ class PID(AbstractController):
         if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and np.any(lo > hi):
             raise ValueError(f"PID.u_min must be <= u_max, got {lo.tolist()} and {hi.tolist()}")
         check_channels("PID", self.reference, n)
-        unbounded = lambda v: v is None or (isinstance(v, np.ndarray) and bool(np.all(np.isinf(v))))
         if self.anti_windup == "back_calculation" and unbounded(lo) and unbounded(hi):
             raise ValueError("PID.anti_windup='back_calculation' acts through u - v, u = clip(v, u_min, u_max), and "
                              "u_min and u_max are unbounded: it would never act (a saturation in a LimitedActuator "

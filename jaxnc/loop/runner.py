@@ -542,7 +542,7 @@ def _check_fit(loop: Loop) -> None:
         part = getattr(loop, name)
         if part is not None and (name != "cost" or isinstance(part, Quadratic)):
             _check_field_shapes(f"Loop.{name}", part, dict(dims, signal=p if name == "trigger" else m))
-    _, t0, e0, c0, ct0, a0, m0 = _check_values(loop)     # every role's init(ctx) and the links' draws
+    t0, e0, c0, ct0, a0, m0 = _role_inits(loop)          # every other role's init(ctx) and the links' draws
     # the sensor's trigger
     t1, send = _stage("Loop.trigger", f"cannot decide on a measurement float32[{p}]",
                       lambda: loop.trigger.step(_zeros(t0), f32((p,)), jnp.int32(1)))
@@ -617,16 +617,22 @@ def _check_fit(loop: Loop) -> None:
             raise ValueError(f"Loop.cost must return a scalar, got {_shapes(J)}")
 
 
-def _check_values(loop: Loop) -> tuple:
-    """What of :func:`_check_fit` depends on a loop's numbers, not only on its shapes: every
-    role's ``init(ctx)`` (where a part checks its numbers against the loop, e.g. a
-    ``Luenberger`` gain against N) and the links' draws (:func:`_check_draws`), each
-    re-raised as a ValueError naming the role. Returns the initial states' shapes (plant,
-    trigger, estimator, controller, controller trigger or None, actuator, monitor)."""
+def _check_values(loop: Loop) -> None:
+    """What of :func:`_check_fit` depends on a loop's numbers, not only on its shapes, for a
+    loop whose structure passed it: the plant's ``init`` (unless this plant, with these
+    numbers, passed) and :func:`_role_inits`."""
+    if _plant_key(loop.plant) not in _PLANTS:
+        _stage("Loop.plant", "cannot build its initial state", lambda: loop.plant.init(jax.random.PRNGKey(0)))
+    _role_inits(loop)
+
+
+def _role_inits(loop: Loop) -> tuple:
+    """Every role's ``init(ctx)`` but the plant's (where a part checks its numbers against
+    the loop, e.g. a ``Luenberger`` gain against N) and the links' draws
+    (:func:`_check_draws`), each re-raised as a ValueError naming the role. Returns the
+    initial states' shapes (trigger, estimator, controller, controller trigger or None,
+    actuator, monitor)."""
     ctx = loop.ctx
-    x0 = _PLANTS.get(_plant_key(loop.plant))
-    if x0 is None:
-        x0 = _stage("Loop.plant", "cannot build its initial state", lambda: loop.plant.init(jax.random.PRNGKey(0)))
     _check_draws(loop)
     t0 = _stage("Loop.trigger", "cannot build its state",
                 lambda: loop.trigger.init(ctx._replace(signal_dim=ctx.output_dim)))
@@ -639,7 +645,7 @@ def _check_values(loop: Loop) -> tuple:
                      lambda: loop.controller_trigger.init(ctx._replace(signal_dim=ctx.input_dim)))
     a0 = _stage("Loop.actuator", "cannot build its state", lambda: loop.actuator.init(ctx))
     m0 = _stage("Loop.monitor", "cannot build its state", lambda: loop.monitor.init(ctx))
-    return x0, t0, e0, c0, ct0, a0, m0
+    return t0, e0, c0, ct0, a0, m0
 
 
 def _check_draws(loop: Loop) -> None:
