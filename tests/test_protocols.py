@@ -15,6 +15,7 @@ that a scheme or a tuning module defines are walked too.
 """
 import importlib
 import inspect
+import pathlib
 import pkgutil
 
 import pytest
@@ -181,3 +182,13 @@ def test_a_declared_initial_distribution_is_sampled_by_the_default_init():
     m = np.asarray(s.mass)
     assert isinstance(s, Start) and m.min() >= 1.0 and m.max() <= 2.0 and m.std() > 0.1
     np.testing.assert_array_equal(np.asarray(s.pos), 0.0)
+
+
+def test_each_scheme_module_is_a_builder_of_at_most_250_lines_and_simulate_is_defined_once():
+    """Issue 30's shape: a paper's module builds its loop from library parts (250 lines at most), and
+    the package has one runner (``def simulate`` once, in jaxnc/loop/runner.py)."""
+    root = pathlib.Path(jaxnc.__file__).parent
+    long = {p.name: n for p in (root / "schemes").glob("*.py") if (n := len(p.read_text().splitlines())) > 250}
+    assert not long, f"scheme modules over 250 lines: {long}"
+    defs = [str(p.relative_to(root)) for p in root.rglob("*.py") if "def simulate(" in p.read_text()]
+    assert defs == [str(pathlib.Path("loop") / "runner.py")], defs

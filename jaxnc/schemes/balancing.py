@@ -18,9 +18,8 @@ same network and noise (common random numbers). The plant is
   :class:`~jaxnc.loop.DirtyDerivative` (simple difference, or filtered with ``tau_d``),
   LQR for the ideal loop (``lead = 0``), :class:`~jaxnc.loop.ArrivalHold`.
 
-Scenario: tilt ``theta0_deg``, wheel-angle step for ``step_m`` at ``t_step``
-(:class:`jaxnc.references.Step`). A run falls when |theta| > ``tilt_limit_deg`` or the
-state is not finite (the runner's :class:`~jaxnc.loop.Monitor` freezes the plant).
+Scenario: tilt ``theta0_deg``, wheel-angle step for ``step_m`` at ``t_step`` (:class:`jaxnc.references.Step`);
+a run falls when |theta| > ``tilt_limit_deg`` or the state is not finite (the Monitor freezes the plant).
 """
 from __future__ import annotations
 
@@ -152,8 +151,6 @@ class Metrics(NamedTuple):
     tilt_rms_deg: jax.Array   # RMS tilt over the run, deg (inf when fallen)
     track_rms_mm: jax.Array   # RMS position error over the last 5 s (the whole run if shorter), mm (inf when fallen)
     tilt_max_deg: jax.Array   # max |theta|, deg
-
-    #: the fields' units (jaxnc.results.save_per_seed, jaxnc.load)
     UNITS = {"tilt_rms_deg": "deg", "track_rms_mm": "mm", "tilt_max_deg": "deg"}
 
 

@@ -46,8 +46,8 @@ from jaxnc.disturbance import Dob, dob_design, dob_init, dob_output, dob_update
 from jaxnc.plants import hdd as hdd_plant
 
 __all__ = ["CASES", "STEPS", "PAPER_THRESHOLDS", "NARROW_THRESHOLDS", "hdd_loop", "MrciLaw", "controller_design",
-           "whole_run_horizon", "output", "disturbance", "held", "controller_record", "Metrics", "ise", "isep", "cc",
-           "gpi", "metrics", "run", "tts_reference"]
+           "whole_run_horizon", "output", "disturbance", "held", "controller_record", "Metrics", "ise", "isep",
+           "cc", "gpi", "metrics", "run", "tts_reference"]
 
 CASES = (1, 2, 3, 4, 5, 6)
 PAPER_THRESHOLDS = (100e-7, 1.32e-2)      # section 5: delta_s = sigma_s, delta_c = sigma_c (Fig. 5's optimum)
@@ -58,8 +58,7 @@ STEPS = 464              # N_TTS = 464: the study lasts 464 periods (9.28 ms)
 # disturbance's slope state, P0 = 1e-6 I; Case 6 models the unknown disturbance as input noise.
 FILTER_SLOPE_STD = 1e-6
 FILTER_V = hdd_plant.V_STD ** 2
-P0_SCALE = 1e-6
-FILTER_INPUT_STD = 1e-2
+P0_SCALE, FILTER_INPUT_STD = 1e-6, 1e-2
 
 
 def whole_run_horizon(steps: int = STEPS) -> int:
@@ -140,10 +139,9 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None 
         raise ValueError(f"thresholds must be a pair (delta_s = sigma_s, delta_c = sigma_c) or None, got {thresholds!r}")
     ts, tc = (NARROW_THRESHOLDS if case >= 5 else PAPER_THRESHOLDS) if thresholds is None else thresholds
     check_range("dob_f_hz", dob_f_hz, 0.0, 0.5 / hdd_plant.T, low_open=True, high_open=True)
-    check_range("delta_s = sigma_s", ts, 0.0, None)
-    check_range("delta_c = sigma_c", tc, 0.0, None)
-    for name, v in (("w_std", w_std), ("v_std", v_std), ("r", r)):
-        check_range(name, v, 0.0 if name != "r" else None, None)
+    for name, v, low in (("delta_s = sigma_s", ts, 0.0), ("delta_c = sigma_c", tc, 0.0), ("w_std", w_std, 0.0),
+                         ("v_std", v_std, 0.0), ("r", r, None)):
+        check_range(name, v, low, None)
     plant = hdd_plant.hdd_model(reading, w_std=w_std * (case >= 4), v_std=v_std * (case >= 4))
     f = lambda a: jnp.asarray(a, jnp.float32)
     ctrl, dob = controller_design(m).as_jax(), dob_design(hdd_plant.T, dob_f_hz)
@@ -169,7 +167,6 @@ def hdd_loop(case: int, *, thresholds=None, reading: str = "sum", h: int | None 
                    monitor=jl.Monitor(freeze=False), N=1, steps=steps, T=hdd_plant.T,
                    record=jl.Record(signals=("x", "u", "z", "xhat", "sent_sc", "sent_ca", "recv_ca"),
                                     controller=controller_record))
-
 
 
 def output(loop: jl.Loop, tr: jl.Trajectory):
@@ -236,10 +233,9 @@ def metrics(loop: jl.Loop, tr: jl.Trajectory, *, y_tts, ise_tts, cs: float, W=(0
     unstable = ~jnp.all(jnp.isfinite(y)) | (jnp.max(jnp.abs(y)) > 100.0 * r)
     e = jnp.where(unstable, jnp.inf, isep(y, y_tts))
     ne = e / ise_tts
-    _, gap = tr.parts["controller"]
     return Metrics(ISE=ise(y, r), ISEP=e, NE=ne, Uc=uc_, Ua=ua_, Cc=cc(uc_, cs),
                    GPI=jnp.where(unstable, jnp.inf, gpi(uc_, ua_, ne, W)), n_sc=n_sc, n_ca=n_ca,
-                   unstable=unstable, N_max=jnp.max(gap), n_held=jnp.sum(held(loop, tr)))
+                   unstable=unstable, N_max=jnp.max(tr.parts["controller"][1]), n_held=jnp.sum(held(loop, tr)))
 
 
 #: the per-seed function ``run(loop, key, *, y_tts, ise_tts, cs, W=...) -> Metrics``:

@@ -213,8 +213,6 @@ class Metrics(NamedTuple):
     tx_ca: jax.Array      # controller transmissions (measurements received) up to completion
     l: jax.Array          # fast steps to completion (all of them if never)
     unstable: jax.Array   # bool
-
-    #: the fields' units (jaxnc.results.save_per_seed, jaxnc.load)
     UNITS = {"J1": "m", "J2": "m", "J3": "s", "tx_sc": "transmissions", "tx_ca": "transmissions", "l": "fast periods"}
 
 
@@ -227,8 +225,7 @@ def metrics(loop: nc.Loop, traj: nc.Trajectory) -> Metrics:
     dist, l, est = traj.parts["monitor"], traj.done_step, traj.parts["estimator"]
     finite = jnp.all(jnp.isfinite(est)) if jnp.issubdtype(est.dtype, jnp.floating) else jnp.all(est)
     unstable = traj.failed | ~finite | ~traj.done
-    mask = jnp.arange(K) < l
-    slow_mask = (jnp.arange(K // N) * N) < l
+    mask, slow_mask = jnp.arange(K) < l, (jnp.arange(K // N) * N) < l
     inf = jnp.asarray(jnp.inf, jnp.float32)
     return Metrics(J1=jnp.where(unstable, inf, J1(dist, mask)), J2=jnp.where(unstable, inf, J2(dist, mask)),
                    J3=jnp.where(unstable, inf, l * loop.T), tx_sc=jnp.sum(traj.sent_sc * slow_mask),
