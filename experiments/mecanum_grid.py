@@ -431,7 +431,8 @@ def heatmaps(out: Path, results: dict, p: str) -> Path:
     Ns = sorted({c[1] for c in results if c[0] == p})
     dps = sorted({c[3] for c in results if c[0] == p})
     fig, axes = plt.subplots(len(INDEXES), len(mec.CASES), figsize=(3.2 * len(mec.CASES), 2.6 * len(INDEXES)),
-                             squeeze=False, constrained_layout=True)
+                             squeeze=False)
+    fig.subplots_adjust(left=0.05, right=0.97, bottom=0.06, top=0.93, wspace=0.3, hspace=0.45)
     norms = {"J1": LogNorm(0.5, 10.0), "J2": LogNorm(0.3, 10.0), "J3": LogNorm(0.9, 1.6), "J4": LogNorm(0.02, 1.0)}
     for r, j in enumerate(INDEXES):
         im = None

@@ -184,7 +184,13 @@ if not os.environ.get("JAXNC_NO_CACHE"):
     enable_cache()
 from pathlib import Path
 from experiments import mecanum_grid as mg
+from jaxnc import sweep
 from jaxnc.sweep import Shard
+save = sweep.save_cell
+def save_then_wait(*args, **kwargs):         # the parent kills this process during the wait: a loaded
+    save(*args, **kwargs)                     # machine can otherwise see the shard finish between two polls
+    import time; time.sleep(300)
+sweep.save_cell = save_then_wait
 mg.run_grid({settings!r}, seeds={seeds}, out=Path({out!r}), progress=False, shard=Shard(0, 2))
 """
 
@@ -199,7 +205,7 @@ def test_two_shards_assemble_the_tables_of_an_unsharded_run_and_a_killed_shard_l
     reference = _tables(whole)
     assert {"tables_turn180.md", "tables_turn180.csv", "grid_turn180.csv", "fig_turn180.png"} <= set(reference)
 
-    # shard 0 in a process of its own, killed (SIGKILL) once its first cell is stored
+    # shard 0 in a process of its own, killed (SIGKILL) once its first cell is stored (it waits after each)
     script = _CHILD.format(root=str(ROOT), settings=GRID, seeds=SEEDS, out=str(shared))
     child = subprocess.Popen([sys.executable, "-c", textwrap.dedent(script)], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)

@@ -119,7 +119,13 @@ class Tracking:
         return jnp.zeros((c,), jnp.int32)
 
     def metrics(self, x, T) -> TrackingMetrics:
-        """:class:`TrackingMetrics` of x float[K, n] sampled at period T (module docstring)."""
+        """:class:`TrackingMetrics` of x float[K, n] sampled at period T (module docstring).
+
+        One compiled program (``jax.jit``; inlined when called under a trace), so a call on
+        a concrete trajectory does not dispatch its hundred small operations one by one."""
+        return _tracking_metrics(self, x, T)
+
+    def _metrics(self, x, T) -> TrackingMetrics:
         y, r = self.signals(x, T)
         e = r - y
         K = y.shape[0]
@@ -138,6 +144,9 @@ class Tracking:
                                      for v in (info.overshoot, info.rise_time, info.settling_time))
         return TrackingMetrics(_tr.ise(e, T), _tr.iae(e, T), itae, overshoot, rise,
                                settling, _tr.steady_state_error(e, window=self.window))
+
+
+_tracking_metrics = jax.jit(lambda tracking, x, T: tracking._metrics(x, T))
 
 
 def run_tracking(key, loop, tracking: Tracking):
