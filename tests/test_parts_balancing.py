@@ -135,6 +135,26 @@ def test_filtered_derivative_is_a_first_order_filter_of_the_difference():
         nc.DirtyDerivative(-1.0)
 
 
+def test_filtered_derivative_per_output_is_the_zoh_of_s_over_tau_s_plus_one_scaled():
+    """tau_d per output (float[p]): each output's rate is scipy's cont2discrete of
+    s / (tau s + 1) by ZOH, (1/tau)(1 - z^-1)/(1 - a z^-1), scaled by (1 - a) tau / T (the
+    docstring's unit gain on the difference quotient), applied to the held measurement; a
+    tau_d of another length than the outputs is refused when the Loop is built
+    (tests/test_bad_inputs.py)."""
+    taus, T = np.array([0.004, 0.02]), 1e-3
+    z = np.cumsum(np.random.default_rng(2).standard_normal((40, 2)), axis=0)
+    out = _observer_run(nc.DirtyDerivative(list(taus)), z, np.arange(40), np.ones(40, np.float32))
+    for i, tau in enumerate(taus):
+        num, den, _ = scipy.signal.cont2discrete(([1.0, 0.0], [tau, 1.0]), T, method="zoh")
+        a = math.exp(-T / tau)
+        assert den[1] == pytest.approx(-a, rel=1e-12)
+        b = np.ravel(num) * (1 - a) * tau / T          # c (1 - z^-1): c on the difference z_k - z_{k-1}
+        assert b[-1] == pytest.approx(-b[-2], rel=1e-12)
+        dz = np.concatenate([[0.0], np.diff(z[:, i])])   # the first arrival: nothing to difference
+        ref = scipy.signal.lfilter([b[-2]], den, dz)
+        np.testing.assert_allclose(out[:, 2 + i], ref, rtol=1e-4, atol=1e-3)
+
+
 # ----------------------------------------------------------------------------- ArrivalHold
 
 

@@ -106,6 +106,16 @@ def test_numre_posterior_covariance_is_the_error_covariance_over_seeds():
         assert abs(nees.mean() - 2.0) < 4 * np.sqrt(2 * 2 / S), (k, nees.mean())
 
 
+def test_numre_takes_v_as_a_number_or_a_one_by_one_covariance():
+    """V for the single output as a number, float[1] or float[1, 1] (as R elsewhere) gives the
+    same filter; [V] and [[V]] failed with numpy's "only 0-dimensional arrays can be converted"."""
+    tabs = [jl.Numre.design(A2, B2, np.eye(2), C2, np.diag(W_STD ** 2), V, 5, cov0=np.eye(2)).tables
+            for V in (V_STD ** 2, [V_STD ** 2], [[V_STD ** 2]])]
+    for t in tabs[1:]:
+        assert float(t.V) == float(tabs[0].V) == pytest.approx(V_STD ** 2)
+        np.testing.assert_array_equal(t.We, tabs[0].We)
+
+
 def test_numre_validation():
     with pytest.raises(ValueError, match="Numre.n_max"):
         jl.Numre.design(A2, B2, np.eye(2), C2, np.eye(2), 1.0, 0, cov0=np.eye(2))
