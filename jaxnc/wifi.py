@@ -217,7 +217,12 @@ def stationary_loss(ch: WifiChannel) -> float:
 
 
 def delivery_probability(ch: WifiChannel, within: int) -> float:
-    """P(a packet arrives with delay <= ``within`` steps) = (1 - loss) P(d <= within)."""
+    """P(a packet arrives with delay <= ``within`` steps) = (1 - loss) P(d <= within).
+
+    Raises:
+      ValueError: ``within`` not an integer >= 0 (2.5 failed in a slice, -1 gave 0).
+    """
+    check_int("delivery_probability: within", within, 0)
     pmf = np.asarray(ch.delay_pmf, float)
     return (1.0 - stationary_loss(ch)) * float(pmf[: within + 1].sum())
 
@@ -365,10 +370,13 @@ class LoopbackStats(NamedTuple):
 
 
 def loopback_stats(trace, window: int = 40) -> LoopbackStats:
-    """Delay and window-PER statistics of a (loop-back) trace, the rows of Table 1."""
+    """Delay and window-PER statistics of a (loop-back) trace, the rows of Table 1; the delay
+    statistics are nan for a trace that delivered nothing (as :func:`delay_cdf`)."""
     t = np.asarray(trace)
     d = t[t >= 0].astype(np.float64)
     w = 100.0 * window_per(t, window)
+    if d.size == 0:                 # numpy's max of nothing raised "zero-size array to reduction operation"
+        d = np.full(1, np.nan)
     return LoopbackStats(
         delay_median=float(np.median(d)), delay_std=float(np.std(d)), delay_max=float(d.max()),
         delay_min=float(d.min()), per_median=float(np.median(w)), per_std=float(np.std(w)),

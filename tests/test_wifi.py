@@ -352,3 +352,10 @@ def test_gilbert_elliott_kernel_matches_a_python_loop(gap_min, gap_max):
         ref = wifi.gilbert_elliott_losses(bad0, jax.random.uniform(ks, (n,)), jax.random.uniform(kl, (n,)),
                                           f32(p_gb), f32(p_bg), f32(lg), f32(lb))
         np.testing.assert_array_equal(np.asarray(ge.sample(key, n)), np.asarray(ref))
+
+
+def test_loopback_stats_of_a_trace_that_delivered_nothing():
+    """Delay statistics nan (as delay_cdf), PER 100 %; numpy's max of an empty array raised."""
+    s = wifi.loopback_stats(np.full(100, wifi.LOST))
+    assert np.isnan([s.delay_median, s.delay_std, s.delay_max, s.delay_min]).all()
+    assert s.per_mean == s.per_min == s.per_max == 100.0
