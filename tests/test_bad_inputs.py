@@ -409,6 +409,17 @@ PYTHON_API = [
     (lambda: _numre(Bw=np.ones(3)), "Numre.Bw must be float[2] or float[2, k] (A is 2x2), got shape (3,)"),
     (lambda: _numre(cov0=np.eye(3)), "Numre.cov0 must be 2x2 (a covariance), got shape (3, 3)"),
     (lambda: _numre(mean0=[0.0, 0.0, 1.0]), "Numre.mean0 must have 2 entries (A is 2x2), got shape (3,)"),
+    # V for the single output: two entries failed with numpy's "only 0-dimensional arrays"; V = 0 with an
+    # initial state known exactly along C ran to nan estimates (the gain at k = 0 is 0/0)
+    # wifi.delivery_probability: a fractional window failed in a slice, a negative one gave 0
+    (lambda: wifi.delivery_probability(wifi.NOMINAL, 2.5), "delivery_probability: within must be an integer in [0, inf), got 2.5"),
+    (lambda: wifi.delivery_probability(wifi.NOMINAL, -1), "delivery_probability: within must be an integer in [0, inf), got -1"),
+    (lambda: _numre(V=[1e-4, 2e-4]), "Numre.V must be a number >= 0 or 1x1 (a covariance), got shape (2,)"),
+    (lambda: _numre(V=0.0, cov0=np.diag([0.0, 1.0])), "Numre.V = 0 needs C cov0 C' > 0"),
+    # DirtyDerivative: a tau_d per output of another length (a state-shape message, or one output's
+    # rate broadcast to two entries)
+    (lambda: _loop(estimator=nc.DirtyDerivative([0.01, 0.02]), controller=nc.StateFeedback(K=[[1.0, 0.5]])),
+     "DirtyDerivative.tau_d must be a number or float[1] (one per measured output), got shape (2,)"),
     # a reference a part of c loops cannot track (one check for the three parts; LinearController said "1 or 1 channels")
     (lambda: nc.PID(Kp=1.0, index=(0, 1), reference=nc_refs.Step([1.0, 2.0, 3.0])),
      "PID.reference must have 1 or 2 channels (len(index) = 2), got 3"),

@@ -135,6 +135,26 @@ def test_filtered_derivative_is_a_first_order_filter_of_the_difference():
         nc.DirtyDerivative(-1.0)
 
 
+def test_filtered_derivative_per_output_is_the_zoh_of_s_over_tau_s_plus_one_scaled():
+    """tau_d per output (float[p]): each output's rate is scipy's cont2discrete of
+    s / (tau s + 1) by ZOH, (1/tau)(1 - z^-1)/(1 - a z^-1), scaled by (1 - a) tau / T (the
+    docstring's unit gain on the difference quotient), applied to the held measurement; a
+    tau_d of another length than the outputs is refused when the Loop is built
+    (tests/test_bad_inputs.py)."""
+    taus, T = np.array([0.004, 0.02]), 1e-3
+    z = np.cumsum(np.random.default_rng(2).standard_normal((40, 2)), axis=0)
+    out = _observer_run(nc.DirtyDerivative(list(taus)), z, np.arange(40), np.ones(40, np.float32))
+    for i, tau in enumerate(taus):
+        num, den, _ = scipy.signal.cont2discrete(([1.0, 0.0], [tau, 1.0]), T, method="zoh")
+        a = math.exp(-T / tau)
+        assert den[1] == pytest.approx(-a, rel=1e-12)
+        b = np.ravel(num) * (1 - a) * tau / T          # c (1 - z^-1): c on the difference z_k - z_{k-1}
+        assert b[-1] == pytest.approx(-b[-2], rel=1e-12)
+        dz = np.concatenate([[0.0], np.diff(z[:, i])])   # the first arrival: nothing to difference
+        ref = scipy.signal.lfilter([b[-2]], den, dz)
+        np.testing.assert_allclose(out[:, 2 + i], ref, rtol=1e-4, atol=1e-3)
+
+
 # ----------------------------------------------------------------------------- ArrivalHold
 
 
@@ -230,3 +250,44 @@ def test_lead_feedback_validates():
         nc.LeadFeedback([[1.0, 0.0]], "A")
     with pytest.raises(ValueError, match="N must be 1"):
         nc.LeadFeedback([[1.0, 0.0]], m).init(CTX._replace(N=2))
+
+
+# ----------------------------------------------------------------------------- hold-aware LQ gain
+
+
+def _hold_cost(L, A, B, W, U, theta):
+    """The expected cost matrix P of u = L x under the hold (seed 001 eq. 4), computed without
+    the Riccati recursion: the jump linear system of z = [x; ubar_{k-1}], arrival (prob theta)
+    ubar = L x, loss ubar = ubar_{k-1}, stage cost x'Wx + ubar'U ubar, solved as
+    P = sum_i p_i (Q_i + F_i' P F_i) (a linear system in vec P); None if not mean-square stable."""
+    n, m = B.shape
+    Z = np.zeros
+    F1, F0 = np.block([[A + B @ L, Z((n, m))], [L, Z((m, m))]]), np.block([[A, B], [Z((m, n)), np.eye(m)]])
+    Q1 = np.block([[W + L.T @ U @ L, Z((n, m))], [Z((m, n)), Z((m, m))]])
+    Q0 = np.block([[W, Z((n, m))], [Z((m, n)), U]])
+    ops = theta * np.kron(F1.T, F1.T) + (1 - theta) * np.kron(F0.T, F0.T)
+    if np.max(np.abs(np.linalg.eigvals(ops))) >= 1:
+        return None
+    N = n + m
+    return np.linalg.solve(np.eye(N * N) - ops, (theta * Q1 + (1 - theta) * Q0).reshape(-1)).reshape(N, N)
+
+
+@pytest.mark.parametrize("n, m, theta, scale", [(2, 1, 0.9, 0.9), (3, 1, 0.7, 1.15), (3, 2, 0.8, 0.9), (4, 2, 0.95, 1.1)])
+def test_hold_aware_gain_minimises_the_expected_cost_of_the_hold_system(n, m, theta, scale):
+    """hold_lq_gain's L is the best u = L x for the hold system, checked without its Riccati
+    equation: the expected cost of the jump linear system (_hold_cost) has S11 as its x-block,
+    and every perturbation of L (each entry, and random directions, +-1e-3) raises its trace."""
+    from jaxnc.controllers.hold_lq import hold_lq_gain
+    rng = np.random.default_rng(n * 10 + m)
+    A = rng.standard_normal((n, n))
+    A *= scale / np.max(np.abs(np.linalg.eigvals(A)))
+    B, W, U = rng.standard_normal((n, m)), np.eye(n), 0.5 * np.eye(m)
+    L, S11 = hold_lq_gain(A, B, W, U, theta)
+    P = _hold_cost(L, A, B, W, U, theta)
+    np.testing.assert_allclose(P[:n, :n], S11, rtol=1e-7, atol=1e-9)
+    J = np.trace(P)
+    dirs = [np.eye(m * n)[i].reshape(m, n) for i in range(m * n)] + list(rng.standard_normal((8, m, n)))
+    for d in dirs:
+        for s in (1e-3, -1e-3):
+            Pd = _hold_cost(L + s * d, A, B, W, U, theta)
+            assert Pd is None or np.trace(Pd) > J

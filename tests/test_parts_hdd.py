@@ -106,6 +106,16 @@ def test_numre_posterior_covariance_is_the_error_covariance_over_seeds():
         assert abs(nees.mean() - 2.0) < 4 * np.sqrt(2 * 2 / S), (k, nees.mean())
 
 
+def test_numre_takes_v_as_a_number_or_a_one_by_one_covariance():
+    """V for the single output as a number, float[1] or float[1, 1] (as R elsewhere) gives the
+    same filter; [V] and [[V]] failed with numpy's "only 0-dimensional arrays can be converted"."""
+    tabs = [jl.Numre.design(A2, B2, np.eye(2), C2, np.diag(W_STD ** 2), V, 5, cov0=np.eye(2)).tables
+            for V in (V_STD ** 2, [V_STD ** 2], [[V_STD ** 2]])]
+    for t in tabs[1:]:
+        assert float(t.V) == float(tabs[0].V) == pytest.approx(V_STD ** 2)
+        np.testing.assert_array_equal(t.We, tabs[0].We)
+
+
 def test_numre_validation():
     with pytest.raises(ValueError, match="Numre.n_max"):
         jl.Numre.design(A2, B2, np.eye(2), C2, np.eye(2), 1.0, 0, cov0=np.eye(2))
@@ -224,6 +234,34 @@ def test_cascade_in_a_loop_runs_its_law_every_fast_period(N, H, p_loss):
         us.append(u)
         x, s = a * x + b * u, (s + 0.3 * (1.0 - x) if t >= first else s)
     np.testing.assert_allclose(np.asarray(traj.u)[:, 0], us, atol=1e-5)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_cascade_takes_a_model_given_as_lists_or_float64_arrays(x64):
+    """A model as a user writes it: A a float64 numpy array, B a list (and the reverse).
+    On a noise-free 2-state plant with the exact model the actions equal the law run every
+    fast period on the true state (N = 2, H = 6, 30 % of the measurements lost). B as a list
+    failed in the controller's trace ("unsupported operand type(s) for *: 'list'"), and under
+    jax_enable_x64 a float64 A or B with a scan carry-type error."""
+    A, b, K, steps, N = np.array([[1.0, 0.1], [0.0, 0.9]]), np.array([0.0, 0.1]), np.array([0.8, 0.3]), 30, 2
+    plant = jl.LTI(A, b[:, None], np.eye(2), x0=[0.5, 0.0], w_std=[0.0, 0.0], v_std=[0.0, 0.0], T=0.1)
+    with jax.enable_x64(x64):
+        for Am, Bm in ((A, b.tolist()), (A.tolist(), b)):
+            law = _Feedback(jnp.asarray(K, jnp.float32), 0.2)
+            loop = jl.Loop(plant=plant, trigger=jl.Periodic(), uplink=jl.Link(jl.Bernoulli(0.3)),
+                           estimator=jl.Passthrough(), controller=jl.Cascade(law, Am, Bm, horizon=6), downlink=jl.Link(),
+                           actuator=jl.PacketActuator(horizon=6), T=0.1, steps=steps, N=N)
+            traj = jax.device_get(jax.jit(jl.simulate)(loop, jax.random.PRNGKey(0)))
+            recv = np.asarray(traj.recv_sc) > 0
+            assert 0 < recv.mean() < 1
+            first = int(np.argmax(recv)) * N
+            x, s, us = np.array([0.5, 0.0]), 0.0, []
+            for t in range(steps):
+                u = -(K @ x) + s if t >= first else 0.0
+                s = s + 0.2 * (1.0 - x[0]) if t >= first else s
+                us.append(u)
+                x = A @ x + b * u
+            np.testing.assert_allclose(np.asarray(traj.u)[:, 0], us, atol=1e-5)
 
 
 def test_cascade_on_the_measurement_and_validation():

@@ -28,7 +28,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_finite, check_given, check_int
+from jaxnc._validate import array_fields, check_finite, check_given, check_int
 from jaxnc.controllers.prediction import predict_periods
 from jaxnc.loop.base import AbstractController, Packet, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
@@ -74,6 +74,7 @@ class Cascade(AbstractController):
             check_given("Cascade.B", self.B, "a vector float[n] (the single input's column) when A is given")
             check_finite("Cascade.A", self.A)
             check_finite("Cascade.B", self.B)
+            array_fields(self, "A", "B")         # lists: one leaf each, arrays the prediction can use
         for n in ("init", "step"):
             if not callable(getattr(self.law, n, None)):
                 raise ValueError(f"Cascade.law must have init() and step(s, k, x) -> (u, s_next, aux), "
@@ -92,8 +93,9 @@ class Cascade(AbstractController):
         played = jnp.clip((k - state.k_last) * ctx.N, 1, H)     # actions of the last packet played since
         s0 = jax.tree.map(lambda a: a[played], state.law)
         n = xhat.shape[0]
-        A = jnp.eye(n, dtype=xhat.dtype) if self.A is None else self.A
-        B = jnp.zeros((n,), xhat.dtype) if self.A is None else self.B
+        # the model in the estimate's dtype (float64 numpy matrices under x64 changed the prediction's dtype)
+        A = jnp.eye(n, dtype=xhat.dtype) if self.A is None else jnp.asarray(self.A, xhat.dtype)
+        B = jnp.zeros((n,), xhat.dtype) if self.A is None else jnp.asarray(self.B, xhat.dtype)
         # H + 1 steps: the last one only gives the law's state after the packet's last action
         us, ss, aux = cascade(self.law.step, A, B, xhat, s0, k * ctx.N, H + 1)
         new = CascadeState(ss, jnp.asarray(k, jnp.int32), jax.tree.map(lambda a: a[0], aux),

@@ -94,15 +94,17 @@ class Numre(AbstractEstimator):
     def design(cls, A, B, Bw, C, W, V, n_max: int, *, cov0, mean0=None, we_form: str = "white",
                inputs: str = "believed") -> "Numre":
         """The filter of the model x+ = A x + B u + Bw w, y = C x + v, Cov(w) = W (scalar or
-        float[q, q], Bw float[n] or float[n, q]), Var(v) = V (single output: C float[n]),
-        with tables up to the multiplicity ``n_max``: a gap between arrivals longer than
-        n_max is corrected with K(n_max) and We(n_max), not the Kalman filter's gain (choose
-        n_max >= the longest gap, e.g. the run's steps, for the exact filter).
+        float[q, q], Bw float[n] or float[n, q]), Var(v) = V (single output: C float[n]; V a
+        number, float[1] or float[1, 1]), with tables up to the multiplicity ``n_max``: a gap
+        between arrivals longer than n_max is corrected with K(n_max) and We(n_max), not the
+        Kalman filter's gain (choose n_max >= the longest gap, e.g. the run's steps, for the
+        exact filter).
 
         Raises ValueError, naming the argument, for n_max < 1, a non-finite entry of any
         matrix or of mean0, an A that is not square, a B, Bw or C whose rows do not match A's
         n (C: one output row of n entries), a W that is not a non-negative scalar or a q x q
-        covariance (q = Bw's columns), a negative V, a cov0 that is not an n x n covariance
+        covariance (q = Bw's columns), a negative V or one of more than one entry, V = 0 with
+        C cov0 C' = 0 (the gain at k = 0 would be 0/0), a cov0 that is not an n x n covariance
         (symmetric positive semi-definite), a mean0 without n entries, or an unknown
         ``we_form``."""
         check_int("Numre.n_max", n_max, 1)
@@ -125,6 +127,14 @@ class Numre(AbstractEstimator):
         q = 1 if Bw.ndim == 1 else Bw.shape[1]
         _check_covariance("Numre.W", W, q, scalar=q == 1)
         _check_covariance("Numre.cov0", cov0, n)
+        check_given("Numre.V", V)
+        check_finite("Numre.V", V)
+        _check_covariance("Numre.V", V, 1, scalar=True)     # a number, float[1] or float[1, 1]: one output
+        V = float(np.asarray(V, float).reshape(()))
+        if V == 0.0 and float(C.reshape(n) @ np.asarray(cov0, float) @ C.reshape(n)) <= 0.0:
+            raise ValueError("Numre.V = 0 needs C cov0 C' > 0: a measurement arriving at k = 0 is corrected with "
+                             "K = cov0 C' / (C cov0 C' + V) = 0/0 (nan estimates from then on); give V > 0 or a cov0 "
+                             "uncertain along C")
         mean0 = np.zeros(n) if mean0 is None else np.asarray(mean0, float)
         if mean0.shape != (n,):
             raise ValueError(f"Numre.mean0 must have {n} entries (A is {n}x{n}), got shape {mean0.shape}")

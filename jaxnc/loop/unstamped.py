@@ -21,8 +21,9 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from jaxnc._validate import check_given, check_nonneg
+from jaxnc._validate import array_fields, check_given, check_nonneg, concrete
 from jaxnc.loop.base import AbstractActuator, AbstractEstimator, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 
@@ -47,18 +48,26 @@ class DirtyDerivative(AbstractEstimator):
 
         r_k = a r_{k-1} + (1 - a) (zbar_k - zbar_{k-1}) / dt,   a = exp(-dt / tau_d)
 
+    With an arrival every period this is scipy's ``cont2discrete`` of ``s / (tau_d s + 1)``
+    by ZOH, ``(1/tau_d)(1 - z^-1)/(1 - a z^-1)``, scaled by ``(1 - a) tau_d / dt``: unit gain
+    on the difference quotient (a ramp's slope is read exactly), where the ZOH form reads it
+    ``dt / ((1 - a) tau_d)`` times too high (tests/test_parts_balancing.py).
+
     ``tau_d = 0`` gives ``a = 0``, the backward difference ``(zbar_k - zbar_{k-1}) / dt``:
     0 where nothing new arrives, the whole change since the previous arrival divided by one
     period where something does. Before the first arrival the estimate is 0; the first
     arrival is held with rate 0 (there is no earlier sample to difference).
 
     Attributes:
-      tau_d: float >= 0, the filter's time constant (s); 0: the simple difference.
+      tau_d: float >= 0, the filter's time constant (s); 0: the simple difference; or
+        float[p], one per measured output.
 
     Returns (``correct``): xhat float[2p] = ``(zbar_k, r_k)``.
 
     Raises:
-      ValueError: ``tau_d`` missing or negative.
+      ValueError: ``tau_d`` missing or negative; when the Loop is built, a ``tau_d`` with
+        another number of entries than the plant's outputs (its rates had that many entries
+        and the loop failed with a state-shape message, or broadcast one output to two).
     """
 
     tau_d: Any = 0.0
@@ -68,8 +77,12 @@ class DirtyDerivative(AbstractEstimator):
     def __post_init__(self):
         check_given("DirtyDerivative.tau_d", self.tau_d)
         check_nonneg("DirtyDerivative.tau_d", self.tau_d)
+        array_fields(self, "tau_d")
 
     def init(self, ctx) -> DirtyDerivativeState:
+        if concrete(self.tau_d) and np.ndim(self.tau_d) > 0 and np.shape(self.tau_d) != (ctx.output_dim,):
+            raise ValueError(f"DirtyDerivative.tau_d must be a number or float[{ctx.output_dim}] (one per measured "
+                             f"output), got shape {np.shape(self.tau_d)}")
         z = jnp.zeros((ctx.output_dim,), jnp.float32)
         return DirtyDerivativeState(z, z, jnp.float32(0.0), jnp.float32(ctx.N * ctx.T))
 
