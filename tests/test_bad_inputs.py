@@ -981,6 +981,8 @@ LOOP_FIT = [
     (lambda: nc.TruncatedExponential(eta=0.0, phi=[0.1, 0.1], tau_max=0.5), "TruncatedExponential.phi must be a single"),
     (lambda: nc.Link(tau_max=[0.1, 0.2]), "Link.tau_max must be a single number"),
     (lambda: nc.Petc(max_silence=[1, 2]), "Petc.max_silence"),
+    # a bool is not a count: max_silence=True used to run as 1 (a periodic sensor), False as 0 (off)
+    (lambda: nc.Petc(delta=1e-3, max_silence=True), "Petc.max_silence must be a whole number of slow instants (an int, not a bool)"),
     # an estimator that reads a measurement only by its time stamp, behind a link that delays every
     # packet beyond its window: it would never correct (it used to run open loop without a word)
     (lambda: _fit_loop(estimator=nc.SteadyStateKF(_FIT_DETECTABLE, Q=[1.0, 1.0], R=np.eye(1)),
