@@ -54,7 +54,8 @@ def _loop(estimator, N, trigger, controller_trigger=None, steps=60):
     return nc.Loop(plant=estimator.model, trigger=trigger, uplink=uplink, estimator=estimator,
                    controller=nc.StateFeedback(K), downlink=downlink, actuator=nc.HoldLast(),
                    controller_trigger=controller_trigger, N=N, steps=steps, T=T,
-                   record=nc.Record(signals=("u", "z", "xhat", "sent_sc", "sent_ca"), estimator=posterior))
+                   record=nc.Record(signals=("u", "z", "xhat", "sent_sc", "sent_ca"),
+                                    estimator=posterior if isinstance(estimator, nc.EKF) else None))
 
 
 def _read_at(loop, key, tr):
@@ -180,3 +181,92 @@ def test_slow_rate_ekf_on_a_users_lifted_model_equals_the_slow_period_kalman_fil
     key = jax.random.PRNGKey(0)
     run = jax.jit(nc.simulate)
     np.testing.assert_allclose(np.asarray(run(fast, key).xhat), np.asarray(run(loop, key).xhat), atol=2e-5)
+
+
+@nc.pytree_dataclass
+class CoarseNoiseLTI(nc.LTI):
+    """A plant simulated on a grid finer than its disturbance: w enters every 3 fast periods
+    (the declared ``noise_period``; the runner draws it at t = 0, 3, 6, ...)."""
+
+    noise_period = 3
+
+
+@pytest.mark.parametrize("form", ["joseph", "sqrt"])
+def test_fast_rate_ekf_adds_the_process_noise_only_where_the_model_declares_it(form):
+    """The EKF predicts with Q at the fast instants t = 0, P, 2P, ... of the model's
+    ``noise_period`` P (t counted over the run, so at N = 2 the noise instants move within
+    the slow period), as the runner draws it: it used to add Q at every fast period, a
+    covariance P times too large between measurements."""
+    N, D, P = 2, 1, CoarseNoiseLTI.noise_period
+    ekf = nc.EKF(_plant(CoarseNoiseLTI), Q=W_STD ** 2, R=R, mean0=np.zeros(2), cov0=P0, buffer=D,
+                 inputs="applied", form=form)
+    loop = _loop(ekf, N=N, trigger=nc.Petc(delta=1e-3, max_silence=3), steps=60)
+    key = jax.random.PRNGKey(0)
+    tr = jax.jit(nc.simulate)(loop, key)
+    read_at = _read_at(loop, key, tr)
+    z, u = np.asarray(tr.z, float), np.asarray(tr.u, float)
+    for k in range(len(read_at)):
+        m, Pk = np.zeros(2), P0.copy()
+        for s in range(k + 1):
+            if read_at[s] <= min(k, s + D):
+                Kg = Pk @ C.T @ np.linalg.inv(C @ Pk @ C.T + R)
+                m, Pk = m + Kg @ (z[s] - C @ m), (np.eye(2) - Kg @ C) @ Pk
+            if s == k:
+                break
+            for j in range(N):
+                m = A @ m + B @ u[s * N + j]
+                Pk = A @ Pk @ A.T + (Q if (s * N + j) % P == 0 else 0.0)
+        mean, cov = (np.asarray(a[k], float) for a in tr.parts["estimator"])
+        np.testing.assert_allclose(mean, m, atol=2e-5)
+        np.testing.assert_allclose(cov, Pk, atol=2e-5 * np.abs(Pk).max())
+
+
+def test_steady_state_kf_sums_the_slow_period_noise_only_where_it_enters():
+    """N = 3 = noise_period: w enters at the first fast instant of each slow period, so the
+    slow-period noise is A^2 G Q G' A^2' (it was the sum over all three instants); scipy's DARE
+    on that system gives the gain, and the loop's estimates follow it."""
+    import scipy.linalg
+
+    N = 3
+    kf = nc.SteadyStateKF(_plant(CoarseNoiseLTI), Q=W_STD ** 2, R=R, inputs="applied")
+    A2 = np.linalg.matrix_power(A, 2)
+    P_ref = scipy.linalg.solve_discrete_are(np.linalg.matrix_power(A, N).T, C.T, A2 @ Q @ A2.T, R)
+    M_ref = P_ref @ C.T @ np.linalg.inv(C @ P_ref @ C.T + R)
+    M, P = nc.stationary_gain(kf, N)
+    np.testing.assert_allclose(np.asarray(M), M_ref, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(P), P_ref, rtol=1e-4)
+    loop = _loop(kf, N=N, trigger=nc.Petc(delta=1e-3, max_silence=3), steps=60)
+    key = jax.random.PRNGKey(0)
+    tr = jax.jit(nc.simulate)(loop, key)
+    read_at = _read_at(loop, key, tr)
+    z, u, m, means = np.asarray(tr.z, float), np.asarray(tr.u, float), np.zeros(2), []
+    for k in range(len(read_at)):
+        if read_at[k] == k:                 # no window: only a measurement read on time
+            m = m + M_ref @ (z[k] - C @ m)
+        means.append(m)
+        for j in range(N):
+            m = A @ m + B @ u[k * N + j]
+    np.testing.assert_allclose(np.asarray(tr.xhat, float), np.array(means), atol=2e-5)
+    with pytest.raises(ValueError, match="N=2 is not a multiple of the model's noise_period=3"):
+        nc.stationary_gain(kf, 2)
+
+
+def test_steady_state_kf_takes_a_noise_input_narrower_than_the_state():
+    """One disturbance input through G (q = 1 < n = 2): G Q G' is singular, and formed in
+    float32 its smallest eigenvalue rounded below 0, so about half of such models were refused
+    ("dlqe: Q must be positive semi-definite") with a valid Q. Each G now gives scipy's gain."""
+    import scipy.linalg
+
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        g = rng.standard_normal((2, 1))
+        plant = nc.LTI(A, B, C, G=g, w_std=W_STD, v_std=V_STD, T=T)
+        kf = nc.SteadyStateKF(plant, Q=W_STD ** 2, R=R)
+        for N in (1, 2) if i == 0 else (1,):
+            AN = np.linalg.matrix_power(A, N)
+            QN = sum(np.linalg.matrix_power(A, j) @ g @ np.diag(W_STD ** 2) @ g.T @ np.linalg.matrix_power(A, j).T
+                     for j in range(N))
+            P_ref = scipy.linalg.solve_discrete_are(AN.T, C.T, QN, R)
+            M, P = nc.stationary_gain(kf, N)
+            np.testing.assert_allclose(np.asarray(P), P_ref, rtol=1e-4, atol=1e-9)
+            np.testing.assert_allclose(np.asarray(M), P_ref @ C.T @ np.linalg.inv(C @ P_ref @ C.T + R), rtol=1e-4)
