@@ -270,3 +270,29 @@ def test_steady_state_kf_takes_a_noise_input_narrower_than_the_state():
             M, P = nc.stationary_gain(kf, N)
             np.testing.assert_allclose(np.asarray(P), P_ref, rtol=1e-4, atol=1e-9)
             np.testing.assert_allclose(np.asarray(M), P_ref @ C.T @ np.linalg.inv(C @ P_ref @ C.T + R), rtol=1e-4)
+
+
+def test_a_singular_textbook_process_noise_is_accepted_and_an_indefinite_one_refused():
+    """The discrete white-noise acceleration model's Q = s2 [[T^4/4, T^3/2], [T^3/2, T^2]] has
+    rank 1; its zero eigenvalue rounds to about -1e-8 of its scale, and the EKF, the UKF and the
+    SteadyStateKF refused it ("Q must be positive semi-definite") for 7 to 14 of these 28
+    (T, s2). Accepted now, with scipy's stationary gain; a Q with a negative eigenvalue of 1e-5
+    of its scale is still refused."""
+    import scipy.linalg
+
+    plant = nc.LTI(np.array([[1.0, T], [0.0, 1.0]]), B, C, w_std=[0.01, 0.01], v_std=V_STD, T=T)
+    for dt in (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0):
+        for s2 in (0.01, 0.1, 1.0, 9.81):
+            Qd = s2 * np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]])
+            nc.EKF(plant, Q=Qd, R=R, mean0=np.zeros(2), cov0=Qd)
+            nc.UKF(plant, Q=Qd, R=R, mean0=np.zeros(2), cov0=np.eye(2))
+            if s2 == 1.0:                  # (the Riccati solution costs 0.1 s a model)
+                kf = nc.SteadyStateKF(plant, Q=Qd, R=R)
+                P_ref = scipy.linalg.solve_discrete_are(np.asarray(plant.A, float).T, C.T, Qd, R)
+                np.testing.assert_allclose(np.asarray(nc.stationary_gain(kf)[1]), P_ref, rtol=1e-3)
+    v = np.array([1.0, -1.0]) / np.sqrt(2)
+    bad = np.eye(2) - (1 + 1e-5) * np.outer(v, v)          # eigenvalues 1 and -1e-5
+    for build in (lambda: nc.EKF(plant, Q=bad, R=R, mean0=np.zeros(2), cov0=np.eye(2)),
+                  lambda: nc.SteadyStateKF(plant, Q=bad, R=R)):
+        with pytest.raises(ValueError, match="Q must be positive semi-definite"):
+            build()

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, concrete
+from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
+                             psd_rounding)
 from jaxnc.estimators.ekf import Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_sqrt
 from jaxnc.estimators.ukf import ukf_predict, ukf_update
 from jaxnc.loop.base import AbstractEstimator, AbstractLiftedPlant, AbstractPlant, Inbox, blend
@@ -148,7 +149,7 @@ class EKF(AbstractEstimator):
         for name, M in (("cov0", P0), ("R", R)) + ((("Q", Q),) if Q.ndim == 2 else ()):
             if not np.allclose(M, M.T, atol=1e-6 * max(1.0, float(np.abs(M).max()))):
                 raise ValueError(f"EKF.{name} must be symmetric")
-            if np.linalg.eigvalsh(M.astype(float)).min() < 0:
+            if np.linalg.eigvalsh(M.astype(float)).min() < -psd_rounding(M):
                 raise ValueError(f"EKF.{name} must be positive semi-definite")
         if np.linalg.eigvalsh(R.astype(float)).min() <= 0:
             raise ValueError("EKF.R must be positive definite")

@@ -39,7 +39,7 @@ import jax.scipy.linalg
 import numpy as np
 
 from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
-                             fields_concrete)
+                             fields_concrete, psd_rounding)
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import _SCHUR_MARGIN, dlqe, luenberger_step
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
@@ -201,7 +201,7 @@ def _check_covariances(owner, model, Q, R):
         raise ValueError(f"{owner}.R must be {p}x{p} (the model's output_dim), got shape {Ra.shape}")
     if Qa.ndim == 2 and not np.allclose(Qa, Qa.T):
         raise ValueError(f"{owner}.Q must be symmetric (a covariance)")
-    if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < 0):
+    if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < -psd_rounding(Qa)):
         raise ValueError(f"{owner}.Q must be positive semi-definite")
     if not np.allclose(Ra, Ra.T) or np.linalg.eigvalsh((Ra + Ra.T) / 2).min() <= 0:
         raise ValueError(f"{owner}.R must be symmetric positive definite")
