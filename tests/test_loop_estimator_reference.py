@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from jaxnc import loop as nc
+from jaxnc import stability
 
 T = 0.1
 A = np.array([[1.0, T], [0.0, 0.9]])
@@ -276,7 +277,7 @@ def test_a_singular_textbook_process_noise_is_accepted_and_an_indefinite_one_ref
     """The discrete white-noise acceleration model's Q = s2 [[T^4/4, T^3/2], [T^3/2, T^2]] has
     rank 1; its zero eigenvalue rounds to about -1e-8 of its scale, and the EKF, the UKF and the
     SteadyStateKF refused it ("Q must be positive semi-definite") for 7 to 14 of these 28
-    (T, s2). Accepted now, with scipy's stationary gain; a Q with a negative eigenvalue of 1e-5
+    (T, s2), the stability module's mare_step 20 in float32. Accepted now, with scipy's stationary gain; a Q with a negative eigenvalue of 1e-5
     of its scale is still refused."""
     import scipy.linalg
 
@@ -286,6 +287,7 @@ def test_a_singular_textbook_process_noise_is_accepted_and_an_indefinite_one_ref
             Qd = s2 * np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]])
             nc.EKF(plant, Q=Qd, R=R, mean0=np.zeros(2), cov0=Qd)
             nc.UKF(plant, Q=Qd, R=R, mean0=np.zeros(2), cov0=np.eye(2))
+            stability.mare_step(np.eye(2), np.asarray(plant.A), C, Qd.astype(np.float32), R, 0.5)   # 20 of 28 refused
             if s2 == 1.0:                  # (the Riccati solution costs 0.1 s a model)
                 kf = nc.SteadyStateKF(plant, Q=Qd, R=R)
                 P_ref = scipy.linalg.solve_discrete_are(np.asarray(plant.A, float).T, C.T, Qd, R)
