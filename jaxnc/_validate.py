@@ -92,6 +92,15 @@ def check_choice(name, v, choices):
     return c
 
 
+def psd_rounding(M) -> float:
+    """How far below 0 the smallest eigenvalue of a covariance M (float[n, n]) may round and M
+    still count as positive semi-definite: n float32 epsilons of its largest entry. A singular
+    covariance (G Q G' of a noise narrower than the state, the textbook discrete white-noise
+    acceleration Q) has eigenvalues 0 that come out of either sign at that scale."""
+    a = np.asarray(M, float)
+    return a.shape[0] * float(np.finfo(np.float32).eps) * float(np.abs(a).max(initial=0.0))
+
+
 def check_bool(name, v):
     if not isinstance(v, (bool, np.bool_)):
         raise ValueError(f"{name} must be True or False, got {v!r}")

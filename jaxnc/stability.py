@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, check_nonneg, check_positive, check_range, concrete
+from jaxnc._validate import check_int, check_nonneg, check_positive, check_range, concrete, psd_rounding
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update_terms
 from jaxnc.loop.links import Bernoulli
 from jaxnc.loop.triggers import PetcState, petc_decide
@@ -495,7 +495,7 @@ def _check_values(fn: str, r_definite: bool, **mats) -> None:
             if not np.allclose(M, M.T, rtol=0.0, atol=1e-6 * np.abs(M).max()):
                 raise ValueError(f"{fn}: {name} must be {what}, got largest |{name} - {name}'| "
                                  f"{np.abs(M - M.T).max():g}")
-            if low < 0 or (definite and low <= 0):
+            if (definite and low <= 0) or (not definite and low < -psd_rounding(M)):
                 raise ValueError(f"{fn}: {name} must be {what}, got smallest eigenvalue {low:g}")
 
 

@@ -801,6 +801,16 @@ def _fit_discrete(**kw):
 _FIT_DETECTABLE = nc.LTI(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.1)
 _FIT_PLANT_05 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.05)     # sampled at another period
 _FIT_MODEL3 = nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=np.eye(2), T=0.1)       # two outputs
+
+
+@nc.pytree_dataclass
+class _FitCoarseNoise(nc.LTI):
+    """An LTI whose w enters every 3 fast periods (a declared noise_period)."""
+
+    noise_period = 3
+
+
+_FIT_COARSE = _FitCoarseNoise(A=[[1.0, 0.1], [0.0, 0.9]], B=[[0.0], [1.0]], C=[[1.0, 0.0]], T=0.1)
 _FIT_OSCILLATOR = nc.LTI.from_continuous([[0.0, 1.0], [-(2 * np.pi) ** 2, 0.0]], [[0.0], [1.0]], [[1.0, 0.0]], 0.1)
 
 
@@ -992,6 +1002,11 @@ LOOP_FIT = [
     (lambda: nc.TruncatedExponential(eta=0.0, phi=[0.1, 0.1], tau_max=0.5), "TruncatedExponential.phi must be a single"),
     (lambda: nc.Link(tau_max=[0.1, 0.2]), "Link.tau_max must be a single number"),
     (lambda: nc.Petc(max_silence=[1, 2]), "Petc.max_silence"),
+    # a stationary gain needs the noise at the same instants of every slow period: N a multiple of P
+    (lambda: _fit_loop(plant=_FIT_COARSE, estimator=nc.SteadyStateKF(_FIT_COARSE, Q=[1.0, 1.0], R=np.eye(1)), N=2,
+                       steps=10), "N=2 is not a multiple of the model's noise_period=3"),
+    # a bool is not a count: max_silence=True used to run as 1 (a periodic sensor), False as 0 (off)
+    (lambda: nc.Petc(delta=1e-3, max_silence=True), "Petc.max_silence must be a whole number of slow instants (an int, not a bool)"),
     # an estimator that reads a measurement only by its time stamp, behind a link that delays every
     # packet beyond its window: it would never correct (it used to run open loop without a word)
     (lambda: _fit_loop(estimator=nc.SteadyStateKF(_FIT_DETECTABLE, Q=[1.0, 1.0], R=np.eye(1)),

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
+from jaxnc._validate import psd_rounding
 from jaxnc.estimators.covariance import predict_cov, update_diag
 from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns
 
@@ -101,7 +102,7 @@ def _check_cov(where: str, name: str, M, dim: int, *, form: str, definite: bool)
         raise ValueError(f"{where}: {name} must be symmetric (a covariance), got largest |{name} - {name}'| "
                          f"{np.abs(a - a.T).max():g}")
     low = a.min() if a.ndim == 1 else np.linalg.eigvalsh(0.5 * (a + a.T)).min()
-    if low < 0 or (definite and low <= 0):
+    if (definite and low <= 0) or (not definite and low < -(psd_rounding(a) if a.ndim == 2 else 0.0)):
         raise ValueError(f"{where}: {name} must be positive {'definite' if definite else 'semi-definite'} "
                          f"(a covariance), got smallest eigenvalue {low:g}")
 

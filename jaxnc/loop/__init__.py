@@ -30,7 +30,7 @@ from jaxnc.loop.roundtrip import RoundTrip
 from jaxnc.loop.monitors import PathMonitor, PathMonitorState, path_distance
 from jaxnc.loop.runner import (PARTS, SIGNALS, STREAMS, Context, Draws, FunctionCost, Loop, Metrics, Monitor, Quadratic,
                                Record, Trajectory, draw, evaluate, live_periods, run, run_seed, simulate)
-from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_gap
+from jaxnc.loop.triggers import Periodic, Petc, PetcState, petc_decide, petc_gap, petc_update
 from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF
 from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
 from jaxnc.loop.pursuit import PursuitPI, PursuitState
@@ -46,7 +46,7 @@ __all__ = [
     "Link", "LinkDraws", "NoLoss", "Bernoulli", "GilbertElliott", "TraceLoss", "NoDelay", "ShiftedExponential",
     "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel", "truncated_exponential",
     "draw_link", "link_delay_bounds",
-    "Periodic", "Petc", "PetcState", "petc_gap",
+    "Periodic", "Petc", "PetcState", "petc_decide", "petc_gap", "petc_update",
     "EKF", "EKFState", "Passthrough",
     "StateFeedback", "Function", "Predictive",
     "PID", "PIDState", "pid_update",

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import array_fields, check_finite, check_given, check_instance, check_int, concrete
+from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
+                             psd_rounding)
 from jaxnc.estimators.ekf import Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_sqrt
 from jaxnc.estimators.ukf import ukf_predict, ukf_update
 from jaxnc.loop.base import AbstractEstimator, AbstractLiftedPlant, AbstractPlant, Inbox, blend
@@ -67,7 +68,9 @@ class EKF(AbstractEstimator):
     Attributes:
       model: an :class:`~jaxnc.loop.base.AbstractPlant` (its ``dynamics`` and ``measure``).
       Q: float[q, q] or float[q] (diagonal), process noise covariance of the model's w,
-        per fast period (``rate="slow"``: q = n, the lifted model's additive noise per slow period).
+        per fast period, added where it enters: every fast period, or every ``noise_period``
+        of a model that declares one (t = 0, P, 2P, ... over the run, as the runner draws it)
+        (``rate="slow"``: q = n, the lifted model's additive noise per slow period).
       R: float[p, p], measurement noise covariance of v.
       mean0: float[n]; cov0: float[n, n], the prior at t = 0.
       buffer: static int >= 0, slow periods a measurement may be late.
@@ -146,7 +149,7 @@ class EKF(AbstractEstimator):
         for name, M in (("cov0", P0), ("R", R)) + ((("Q", Q),) if Q.ndim == 2 else ()):
             if not np.allclose(M, M.T, atol=1e-6 * max(1.0, float(np.abs(M).max()))):
                 raise ValueError(f"EKF.{name} must be symmetric")
-            if np.linalg.eigvalsh(M.astype(float)).min() < 0:
+            if np.linalg.eigvalsh(M.astype(float)).min() < -psd_rounding(M):
                 raise ValueError(f"EKF.{name} must be positive semi-definite")
         if np.linalg.eigvalsh(R.astype(float)).min() <= 0:
             raise ValueError("EKF.R must be positive definite")
@@ -183,20 +186,32 @@ class EKF(AbstractEstimator):
     def _sigma(self):
         return dict(zip(("alpha", "beta", "kappa"), self.sigma_points))
 
-    def _predict_period(self, g: Gaussian, us):
+    def _predict_period(self, g: Gaussian, us, s):
+        """Propagate over slow period s (actions us [N, m]). At the fast rate the model's w
+        enters at the fast instants t = sN + j with t % noise_period == 0 (where the runner
+        draws it, :func:`jaxnc.loop.draw`): Q there, none at the others."""
         if self.rate == "slow":          # one step of the lifted model over the period's actions us [N, m]
             n = self.model.state_dim
             if self.form == "unscented":
                 return ukf_predict(self.model.period, g, us, self.Q, n, **self._sigma())
             return (ekf_predict_sqrt if self.form == "sqrt" else ekf_predict)(self.model.period, g, us, self.Q, n)
 
-        def body(g, u):
+        P = int(self.model.noise_period)
+        N = us.shape[0]
+
+        def body(g, xs):
+            u, Q = xs if P != 1 else (xs, self.Q)
             if self.form == "unscented":
-                return ukf_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim, **self._sigma()), None
+                return ukf_predict(self.model.dynamics, g, u, Q, self.model.noise_dim, **self._sigma()), None
             if self.form == "sqrt":
-                return ekf_predict_sqrt(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
-            return _recomputed_predict(self.model.dynamics, g, u, self.Q, self.model.noise_dim), None
-        g, _ = jax.lax.scan(body, g, us)
+                return ekf_predict_sqrt(self.model.dynamics, g, u, Q, self.model.noise_dim), None
+            return _recomputed_predict(self.model.dynamics, g, u, Q, self.model.noise_dim), None
+        if P == 1:                       # every fast period (the same program as without noise_period)
+            g, _ = jax.lax.scan(body, g, us)
+            return g
+        Q = jnp.asarray(self.Q)
+        enters = ((s * N + jnp.arange(N)) % P == 0).astype(Q.dtype)          # [N]
+        g, _ = jax.lax.scan(body, g, (us, enters.reshape((N,) + (1,) * Q.ndim) * Q[None]))
         return g
 
     def _correct_at(self, g: Gaussian, inbox: Inbox, s, N):
@@ -222,7 +237,7 @@ class EKF(AbstractEstimator):
             g, next_base = carry
             i, us = xs
             s = k - D + i
-            g1 = self._predict_period(self._correct_at(g, inbox, s, N), us)
+            g1 = self._predict_period(self._correct_at(g, inbox, s, N), us, s)
             g = blend((s >= 0).astype(jnp.float32), g1, g)
             next_base = jax.tree.map(lambda a, b: jnp.where(i == 0, a, b), g, next_base)   # prior at k - D + 1
             return (g, next_base), None
@@ -236,7 +251,7 @@ class EKF(AbstractEstimator):
     def predict(self, state: EKFState, u_applied, u_believed, k) -> EKFState:
         us = u_believed if self.inputs == "believed" else u_applied
         if self.buffer == 0:
-            g = self._predict_period(state.post, us)
+            g = self._predict_period(state.post, us, k)
             return state._replace(base=g, next_base=g)
         u = jnp.concatenate([state.u[1:], us[None]], axis=0)
         return state._replace(base=state.next_base, u=u)

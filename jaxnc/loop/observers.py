@@ -35,10 +35,11 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 
 from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
-                             fields_concrete)
+                             fields_concrete, psd_rounding)
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import _SCHUR_MARGIN, dlqe, luenberger_step
 from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
@@ -63,15 +64,23 @@ def slow_system(A, B, N: int):
     return A @ powers[-1], jnp.concatenate([P @ B for P in reversed(powers)], axis=1)
 
 
-def _slow_noise(A, G, Q, N: int):
-    """Q_N = sum_{j<N} A^j G Q G' A^j' (Q float[q, q] or float[q] variances)."""
+def _slow_noise(A, G, Q, N: int, P: int = 1):
+    """(G_N, Q_N) with G_N Q_N G_N' = sum_j A^j G Q G' A^j', the noise of the slow period: G_N
+    stacks the columns A^j G of the j whose fast instant N - 1 - j carries noise (every one,
+    or every P-th when it enters every P fast periods, a model's ``noise_period``; N a multiple
+    of P), Q_N is block-diagonal in Q (float[q, q], or float[q] variances). Kept as a factor
+    and the user's Q so that :func:`dlqe` checks Q itself: the product G Q G' of a noise
+    input narrower than the state (q < n) is singular and in float32 its smallest eigenvalue
+    rounds below 0 (a valid model was refused as "Q must be positive semi-definite")."""
     A, G, Q = jnp.asarray(A), jnp.asarray(G), jnp.asarray(Q)
-    W = (G * Q[None, :]) @ G.T if Q.ndim == 1 else G @ Q @ G.T
-    acc, term = W, W
-    for _ in range(N - 1):
-        term = A @ term @ A.T
-        acc = acc + term
-    return 0.5 * (acc + acc.T)          # exactly symmetric, as dlqe requires of a covariance
+    Q = jnp.diag(Q) if Q.ndim == 1 else Q
+    cols, term = [], G
+    for j in range(N):
+        if j:
+            term = A @ term
+        if (N - 1 - j) % P == 0:
+            cols.append(term)
+    return jnp.concatenate(cols, axis=1), jax.scipy.linalg.block_diag(*([Q] * len(cols)))
 
 
 def _check_linear(owner, obj):
@@ -192,7 +201,7 @@ def _check_covariances(owner, model, Q, R):
         raise ValueError(f"{owner}.R must be {p}x{p} (the model's output_dim), got shape {Ra.shape}")
     if Qa.ndim == 2 and not np.allclose(Qa, Qa.T):
         raise ValueError(f"{owner}.Q must be symmetric (a covariance)")
-    if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < 0):
+    if (Qa.ndim == 1 and Qa.min() < 0) or (Qa.ndim == 2 and np.linalg.eigvalsh((Qa + Qa.T) / 2).min() < -psd_rounding(Qa)):
         raise ValueError(f"{owner}.Q must be positive semi-definite")
     if not np.allclose(Ra, Ra.T) or np.linalg.eigvalsh((Ra + Ra.T) / 2).min() <= 0:
         raise ValueError(f"{owner}.R must be symmetric positive definite")
@@ -204,12 +213,14 @@ class SteadyStateKF(AbstractEstimator):
 
     Attributes:
       model: a :class:`~jaxnc.loop.LTI` (A, B, C, G used).
-      Q: float[q, q] or float[q] (variances), covariance of the model's w per fast period.
+      Q: float[q, q] or float[q] (variances), covariance of the model's w per fast period
+        (where it enters: every ``noise_period`` fast periods of a model that declares one).
       R: float[p, p], covariance of v.
       mean0: float[n], the prior mean at k = 0 (default 0).
       inputs: static, ``"believed"`` or ``"applied"``.
 
-    Raises: ValueError naming the field for a model that is not an LTI, Q, R of the wrong
+    Raises: ValueError naming the field for a loop's N that is not a multiple of the model's
+    ``noise_period``, a model that is not an LTI, Q, R of the wrong
     shape, Q not PSD or R not PD, a mis-shaped mean0, or no stabilising Riccati solution
     (from :func:`~jaxnc.estimators.steady_state.dlqe`; checked at N = 1 when built and at
     the loop's N when a ``Loop`` is built, :meth:`init`).
@@ -231,7 +242,7 @@ class SteadyStateKF(AbstractEstimator):
         _check_vector("SteadyStateKF", "mean0", self.mean0, n)
         if fields_concrete(self):
             try:
-                stationary_gain(self, 1)
+                stationary_gain(self, int(self.model.noise_period))     # 1 but for a model of coarser noise
             except ValueError as e:
                 raise ValueError(f"SteadyStateKF: {e}") from None
 
@@ -267,13 +278,17 @@ class SteadyStateKF(AbstractEstimator):
 
 def stationary_gain(kf: SteadyStateKF, N: int = 1):
     """(M float[n, p], P float[n, n]): the filter gain and the prior covariance of the
-    slow-period system with N fast periods per slow period (an integer >= 1: ValueError
-    naming N otherwise)."""
+    slow-period system with N fast periods per slow period (an integer >= 1, and a multiple
+    of the model's ``noise_period``: ValueError naming N otherwise)."""
     check_int("stationary_gain: N", N, 1)
+    P = int(kf.model.noise_period)
+    if N % P:
+        raise ValueError(f"stationary_gain: N={N} is not a multiple of the model's noise_period={P} (its w enters "
+                         f"every {P} fast periods, at other instants of each slow period: no stationary gain)")
     A, C, G = jnp.asarray(kf.model.A), jnp.asarray(kf.model.C), jnp.asarray(kf.model.G)
     A_N, _ = slow_system(A, jnp.asarray(kf.model.B), N)
-    Q_N = _slow_noise(A, G, kf.Q, N)
-    _, P, _ = dlqe(A_N, jnp.eye(A.shape[0], dtype=A.dtype), C, Q_N, jnp.asarray(kf.R, A.dtype))
+    G_N, Q_N = _slow_noise(A, G, kf.Q, N, P)
+    _, P, _ = dlqe(A_N, G_N, C, Q_N.astype(A.dtype), jnp.asarray(kf.R, A.dtype))
     S = C @ P @ C.T + jnp.asarray(kf.R, A.dtype)
     return jnp.linalg.solve(S, C @ P).T, P             # P C' S^-1 (P, S symmetric)
 

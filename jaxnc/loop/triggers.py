@@ -171,8 +171,9 @@ class Petc(AbstractTrigger):
         check_range("Petc.max_silence", self.max_silence, 0, 1_000_000)
         if concrete(self.max_silence):
             ms = np.asarray(self.max_silence)
-            if ms.shape != () or ms != np.round(ms):
-                raise ValueError(f"Petc.max_silence must be a whole number of slow instants, got {ms.tolist()}")
+            if ms.shape != () or ms.dtype == bool or ms != np.round(ms):
+                raise ValueError(f"Petc.max_silence must be a whole number of slow instants (an int, not a bool), "
+                                 f"got {ms.tolist()}")
             object.__setattr__(self, "max_silence", np.int32(ms))
         if self.reading not in ("sum", "each"):
             raise ValueError(f"Petc.reading must be one of sum, each, got {self.reading!r}")
