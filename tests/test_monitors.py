@@ -254,6 +254,25 @@ def test_a_path_monitor_reads_the_position_its_plant_declares():
     assert (int(a.fail_step), int(a.done_step)) == (int(b.fail_step), int(b.done_step))
 
 
+def test_a_loop_rebuilt_with_another_plant_fills_the_position_from_that_plant():
+    """``dataclasses.replace(loop, plant=other)``: the xy a Loop filled from its DiffDrive (2) is
+    filled again from the new plant; an LTI declares no position, so that loop is refused (it
+    used to keep xy = 2 and read an unrelated plant's state[2:4] as the position). An xy the
+    user gave is the user's: kept."""
+    import dataclasses
+    line = from_waypoints(np.array([[0.0, 0.0], [2.0, 0.0]]), "line2", ds=0.01)
+    loop = lambda **kw: nc.Loop(plant=nc.DiffDrive(T=0.1, sub=10), trigger=nc.Periodic(), uplink=nc.Link(),
+                                estimator=nc.Passthrough(0.0), controller=nc.StateFeedback(np.zeros((2, 5))),
+                                downlink=nc.Link(), actuator=nc.HoldLast(), monitor=nc.PathMonitor(line, **kw),
+                                N=10, steps=50, T=0.01)
+    lti = nc.LTI(A=np.eye(5), B=np.zeros((5, 2)), C=np.eye(5), T=0.01)
+    filled, given = loop(), loop(xy=2)
+    assert filled.monitor.xy == 2 and dataclasses.replace(filled, steps=60).monitor.xy == 2
+    with pytest.raises(ValueError, match="Loop.monitor.xy must be given"):
+        dataclasses.replace(filled, plant=lti)
+    assert dataclasses.replace(given, plant=lti).monitor.xy == 2
+
+
 def test_the_declared_positions_are_the_vehicles_planar_positions():
     """Each vehicle's position_index points at the (x, y) of its initial pose in the state
     vector (DiffDrive: (w_r, w_l, x, y, psi); Mecanum: (Vx, Vy, W, X, Y, psi)); a wrapped

@@ -20,6 +20,7 @@ from typing import Any, ClassVar, NamedTuple
 import dataclasses
 import hashlib
 import warnings
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -240,7 +241,8 @@ class Loop:
         eq. 21-22); None: every computed packet is sent.
       monitor: failure detection. A monitor that declares ``position_field`` (``PathMonitor``:
         ``xy``) and leaves that field None is given the plant's declared ``position_index``
-        here (a plant that declares none is refused).
+        here (a plant that declares none is refused), and again from the new plant when the
+        loop is rebuilt with another (``dataclasses.replace(loop, plant=...)``).
       cost: a function (x float[K, n], u float[K, m]) -> scalar, e.g. :class:`Quadratic`
         (a pytree whose numbers are leaves), a plain Python function (kept static: part of
         the compiled program, so define it at module level to reuse one program), or None.
@@ -311,7 +313,10 @@ class Loop:
                 raise ValueError(f"Loop.T ({float(self.T):g} s) must equal the {where}'s step period "
                                  f"({type(model).__name__}.step_period = {float(model_T):g} s)")
         field = self.monitor.position_field      # declared (PathMonitor: "xy"); None: reads no position
-        if field is not None and getattr(self.monitor, field) is None:
+        # a monitor whose position a Loop filled is filled again from this loop's plant, so that
+        # dataclasses.replace(loop, plant=other) does not keep the former plant's index
+        if field is not None and (getattr(self.monitor, field) is None
+                                  or _POSITION_FILLED.get(id(self.monitor)) is self.monitor):
             at = self.plant.position_index       # declared by a plant with a planar position (DiffDrive, Mecanum)
             if at is None:
                 raise ValueError(f"Loop.monitor.{field} must be given: {type(self.monitor).__name__} watches a planar "
@@ -319,6 +324,7 @@ class Loop:
                                  f"position_index is None); give {type(self.monitor).__name__}({field}=i), i the index "
                                  f"of the position's first coordinate in the plant's state vector")
             object.__setattr__(self, "monitor", dataclasses.replace(self.monitor, **{field: int(at)}))
+            _POSITION_FILLED[id(self.monitor)] = self.monitor
         if self.cost is not None and not ({"x", "u"} <= set(self.record.signals)):
             raise ValueError(f"Loop.cost needs the signals x and u recorded, but Loop.record keeps only "
                              f"{self.record.signals}: add them, or set cost=None")
@@ -693,6 +699,7 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
           ("actuator", AbstractActuator, "an actuator (a jaxnc.loop.AbstractActuator: PacketActuator, HoldLast)"))
 
 
+_POSITION_FILLED = weakref.WeakValueDictionary()    # id -> monitor whose position field a Loop filled
 _FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
 _PLANTS: dict = {}       # plants (treedef, leaf values) found to fit -> their initial state's shapes
 
