@@ -735,11 +735,14 @@ class Draws(NamedTuple):
     init_key: jax.Array   # key for the plant's initial state
 
 
+@jax.jit
 def draw(loop: Loop, key) -> Draws:
     """All of a run's random draws, one stream per purpose (:data:`STREAMS`). Every draw
     (the streams' ``fold_in``, the noise, the links' ``split`` and samples) goes through
     :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled: fused with what uses it
-    instead of a loop of several kernels); the plant's initial key keeps ``key``'s kind."""
+    instead of a loop of several kernels); the plant's initial key keeps ``key``'s kind.
+    One compiled program (``jax.jit``; inlined under a trace): a call on concrete values
+    does not dispatch its small operations one by one."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
     fast = unrolled(key)
