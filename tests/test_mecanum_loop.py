@@ -120,20 +120,22 @@ def test_paper_qualitative_stability_at_N6_DP02():
 
 
 def test_gradients_of_mean_J1_are_finite():
-    """d(mean J1)/d(Kp) and d/d(delta) through the straight-through trigger (completed runs);
-    the fixed-horizon smooth objective's gradient is checked the same way in
-    test_jacobian_grad_false_same_run_close_gradient."""
+    """d J1/d(Kp) and d/d(delta) (J1: the mean distance, eq. 21) through the straight-through
+    trigger, on a completed run; the fixed-horizon smooth objective's gradient is checked the
+    same way in test_jacobian_grad_false_same_run_close_gradient. One seed, not a vmapped
+    batch: tracing the gradient (the test's cost once its program is cached) takes half as
+    long; a batch's gradient through this loop is what notebooks/autotuning.ipynb's tuner takes."""
     base = mec.mecanum_loop("DRHE", 2, 0.2, path="turn180", sigma=0.0, trigger_temperature=0.05)
-    keys = montecarlo.seed_keys(0, 4)
+    key = montecarlo.seed_keys(0, 1)[0]
 
     def cost(kp, delta):
         loop = mec.with_follower(dataclasses.replace(base, trigger=dataclasses.replace(base.trigger, delta=delta)),
                                  Kp=kp)
-        return jnp.mean(jax.vmap(lambda k: mec.run(loop, k).J1)(keys))
+        return mec.run(loop, key).J1
 
     # one program for the value and the gradient
     value, (g_kp, g_delta) = jax.jit(jax.value_and_grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
-    assert np.isfinite(float(value))                  # all runs completed
+    assert np.isfinite(float(value))                  # the run completed
     assert np.all(np.isfinite(g_kp)) and np.all(np.isfinite(g_delta))
     assert np.any(g_kp != 0) and np.any(g_delta != 0)
 
@@ -180,26 +182,28 @@ def test_time_triggered_safety_condition_bounds_sensor_silence():
 def test_jacobian_grad_false_same_run_close_gradient():
     """``jacobian_grad=False``: the simulation is bit-identical and the gradient of the
     smooth objective is an approximation of the exact one (0.3 % on the benchmark's 8 and
-    64 seeds, 4.8 % on 512; here checked at 5 %), not the exact one itself.
+    64 seeds, 4.8 % on 512; here, on one seed, 1.3 %, checked at 5 %), not the exact one itself.
 
     The simulation: the two forward programs lower to the same StableHLO (``stop_gradient``
     lowers to nothing), so they are one compiled program and their runs are identical bit
-    for bit; only if they differ are the two runs compiled and compared leaf by leaf."""
-    keys = montecarlo.seed_keys(0, 4)
+    for bit; only if they differ are the two runs compiled and compared leaf by leaf. One
+    seed, not a vmapped batch: each gradient's trace is half a batch's (the suite's cost)."""
+    key = montecarlo.seed_keys(0, 1)[0]
     grads, forward = {}, {}
     for exact in (True, False):
         base = mec.mecanum_loop("DRHE", 2, 0.2, horizon_s=6.0, sigma=0.0, trigger_temperature=0.05,
                                 jacobian_grad=exact, full=True)
-        forward[exact] = jax.jit(jax.vmap(lambda k, base=base: nc.simulate(base, k))).lower(keys)
+        forward[exact] = jax.jit(lambda k, base=base: nc.simulate(base, k)).lower(key)
         if not exact and forward[True].as_text(debug_info=False) != forward[False].as_text(debug_info=False):
-            for a, b in zip(jax.tree.leaves(forward[True].compile()(keys)), jax.tree.leaves(forward[False].compile()(keys))):
+            for a, b in zip(jax.tree.leaves(forward[True].compile()(key)), jax.tree.leaves(forward[False].compile()(key))):
                 np.testing.assert_array_equal(a, b)
 
         def cost(kp, delta, base=base):
             loop = mec.with_follower(dataclasses.replace(base, trigger=dataclasses.replace(base.trigger, delta=delta)),
                                      Kp=kp)
-            return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(loop, k))(keys))
+            return mec.tracking_cost(loop, key)
         # value and gradient: with jacobian_grad the program notebooks/quickstart.ipynb's gradient cell compiles
+        # in its quick mode
         _, (g_kp, g_delta) = jax.jit(jax.value_and_grad(cost, argnums=(0, 1)))(jnp.full(3, 0.2), jnp.full(9, 0.1))
         assert np.any(g_kp != 0) and np.any(g_delta != 0)           # both leaves reach the smooth objective
         grads[exact] = np.concatenate([np.ravel(g_kp), np.ravel(g_delta)])
