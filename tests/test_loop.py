@@ -623,3 +623,33 @@ def test_passthrough_holds_the_newest_measurement_by_stamp(order):
         held = float(max(arrived)) if arrived else held
         want.append(held)
     np.testing.assert_array_equal(np.asarray(tr.xhat)[:, 0], want)
+
+
+def test_eager_draw_and_tracking_metrics_are_one_program_each_and_leave_a_loops_program_unchanged():
+    """``nc.draw`` and ``Tracking.metrics`` on concrete values compile one program each (they
+    dispatched one small program per operation: 81 for a balancing loop's draw); under a trace
+    they add no call of their own, so a loop's program, and its persistent-cache entry, are
+    what they were. The eager results are the traced ones, bit for bit."""
+    import re
+
+    from jaxnc import references as refs
+    from jaxnc.cache import compile_clock
+    plant = nc.LTI(A=[[1.0, 0.1], [0.0, 1.0]], B=[[0.0], [0.1]], C=np.eye(2), x0=[0.0, 0.0],
+                   w_std=[0.01, 0.01], v_std=[0.02, 0.02], T=0.1)
+    loop = nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(loss=nc.GilbertElliott(0.1, 0.3)),
+                   estimator=nc.Passthrough(), controller=nc.StateFeedback([[1.0, 1.5]]), downlink=nc.Link(),
+                   actuator=nc.HoldLast(), N=3, steps=3 * 23, T=0.1, record=True)
+    tracking, key = nc.Tracking(refs.Step(0.0, time=0.5), index=0), jax.random.PRNGKey(5)
+    c0 = compile_clock()
+    d = nc.draw(loop, key)
+    c1 = compile_clock()
+    x = jax.jit(nc.simulate)(loop, key).x
+    c2 = compile_clock()
+    tm = tracking.metrics(x, loop.T)
+    c3 = compile_clock()
+    assert (c1 - c0).compilations <= 1 and (c3 - c2).compilations <= 1
+    for got, want in ((d, jax.jit(nc.draw)(loop, key)), (tm, jax.jit(tracking.metrics)(x, loop.T))):
+        for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    text = str(jax.make_jaxpr(lambda k: nc.run_tracking(k, loop, tracking))(key))
+    assert not re.search(r"name=(draw|<lambda>)\b", text)

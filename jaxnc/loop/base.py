@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import functools
 from typing import Any, ClassVar, NamedTuple
 
 import jax
@@ -62,6 +63,22 @@ def static_field(default=dataclasses.MISSING):
     """A dataclass field that is static in the pytree (an integer that shapes arrays, a
     string or function that selects code): part of the compiled program, not a leaf."""
     return dataclasses.field(default=default, metadata=dict(static=True))
+
+
+def jit_when_eager(fn):
+    """``fn`` compiled as one program (``jax.jit``) when called on concrete values, so that a
+    call outside any transformation does not dispatch its small operations one by one; called
+    as it is under a trace (jit, vmap, grad: a leaf of the arguments is a tracer), so that the
+    enclosing program is the same as without this wrapper."""
+    jitted = jax.jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args):
+        if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(args)):
+            return fn(*args)
+        return jitted(*args)
+
+    return call
 
 
 def pytree_dataclass(cls):

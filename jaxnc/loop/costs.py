@@ -45,6 +45,7 @@ import jax.numpy as jnp
 
 from jaxnc import tracking as _tr
 from jaxnc._validate import check_components, check_instance, check_int, check_range, index_tuple
+from jaxnc.loop.base import jit_when_eager
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
@@ -121,8 +122,8 @@ class Tracking:
     def metrics(self, x, T) -> TrackingMetrics:
         """:class:`TrackingMetrics` of x float[K, n] sampled at period T (module docstring).
 
-        One compiled program (``jax.jit``; inlined when called under a trace), so a call on
-        a concrete trajectory does not dispatch its hundred small operations one by one."""
+        One compiled program when called on concrete values
+        (:func:`jaxnc.loop.base.jit_when_eager`)."""
         return _tracking_metrics(self, x, T)
 
     def _metrics(self, x, T) -> TrackingMetrics:
@@ -146,7 +147,7 @@ class Tracking:
                                settling, _tr.steady_state_error(e, window=self.window))
 
 
-_tracking_metrics = jax.jit(lambda tracking, x, T: tracking._metrics(x, T))
+_tracking_metrics = jit_when_eager(lambda tracking, x, T: tracking._metrics(x, T))
 
 
 def run_tracking(key, loop, tracking: Tracking):

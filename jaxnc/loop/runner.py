@@ -31,6 +31,7 @@ from jaxnc._validate import (array_fields, check_bool, check_callable, check_fin
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractMonitor, AbstractPlant,
                              AbstractTrigger, Inbox, Packet)
+from jaxnc.loop.base import jit_when_eager
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
@@ -735,14 +736,13 @@ class Draws(NamedTuple):
     init_key: jax.Array   # key for the plant's initial state
 
 
-@jax.jit
+@jit_when_eager
 def draw(loop: Loop, key) -> Draws:
     """All of a run's random draws, one stream per purpose (:data:`STREAMS`). Every draw
     (the streams' ``fold_in``, the noise, the links' ``split`` and samples) goes through
     :func:`jaxnc.prng.unrolled` (the same bits, the hash unrolled: fused with what uses it
     instead of a loop of several kernels); the plant's initial key keeps ``key``'s kind.
-    One compiled program (``jax.jit``; inlined under a trace): a call on concrete values
-    does not dispatch its small operations one by one."""
+    One compiled program when called on concrete values (:func:`jit_when_eager`)."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
     fast = unrolled(key)
