@@ -269,6 +269,9 @@ def test_pair_objective_reaches_the_check_and_the_hybrid_tuner(straight_through_
     obj = lambda m: (m.cost_raw, 0.5 * m.rate_sc)      # smooth, "jump"
     chk = check_loop(lp, {"trigger.delta": Positive()}, obj, seeds=8, chunk_size=8)
     assert "hybrid" in chk.estimates and chk.names == ("trigger.delta",)
+    # the corrected estimator is opt-in (check_loop(corrected=True)), though this loop supports it
+    from jaxnc.tune.jump import corrected_supported
+    assert corrected_supported(lp) == "" and "corrected" not in chk.estimates
     r = tune_loop(lp, {"trigger.delta": Positive()}, obj, **dict(_TOTAL_KW, estimator="hybrid"))
     assert r.estimator == "hybrid" and np.isfinite(float(r.params["trigger.delta"]))
     # the pair's sum is the objective: the start's hard evaluation is the scalar objective's
