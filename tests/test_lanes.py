@@ -2,7 +2,9 @@
 papers and the runner, for chunk sizes that are and are not multiples of the vector width
 (montecarlo.LANES): chunk_size 20 (rounded up to 32 lanes, two vector groups) over 40 seeds,
 so one compiled program per loop shows the first lane, the first of the second vector group,
-the last lane and a lane of the padded second chunk; the runner's loop also at 16."""
+the last lane and a lane of the padded second chunk; the runner's loop also at 16 (the runner's
+per-seed function and loop are those of the Quadratic-cost test, so its programs at 16 and 20
+serve both)."""
 import jax
 import numpy as np
 import pytest
@@ -18,11 +20,18 @@ def _runner_loop():
     up = nc.Link(nc.Bernoulli(0.3), nc.PmfDelay([0.5, 0.3, 0.2]), order="all", capacity=4)
     return nc.Loop(plant=plant, trigger=nc.Petc(delta=1e-3), uplink=up, estimator=ekf,
                    controller=nc.StateFeedback([[3.0, 1.5]]), downlink=nc.Link(), actuator=nc.HoldLast(),
-                   cost=nc.Quadratic(Q=[1.0, 0.1], R=[0.01]), N=1, steps=60, T=0.1)
+                   cost=nc.Quadratic(Q=[1.0, 0.1], R=[0.01]), N=1, steps=100, T=0.1)
+
+
+def _runner_fn(k, lp):
+    """nc.run's cost (evaluate of simulate), with the trajectory it is computed on."""
+    from jaxnc.loop.runner import evaluate
+    t = nc.simulate(lp, k)
+    return evaluate(lp, t).cost_raw, t.x, t.u
 
 
 def _runner():
-    return (lambda k, lp: nc.run(lp, k).cost_raw), _runner_loop()
+    return _runner_fn, _runner_loop()
 
 
 def _mecanum():
@@ -52,13 +61,15 @@ LOOPS = {"runner": _runner, "mecanum": _mecanum, "hdd": _hdd, "balancing": _bala
 def _check_lanes(name, chunk, n, lanes):
     fn, loop = LOOPS[name]()
     keys = montecarlo.seed_keys(0, n)
-    full = np.asarray(montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=chunk, progress=False))
+    run = lambda ks: [np.asarray(a) for a in jax.tree.leaves(montecarlo.run_batched(fn, ks, args=(loop,),
+                                                                                      chunk_size=chunk, progress=False))]
+    full = run(keys)
     for i in lanes:
-        alone = np.asarray(montecarlo.run_batched(fn, keys[i:i + 1], args=(loop,), chunk_size=chunk,
-                                                  progress=False))
-        np.testing.assert_array_equal(full[i], alone[0], err_msg=f"{name}, seed {i} at chunk_size {chunk}")
-    rev = np.asarray(montecarlo.run_batched(fn, keys[::-1], args=(loop,), chunk_size=chunk, progress=False))
-    np.testing.assert_array_equal(rev[::-1], full, err_msg=f"{name}: reversing the seeds changes a seed")
+        alone = run(keys[i:i + 1])
+        for f, a in zip(full, alone, strict=True):
+            np.testing.assert_array_equal(f[i], a[0], err_msg=f"{name}, seed {i} at chunk_size {chunk}")
+    for f, r in zip(full, run(keys[::-1]), strict=True):
+        np.testing.assert_array_equal(r[::-1], f, err_msg=f"{name}: reversing the seeds changes a seed")
 
 
 @pytest.mark.parametrize("name", list(LOOPS))
@@ -80,13 +91,8 @@ def test_a_quadratic_cost_is_the_same_bits_at_every_lane_count_where_the_traject
     (jnp.mean over the run's instants rounded differently at 48 lanes than at 32: in 22 of
     these 40 seeds; at 200 steps at 16 lanes, in 26). Checked against the cost summed in
     float64 from the trajectory."""
-    import dataclasses
-    loop = dataclasses.replace(_runner_loop(), steps=100)
-    from jaxnc.loop.runner import evaluate
-
-    def fn(k, lp):              # nc.run's cost (evaluate of simulate), with the run it is computed on
-        t = nc.simulate(lp, k)
-        return evaluate(lp, t).cost_raw, t.x, t.u
+    fn, loop = _runner()        # nc.run's cost (evaluate of simulate), with the run it is computed on; 100 steps
+    assert loop.steps == 100
     keys = montecarlo.seed_keys(0, 40)
     runs = {c: montecarlo.run_batched(fn, keys, args=(loop,), chunk_size=c, progress=False) for c in (16, 20, 48)}
     cost, x, u = (np.asarray(a) for a in runs[20])

@@ -842,6 +842,13 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         if not search:
             raise ValueError("tune_loop: search_budget is given without a search")
         check_int("search_budget", search_budget, 1)
+    if search:      # refused here, before the start's evaluation is compiled and run
+        n_points = math.prod(len(v) for v in search.values())
+        rounds = max(1, math.ceil(math.log2(n_points)))
+        budget = 16 * n_points if search_budget is None else search_budget
+        if budget < rounds * n_points:
+            raise ValueError(f"tune_loop: search_budget must be at least {rounds * n_points} (one seed per "
+                             f"candidate and round: {n_points} candidates, {rounds} rounds), got {budget}")
     check_int("steps", steps, 1)
     check_int("batch", batch, 2 if estimator == "score" else 1)
     check_int("check_seeds", check_seeds, 2)
@@ -908,11 +915,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         # a point sets every path of each searched key (dynamic values as float32 of the leaf's shape,
         # _search_value: one program serves all)
         points = [{p: search[n][i] for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
-        budget = 16 * len(points) if search_budget is None else search_budget
-        rounds = max(1, int(np.ceil(np.log2(len(points)))))
-        if budget < rounds * len(points):
-            raise ValueError(f"tune_loop: search_budget must be at least {rounds * len(points)} (one seed per "
-                             f"candidate and round: {len(points)} candidates, {rounds} rounds), got {budget}")
+        budget = 16 * len(points) if search_budget is None else search_budget     # checked above
         need = sum(s for _, s in halving_schedule(len(points), budget))
         keys = montecarlo.seed_keys(seed + 1, need)
         search_seed = lambda p, k: per_seed(p, k)      # one function: the search and its refinement share programs
