@@ -607,7 +607,7 @@ def test_max_seconds_bounds_the_tuning_and_the_steps_follow_the_time():
     its evaluation, compilations included) would be passed: far fewer than the steps
     allowed, inside the budget plus one step, and the evaluation is not counted."""
     _compilations(steps=2)                                 # the small eager programs, once per process
-    budget = 1.5                                           # hundreds of steps of ~ms each: the budget stops them
+    budget = 3.0                                           # hundreds of steps of ~ms each: the budget stops them
     r = _compilations(steps=100_000, max_seconds=budget)
     done = len(r.tune.history.objective)
     tuning = sum(w for k, (w, _, _) in r.stages.items() if k not in ("evaluation", "pick"))
