@@ -587,19 +587,22 @@ def lambda_max(A, C, Q, R, *, tol: float = 1e-3, steps: int = 20000, blowup: flo
     def iterate(lam, limit):
         """(converged, P) after at most ``steps`` iterations from 0; divergence when the
         trace exceeds ``limit`` or is not finite."""
-        P = np.zeros_like(Q)
-        for _ in range(steps):
-            with np.errstate(over="ignore", invalid="ignore"):       # overflow is divergence, read below
-                APC = A @ P @ C.T
-                Pn = A @ P @ A.T + Q - lam * APC @ np.linalg.solve(C @ P @ C.T + R, APC.T)
+        P, At, Ct = np.zeros_like(Q), A.T.copy(), C.T.copy()
+        scalar = R.shape == (1, 1)          # one output: the solve is a division
+        with np.errstate(over="ignore", invalid="ignore"):       # overflow is divergence, read below
+            for _ in range(steps):
+                AP = A @ P
+                APC = AP @ Ct
+                S = C @ P @ Ct + R
+                Pn = AP @ At + Q - lam * APC @ (APC.T / S[0, 0] if scalar else np.linalg.solve(S, APC.T))
                 Pn = 0.5 * (Pn + Pn.T)    # see mare_step
-            tr = np.trace(Pn)
-            if not np.isfinite(tr) or tr > limit:
-                return False, Pn
-            # largest entries, not Frobenius norms: their squares would overflow to inf <= inf
-            if np.abs(Pn - P).max() <= 1e-10 * np.abs(Pn).max():
-                return True, Pn
-            P = Pn
+                tr = Pn.trace()
+                if not np.isfinite(tr) or tr > limit:
+                    return False, Pn
+                # largest entries, not Frobenius norms: their squares would overflow to inf <= inf
+                if np.abs(Pn - P).max() <= 1e-10 * np.abs(Pn).max():
+                    return True, Pn
+                P = Pn
         return False, P
 
     # lam = 1 (the Kalman filter) first, by doubling: it decides in a few dozen steps whether
