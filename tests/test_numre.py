@@ -80,3 +80,21 @@ def test_tables_validation():
         numre.numre_tables(np.eye(2), np.ones(2), np.ones(2), 1.0, 1.0, 0)
     with pytest.raises(ValueError, match="we_form"):
         numre.numre_tables(np.eye(2), np.ones(2), np.ones(2), 1.0, 1.0, 2, we_form="x")
+
+
+def test_design_accepts_a_singular_float32_noise_covariance_and_refuses_an_indefinite_one():
+    """The textbook discrete white-noise-acceleration W = s2 g g' (g = (T^2/2, T), rank 1) built
+    in float32: its zero eigenvalue rounds to either sign, and Numre.design refused 4 of these 28
+    (T, s2) pairs ("smallest eigenvalue -3.7e-11"), where EKF, UKF and SteadyStateKF accept them
+    (one float32 allowance, jaxnc._validate.psd_rounding). An eigenvalue of -1e-5 of W's scale
+    is still refused."""
+    import jaxnc.loop as jl
+    C, eye = np.array([[1.0, 0.0]], np.float32), np.eye(2, dtype=np.float32)
+    for T in (0.01, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0):
+        A, B = np.array([[1, T], [0, 1]], np.float32), np.array([[T ** 2 / 2], [T]], np.float32)
+        g = np.array([[T ** 2 / 2], [T]], np.float32)
+        for s2 in (1e-3, 0.1, 1.0, 10.0):
+            jl.Numre.design(A, B, eye, C, (s2 * g @ g.T).astype(np.float32), 0.01, 5, cov0=eye)
+    bad = np.diag([1.0, -1e-5]).astype(np.float32)
+    with pytest.raises(ValueError, match="Numre.W must be positive semi-definite"):
+        jl.Numre.design(np.eye(2, dtype=np.float32), B, eye, C, bad, 0.01, 5, cov0=eye)

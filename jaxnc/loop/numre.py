@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_choice, check_finite, check_given, check_int, check_nonneg
+from jaxnc._validate import check_choice, check_finite, check_given, check_int, check_nonneg, psd_rounding
 from jaxnc.estimators.numre import NumreTables, numre_correct, numre_tables
 from jaxnc.loop.base import AbstractEstimator, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
@@ -47,7 +47,7 @@ def _check_covariance(name: str, M, dim: int, *, scalar: bool = False) -> None:
     if not np.allclose(a, a.T, atol=1e-9 * max(1.0, float(np.abs(a).max()))):
         raise ValueError(f"{name} must be symmetric (a covariance)")
     low = float(np.linalg.eigvalsh(a).min())
-    if low < -1e-12 * max(1.0, float(np.abs(a).max())):
+    if low < -psd_rounding(a):       # a singular covariance's zero eigenvalues round to either sign
         raise ValueError(f"{name} must be positive semi-definite (a covariance), got smallest eigenvalue {low:g}")
 
 
