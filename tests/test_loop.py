@@ -653,3 +653,20 @@ def test_eager_draw_and_tracking_metrics_are_one_program_each_and_leave_a_loops_
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     text = str(jax.make_jaxpr(lambda k: nc.run_tracking(k, loop, tracking))(key))
     assert not re.search(r"name=(draw|<lambda>)\b", text)
+
+    class Law:             # a plain Python object a part holds: a leaf jax.jit cannot take
+        def init(self):
+            return jnp.zeros(())
+
+        def step(self, s, k, x):
+            return -x[0], s, jnp.zeros(())
+
+    one = nc.LTI(A=[[1.0]], B=[[0.1]], C=[[1.0]], x0=[1.0], w_std=[0.01], v_std=[0.02], T=0.1)
+    plain, arrays = (nc.Loop(plant=one, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(),
+                             controller=c, downlink=nc.Link(), actuator=a, T=0.1, steps=10)
+                     for c, a in ((nc.Cascade(Law(), horizon=1), nc.PacketActuator(horizon=1)),
+                                  (nc.StateFeedback([[1.0]]), nc.HoldLast())))
+    # called as it is (op by op, as draw itself unwrapped), where jax.jit would refuse the object
+    got, want = nc.draw(plain, key), nc.draw.__wrapped__(arrays, key)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -52,7 +52,7 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import checked_pytree
+from jaxnc._validate import checked_pytree, concrete
 
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractInitial",
            "AbstractWrappedPlant", "AbstractLiftedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
@@ -66,17 +66,17 @@ def static_field(default=dataclasses.MISSING):
 
 
 def jit_when_eager(fn):
-    """``fn`` compiled as one program (``jax.jit``) when called on concrete values, so that a
-    call outside any transformation does not dispatch its small operations one by one; called
-    as it is under a trace (jit, vmap, grad: a leaf of the arguments is a tracer), so that the
-    enclosing program is the same as without this wrapper."""
+    """``fn`` compiled as one program (``jax.jit``) when every leaf of its arguments is a
+    concrete number or array (:func:`jaxnc._validate.concrete`), so that a call outside any
+    transformation does not dispatch its small operations one by one; called as it is
+    otherwise: under a trace (jit, vmap, grad), so that the enclosing program is the same as
+    without this wrapper, and with a leaf that ``jax.jit`` cannot take (a plain Python object
+    a part holds)."""
     jitted = jax.jit(fn)
 
     @functools.wraps(fn)
     def call(*args):
-        if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(args)):
-            return fn(*args)
-        return jitted(*args)
+        return jitted(*args) if concrete(*args) else fn(*args)
 
     return call
 
