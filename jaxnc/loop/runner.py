@@ -702,6 +702,7 @@ _ROLES = (("plant", AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Di
 
 _POSITION_FILLED = weakref.WeakValueDictionary()    # id -> monitor whose position field a Loop filled
 _FITTED: set = set()     # loops (treedef, leaf shapes, dtypes and values) whose roles were found to fit
+_FITTED_SHAPES: set = set()     # the same loops keyed on (treedef, leaf shapes and dtypes) alone
 _PLANTS: dict = {}       # plants (treedef, leaf values) found to fit -> their initial state's shapes
 
 
@@ -717,9 +718,9 @@ def _leaf_key(a):
 
 
 def _plant_key(plant) -> tuple:
+    """The key of :data:`_PLANTS`: the plant's tree structure and :func:`_leaf_key` of each leaf."""
     leaves, treedef = jax.tree.flatten(plant)
     return treedef, tuple(_leaf_key(a) for a in leaves)
-_FITTED_SHAPES: set = set()     # the same loops keyed on (treedef, leaf shapes and dtypes) alone
 
 
 def _one_line(e: BaseException) -> str:
