@@ -915,11 +915,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         # a point sets every path of each searched key (dynamic values as float32 of the leaf's shape,
         # _search_value: one program serves all)
         points = [{p: search[n][i] for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
-        budget = 16 * len(points) if search_budget is None else search_budget     # checked above
-        need = sum(s for _, s in halving_schedule(len(points), budget))
-        keys = montecarlo.seed_keys(seed + 1, need)
+        schedule = halving_schedule(len(points), budget)     # budget: set and checked with the arguments
+        keys = montecarlo.seed_keys(seed + 1, sum(s for _, s in schedule))
         search_seed = lambda p, k: per_seed(p, k)      # one function: the search and its refinement share programs
-        search_chunk = halving_schedule(len(points), budget)[0][1]
+        search_chunk = schedule[0][1]
         with _stage(stages, "search"):
             result_search = successive_halving(search_seed, points, keys, budget=budget, static=static,
                                                chunk_size=search_chunk, progress=progress, desc="search",
