@@ -213,12 +213,15 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     # the figure's seed-0 paths come from the main run while every seed's fit the budget
     record_paths = seeds * max(l.steps for l in loops.values()) * 2 * 4 <= POSITION_BUDGET
     fn = run_seed_positions if record_paths else run_seed
+    # the configuration is a runtime argument: the loops of one structure share a compilation;
+    # the structures' programs (nominal SR's N = 1, the cases' N) compile side by side first
+    args = {name: montecarlo.uniform_dtypes(with_positions(loop) if record_paths else loop)
+            for name, loop in loops.items()}
+    montecarlo.precompile([(fn, (a,)) for a in args.values()], keys, chunk_size=min(256, seeds))
     results, paths = {}, {}
     for name, loop in loops.items():
-        # the configuration is a runtime argument: the loops of one structure share a compilation
-        arg = montecarlo.uniform_dtypes(with_positions(loop) if record_paths else loop)
         out_ = montecarlo.run_batched(
-            fn, keys, args=(arg,), progress=progress, chunk_size=min(256, seeds),
+            fn, keys, args=(args[name],), progress=progress, chunk_size=min(256, seeds),
             desc=f"{name:>10} N={loop.N} DP={float(loop.uplink.loss.p):.2f} h={horizon(loop)}")
         if record_paths:
             out_, after = out_

@@ -39,7 +39,7 @@ from tqdm.auto import tqdm
 from jaxnc import __version__
 from jaxnc.sweep import code_fingerprint
 
-__all__ = ["seed_keys", "seed_sharding", "run_batched", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
+__all__ = ["seed_keys", "seed_sharding", "run_batched", "precompile", "Summary", "summarize", "mean_ci", "seeds_for_normal_interval",
            "seeds_for_paired_interval", "describe", "save_results", "load_results",
            "atomic_write", "MemoryBudgetError", "available_memory", "check_seed_memory", "chunk_lanes", "CHUNK_MEMORY",
            "stored_or_run", "stored_study", "uniform_dtypes", "stale_temporaries"]
@@ -251,28 +251,110 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     over seeds (on stderr) labelled ``desc``; with several processes only process 0
     shows it, over its own block.
     """
-    if not callable(fn):
-        raise ValueError(f"run_batched: fn must be a function fn(key, *args), got {type(fn).__name__}")
-    if not isinstance(args, tuple):
-        raise ValueError(f"run_batched: args must be a tuple (of fn's extra arguments), got {type(args).__name__}")
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
-        raise ValueError(f"run_batched: chunk_size must be an integer >= 1, got {chunk_size!r}")
-    chunk_size = int(chunk_size)
-    keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
-    if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
-        if keys.ndim != 1:
-            raise ValueError(f"run_batched: typed keys must be a 1-D array of keys, got shape {keys.shape}")
-    elif keys.dtype != jnp.uint32 or keys.ndim != 2 or keys.shape[1] != 2:
-        raise ValueError(f"run_batched: keys must be raw uint32 keys of shape (n, 2) (from seed_keys) or a 1-D "
-                         f"array of typed keys, got {keys.dtype} of shape {keys.shape}")
+    _check_call("run_batched", fn, args)
+    keys, chunk_size = _checked("run_batched", keys, chunk_size)
     batched = _compiled(fn)
     n = int(keys.shape[0])
-    group = LANES * len(jax.local_devices())
-    out_bytes = _out_bytes(batched, keys, args, -(-chunk_size // group) * group) if n else 0
+    out_bytes = _chunk_out_bytes(batched, keys, args, chunk_size) if n else 0
     check_seed_memory(n, 2 * out_bytes, what="run_batched: the results of")
     if jax.process_count() > 1:
         return _run_processes(batched, keys, args, chunk_size, progress, desc, out_bytes)
     return _run_local(batched, keys, args, chunk_size, progress, desc, out_bytes)
+
+
+def _checked(who: str, keys, chunk_size):
+    """``(keys as a jax array, chunk_size as an int)``; ValueError naming ``who`` when either is not
+    what :func:`run_batched` takes."""
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"{who}: chunk_size must be an integer >= 1, got {chunk_size!r}")
+    keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
+    if jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
+        if keys.ndim != 1:
+            raise ValueError(f"{who}: typed keys must be a 1-D array of keys, got shape {keys.shape}")
+    elif keys.dtype != jnp.uint32 or keys.ndim != 2 or keys.shape[1] != 2:
+        raise ValueError(f"{who}: keys must be raw uint32 keys of shape (n, 2) (from seed_keys) or a 1-D "
+                         f"array of typed keys, got {keys.dtype} of shape {keys.shape}")
+    return keys, int(chunk_size)
+
+
+def _check_call(who: str, fn, args) -> None:
+    """ValueError naming ``who`` when ``fn`` is not callable or ``args`` not a tuple."""
+    if not callable(fn):
+        raise ValueError(f"{who}: fn must be a function fn(key, *args), got {type(fn).__name__}")
+    if not isinstance(args, tuple):
+        raise ValueError(f"{who}: args must be a tuple (of fn's extra arguments), got {type(args).__name__}")
+
+
+def _chunk_out_bytes(batched, keys, args, chunk_size: int) -> int:
+    """:func:`_out_bytes` of a chunk of ``chunk_size`` lanes rounded up as :func:`chunk_lanes` rounds them."""
+    group = LANES * len(jax.local_devices())
+    return _out_bytes(batched, keys, args, -(-chunk_size // group) * group)
+
+
+def _default_workers() -> int:
+    """The processors this process may run on (at least 1)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | None = None) -> int:
+    """Compile ahead, side by side, the programs that ``run_batched(fn, keys, args=args,
+    chunk_size=chunk_size)`` will run for each ``(fn, args)`` of ``calls``; returns the number
+    of distinct programs (one already compiled by an earlier call is counted, not compiled again).
+
+    Each program is traced and lowered in this thread, in the order of ``calls``, and handed
+    at once to a pool of ``workers`` threads (default: the processors this process may run
+    on) that compile it with XLA, which releases Python's lock while it compiles: the next
+    program is traced while the previous ones compile, and a cold run of several programs
+    takes about the time of its longest compilation on as many cores instead of the sum.
+    Calls that :func:`run_batched` would run through one program (the same ``fn`` with
+    ``args`` of one structure, shapes and dtypes: :func:`uniform_dtypes`) compile it once.
+    Returns once every program is compiled; nothing is run.
+
+    The programs land where :func:`run_batched` looks for them (its per-``fn`` compiled
+    function; with the persistent compilation cache on, a program found there is loaded
+    instead of compiled, and a compiled one is written there), so the ``run_batched`` calls
+    that follow compile nothing and run the very programs they would have compiled
+    themselves: their results are bit for bit the same. ``fn`` must be an object
+    :func:`run_batched` caches (a function or lambda, not e.g. a ``functools.partial``,
+    which it compiles afresh on every call). After ``jax.distributed.initialize()``
+    (several processes) nothing is compiled ahead and 0 is returned; the runs compile as
+    before. No keys (``len(keys) == 0``): nothing to compile, 0.
+
+    Raises:
+      ValueError: as :func:`run_batched` for ``keys``, ``chunk_size``, a call's ``fn`` or
+        ``args``; for ``calls`` not made of ``(fn, args)`` pairs, or ``workers`` < 1.
+    """
+    keys, chunk_size = _checked("precompile", keys, chunk_size)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                or workers < 1):
+        raise ValueError(f"precompile: workers must be an integer >= 1 or None, got {workers!r}")
+    pairs = []
+    for call in calls:
+        if not isinstance(call, (tuple, list)) or len(call) != 2:
+            raise ValueError(f"precompile: each call must be a pair (fn, args), got {call!r:.80}")
+        _check_call("precompile", *call)
+        pairs.append(tuple(call))
+    if int(keys.shape[0]) == 0 or jax.process_count() > 1 or not pairs:
+        return 0
+    from concurrent.futures import ThreadPoolExecutor
+    seen, jobs = set(), []
+    with ThreadPoolExecutor(max_workers=min(workers or _default_workers(), len(pairs))) as pool:
+        for fn, args in pairs:                  # (leaving the block waits for every submitted compilation)
+            batched = _compiled(fn)
+            out_bytes = _chunk_out_bytes(batched, keys, args, chunk_size)
+            _, _, placed, chunk_at = _chunks(keys, args, chunk_size, out_bytes)
+            chunk = chunk_at(0)
+            leaves, tree = jax.tree_util.tree_flatten((chunk, placed))
+            sig = (id(batched), tree, tuple(jax.typeof(x) for x in leaves))
+            if sig not in seen:
+                seen.add(sig)
+                jobs.append(pool.submit(batched.lower(chunk, placed).compile))
+    for job in jobs:
+        job.result()                            # a compilation's error, raised here
+    return len(jobs)
 
 
 def uniform_dtypes(config):
@@ -324,14 +406,12 @@ def _run_processes(batched, keys, args, chunk_size: int, progress: bool, desc: s
         gathered, mine)
 
 
-def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str, out_bytes: int):
-    """run_batched on this process's local devices (all of them with one process)."""
+def _chunks(keys, args, chunk_size: int, out_bytes: int):
+    """How :func:`_run_local` cuts ``keys`` (n >= 1) into chunks on this process's devices:
+    ``(size, keys, args, chunk_at)``, the lanes per chunk, the keys and ``args`` as the
+    compiled program takes them, and ``chunk_at(lo)``, the chunk of keys ``lo .. lo + size - 1``
+    (padded by repeating the last key, placed on the devices)."""
     n = int(keys.shape[0])
-    if n == 0:
-        spec = jax.ShapeDtypeStruct((1, *keys.shape[1:]), keys.dtype)
-        shapes = jax.eval_shape(batched, spec, args)
-        return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
-
     # Every chunk has exactly chunk_size lanes (padded): XLA:CPU's code for a vmapped
     # loop depends on the batch size (fusion, vector tiling), so a seed is bit-identical
     # alone or in any batch only if both run through one compiled batch shape. Within
@@ -351,14 +431,28 @@ def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str, 
         place_keys = None
     if not jax.dtypes.issubdtype(keys.dtype, jax.dtypes.prng_key):
         keys = np.asarray(keys)            # raw uint32 keys: slice and pad on the host
+
+    def chunk_at(lo):
+        idx = np.minimum(np.arange(lo, lo + size), n - 1)   # pad by repeating the last key
+        return keys[idx] if place_keys is None else jax.device_put(keys[idx], place_keys)
+    return size, keys, args, chunk_at
+
+
+def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str, out_bytes: int):
+    """run_batched on this process's local devices (all of them with one process)."""
+    n = int(keys.shape[0])
+    if n == 0:
+        spec = jax.ShapeDtypeStruct((1, *keys.shape[1:]), keys.dtype)
+        shapes = jax.eval_shape(batched, spec, args)
+        return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
+
+    size, keys, args, chunk_at = _chunks(keys, args, chunk_size, out_bytes)
     pieces = []
     pending = None                         # (device output, number of valid rows)
     with tqdm(total=n, desc=desc, unit="seed", disable=not progress, dynamic_ncols=True) as bar:
         for lo in range(0, n, size):
             hi = min(lo + size, n)
-            idx = np.minimum(np.arange(lo, lo + size), n - 1)   # pad by repeating the last key
-            chunk = keys[idx] if place_keys is None else jax.device_put(keys[idx], place_keys)
-            out = batched(chunk, args)                        # asynchronous dispatch
+            out = batched(chunk_at(lo), args)                 # asynchronous dispatch
             if pending is not None:
                 pieces.append(_to_numpy(jax.block_until_ready(pending[0]), pending[1]))
                 bar.update(pending[1])

@@ -393,6 +393,47 @@ def test_run_batched_args_are_runtime_arguments():
     assert mc._compiled(fn)._cache_size() == 1
 
 
+def _ar1(key, cfg):
+    def step(x, w):
+        x = cfg["a"] * x + cfg["g"] * w
+        return x, x
+    return {"path": jax.lax.scan(step, 0.0, jax.random.normal(key, cfg["w"].shape))[1], "n": cfg["w"].shape[0]}
+
+
+def test_precompile_compiles_each_program_once_and_the_runs_compile_nothing():
+    """Three calls, two programs (two configurations of one structure, one of longer noise):
+    ``precompile`` compiles two, side by side; the ``run_batched`` calls after it compile
+    (or load) nothing, and give the results of a function object that was never precompiled
+    (the sequential path) bit for bit."""
+    from jaxnc.cache import compile_clock
+
+    def fresh(key, cfg):                    # the same body, its own compiled programs
+        return _ar1(key, cfg)
+
+    def run(key, cfg):
+        return _ar1(key, cfg)
+
+    cfgs = [mc.uniform_dtypes({"a": 0.9, "g": 0.5, "w": np.zeros(30)}),
+            mc.uniform_dtypes({"a": 0.7, "g": 2.0, "w": np.zeros(30)}),
+            mc.uniform_dtypes({"a": 0.8, "g": 1.0, "w": np.zeros(45)})]
+    keys = mc.seed_keys(3, 37)               # three chunks of 16, the last padded
+    before = compile_clock()
+    assert mc.precompile([(run, (c,)) for c in cfgs], keys, chunk_size=16, workers=2) == 2
+    assert (compile_clock() - before).compilations == 2
+    before = compile_clock()
+    ahead = [mc.run_batched(run, keys, args=(c,), chunk_size=16, progress=False) for c in cfgs]
+    assert (compile_clock() - before).compilations == 0
+    assert mc._compiled(run)._cache_size() == 2
+    alone = [mc.run_batched(fresh, keys, args=(c,), chunk_size=16, progress=False) for c in cfgs]
+    assert (compile_clock() - before).compilations == 2
+    for a, b in zip(ahead, alone):
+        assert a["path"].shape == b["path"].shape and a["path"].tobytes() == b["path"].tobytes()
+        assert np.array_equal(a["n"], b["n"])
+    assert mc.precompile([(run, (cfgs[0],))], keys, chunk_size=16) == 1     # cached: nothing compiled again
+    assert (compile_clock() - before).compilations == 2
+    assert mc.precompile([(run, (cfgs[0],))], keys[:0], chunk_size=16) == 0
+
+
 _SHARD_SCRIPT = r"""
 import sys, jax, numpy as np
 jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
