@@ -25,6 +25,7 @@ from jaxnc.experiment import ConfigError, Experiment, Option, register
 from jaxnc.paths import PATHS, Path as RefPath
 from jaxnc.report import fmt, markdown_table, save_figure
 from jaxnc.schemes import mecanum as mec
+from jaxnc.sweep import code_fingerprint
 
 CASE_CHOICES = (*mec.CASES, "all")
 UNSTABLE_CELL = 0.5   # a cell is shown as inf when more than half of its runs are unstable
@@ -206,6 +207,17 @@ def plot_paths(loops: dict, key, out: Path, title: str, paths: dict | None = Non
     return f
 
 
+def _while_compiling() -> None:
+    """The run's own work that needs no compiled program, done while XLA compiles the loop
+    programs (:func:`jaxnc.montecarlo.precompile` with ``wait=False``): the code's fingerprint
+    that :func:`jaxnc.montecarlo.save_results` writes (about a second of hashing) and the
+    figure's plotting library."""
+    code_fingerprint()
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot  # noqa: F401
+
+
 def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict:
     t_start = time.perf_counter()
     loops = build_loops(settings)
@@ -217,7 +229,8 @@ def run(settings: dict, *, seeds: int, out: Path, progress: bool = True) -> dict
     # the structures' programs (nominal SR's N = 1, the cases' N) compile side by side first
     args = {name: montecarlo.uniform_dtypes(with_positions(loop) if record_paths else loop)
             for name, loop in loops.items()}
-    montecarlo.precompile([(fn, (a,)) for a in args.values()], keys, chunk_size=min(256, seeds))
+    montecarlo.precompile([(fn, (a,)) for a in args.values()], keys, chunk_size=min(256, seeds), wait=False)
+    _while_compiling()
     results, paths = {}, {}
     for name, loop in loops.items():
         out_ = montecarlo.run_batched(

@@ -299,7 +299,29 @@ def _default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | None = None) -> int:
+#: compilations :func:`precompile` (``wait=False``) handed to its threads and not yet waited
+#: for, by the program's :func:`_signature`
+_IN_FLIGHT: dict = {}
+
+
+def _signature(batched, chunk, args) -> tuple:
+    """What tells the programs of one compiled function apart: the structure, shapes and dtypes of
+    its arguments (a chunk of keys and ``args``)."""
+    leaves, tree = jax.tree_util.tree_flatten((chunk, args))
+    return id(batched), tree, tuple(jax.typeof(x) for x in leaves)
+
+
+def _wait_in_flight(sig=None) -> None:
+    """Wait for the compilation of the program ``sig`` if :func:`precompile` left it in flight
+    (None: for every one); raise its error."""
+    for key in ([sig] if sig is not None else list(_IN_FLIGHT)):
+        job = _IN_FLIGHT.pop(key, None)
+        if job is not None:
+            job.result()
+
+
+def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | None = None,
+               wait: bool = True) -> int:
     """Compile ahead, side by side, the programs that ``run_batched(fn, keys, args=args,
     chunk_size=chunk_size)`` will run for each ``(fn, args)`` of ``calls``; returns the number
     of distinct programs (one already compiled by an earlier call is counted, not compiled again).
@@ -311,7 +333,11 @@ def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | 
     takes about the time of its longest compilation on as many cores instead of the sum.
     Calls that :func:`run_batched` would run through one program (the same ``fn`` with
     ``args`` of one structure, shapes and dtypes: :func:`uniform_dtypes`) compile it once.
-    Returns once every program is compiled; nothing is run.
+    Returns once every program is compiled (``wait=False``: once every program is lowered
+    and handed to the threads, so that the caller's own work, and the runs of the programs
+    compiled first, overlap the later compilations: a :func:`run_batched` call waits for its
+    own program's compilation, and raises its error; the next :func:`precompile` call waits
+    for all of them). Nothing is run.
 
     The programs land where :func:`run_batched` looks for them (its per-``fn`` compiled
     function; with the persistent compilation cache on, a program found there is loaded
@@ -327,6 +353,7 @@ def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | 
       ValueError: as :func:`run_batched` for ``keys``, ``chunk_size``, a call's ``fn`` or
         ``args``; for ``calls`` not made of ``(fn, args)`` pairs, or ``workers`` < 1.
     """
+    _wait_in_flight()
     keys, chunk_size = _checked("precompile", keys, chunk_size)
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
                                 or workers < 1):
@@ -340,21 +367,23 @@ def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | 
     if int(keys.shape[0]) == 0 or jax.process_count() > 1 or not pairs:
         return 0
     from concurrent.futures import ThreadPoolExecutor
-    seen, jobs = set(), []
-    with ThreadPoolExecutor(max_workers=min(workers or _default_workers(), len(pairs))) as pool:
-        for fn, args in pairs:                  # (leaving the block waits for every submitted compilation)
+    seen = set()
+    pool = ThreadPoolExecutor(max_workers=min(workers or _default_workers(), len(pairs)))
+    try:
+        for fn, args in pairs:
             batched = _compiled(fn)
             out_bytes = _chunk_out_bytes(batched, keys, args, chunk_size)
             _, _, placed, chunk_at = _chunks(keys, args, chunk_size, out_bytes)
             chunk = chunk_at(0)
-            leaves, tree = jax.tree_util.tree_flatten((chunk, placed))
-            sig = (id(batched), tree, tuple(jax.typeof(x) for x in leaves))
+            sig = _signature(batched, chunk, placed)
             if sig not in seen:
                 seen.add(sig)
-                jobs.append(pool.submit(batched.lower(chunk, placed).compile))
-    for job in jobs:
-        job.result()                            # a compilation's error, raised here
-    return len(jobs)
+                _IN_FLIGHT[sig] = pool.submit(batched.lower(chunk, placed).compile)
+    finally:
+        pool.shutdown(wait=False)               # the threads end with their last compilation
+    if wait:
+        _wait_in_flight()
+    return len(seen)
 
 
 def uniform_dtypes(config):
@@ -447,6 +476,7 @@ def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str, 
         return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
 
     size, keys, args, chunk_at = _chunks(keys, args, chunk_size, out_bytes)
+    _wait_in_flight(_signature(batched, chunk_at(0), args))     # its program, if precompile is compiling it
     pieces = []
     pending = None                         # (device output, number of valid rows)
     with tqdm(total=n, desc=desc, unit="seed", disable=not progress, dynamic_ncols=True) as bar:

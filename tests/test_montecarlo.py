@@ -434,6 +434,31 @@ def test_precompile_compiles_each_program_once_and_the_runs_compile_nothing():
     assert mc.precompile([(run, (cfgs[0],))], keys[:0], chunk_size=16) == 0
 
 
+def test_precompile_without_waiting_lets_the_next_run_wait_for_its_program():
+    """``wait=False`` returns with the programs handed to the compiling threads; each
+    ``run_batched`` call after it waits for its own program and compiles nothing more: two
+    programs in all for two structures, each once, and the results of a never-precompiled
+    function."""
+    from jaxnc.cache import compile_clock
+
+    def run(key, cfg):
+        return _ar1(key, cfg)
+
+    def fresh(key, cfg):
+        return _ar1(key, cfg)
+
+    cfgs = [mc.uniform_dtypes({"a": 0.5, "g": 1.0, "w": np.zeros(n)}) for n in (12, 20)]
+    keys = mc.seed_keys(5, 20)
+    before = compile_clock()
+    assert mc.precompile([(run, (c,)) for c in cfgs], keys, chunk_size=16, wait=False) == 2
+    ahead = [mc.run_batched(run, keys, args=(c,), chunk_size=16, progress=False) for c in cfgs]
+    assert not mc._IN_FLIGHT
+    assert (compile_clock() - before).compilations == 2 and mc._compiled(run)._cache_size() == 2
+    alone = [mc.run_batched(fresh, keys, args=(c,), chunk_size=16, progress=False) for c in cfgs]
+    for a, b in zip(ahead, alone):
+        assert a["path"].tobytes() == b["path"].tobytes()
+
+
 _SHARD_SCRIPT = r"""
 import sys, jax, numpy as np
 jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
