@@ -292,11 +292,13 @@ def _chunk_out_bytes(batched, keys, args, chunk_size: int) -> int:
 
 
 def _default_workers() -> int:
-    """The processors this process may run on (at least 1)."""
+    """Half the processors this process may run on, at least 1 (XLA:CPU compiles one program
+    on two threads much of the time)."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cpus = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+        cpus = os.cpu_count() or 1
+    return max(1, cpus // 2)
 
 
 #: compilations :func:`precompile` (``wait=False``) handed to its threads and not yet waited
@@ -327,10 +329,11 @@ def precompile(calls, keys: jax.Array, *, chunk_size: int = 256, workers: int | 
     of distinct programs (one already compiled by an earlier call is counted, not compiled again).
 
     Each program is traced and lowered in this thread, in the order of ``calls``, and handed
-    at once to a pool of ``workers`` threads (default: the processors this process may run
-    on) that compile it with XLA, which releases Python's lock while it compiles: the next
-    program is traced while the previous ones compile, and a cold run of several programs
-    takes about the time of its longest compilation on as many cores instead of the sum.
+    at once to a pool of ``workers`` threads (default: half the processors this process may
+    run on, at least one, since XLA:CPU compiles one program on two threads much of the time)
+    that compile it with XLA, which releases Python's lock while it compiles: the next
+    program is traced while the previous ones compile, and with enough cores a cold run of
+    several programs takes about the time of its longest compilation instead of the sum.
     Calls that :func:`run_batched` would run through one program (the same ``fn`` with
     ``args`` of one structure, shapes and dtypes: :func:`uniform_dtypes`) compile it once.
     Returns once every program is compiled (``wait=False``: once every program is lowered
