@@ -8,6 +8,8 @@ is that function mapped over many seeds.  The pieces here are deliberately small
 * :func:`run_batched` maps ``fn`` over the keys in fixed-size chunks (one compilation,
   bounded memory), sharded over the local devices and, after
   ``jax.distributed.initialize()``, split over the processes, and returns numpy arrays;
+* :func:`precompile` compiles the programs of several such runs ahead, in threads, while
+  the caller traces the next program or does its own work;
 * :func:`summarize` reduces one metric to mean / 95 % interval over the *stable* runs,
   reporting the unstable ones as a fraction (an unstable run is data, not an error);
 * :func:`save_results` / :func:`load_results` write and read the JSON results file
@@ -247,7 +249,8 @@ def run_batched(fn: Callable[..., Any], keys: jax.Array, *, args: tuple = (), ch
     with two CPU processes of one device against one process).
 
     The compiled function is cached per ``fn`` object (weakly), so calling again with
-    the same ``fn`` and chunk size does not recompile.  ``progress`` shows a tqdm bar
+    the same ``fn`` and chunk size does not recompile; :func:`precompile` fills that cache
+    ahead (a call whose program it is still compiling waits for it).  ``progress`` shows a tqdm bar
     over seeds (on stderr) labelled ``desc``; with several processes only process 0
     shows it, over its own block.
     """
