@@ -30,6 +30,7 @@ import json
 import os
 import pathlib
 import re
+import sys
 from typing import Callable, Iterator, Sequence
 
 __all__ = ["Shard", "parse_shard", "config_hash", "code_fingerprint", "cell_path", "load_cell", "save_cell",
@@ -129,18 +130,52 @@ def code_fingerprint() -> str:
     describes a user's own functions and part classes) but not the library code they run on:
     without this a cell stored by another jaxnc -- before an upgrade or a fix, or by a shard
     on another checkout -- would be reused with its old numbers (:func:`cell_path`,
-    :func:`load_cell`). Computed once per process (about a second on two cores)."""
-    from importlib import metadata
+    :func:`load_cell`). Computed once per process; parsing the files takes about a second,
+    so the digest is also kept in a small file (``~/.cache/jaxnc/code/``, or under
+    ``$XDG_CACHE_HOME``), named by a hash of the
+    files' exact bytes, the Python version (its syntax trees) and the two versions: a process
+    whose files are byte for byte the same reads it instead of parsing (a file that is
+    missing, unreadable or not a digest is ignored and the digest computed)."""
+    versions = b"".join(f"{dist}=={_dist_version(dist)}\0".encode() for dist in ("jax", "jaxlib"))
+    raw = hashlib.sha256(f"{sys.version_info[:2]}\0".encode() + versions)
+    for name, source in _IMPORTED_SOURCES:
+        raw.update(name.encode() + b"\0" + hashlib.sha256(source).digest())
+    memo = _memo_folder() / raw.hexdigest()[:32]
+    try:
+        known = memo.read_text().strip()
+        if len(known) == 16 and all(c in "0123456789abcdef" for c in known):
+            return known
+    except (OSError, UnicodeDecodeError):
+        pass
     h = hashlib.sha256()
     for name, source in _IMPORTED_SOURCES:
         h.update(name.encode() + b"\0" + _code_text(source) + b"\0")
-    for dist in ("jax", "jaxlib"):
-        try:
-            version = metadata.version(dist)
-        except metadata.PackageNotFoundError:
-            version = "none"
-        h.update(f"{dist}=={version}\0".encode())
-    return h.hexdigest()[:16]
+    h.update(versions)
+    digest = h.hexdigest()[:16]
+    try:                                  # atomically: a reader sees a whole digest or no file
+        memo.parent.mkdir(parents=True, exist_ok=True)
+        tmp = memo.with_name(f"{memo.name}.{os.getpid()}.tmp")
+        tmp.write_text(digest)
+        os.replace(tmp, memo)
+    except OSError:
+        pass
+    return digest
+
+
+def _dist_version(dist: str) -> str:
+    """The installed version of the distribution ``dist``, ``"none"`` when it is not installed."""
+    from importlib import metadata
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return "none"
+
+
+def _memo_folder() -> pathlib.Path:
+    """Where :func:`code_fingerprint` keeps its digests: ``$XDG_CACHE_HOME/jaxnc/code``, else
+    ``~/.cache/jaxnc/code``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return pathlib.Path(base) / "jaxnc" / "code"
 
 
 def _code_text(source: bytes) -> bytes:

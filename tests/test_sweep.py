@@ -157,6 +157,38 @@ def test_a_stored_part_of_other_library_code_is_computed_again(tmp_path, library
     library_copy((_COST_LINE, _COST_LINE.replace("return ", "return 2 * ")))
     assert run()["cost"] == 0.1 and len(calls) == 2
 
+def test_the_code_fingerprint_is_kept_by_the_files_bytes_and_a_bad_memo_is_ignored(tmp_path, monkeypatch,
+                                                                                     library_copy):
+    """Parsing the package's files for :func:`sweep.code_fingerprint` took about a second in
+    every process that stores a result; the digest is now kept in a file named by the files'
+    exact bytes. What is read from there is what the function returns (so the memo is used),
+    a file that is not a digest is ignored and rewritten, and other bytes (a code edit, or a
+    docstring edit, which keeps the digest) are another memo."""
+    from jaxnc import sweep
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    folder = tmp_path / "jaxnc" / "code"
+
+    def fresh():                       # as a new process would compute it
+        sweep.code_fingerprint.cache_clear()
+        return sweep.code_fingerprint()
+    first = fresh()
+    [memo] = folder.iterdir()
+    assert memo.read_text() == first and len(first) == 16
+    memo.write_text("0123456789abcdef")
+    assert fresh() == "0123456789abcdef"                    # read, not computed
+    for bad in ("not a digest", "", "0123456789ABCDEF"):
+        memo.write_text(bad)
+        assert fresh() == first and memo.read_text() == first
+    library_copy(('"""Cost J = (1/K)', '"""Cost (a docstring edited) J = (1/K)'))
+    assert fresh() == first and len(list(folder.iterdir())) == 2
+    library_copy((_COST_LINE, _COST_LINE.replace("return ", "return 2 * ")))
+    assert fresh() != first and len(list(folder.iterdir())) == 3
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "a file"))
+    (tmp_path / "a file").write_text("")                    # no folder can be made there
+    assert fresh() not in (first, None) and not list(folder.glob("*.tmp"))
+    sweep.code_fingerprint.cache_clear()
+
+
 def test_missing_report_names_the_shards_that_owe_cells():
     cells = list(range(10))
     text = missing_report(cells, [5, 9], Shard(0, 3), describe=lambda c: f"cell {c}")
