@@ -223,3 +223,63 @@ def test_the_exact_gradient_through_a_lossy_steady_state_kf_loop_equals_float64_
 
     fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
     np.testing.assert_allclose(grad, fd, rtol=2e-5)       # float32 gradient; measured within 1.5e-6 at 80 steps
+
+
+def test_the_exact_gradient_through_an_ekf_with_late_measurements_equals_float64_differences_of_a_numpy_loop():
+    """The servo above with an EKF (buffer 5) over a lossy uplink that delays packets by 1-6 fast
+    periods (late measurements used by their stamps): the gradient of the mean cost in K, Q, R
+    and the noise stds equals float64 central differences of a NumPy Kalman filter re-run at each
+    instant over the measurements arrived by then. Compared as d/d log(value): R moves the cost
+    by 10^-5 of itself, so its coordinate is held to the float32 cost's resolution."""
+    import control
+    from jaxnc import montecarlo
+    T, N, steps, seeds = 0.05, 2, 40, 8
+    Ac, Bc = np.array([[0, 1, 0], [0, -0.5, 1], [0, 0, -5.0]]), np.array([[0], [0], [5.0]])
+    plant = nc.LTI.from_control(control.ss(Ac, Bc, [[1, 0, 0]], [[0]]), T, x0=[1.0, 0, 0],
+                                w_std=[0.01, 0.02, 0.05], v_std=[0.02])
+    th0 = np.array([4.0, 3.0, 0.5, 1e-4, 4e-4, 2.5e-3, 4e-4, 0.01, 0.02, 0.05, 0.02])   # K, Q, R, w_std, v_std
+    P0 = 0.1 * np.eye(3)
+
+    def loop_of(th):
+        ekf = nc.EKF(plant, Q=jnp.diag(th[3:6]), R=jnp.reshape(th[6], (1, 1)), mean0=jnp.zeros(3, jnp.float32),
+                     cov0=jnp.asarray(P0, jnp.float32), buffer=5)
+        link = nc.Link(nc.Bernoulli(0.2), nc.ShiftedExponential(eta=0.01, phi=0.05), tau_max=0.4, order="all")
+        return nc.Loop(plant=dataclasses.replace(plant, w_std=th[7:10], v_std=th[10:11]), trigger=nc.Periodic(1),
+                       uplink=link, estimator=ekf, controller=nc.StateFeedback(jnp.reshape(th[:3], (1, 3))),
+                       downlink=nc.Link(), actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0, 0.1, 0.0], R=[0.01]),
+                       T=T, N=N, steps=steps)
+
+    keys = montecarlo.seed_keys(5, seeds)
+    th32 = jnp.asarray(th0, jnp.float32)
+    mean_cost = lambda th: jax.vmap(lambda k: nc.run(loop_of(th), k).cost_raw)(keys).mean()
+    cost32, grad = jax.jit(jax.value_and_grad(mean_cost))(th32)
+    draws = jax.vmap(lambda k: nc.draw(loop_of(th32), k))(keys)
+    wn = np.asarray(draws.w, np.float64) / th0[7:10]
+    vn = np.asarray(draws.v, np.float64)[:, :, 0] / th0[10]
+    delay = np.asarray(draws.uplink.delay)
+    assert (delay >= N).sum() > 20                                  # late measurements are used
+    A, B = np.asarray(plant.A, np.float64), np.asarray(plant.B, np.float64)[:, 0]
+
+    def cost(th):
+        K, Q, R, ws, vs = th[:3], np.diag(th[3:6]), th[6], th[7:10], th[10]
+        total = 0.0
+        for s in range(seeds):
+            x, us, zs = np.array([1.0, 0, 0]), [], []
+            for k in range(steps // N):
+                zs.append(x[0] + vs * vn[s, k])
+                m, P = np.zeros(3), P0.copy()
+                for j in range(k + 1):
+                    if 0 <= delay[s, j] and j * N + delay[s, j] <= k * N:
+                        gain = P[:, 0] / (P[0, 0] + R)
+                        m, P = m + gain * (zs[j] - m[0]), P - np.outer(gain, P[0, :])
+                    for _ in range(N if j < k else 0):
+                        m, P = A @ m + B * us[j], A @ P @ A.T + Q
+                us.append(-K @ m)
+                for i in range(N):
+                    total += x[0] ** 2 + 0.1 * x[1] ** 2 + 0.01 * us[k] ** 2
+                    x = A @ x + B * us[k] + ws * wn[s, k, i]
+        return total / (steps * seeds)
+
+    fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
+    assert abs(float(cost32) - cost(th0)) < 1e-6 * cost(th0)
+    np.testing.assert_allclose(th0 * np.asarray(grad), th0 * fd, rtol=2e-5, atol=1e-6 * float(cost32))
