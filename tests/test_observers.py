@@ -283,3 +283,64 @@ def test_the_exact_gradient_through_an_ekf_with_late_measurements_equals_float64
     fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
     assert abs(float(cost32) - cost(th0)) < 1e-6 * cost(th0)
     np.testing.assert_allclose(th0 * np.asarray(grad), th0 * fd, rtol=2e-5, atol=1e-6 * float(cost32))
+
+
+def test_a_relaxed_petc_sends_only_soft_decisions_above_one_half_and_its_gradient_is_exact_between_them():
+    """docs/tuning.md, "Limitation": with `Petc(relaxed=True)` z̄ is blended by the soft decision
+    β, and the link sends the packet, with weight β, only where β > 1/2. A SteadyStateKF servo
+    over a 30 %-lossy uplink equals a NumPy loop written so (float64), and its gradient in δ and
+    K equals that loop's central differences (steps that move no β across 1/2)."""
+    import control
+    import scipy.linalg as sl
+    from jaxnc import montecarlo
+    T, N, steps, seeds, tau = 0.05, 2, 40, 8, 1e-3
+    Ac, Bc = np.array([[0, 1, 0], [0, -0.5, 1], [0, 0, -5.0]]), np.array([[0], [0], [5.0]])
+    plant = nc.LTI.from_control(control.ss(Ac, Bc, [[1, 0, 0]], [[0]]), T, x0=[1.0, 0, 0],
+                                w_std=[0.01, 0.02, 0.05], v_std=[0.02])
+    Q, R = np.array([1e-4, 4e-4, 2.5e-3]), 4e-4
+    th0 = np.array([1e-3, 4.0, 3.0, 0.5])                              # delta, K
+
+    def loop_of(th):
+        return nc.Loop(plant=plant, trigger=nc.Petc(delta=th[0], temperature=tau, relaxed=True),
+                       uplink=nc.Link(nc.Bernoulli(0.3)), estimator=nc.SteadyStateKF(plant, Q=Q, R=[[R]]),
+                       controller=nc.StateFeedback(jnp.reshape(th[1:], (1, 3))), downlink=nc.Link(),
+                       actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0, 0.1, 0.0], R=[0.01]), T=T, N=N, steps=steps)
+
+    keys = montecarlo.seed_keys(3, seeds)
+    th32 = jnp.asarray(th0, jnp.float32)
+    mean_cost = lambda th: jax.vmap(lambda k: nc.run(loop_of(th), k).cost_raw)(keys).mean()
+    cost32, grad = jax.jit(jax.value_and_grad(mean_cost))(th32)
+    draws = jax.vmap(lambda k: nc.draw(loop_of(th32), k))(keys)
+    w, v = np.asarray(draws.w, np.float64), np.asarray(draws.v, np.float64)[:, :, 0]
+    arrived = np.asarray(draws.uplink.delay) >= 0
+    A, B = np.asarray(plant.A, np.float64), np.asarray(plant.B, np.float64)[:, 0]
+    AN, BN = A @ A, A @ B + B
+    P = sl.solve_discrete_are(AN.T, np.array([[1.0], [0], [0]]), np.diag(Q) + A @ np.diag(Q) @ A.T, [[R]])
+    M = P[:, 0] / (P[0, 0] + R)
+    gates = []
+
+    def cost(th):
+        delta, K = th[0], th[1:]
+        total, gates_here = 0.0, []
+        gates.append(gates_here)
+        for s in range(seeds):
+            x, xh, zbar = np.array([1.0, 0, 0]), np.zeros(3), 0.0
+            for k in range(steps // N):
+                z = x[0] + v[s, k]
+                beta = 1.0 if k == 0 else 1.0 / (1.0 + np.exp(-((zbar - z) ** 2 - delta) / tau))
+                gates_here.append((beta > 0.5, 0.01 < beta < 0.99))
+                zbar = beta * z + (1 - beta) * zbar
+                xh = xh + (beta * M * (z - xh[0]) if beta > 0.5 and arrived[s, k] else 0.0)
+                u = -K @ xh
+                for j in range(N):
+                    total += x[0] ** 2 + 0.1 * x[1] ** 2 + 0.01 * u ** 2
+                    x = A @ x + B * u + w[s, k, j]
+                xh = AN @ xh + BN * u
+        return total / (steps * seeds)
+
+    c0 = cost(th0)
+    fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
+    assert all(g == gates[0] for g in gates)                     # no step moves a beta across 1/2
+    assert sum(soft for _, soft in gates[0]) > 10                 # many soft decisions
+    assert abs(float(cost32) - c0) < 1e-6 * c0
+    np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-4)
