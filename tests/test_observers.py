@@ -169,3 +169,178 @@ def test_a_loop_of_a_checked_shape_with_new_numbers_runs_only_the_value_checks(m
     assert len(calls) == 1
     _loop(nc.Luenberger(_plant(), L=L0), steps=22)          # a new static field: another structure
     assert len(calls) == 2
+
+
+def test_the_exact_gradient_through_a_lossy_steady_state_kf_loop_equals_float64_differences_of_a_numpy_loop():
+    """A 3-state servo at N = 2 (fast period 0.05 s), a SteadyStateKF over a 30 %-lossy uplink,
+    state feedback: the gradient of the mean cost over 8 seeds in K, the filter's Q and R (through
+    its stationary gain, dlqe) and the plant's noise stds equals central differences in float64
+    of the same loop written in NumPy (scipy's Riccati solution for the gain) on the run's draws."""
+    import control
+    import scipy.linalg as sl
+    from jaxnc import montecarlo
+    T, N, steps, seeds = 0.05, 2, 40, 8
+    Ac, Bc = np.array([[0, 1, 0], [0, -0.5, 1], [0, 0, -5.0]]), np.array([[0], [0], [5.0]])
+    plant = nc.LTI.from_control(control.ss(Ac, Bc, [[1, 0, 0]], [[0]]), T, x0=[1.0, 0, 0],
+                                w_std=[0.01, 0.02, 0.05], v_std=[0.02])
+    th0 = np.array([4.0, 3.0, 0.5, 1e-4, 4e-4, 2.5e-3, 4e-4, 0.01, 0.02, 0.05, 0.02])   # K, Q, R, w_std, v_std
+
+    def loop_of(th):
+        kf = nc.SteadyStateKF(plant, Q=th[3:6], R=jnp.reshape(th[6], (1, 1)))
+        return nc.Loop(plant=dataclasses.replace(plant, w_std=th[7:10], v_std=th[10:11]), trigger=nc.Periodic(1),
+                       uplink=nc.Link(nc.Bernoulli(0.3)), estimator=kf,
+                       controller=nc.StateFeedback(jnp.reshape(th[:3], (1, 3))),
+                       downlink=nc.Link(), actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0, 0.1, 0.0], R=[0.01]),
+                       T=T, N=N, steps=steps)
+
+    keys = montecarlo.seed_keys(3, seeds)
+    th32 = jnp.asarray(th0, jnp.float32)
+    mean_cost = lambda th: jax.vmap(lambda k: nc.run(loop_of(th), k).cost_raw)(keys).mean()
+    grad = np.asarray(jax.jit(jax.grad(mean_cost))(th32))
+    draws = jax.vmap(lambda k: nc.draw(loop_of(th32), k))(keys)
+    wn = np.asarray(draws.w, np.float64) / th0[7:10]            # the standard normals (float32-rounded)
+    vn = np.asarray(draws.v, np.float64)[:, :, 0] / th0[10]
+    arrived = np.asarray(draws.uplink.delay) >= 0
+    A, B = np.asarray(plant.A, np.float64), np.asarray(plant.B, np.float64)[:, 0]
+    AN, BN = A @ A, A @ B + B
+
+    def cost(th):
+        K, Q, R, ws, vs = th[:3], th[3:6], th[6], th[7:10], th[10]
+        P = sl.solve_discrete_are(AN.T, np.array([[1.0], [0], [0]]), np.diag(Q) + A @ np.diag(Q) @ A.T, [[R]])
+        M = P[:, 0] / (P[0, 0] + R)
+        total = 0.0
+        for s in range(seeds):
+            x, xh = np.array([1.0, 0, 0]), np.zeros(3)
+            for k in range(steps // N):
+                z = x[0] + vs * vn[s, k]
+                xh = xh + M * (z - xh[0]) if arrived[s, k] else xh
+                u = -K @ xh
+                for j in range(N):
+                    total += x[0] ** 2 + 0.1 * x[1] ** 2 + 0.01 * u ** 2
+                    x = A @ x + B * u + ws * wn[s, k, j]
+                xh = AN @ xh + BN * u
+        return total / (steps * seeds)
+
+    fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
+    np.testing.assert_allclose(grad, fd, rtol=2e-5)       # float32 gradient; measured within 1.5e-6 at 80 steps
+
+
+def test_the_exact_gradient_through_an_ekf_with_late_measurements_equals_float64_differences_of_a_numpy_loop():
+    """The servo above with an EKF (buffer 5) over a lossy uplink that delays packets by 1-6 fast
+    periods (late measurements used by their stamps): the gradient of the mean cost in K, Q, R
+    and the noise stds equals float64 central differences of a NumPy Kalman filter re-run at each
+    instant over the measurements arrived by then. Compared as d/d log(value): R moves the cost
+    by 10^-5 of itself, so its coordinate is held to the float32 cost's resolution."""
+    import control
+    from jaxnc import montecarlo
+    T, N, steps, seeds = 0.05, 2, 40, 8
+    Ac, Bc = np.array([[0, 1, 0], [0, -0.5, 1], [0, 0, -5.0]]), np.array([[0], [0], [5.0]])
+    plant = nc.LTI.from_control(control.ss(Ac, Bc, [[1, 0, 0]], [[0]]), T, x0=[1.0, 0, 0],
+                                w_std=[0.01, 0.02, 0.05], v_std=[0.02])
+    th0 = np.array([4.0, 3.0, 0.5, 1e-4, 4e-4, 2.5e-3, 4e-4, 0.01, 0.02, 0.05, 0.02])   # K, Q, R, w_std, v_std
+    P0 = 0.1 * np.eye(3)
+
+    def loop_of(th):
+        ekf = nc.EKF(plant, Q=jnp.diag(th[3:6]), R=jnp.reshape(th[6], (1, 1)), mean0=jnp.zeros(3, jnp.float32),
+                     cov0=jnp.asarray(P0, jnp.float32), buffer=5)
+        link = nc.Link(nc.Bernoulli(0.2), nc.ShiftedExponential(eta=0.01, phi=0.05), tau_max=0.4, order="all")
+        return nc.Loop(plant=dataclasses.replace(plant, w_std=th[7:10], v_std=th[10:11]), trigger=nc.Periodic(1),
+                       uplink=link, estimator=ekf, controller=nc.StateFeedback(jnp.reshape(th[:3], (1, 3))),
+                       downlink=nc.Link(), actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0, 0.1, 0.0], R=[0.01]),
+                       T=T, N=N, steps=steps)
+
+    keys = montecarlo.seed_keys(5, seeds)
+    th32 = jnp.asarray(th0, jnp.float32)
+    mean_cost = lambda th: jax.vmap(lambda k: nc.run(loop_of(th), k).cost_raw)(keys).mean()
+    cost32, grad = jax.jit(jax.value_and_grad(mean_cost))(th32)
+    draws = jax.vmap(lambda k: nc.draw(loop_of(th32), k))(keys)
+    wn = np.asarray(draws.w, np.float64) / th0[7:10]
+    vn = np.asarray(draws.v, np.float64)[:, :, 0] / th0[10]
+    delay = np.asarray(draws.uplink.delay)
+    assert (delay >= N).sum() > 20                                  # late measurements are used
+    A, B = np.asarray(plant.A, np.float64), np.asarray(plant.B, np.float64)[:, 0]
+
+    def cost(th):
+        K, Q, R, ws, vs = th[:3], np.diag(th[3:6]), th[6], th[7:10], th[10]
+        total = 0.0
+        for s in range(seeds):
+            x, us, zs = np.array([1.0, 0, 0]), [], []
+            for k in range(steps // N):
+                zs.append(x[0] + vs * vn[s, k])
+                m, P = np.zeros(3), P0.copy()
+                for j in range(k + 1):
+                    if 0 <= delay[s, j] and j * N + delay[s, j] <= k * N:
+                        gain = P[:, 0] / (P[0, 0] + R)
+                        m, P = m + gain * (zs[j] - m[0]), P - np.outer(gain, P[0, :])
+                    for _ in range(N if j < k else 0):
+                        m, P = A @ m + B * us[j], A @ P @ A.T + Q
+                us.append(-K @ m)
+                for i in range(N):
+                    total += x[0] ** 2 + 0.1 * x[1] ** 2 + 0.01 * us[k] ** 2
+                    x = A @ x + B * us[k] + ws * wn[s, k, i]
+        return total / (steps * seeds)
+
+    fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
+    assert abs(float(cost32) - cost(th0)) < 1e-6 * cost(th0)
+    np.testing.assert_allclose(th0 * np.asarray(grad), th0 * fd, rtol=2e-5, atol=1e-6 * float(cost32))
+
+
+def test_a_relaxed_petc_sends_only_soft_decisions_above_one_half_and_its_gradient_is_exact_between_them():
+    """docs/tuning.md, "Limitation": with `Petc(relaxed=True)` z̄ is blended by the soft decision
+    β, and the link sends the packet, with weight β, only where β > 1/2. A SteadyStateKF servo
+    over a 30 %-lossy uplink equals a NumPy loop written so (float64), and its gradient in δ and
+    K equals that loop's central differences (steps that move no β across 1/2)."""
+    import control
+    import scipy.linalg as sl
+    from jaxnc import montecarlo
+    T, N, steps, seeds, tau = 0.05, 2, 40, 8, 1e-3
+    Ac, Bc = np.array([[0, 1, 0], [0, -0.5, 1], [0, 0, -5.0]]), np.array([[0], [0], [5.0]])
+    plant = nc.LTI.from_control(control.ss(Ac, Bc, [[1, 0, 0]], [[0]]), T, x0=[1.0, 0, 0],
+                                w_std=[0.01, 0.02, 0.05], v_std=[0.02])
+    Q, R = np.array([1e-4, 4e-4, 2.5e-3]), 4e-4
+    th0 = np.array([1e-3, 4.0, 3.0, 0.5])                              # delta, K
+
+    def loop_of(th):
+        return nc.Loop(plant=plant, trigger=nc.Petc(delta=th[0], temperature=tau, relaxed=True),
+                       uplink=nc.Link(nc.Bernoulli(0.3)), estimator=nc.SteadyStateKF(plant, Q=Q, R=[[R]]),
+                       controller=nc.StateFeedback(jnp.reshape(th[1:], (1, 3))), downlink=nc.Link(),
+                       actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0, 0.1, 0.0], R=[0.01]), T=T, N=N, steps=steps)
+
+    keys = montecarlo.seed_keys(3, seeds)
+    th32 = jnp.asarray(th0, jnp.float32)
+    mean_cost = lambda th: jax.vmap(lambda k: nc.run(loop_of(th), k).cost_raw)(keys).mean()
+    cost32, grad = jax.jit(jax.value_and_grad(mean_cost))(th32)
+    draws = jax.vmap(lambda k: nc.draw(loop_of(th32), k))(keys)
+    w, v = np.asarray(draws.w, np.float64), np.asarray(draws.v, np.float64)[:, :, 0]
+    arrived = np.asarray(draws.uplink.delay) >= 0
+    A, B = np.asarray(plant.A, np.float64), np.asarray(plant.B, np.float64)[:, 0]
+    AN, BN = A @ A, A @ B + B
+    P = sl.solve_discrete_are(AN.T, np.array([[1.0], [0], [0]]), np.diag(Q) + A @ np.diag(Q) @ A.T, [[R]])
+    M = P[:, 0] / (P[0, 0] + R)
+    gates = []
+
+    def cost(th):
+        delta, K = th[0], th[1:]
+        total, gates_here = 0.0, []
+        gates.append(gates_here)
+        for s in range(seeds):
+            x, xh, zbar = np.array([1.0, 0, 0]), np.zeros(3), 0.0
+            for k in range(steps // N):
+                z = x[0] + v[s, k]
+                beta = 1.0 if k == 0 else 1.0 / (1.0 + np.exp(-((zbar - z) ** 2 - delta) / tau))
+                gates_here.append((beta > 0.5, 0.01 < beta < 0.99))
+                zbar = beta * z + (1 - beta) * zbar
+                xh = xh + (beta * M * (z - xh[0]) if beta > 0.5 and arrived[s, k] else 0.0)
+                u = -K @ xh
+                for j in range(N):
+                    total += x[0] ** 2 + 0.1 * x[1] ** 2 + 0.01 * u ** 2
+                    x = A @ x + B * u + w[s, k, j]
+                xh = AN @ xh + BN * u
+        return total / (steps * seeds)
+
+    c0 = cost(th0)
+    fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
+    assert all(g == gates[0] for g in gates)                     # no step moves a beta across 1/2
+    assert sum(soft for _, soft in gates[0]) > 10                 # many soft decisions
+    assert abs(float(cost32) - c0) < 1e-6 * c0
+    np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-4)

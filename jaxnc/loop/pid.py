@@ -9,7 +9,8 @@ entry with :class:`~jaxnc.loop.Passthrough`, a state's with an observer or an
 ``c`` entries, so ``c`` must equal the plant's ``input_dim``).
 
 At a slow instant k where it computes, with h_k the time since its previous computation
-(h at the first one, and at every instant when it computes at every instant; Åström and
+(h at the first one, however many instants without a measurement came before it, and at
+every instant when it computes at every instant; Åström and
 Hägglund, *Advanced PID control*, section 3.7, backward differences, with Årzén's
 event-based sampling interval):
 
