@@ -5,8 +5,8 @@ Run:  PYTHONPATH=. .venv/bin/python benchmarks/bench_trace.py [--rounds 2] [--ou
 
 For each loop below, the program :func:`jaxnc.montecarlo.run_batched` compiles for it,
 ``jit(vmap(run_seed, in_axes=(0, None)))`` over 16 keys with the loop as the shared argument,
-is traced (``.trace``) and lowered (``.lower``) after ``jax.clear_caches()`` (and jaxnc's own
-per-structure caches; ``--keep-caches``: neither); the CPU seconds
+is traced (``.trace``) and lowered (``.lower``) after ``jax.clear_caches()`` (``--keep-caches``:
+JAX's caches stay warm, as in a test-suite process; a fresh ``jit`` is traced each time); the CPU seconds
 of each, the number of jaxpr equations (nested jaxprs included) and of StableHLO operations
 are printed, and the lowered text is hashed (and written to ``--out`` as ``NAME.mlir``) so two
 checkouts can be shown to lower the same program. Rounds repeat the loops in the order
@@ -101,8 +101,6 @@ def measure(name: str, profiler=None):
     keys = montecarlo.seed_keys(0, 16)
     if not KEEP_CACHES:
         jax.clear_caches()
-        from jaxnc.loop import runner
-        getattr(runner, "_PACKETS", {}).clear()      # jaxnc's own per-structure cache: a first trace
     f = jax.jit(jax.vmap(lambda key, args: fn(key, *args), in_axes=(0, None)))
     t0 = time.process_time()
     if profiler is not None:
@@ -129,7 +127,7 @@ def main(argv=None):
     ap.add_argument("--gc-threshold", default=None,
                     help="a,b,c: gc.set_threshold(a, b, c) first (default: Python's, 700,10,10)")
     ap.add_argument("--keep-caches", action="store_true",
-                    help="neither jax.clear_caches() nor jaxnc's caches between traces (a fresh jit each time): "
+                    help="no jax.clear_caches() between traces (a fresh jit each time): "
                          "a loop traced again in a process, as in the test suite")
     a = ap.parse_args(argv)
     global KEEP_CACHES
@@ -144,8 +142,6 @@ def main(argv=None):
     trees = a.trees or [None]
     res = {(t, n): ([], []) for t in trees for n in a.only}
     hashes = {}
-    import jax
-    jax.config.update("jax_enable_x64", False)
     for r in range(a.rounds):
         order = trees if r % 2 == 0 else trees[::-1]
         order = order + order[::-1] if len(trees) > 1 else order
