@@ -108,9 +108,13 @@ def _check_cov(where: str, name: str, M, dim: int, *, form: str, definite: bool)
 
 
 def _check_z(where: str, h: Callable, mean, z, noise_dim: int) -> None:
-    zhat = jax.eval_shape(h, mean, jnp.zeros((noise_dim,), mean.dtype))
-    if tuple(np.shape(z)) != tuple(zhat.shape):
-        raise ValueError(f"{where}: z must have the shape of h(x, v), {tuple(zhat.shape)}, got {tuple(np.shape(z))}")
+    _check_z_like(where, jax.eval_shape(h, mean, jnp.zeros((noise_dim,), mean.dtype)), z)
+
+
+def _check_z_like(where: str, zhat, z) -> None:
+    """z has the shape of ``zhat`` (h(x, v), or its shape), else a ValueError naming ``where``."""
+    if tuple(np.shape(z)) != tuple(np.shape(zhat)):
+        raise ValueError(f"{where}: z must have the shape of h(x, v), {tuple(np.shape(zhat))}, got {tuple(np.shape(z))}")
 
 
 def _symmetrize(P):
@@ -248,9 +252,9 @@ def ekf_update_terms(h: Callable, belief: Gaussian, z, R, noise_dim: int):
     """
     noise_dim = _noise_dim("ekf_update", noise_dim)
     _check_cov("ekf_update", "R", R, noise_dim, form="matrix", definite=True)
-    _check_z("ekf_update", h, belief.mean, z, noise_dim)
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     zhat = h(belief.mean, v0)
+    _check_z_like("ekf_update", zhat, z)
     H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
     M = jax.jacfwd(h, argnums=1)(belief.mean, v0)
     Rm = _mm(_mm(M, R), M.T)
@@ -283,10 +287,11 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     """
     noise_dim = _noise_dim("ekf_update_diag", noise_dim)
     _check_cov("ekf_update_diag", "r", r, noise_dim, form="vector", definite=True)
-    _check_z("ekf_update_diag", h, belief.mean, z, noise_dim)
     n = belief.mean.shape[0]
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
-    innovation = z - h(belief.mean, v0)
+    zhat = h(belief.mean, v0)
+    _check_z_like("ekf_update_diag", zhat, z)
+    innovation = z - zhat
     ph = Pattern.dense(z.shape[0], n) if structure is None else structure.H
     check_shape("ekf_update_diag", "H", ph, (z.shape[0], n))
     H = jacobian_columns(lambda x: h(x, v0), _at(belief.mean, jacobian_grad), ph.cols)   # H[:, cols]
@@ -324,10 +329,10 @@ def ekf_update_sqrt(h: Callable, belief: SqrtGaussian, z, R, noise_dim: int) -> 
     as :func:`ekf_update`."""
     noise_dim = _noise_dim("ekf_update_sqrt", noise_dim)
     _check_cov("ekf_update_sqrt", "R", R, noise_dim, form="either", definite=True)
-    _check_z("ekf_update_sqrt", h, belief.mean, z, noise_dim)
     n = belief.mean.shape[0]
     v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
     zhat = h(belief.mean, v0)
+    _check_z_like("ekf_update_sqrt", zhat, z)
     H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
     M = jax.jacfwd(h, argnums=1)(belief.mean, v0)
     R = jnp.asarray(R, belief.sqrt.dtype)
