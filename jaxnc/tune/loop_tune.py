@@ -44,6 +44,7 @@ import contextlib
 import dataclasses
 import math
 import time
+import weakref
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -371,6 +372,11 @@ def _check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
         raise ValueError(f"{fn_name}: {what} {e}") from None
 
 
+def _cost_raw(m):
+    """The default objective, ``m.cost_raw`` (one function: calls share its programs)."""
+    return m.cost_raw
+
+
 def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     """Check ``params`` / ``objective`` / ``run`` against ``loop`` before anything is traced."""
     from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
@@ -404,7 +410,7 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     run = nc.run if run is None else run
     if not callable(run):
         raise ValueError(f"{fn_name}: run must be a function run(loop, key) -> metrics, got {type(run).__name__}")
-    objective = objective or (lambda m: m.cost_raw)
+    objective = objective or _cost_raw
     if not callable(objective):
         raise ValueError(f"{fn_name}: objective must be a function objective(metrics) -> scalar, "
                          f"got {type(objective).__name__}")
@@ -431,7 +437,10 @@ def _set(loop, spec: _Spec, values: dict):
 def _flat(loop, spec: _Spec, at: dict | None = None):
     """(flat raw start, unravel, flat_objective(theta, key, temperature)) in the
     unconstrained coordinates (log for Positive, logit for Interval); the flat objective
-    returns what the user's does (a scalar, or a (smooth, jump) pair)."""
+    returns what the user's does (a scalar, or a (smooth, jump) pair). It is one function
+    for every point and call on this ``loop`` object with the same objective, run,
+    parameters and shapes (:func:`_flat_program`), so checks at several points share
+    their compiled program."""
     init = {n: np.asarray(get_path(loop, spec.paths[n][0]), np.float32) for n in spec.paths}
     if at:
         unknown = [k for k in at if k not in spec.paths]
@@ -445,13 +454,55 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
             raise ValueError(f"check_loop: at: {e}") from None
     raw0 = unconstrain(init, spec.constraints)
     flat0, unravel = ravel_pytree(raw0)
+    return np.asarray(flat0), unravel, _flat_program(loop, spec, {n: v.shape for n, v in init.items()})
 
+
+# functions shared by the calls of check_loop / tune_loop on one loop object: id(loop) ->
+# (weak reference to the loop, {key: function}); an entry leaves with its loop. The loop is
+# closed over, not an argument: its values stay constants of the program, so the numbers are
+# those of a closure built per call (an argument would compute the configuration's own
+# arithmetic in float32 and move the last bits)
+_BY_LOOP: dict = {}
+
+
+def _shared(loop, spec: _Spec, what: str, extra: tuple, build: Callable) -> Callable:
+    """``build(loop_ref)``'s function for ``loop`` (reached through ``loop_ref()``),
+    ``spec``'s user objective and run, its parameters and constraints, ``what`` and
+    ``extra``: built once and kept while ``loop`` lives (:data:`_BY_LOOP`), so that
+    :func:`jaxnc.montecarlo.run_batched` and ``jax.jit`` reuse its traces and
+    compilations."""
+    try:
+        ref = weakref.ref(loop)
+    except TypeError:                 # not weak-referenceable: a function for this call alone
+        return build(lambda: loop)
+    key = (what, spec.parts or spec.objective, spec.run, tuple(spec.paths.items()),
+           tuple(spec.constraints.items()), extra)
+    store = _BY_LOOP.get(id(loop))
+    if store is None or store[0]() is not loop:
+        store = _BY_LOOP[id(loop)] = (ref, {})
+        weakref.finalize(loop, _BY_LOOP.pop, id(loop), None)
+    if key not in store[1]:
+        store[1][key] = build(ref)
+    return store[1][key]
+
+
+def _flat_program(loop, spec: _Spec, shapes: dict) -> Callable:
+    """``f(theta, key, temperature)``: the user's objective (a scalar or a (smooth, jump)
+    pair) of one run of ``loop`` with the tuned parameters set from the flat raw ``theta``
+    (``shapes``: each parameter's shape); one function per loop object, objective, run,
+    parameters and shapes (:func:`_shared`)."""
+    paths, cons, run = spec.paths, spec.constraints, spec.run
     objective = spec.parts or spec.objective
 
-    def flat_objective(theta, key, temp):
-        lp = with_temperature(_set(loop, spec, constrain(unravel(theta), spec.constraints)), temp)
-        return objective(spec.run(lp, key))
-    return np.asarray(flat0), unravel, flat_objective
+    def build(loop_ref):
+        unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
+
+        def f(theta, key, temp):
+            lp = with_temperature(set_paths(loop_ref(), {p: v for n, v in constrain(unravel(theta), cons).items()
+                                                         for p in paths[n]}), temp)
+            return objective(run(lp, key))
+        return f
+    return _shared(loop, spec, "flat", tuple(sorted((n, tuple(v)) for n, v in shapes.items())), build)
 
 
 def _hard_program(spec: _Spec, chunk: int) -> Callable:
@@ -520,24 +571,34 @@ def _stage(stages: dict, name: str):
         stages[name] = (w0 + time.perf_counter() - t, c0 + dc.seconds, n0 + dc.compilations)
 
 
-def _corrected(loop, spec: _Spec, unravel):
+def _corrected(loop, spec: _Spec):
     """``corrected(theta, key) -> (value, grad)`` in the flat raw coordinates
     (:func:`jaxnc.tune.jump.corrected_grad` on the hard loop), or None when ``loop`` does not
-    support it (:func:`jaxnc.tune.jump.corrected_supported`)."""
+    support it (:func:`jaxnc.tune.jump.corrected_supported`); one function per loop object,
+    objective, run, parameters and shapes (:func:`_shared`)."""
     from jaxnc.tune.jump import corrected_grad, corrected_supported
     if corrected_supported(loop):
         return None
+    paths, cons, run, objective = spec.paths, spec.constraints, spec.run, spec.objective
+    shapes = {n: tuple(np.shape(get_path(loop, g[0]))) for n, g in paths.items()}
 
-    def loop_of(t):
-        return with_temperature(_set(loop, spec, constrain(unravel(t), spec.constraints)), jnp.float32(0.0))
+    def build(loop_ref):
+        unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
 
-    cost = lambda lp, key: spec.objective(spec.run(lp, key))
-    return lambda t, key: corrected_grad(loop_of, cost, t, key)
+        def corrected(t, key):
+            def loop_of(u):
+                return with_temperature(set_paths(loop_ref(), {p: v for n, v in constrain(unravel(u), cons).items()
+                                                               for p in paths[n]}), jnp.float32(0.0))
+            cost = lambda lp, k: objective(run(lp, k))
+            return corrected_grad(loop_of, cost, t, key)
+        return corrected
+    return _shared(loop, spec, "corrected", tuple(sorted(shapes.items())), build)
 
 
-def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, loop=None,
+def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, loop,
            corrected: bool = False, **kw) -> GradientCheck:
-    """:func:`gradient_check` of the flat objective on seeds ``seed_keys(seed, seeds)``
+    """:func:`gradient_check` of the flat objective (:func:`_flat` on ``loop``) on seeds
+    ``seed_keys(seed, seeds)``
     (doubling up to ``max_seeds``), labelled, with each coordinate's value and slope
     d value / d theta so that its table is in the user's units; with the corrected
     estimator where asked (``corrected``) and ``loop`` supports it."""
@@ -548,8 +609,7 @@ def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, see
     return gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
                           max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
                           values=np.asarray(vals), dvalue_dtheta=np.asarray(slope),
-                          corrected=_corrected(loop, spec, unravel) if corrected and loop is not None else None,
-                          **kw)
+                          corrected=_corrected(loop, spec) if corrected else None, **kw)
 
 
 def _labels(unravel, size: int) -> tuple:
@@ -972,7 +1032,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         reason += "; its budget refined the search's finalists"
     elif spec.paths and used != "none":
         loss_of = spec.parts if used == "hybrid" else objective
-        corr = _corrected(loop1, spec, _flat(loop1, spec)[1]) if used == "corrected" else None
+        corr = _corrected(loop1, spec) if used == "corrected" else None
         # the score function's steps run in the evaluation's program (the hard objective)
         grads = []
         host = _score_step(hard, loop1, spec, batch // 2, score_scale, grads) if used == "score" else None
