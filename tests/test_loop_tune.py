@@ -333,6 +333,41 @@ def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
         check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=4)
 
 
+def test_check_loop_shares_one_program_across_points_and_calls():
+    """A second point and a repeated call of check_loop on one loop object, with one
+    objective and run, trace the loop no more and compile nothing (theta is an argument of
+    the check's program, and the flat objective one function per loop object); their
+    numbers are, bit for bit, those of a check whose objective is a fresh closure (its
+    own trace and program: how every call ran before the programs were shared)."""
+    from jaxnc.cache import compile_clock
+    from jaxnc.tune import gradient_check
+    from jaxnc.tune.loop_tune import _flat, _prepare
+    traced = [0]
+
+    def run(cfg, key):
+        traced[0] += 1
+        return _pair_run(cfg, key)
+    cfg, params, obj = _Pair(), {"b": Positive(), "a": Positive()}, lambda j: j
+    first = check_loop(cfg, params, obj, run=run, seeds=8)
+    checks = []
+    for at in ({"a": 2.0, "b": 0.5}, None):
+        c0, t0 = compile_clock(), traced[0]
+        checks.append(check_loop(cfg, params, obj, run=run, seeds=8, at=at))
+        assert (compile_clock() - c0).compilations == 0 and traced[0] == t0
+    spec = _prepare("check_loop", cfg, params, obj, _pair_run)
+    for c, at in zip([first] + checks, (None, {"a": 2.0, "b": 0.5}, None)):
+        flat0, _, fobj = _flat(cfg, spec, at)
+        ref = gradient_check(lambda t, k, temp: fobj(t, k, temp), flat0, montecarlo.seed_keys(0, 8), fd_step=0.2,
+                             score_scale=0.2 / np.sqrt(3.0))
+        np.testing.assert_array_equal(c.theta, flat0)
+        assert c.value == ref.value and c.estimates.keys() == ref.estimates.keys()
+        for name, (m, se) in ref.estimates.items():
+            np.testing.assert_array_equal(c.estimates[name][0], m)
+            np.testing.assert_array_equal(c.estimates[name][1], se)
+    assert not np.array_equal(checks[0].estimates["score"][0], first.estimates["score"][0])   # another point
+    assert all(np.array_equal(checks[1].estimates[k][0], first.estimates[k][0]) for k in first.estimates)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class _Nested:

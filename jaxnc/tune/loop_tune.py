@@ -415,7 +415,9 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
         raise ValueError(f"{fn_name}: objective must be a function objective(metrics) -> scalar, "
                          f"got {type(objective).__name__}")
     try:
-        shape = jax.eval_shape(lambda k: objective(run(loop, k)), jax.random.PRNGKey(0))
+        # one function per loop object, objective and run: a second call does not trace the loop again
+        of_key = _per_loop(loop, ("shape", objective, run), lambda ref: lambda k: objective(run(ref(), k)))
+        shape = jax.eval_shape(of_key, jax.random.PRNGKey(0))
     except AttributeError as e:
         raise ValueError(f"{fn_name}: the objective does not fit what run(loop, key) returns: {e}") from None
     if isinstance(shape, (tuple, list)):
@@ -465,18 +467,15 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
 _BY_LOOP: dict = {}
 
 
-def _shared(loop, spec: _Spec, what: str, extra: tuple, build: Callable) -> Callable:
-    """``build(loop_ref)``'s function for ``loop`` (reached through ``loop_ref()``),
-    ``spec``'s user objective and run, its parameters and constraints, ``what`` and
-    ``extra``: built once and kept while ``loop`` lives (:data:`_BY_LOOP`), so that
-    :func:`jaxnc.montecarlo.run_batched` and ``jax.jit`` reuse its traces and
-    compilations."""
+def _per_loop(loop, key: tuple, build: Callable) -> Callable:
+    """``build(loop_ref)``'s function for ``loop`` (reached through ``loop_ref()``) and
+    ``key``, built once and kept while ``loop`` lives (:data:`_BY_LOOP`), so that
+    :func:`jaxnc.montecarlo.run_batched` and ``jax.jit`` / ``jax.eval_shape`` reuse its
+    traces and compilations."""
     try:
         ref = weakref.ref(loop)
     except TypeError:                 # not weak-referenceable: a function for this call alone
         return build(lambda: loop)
-    key = (what, spec.parts or spec.objective, spec.run, tuple(spec.paths.items()),
-           tuple(spec.constraints.items()), extra)
     store = _BY_LOOP.get(id(loop))
     if store is None or store[0]() is not loop:
         store = _BY_LOOP[id(loop)] = (ref, {})
@@ -484,6 +483,13 @@ def _shared(loop, spec: _Spec, what: str, extra: tuple, build: Callable) -> Call
     if key not in store[1]:
         store[1][key] = build(ref)
     return store[1][key]
+
+
+def _shared(loop, spec: _Spec, what: str, extra: tuple, build: Callable) -> Callable:
+    """:func:`_per_loop` keyed by ``what``, ``spec``'s user objective and run, its
+    parameters and constraints, and ``extra``."""
+    return _per_loop(loop, (what, spec.parts or spec.objective, spec.run, tuple(spec.paths.items()),
+                            tuple(spec.constraints.items()), extra), build)
 
 
 def _flat_program(loop, spec: _Spec, shapes: dict) -> Callable:
