@@ -300,11 +300,18 @@ def point_objective(loop, objective: Callable, run: Callable, names: dict | None
     as :func:`param_paths` returns) is given: a tied name sets each of its paths. ``temp``
     is every trigger's temperature (:func:`with_temperature`): 0, the default, simulates
     hard triggers. The one per-seed objective of :func:`tune_loop`'s search stages and of
-    the tuning studies' searches and evaluations."""
-    def f(point, key, temp=jnp.float32(0.0)):
-        values = point if names is None else {p: point[n] for n in point for p in names[n]}
-        return objective_total(objective(run(with_temperature(set_paths(loop, values), temp), key)))
-    return f
+    the tuning studies' searches and evaluations.
+
+    The same ``loop`` object, ``objective``, ``run`` and ``names`` give the same function
+    object (kept while ``loop`` lives), so that searches of every call share their
+    traces and compiled programs."""
+    def build(loop_ref):
+        def f(point, key, temp=jnp.float32(0.0)):
+            values = point if names is None else {p: point[n] for n in point for p in names[n]}
+            return objective_total(objective(run(with_temperature(set_paths(loop_ref(), values), temp), key)))
+        return f
+    names_key = None if names is None else tuple((n, tuple(ps)) for n, ps in names.items())
+    return _per_loop(loop, ("point", objective, run, names_key), build)
 
 
 def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
@@ -511,6 +518,38 @@ def _flat_program(loop, spec: _Spec, shapes: dict) -> Callable:
     return _shared(loop, spec, "flat", tuple(sorted((n, tuple(v)) for n, v in shapes.items())), build)
 
 
+# _hard_program's jitted function per user objective and run (weakly: it must not keep its
+# own keys alive), then per parameters and constraints
+_HARD: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _hard_batched(spec: _Spec) -> Callable:
+    """``jit(vmap(one))(keys, scales, lp)`` of :func:`_hard_program`, one per user objective,
+    run, parameters and constraints, kept while the objective and run live."""
+    paths, cons = spec.paths, spec.constraints
+    obj = spec.parts or spec.objective
+    key = (tuple(paths.items()), tuple(cons.items()))
+    try:
+        cache = _HARD.setdefault(obj, weakref.WeakKeyDictionary()).setdefault(spec.run, {})
+        obj_ref, run_ref = weakref.ref(obj), weakref.ref(spec.run)
+    except TypeError:                 # not weak-referenceable: a program for this call alone
+        cache, obj_ref, run_ref = {}, (lambda: obj), (lambda: spec.run)
+    if key in cache:
+        return cache[key]
+
+    def one(key, scale, lp):
+        vals = {n: jnp.asarray(get_path(lp, g[0]), jnp.float32) for n, g in paths.items()}
+        flat, unravel = ravel_pytree({n: cons[n].raw(v) for n, v in vals.items()})
+        e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
+        moved = constrain(unravel(flat + scale * e), cons)
+        point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
+        lp = with_temperature(set_paths(lp, {p: point[n] for n in point for p in paths[n]}), jnp.float32(0.0))
+        return objective_total(obj_ref()(run_ref()(lp, key))), e
+
+    cache[key] = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+    return cache[key]
+
+
 def _hard_program(spec: _Spec, chunk: int) -> Callable:
     """``hard(lp, keys [n, 2], scales float[n]) -> (values float[n], e float[n, d])``: the
     objective of one run per key with hard triggers, the tuned parameters of ``lp`` moved
@@ -520,18 +559,9 @@ def _hard_program(spec: _Spec, chunk: int) -> Callable:
     One compiled program (``lp`` is an argument) runs, in chunks of ``chunk`` keys (the
     last padded), both the evaluation (scales 0) and the score function's antithetic pairs
     (the same key at +s and -s, as :func:`jaxnc.tune.estimators.score_grad`): a loop of the
-    same structure and dtypes reuses it."""
-    cons = spec.constraints
-
-    def one(key, scale, lp):
-        vals = {n: jnp.asarray(get_path(lp, g[0]), jnp.float32) for n, g in spec.paths.items()}
-        flat, unravel = ravel_pytree({n: cons[n].raw(v) for n, v in vals.items()})
-        e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
-        moved = constrain(unravel(flat + scale * e), cons)
-        point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
-        return spec.objective(spec.run(with_temperature(_set(lp, spec, point), jnp.float32(0.0)), key)), e
-
-    batched = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+    same structure and dtypes reuses it, and so does every call with the same objective
+    and run (the same function objects), parameters and constraints (:data:`_HARD`)."""
+    batched = _hard_batched(spec)
 
     def hard(lp, keys, scales):
         keys, scales = np.asarray(keys), np.asarray(scales, np.float32)
@@ -957,7 +987,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         spent = time.perf_counter() - t0 - stages.get("evaluation", (0.0,))[0]
         return max(max_seconds - spent, 1e-3)
 
-    per_seed = point_objective(loop, objective, run)
+    per_seed = point_objective(loop, spec.parts or objective, run)
 
     # the start's evaluation first (fresh seeds, so its values are those it would have at the
     # end): an objective that is NaN at the start is refused before the budget is spent
@@ -983,7 +1013,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         points = [{p: search[n][i] for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
         schedule = halving_schedule(len(points), budget)     # budget: set and checked with the arguments
         keys = montecarlo.seed_keys(seed + 1, sum(s for _, s in schedule))
-        search_seed = lambda p, k: per_seed(p, k)      # one function: the search and its refinement share programs
+        search_seed = per_seed      # one function: the search and its refinement (and every call) share programs
         search_chunk = schedule[0][1]
         with _stage(stages, "search"):
             result_search = successive_halving(search_seed, points, keys, budget=budget, static=static,
