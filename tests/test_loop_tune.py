@@ -611,6 +611,29 @@ def test_auto_and_richardson_compile_the_same_programs_for_2_and_12_steps(estima
     assert len(r12.tune.history.objective) == 12
 
 
+def test_repeated_tune_loop_calls_share_the_evaluation_and_search_programs():
+    """A second tune_loop call on the same loop object with the same objective and run
+    compiles nothing for its evaluations and its search (the hard program is one jitted
+    function per objective, run and parameters; the search's per-seed function one per
+    loop object); its numbers are, bit for bit, the first call's and those of a call with a
+    fresh objective (its own traces and programs)."""
+    cfg, params, obj = _Pair(b=0.5, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j
+    kw = dict(run=_pair_run, search={"b": [0.25, 0.5, 1.0, 2.0]}, search_budget=16, steps=3, batch=4, eval_seeds=8,
+              pick_seeds=8, progress=False)
+    first = tune_loop(cfg, params, obj, **kw)
+    again = tune_loop(cfg, params, obj, **kw)
+    fresh = tune_loop(cfg, params, lambda j: j, **kw)
+    assert again.stages["evaluation"][2] == again.stages["search"][2] == 0, again.stages
+    assert fresh.stages["evaluation"][2] >= 1, fresh.stages      # a new objective: its own programs
+    for r in (again, fresh):
+        for k in ("a", "b"):
+            np.testing.assert_array_equal(r.params[k], first.params[k])
+            np.testing.assert_array_equal(r.tune.history.params[k], first.tune.history.params[k])
+        np.testing.assert_array_equal(r.search.values, first.search.values)
+        np.testing.assert_array_equal(r.eval_values[0], first.eval_values[0])
+        np.testing.assert_array_equal(r.eval_values[1], first.eval_values[1])
+
+
 def test_evaluation_is_optional_and_does_not_change_the_tuned_point():
     a = _compilations(steps=3, estimator="score")
     b = _compilations(steps=3, estimator="score", evaluate=False)
