@@ -40,6 +40,7 @@ gradient check alone, at any point, for a user to run before trusting an estimat
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import math
@@ -292,6 +293,11 @@ def param_paths(params) -> dict:
     return {_name(k): ((k,) if isinstance(k, str) else tuple(k)) for k in params}
 
 
+# point_objective's functions, the most recent last: (id(loop), objective, run, names) -> (loop, f)
+POINT_FUNCTIONS = 16
+_POINT: "collections.OrderedDict" = collections.OrderedDict()
+
+
 def point_objective(loop, objective: Callable, run: Callable, names: dict | None = None) -> Callable:
     """``f(point, key, temp=0.0)``: the objective of one run of ``loop`` with ``point``'s
     values set, ``objective_total(objective(run(loop', key)))`` (float32 scalar).
@@ -303,15 +309,23 @@ def point_objective(loop, objective: Callable, run: Callable, names: dict | None
     the tuning studies' searches and evaluations.
 
     The same ``loop`` object, ``objective``, ``run`` and ``names`` give the same function
-    object (kept while ``loop`` lives), so that searches of every call share their
-    traces and compiled programs."""
-    def build(loop_ref):
-        def f(point, key, temp=jnp.float32(0.0)):
-            values = point if names is None else {p: point[n] for n in point for p in names[n]}
-            return objective_total(objective(run(with_temperature(set_paths(loop_ref(), values), temp), key)))
-        return f
+    object while it is among the last :data:`POINT_FUNCTIONS` asked for (the function
+    holds ``loop``), so that the searches of repeated calls share their traces and
+    compiled programs."""
     names_key = None if names is None else tuple((n, tuple(ps)) for n, ps in names.items())
-    return _per_loop(loop, ("point", objective, run, names_key), build)
+    key = (id(loop), objective, run, names_key)
+    hit = _POINT.get(key)
+    if hit is not None and hit[0] is loop:
+        _POINT.move_to_end(key)
+        return hit[1]
+
+    def f(point, key, temp=jnp.float32(0.0)):
+        values = point if names is None else {p: point[n] for n in point for p in names[n]}
+        return objective_total(objective(run(with_temperature(set_paths(loop, values), temp), key)))
+    _POINT[key] = (loop, f)
+    while len(_POINT) > POINT_FUNCTIONS:
+        _POINT.popitem(last=False)
+    return f
 
 
 def _leaf_value(fn_name: str, loop, path: str) -> np.ndarray:
