@@ -770,6 +770,10 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     resolved, removed by the extrapolated estimators (``"richardson"``,
     :mod:`jaxnc.tune.check`).
 
+    Compiled programs: one per loop object, objective and run (the same function objects),
+    parameters and settings: another point (``at``) or a second call on the same loop
+    traces and compiles nothing; the numbers are those of a check compiled for that point.
+
     Returns:
       :class:`jaxnc.tune.check.GradientCheck`: ``names`` the coordinates' labels (in the
       gradient vector's order: parameters sorted by name), ``values`` and
@@ -905,7 +909,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     tuned point, and every step, reuse it); the check compiles one (its chunks and seed
     doublings reuse it); a pathwise estimator's step compiles one (reused by every step:
     the temperature and the point are arguments); the search one per distinct static
-    value (its rounds share a chunk size). None of these grows with ``steps``.
+    value (its rounds share a chunk size). None of these grows with ``steps``. A second
+    call with the same objective and run (the same function objects) reuses the hard
+    program, and on the same loop object the search's programs and the check's too
+    (:func:`check_loop`).
 
     Raises:
       ValueError: a path that does not exist, names a part (a configuration object) or a
