@@ -456,6 +456,31 @@ def _pair_linear_run(cfg, key):
     return cfg.a * (1.0 + e[0]) + 0.3 * jax.lax.stop_gradient(cfg.b) + 0.3 * cfg.b * e[1]
 
 
+def test_gradient_check_args_are_arguments_of_one_program():
+    """``args`` reach the objective as arguments of the check's compiled program: a second
+    call with other values of the same shapes (and another theta) compiles nothing, and
+    gives, bit for bit, the check of a closure over those values (its own program)."""
+    from jaxnc.cache import compile_clock
+    from jaxnc.tune import gradient_check
+
+    def scaled(theta, key, temperature, w):
+        return w[0] * _linear(theta, key, temperature) + w[1] * theta[0] ** 2
+
+    keys = montecarlo.seed_keys(5, 32)
+    gradient_check(scaled, np.zeros(2, np.float32), keys, args=(np.float32([1.0, 0.5]),))
+    c0 = compile_clock()
+    c = gradient_check(scaled, np.full(2, 0.3, np.float32), keys, args=(np.float32([2.0, -1.0]),))
+    assert (compile_clock() - c0).compilations == 0
+    w = np.float32([2.0, -1.0])
+    ref = gradient_check(lambda t, k, temp: scaled(t, k, temp, w), np.full(2, 0.3, np.float32), keys)
+    assert c.value == ref.value
+    for name, (m, se) in ref.estimates.items():
+        np.testing.assert_array_equal(c.estimates[name][0], m)
+        np.testing.assert_array_equal(c.estimates[name][1], se)
+    with pytest.raises(ValueError, match="args must be a tuple"):
+        gradient_check(scaled, np.zeros(2, np.float32), keys, args=[w])
+
+
 def test_tune_loops_check_doubles_its_seeds_until_conclusive():
     """tune_loop's check: the straight-through gradient misses b (flagged at once); the
     score function needs more than check_seeds = 8 seeds on b, so the check doubles them
