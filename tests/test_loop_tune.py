@@ -333,6 +333,41 @@ def test_check_loop_labels_follow_the_gradients_order_for_an_unsorted_dict():
         check_loop(_Pair(), {"b": Positive(), "a": Positive()}, lambda j: j, run=_pair_run, seeds=8, max_seeds=4)
 
 
+def test_check_loop_shares_one_program_across_points_and_calls():
+    """A second point and a repeated call of check_loop on one loop object, with one
+    objective and run, trace the loop no more and compile nothing (theta is an argument of
+    the check's program, and the flat objective one function per loop object); their
+    numbers are, bit for bit, those of a check whose objective is a fresh closure (its
+    own trace and program: how every call ran before the programs were shared)."""
+    from jaxnc.cache import compile_clock
+    from jaxnc.tune import gradient_check
+    from jaxnc.tune.loop_tune import _flat, _prepare
+    traced = [0]
+
+    def run(cfg, key):
+        traced[0] += 1
+        return _pair_run(cfg, key)
+    cfg, params, obj = _Pair(), {"b": Positive(), "a": Positive()}, lambda j: j
+    first = check_loop(cfg, params, obj, run=run, seeds=8)
+    checks = []
+    for at in ({"a": 2.0, "b": 0.5}, None):
+        c0, t0 = compile_clock(), traced[0]
+        checks.append(check_loop(cfg, params, obj, run=run, seeds=8, at=at))
+        assert (compile_clock() - c0).compilations == 0 and traced[0] == t0
+    spec = _prepare("check_loop", cfg, params, obj, _pair_run)
+    for c, at in zip([first] + checks, (None, {"a": 2.0, "b": 0.5}, None)):
+        flat0, _, fobj = _flat(cfg, spec, at)
+        ref = gradient_check(lambda t, k, temp: fobj(t, k, temp), flat0, montecarlo.seed_keys(0, 8), fd_step=0.2,
+                             score_scale=0.2 / np.sqrt(3.0))
+        np.testing.assert_array_equal(c.theta, flat0)
+        assert c.value == ref.value and c.estimates.keys() == ref.estimates.keys()
+        for name, (m, se) in ref.estimates.items():
+            np.testing.assert_array_equal(c.estimates[name][0], m)
+            np.testing.assert_array_equal(c.estimates[name][1], se)
+    assert not np.array_equal(checks[0].estimates["score"][0], first.estimates["score"][0])   # another point
+    assert all(np.array_equal(checks[1].estimates[k][0], first.estimates[k][0]) for k in first.estimates)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class _Nested:
@@ -419,6 +454,31 @@ def _pair_linear_run(cfg, key):
     its mean (the straight-through gradient is wrong on b by exactly 0.3 on every seed)."""
     e = jax.random.normal(key, (2,))
     return cfg.a * (1.0 + e[0]) + 0.3 * jax.lax.stop_gradient(cfg.b) + 0.3 * cfg.b * e[1]
+
+
+def test_gradient_check_args_are_arguments_of_one_program():
+    """``args`` reach the objective as arguments of the check's compiled program: a second
+    call with other values of the same shapes (and another theta) compiles nothing, and
+    gives, bit for bit, the check of a closure over those values (its own program)."""
+    from jaxnc.cache import compile_clock
+    from jaxnc.tune import gradient_check
+
+    def scaled(theta, key, temperature, w):
+        return w[0] * _linear(theta, key, temperature) + w[1] * theta[0] ** 2
+
+    keys = montecarlo.seed_keys(5, 32)
+    gradient_check(scaled, np.zeros(2, np.float32), keys, args=(np.float32([1.0, 0.5]),))
+    c0 = compile_clock()
+    c = gradient_check(scaled, np.full(2, 0.3, np.float32), keys, args=(np.float32([2.0, -1.0]),))
+    assert (compile_clock() - c0).compilations == 0
+    w = np.float32([2.0, -1.0])
+    ref = gradient_check(lambda t, k, temp: scaled(t, k, temp, w), np.full(2, 0.3, np.float32), keys)
+    assert c.value == ref.value
+    for name, (m, se) in ref.estimates.items():
+        np.testing.assert_array_equal(c.estimates[name][0], m)
+        np.testing.assert_array_equal(c.estimates[name][1], se)
+    with pytest.raises(ValueError, match="args must be a tuple"):
+        gradient_check(scaled, np.zeros(2, np.float32), keys, args=[w])
 
 
 def test_tune_loops_check_doubles_its_seeds_until_conclusive():
@@ -574,6 +634,29 @@ def test_auto_and_richardson_compile_the_same_programs_for_2_and_12_steps(estima
     assert r2.n_compilations == r12.n_compilations, (r2.stages, r12.stages)
     assert r12.stages["gradient"][2] <= 1, r12.stages
     assert len(r12.tune.history.objective) == 12
+
+
+def test_repeated_tune_loop_calls_share_the_evaluation_and_search_programs():
+    """A second tune_loop call on the same loop object with the same objective and run
+    compiles nothing for its evaluations and its search (the hard program is one jitted
+    function per objective, run and parameters; the search's per-seed function one per
+    loop object); its numbers are, bit for bit, the first call's and those of a call with a
+    fresh objective (its own traces and programs)."""
+    cfg, params, obj = _Pair(b=0.5, a=2.0), {"b": Positive(), "a": Positive()}, lambda j: j
+    kw = dict(run=_pair_run, search={"b": [0.25, 0.5, 1.0, 2.0]}, search_budget=16, steps=3, batch=4, eval_seeds=8,
+              pick_seeds=8, progress=False)
+    first = tune_loop(cfg, params, obj, **kw)
+    again = tune_loop(cfg, params, obj, **kw)
+    fresh = tune_loop(cfg, params, lambda j: j, **kw)
+    assert again.stages["evaluation"][2] == again.stages["search"][2] == 0, again.stages
+    assert fresh.stages["evaluation"][2] >= 1, fresh.stages      # a new objective: its own programs
+    for r in (again, fresh):
+        for k in ("a", "b"):
+            np.testing.assert_array_equal(r.params[k], first.params[k])
+            np.testing.assert_array_equal(r.tune.history.params[k], first.tune.history.params[k])
+        np.testing.assert_array_equal(r.search.values, first.search.values)
+        np.testing.assert_array_equal(r.eval_values[0], first.eval_values[0])
+        np.testing.assert_array_equal(r.eval_values[1], first.eval_values[1])
 
 
 def test_evaluation_is_optional_and_does_not_change_the_tuned_point():

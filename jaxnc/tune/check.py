@@ -87,6 +87,7 @@ O(h^2) and their own noise; both are in the report.
 """
 from __future__ import annotations
 
+import weakref
 from typing import Callable, NamedTuple
 
 import jax
@@ -281,7 +282,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
                    score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
                    estimators=None, chunk_size: int = 256, progress: bool = False, names=None,
                    max_seeds: int | None = None, more_keys: Callable | None = None, values=None,
-                   dvalue_dtheta=None, corrected: Callable | None = None) -> GradientCheck:
+                   dvalue_dtheta=None, corrected: Callable | None = None, args: tuple = ()) -> GradientCheck:
     """Compare gradient estimators of E_seeds[objective] at ``theta`` (module docstring).
 
     Args:
@@ -322,6 +323,17 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
       corrected: ``corrected(theta float[d], key) -> (value, float[d])``, one seed's
         corrected gradient of the hard objective (:mod:`jaxnc.tune.jump`); adds
         ``"corrected"``.
+      args: a tuple of pytrees passed after the temperature, ``objective(theta, key,
+        temperature, *args)`` (and after the key, ``corrected(theta, key, *args)``), as
+        arguments of the compiled program, like theta: checks of one ``objective`` (the
+        same function object) with the same estimators, steps, d and shapes run in one
+        compiled program whatever theta and ``args`` hold (a configuration, e.g.
+        :func:`jaxnc.tune.check_loop`'s loop).
+
+    Compiled programs: one per ``objective``, ``corrected`` and settings (estimators,
+    pair or scalar, d, ``fd_step``, ``temperature``, ``score_scale``) and chunk size,
+    kept while ``objective`` lives: a second point, a second call and every seed doubling
+    reuse it.
 
     Returns:
       :class:`GradientCheck` (``seeds``: the seeds it ran; ``smoothing_bias`` and
@@ -332,7 +344,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         step/scale/temperature, a chunk_size below 1, an unknown estimator, ``"hybrid"``
         for an objective that is not a pair, ``"corrected"`` without ``corrected``, an
         objective that returns neither a scalar
-        nor a pair of scalars, names not d strings, max_seeds below n, or max_seeds > n
+        nor a pair of scalars, args not a tuple, names not d strings, max_seeds below n, or max_seeds > n
         without more_keys.
     """
     theta = np.asarray(theta, np.float32)
@@ -365,7 +377,10 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
     if max_seeds > n and not callable(more_keys):
         raise ValueError("gradient_check: max_seeds > the number of keys needs more_keys(start, count) -> keys")
     th = jnp.asarray(theta)
-    out_shape = jax.eval_shape(lambda k: objective(th, k, jnp.float32(0.0)), keys[0])
+    if not isinstance(args, tuple):
+        raise ValueError(f"gradient_check: args must be a tuple (of the objective's extra arguments), got "
+                         f"{type(args).__name__}")
+    out_shape = jax.eval_shape(objective, th, keys[0], jnp.float32(0.0), *args)
     pair = isinstance(out_shape, (tuple, list))
     if (pair and (len(out_shape) != 2 or any(getattr(o, "shape", None) != () for o in out_shape))) or (
             not pair and getattr(out_shape, "shape", None) != ()):
@@ -386,16 +401,72 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         from scipy.stats import norm
         z = float(norm.ppf(1.0 - 0.025 / d))
     check_positive("z", z)
-    eye = jnp.eye(d, dtype=jnp.float32)
-    def parts(t, k, temp):
-        """(total, jump) of one seed at temperature ``temp``."""
-        v = objective(t, k, temp)
-        return objective_total(v), (v[1] if pair else jnp.float32(0.0))
+    per_seed = _per_seed_program(objective, corrected, (estimators, pair, d, fd_step, temperature, score_scale))
 
+    # one chunk size for every block (no chunk larger than the first block's seeds:
+    # run_batched pads the last chunk), so a doubled check's seeds are those of one run
+    chunk = min(chunk_size, n)
+    run = lambda ks: montecarlo.run_batched(per_seed, ks, args=(th, tuple(args)), chunk_size=chunk, progress=progress,
+                                            desc="gradient check")
+    res = {k: np.asarray(v) for k, v in run(keys).items()}
+    while True:
+        estimates, out, rec, bias, bias_resolved, references = _verdicts(res, estimators, z, max_noise, rel_tol, names, slope)
+        unresolved_only = any(out["reason"][nm].startswith("inconclusive") for nm in estimators)
+        if rec is not None or not unresolved_only or n >= max_seeds:
+            break
+        m = min(n, max_seeds - n)
+        more = jnp.asarray(more_keys(n, m))
+        if more.shape != (m, keys.shape[1]):
+            raise ValueError(f"gradient_check: more_keys({n}, {m}) must return keys of shape {(m, keys.shape[1])}, "
+                             f"got {more.shape}")
+        new = run(more)
+        res = {k: np.concatenate([res[k], np.asarray(new[k])]) for k in res}
+        n += m
+    return GradientCheck(theta, float(np.mean(res["value"])), estimates, out["paired"], out["consistent"],
+                         out["reason"], rec, names, out["diff_se"], out["resolution"], out["resolved"], out["needed"],
+                         n, values, dvalue_dtheta, bias, bias_resolved, _runs_per_seed(estimators, d), references)
+
+
+# per_seed programs, per objective (weakly: a program must not keep its own key alive) and
+# per (corrected, configuration): the points of a check, and repeated checks of one objective,
+# run in one compiled program (theta and the objective's args are its arguments)
+_PROGRAMS: "weakref.WeakKeyDictionary[Callable, dict]" = weakref.WeakKeyDictionary()
+
+
+def _per_seed_program(objective: Callable, corrected: Callable | None, config: tuple) -> Callable:
+    """``per_seed(key, theta, args) -> {name: per-seed value}``, the check's simulations of
+    one seed at ``theta`` (:func:`gradient_check`), one function per ``objective``,
+    ``corrected`` and ``config`` = (estimators, pair, d, fd_step, temperature,
+    score_scale), kept across calls so that :func:`jaxnc.montecarlo.run_batched` reuses its
+    compilation."""
+    try:
+        cache = _PROGRAMS.setdefault(objective, {})
+        obj_ref = weakref.ref(objective)
+        corr_ref = None if corrected is None else weakref.ref(corrected)
+    except TypeError:                 # not weak-referenceable: a program for this call alone
+        cache, obj_ref, corr_ref = {}, (lambda: objective), (lambda: corrected)
+    ckey = (config, corr_ref)
+    if ckey not in cache:
+        cache[ckey] = _build_per_seed(obj_ref, corr_ref, *config)
+    return cache[ckey]
+
+
+def _build_per_seed(obj_ref, corr_ref, estimators: tuple, pair: bool, d: int, fd_step: float, temperature: float,
+                    score_scale: float) -> Callable:
+    """The per-seed function of :func:`_per_seed_program` (the objective and the corrected
+    gradient reached through ``obj_ref()`` / ``corr_ref()``)."""
+    eye = jnp.eye(d, dtype=jnp.float32)
     rich = "richardson" in estimators
     smoothed = "score" in estimators or "hybrid" in estimators or rich
 
-    def per_seed(key):
+    def per_seed(key, th, args):
+        objective = obj_ref()
+
+        def parts(t, k, temp):
+            """(total, jump) of one seed at temperature ``temp``."""
+            v = objective(t, k, temp, *args)
+            return objective_total(v), (v[1] if pair else jnp.float32(0.0))
+
         # every hard simulation of the seed (the value, the central differences, the score
         # function's antithetic pairs) is a lane of one vmap over theta: one copy of the
         # loop in the compiled program instead of one per point
@@ -437,27 +508,6 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
             if "hybrid" in estimators:
                 out["hybrid"] = st + score_terms(jp, jm, e, score_scale)
         if "corrected" in estimators:
-            out["corrected"] = jnp.asarray(corrected(th, key)[1], jnp.float32)
+            out["corrected"] = jnp.asarray(corr_ref()(th, key, *args)[1], jnp.float32)
         return out
-
-    # one chunk size for every block (no chunk larger than the first block's seeds:
-    # run_batched pads the last chunk), so a doubled check's seeds are those of one run
-    chunk = min(chunk_size, n)
-    run = lambda ks: montecarlo.run_batched(per_seed, ks, chunk_size=chunk, progress=progress, desc="gradient check")
-    res = {k: np.asarray(v) for k, v in run(keys).items()}
-    while True:
-        estimates, out, rec, bias, bias_resolved, references = _verdicts(res, estimators, z, max_noise, rel_tol, names, slope)
-        unresolved_only = any(out["reason"][nm].startswith("inconclusive") for nm in estimators)
-        if rec is not None or not unresolved_only or n >= max_seeds:
-            break
-        m = min(n, max_seeds - n)
-        more = jnp.asarray(more_keys(n, m))
-        if more.shape != (m, keys.shape[1]):
-            raise ValueError(f"gradient_check: more_keys({n}, {m}) must return keys of shape {(m, keys.shape[1])}, "
-                             f"got {more.shape}")
-        new = run(more)
-        res = {k: np.concatenate([res[k], np.asarray(new[k])]) for k in res}
-        n += m
-    return GradientCheck(theta, float(np.mean(res["value"])), estimates, out["paired"], out["consistent"],
-                         out["reason"], rec, names, out["diff_se"], out["resolution"], out["resolved"], out["needed"],
-                         n, values, dvalue_dtheta, bias, bias_resolved, _runs_per_seed(estimators, d), references)
+    return per_seed

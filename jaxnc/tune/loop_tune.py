@@ -40,10 +40,12 @@ gradient check alone, at any point, for a user to run before trusting an estimat
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import math
 import time
+import weakref
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -291,6 +293,11 @@ def param_paths(params) -> dict:
     return {_name(k): ((k,) if isinstance(k, str) else tuple(k)) for k in params}
 
 
+# point_objective's functions, the most recent last: (id(loop), objective, run, names) -> (loop, f)
+POINT_FUNCTIONS = 16
+_POINT: "collections.OrderedDict" = collections.OrderedDict()
+
+
 def point_objective(loop, objective: Callable, run: Callable, names: dict | None = None) -> Callable:
     """``f(point, key, temp=0.0)``: the objective of one run of ``loop`` with ``point``'s
     values set, ``objective_total(objective(run(loop', key)))`` (float32 scalar).
@@ -299,10 +306,25 @@ def point_objective(loop, objective: Callable, run: Callable, names: dict | None
     as :func:`param_paths` returns) is given: a tied name sets each of its paths. ``temp``
     is every trigger's temperature (:func:`with_temperature`): 0, the default, simulates
     hard triggers. The one per-seed objective of :func:`tune_loop`'s search stages and of
-    the tuning studies' searches and evaluations."""
+    the tuning studies' searches and evaluations.
+
+    The same ``loop`` object, ``objective``, ``run`` and ``names`` give the same function
+    object while it is among the last :data:`POINT_FUNCTIONS` asked for (the function
+    holds ``loop``), so that the searches of repeated calls share their traces and
+    compiled programs."""
+    names_key = None if names is None else tuple((n, tuple(ps)) for n, ps in names.items())
+    key = (id(loop), objective, run, names_key)
+    hit = _POINT.get(key)
+    if hit is not None and hit[0] is loop:
+        _POINT.move_to_end(key)
+        return hit[1]
+
     def f(point, key, temp=jnp.float32(0.0)):
         values = point if names is None else {p: point[n] for n in point for p in names[n]}
         return objective_total(objective(run(with_temperature(set_paths(loop, values), temp), key)))
+    _POINT[key] = (loop, f)
+    while len(_POINT) > POINT_FUNCTIONS:
+        _POINT.popitem(last=False)
     return f
 
 
@@ -371,6 +393,11 @@ def _check_in_constraint(fn_name: str, what: str, constraint, value) -> None:
         raise ValueError(f"{fn_name}: {what} {e}") from None
 
 
+def _cost_raw(m):
+    """The default objective, ``m.cost_raw`` (one function: calls share its programs)."""
+    return m.cost_raw
+
+
 def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     """Check ``params`` / ``objective`` / ``run`` against ``loop`` before anything is traced."""
     from jaxnc import loop as nc            # late: jaxnc.loop imports nothing from tune
@@ -404,12 +431,14 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
     run = nc.run if run is None else run
     if not callable(run):
         raise ValueError(f"{fn_name}: run must be a function run(loop, key) -> metrics, got {type(run).__name__}")
-    objective = objective or (lambda m: m.cost_raw)
+    objective = objective or _cost_raw
     if not callable(objective):
         raise ValueError(f"{fn_name}: objective must be a function objective(metrics) -> scalar, "
                          f"got {type(objective).__name__}")
     try:
-        shape = jax.eval_shape(lambda k: objective(run(loop, k)), jax.random.PRNGKey(0))
+        # one function per loop object, objective and run: a second call does not trace the loop again
+        of_key = _per_loop(loop, ("shape", objective, run), lambda ref: lambda k: objective(run(ref(), k)))
+        shape = jax.eval_shape(of_key, jax.random.PRNGKey(0))
     except AttributeError as e:
         raise ValueError(f"{fn_name}: the objective does not fit what run(loop, key) returns: {e}") from None
     if isinstance(shape, (tuple, list)):
@@ -431,7 +460,10 @@ def _set(loop, spec: _Spec, values: dict):
 def _flat(loop, spec: _Spec, at: dict | None = None):
     """(flat raw start, unravel, flat_objective(theta, key, temperature)) in the
     unconstrained coordinates (log for Positive, logit for Interval); the flat objective
-    returns what the user's does (a scalar, or a (smooth, jump) pair)."""
+    returns what the user's does (a scalar, or a (smooth, jump) pair). It is one function
+    for every point and call on this ``loop`` object with the same objective, run,
+    parameters and shapes (:func:`_flat_program`), so checks at several points share
+    their compiled program."""
     init = {n: np.asarray(get_path(loop, spec.paths[n][0]), np.float32) for n in spec.paths}
     if at:
         unknown = [k for k in at if k not in spec.paths]
@@ -445,13 +477,91 @@ def _flat(loop, spec: _Spec, at: dict | None = None):
             raise ValueError(f"check_loop: at: {e}") from None
     raw0 = unconstrain(init, spec.constraints)
     flat0, unravel = ravel_pytree(raw0)
+    return np.asarray(flat0), unravel, _flat_program(loop, spec, {n: v.shape for n, v in init.items()})
 
+
+# functions shared by the calls of check_loop / tune_loop on one loop object: id(loop) ->
+# (weak reference to the loop, {key: function}); an entry leaves with its loop. The loop is
+# closed over, not an argument: its values stay constants of the program, so the numbers are
+# those of a closure built per call (an argument would compute the configuration's own
+# arithmetic in float32 and move the last bits)
+_BY_LOOP: dict = {}
+
+
+def _per_loop(loop, key: tuple, build: Callable) -> Callable:
+    """``build(loop_ref)``'s function for ``loop`` (reached through ``loop_ref()``) and
+    ``key``, built once and kept while ``loop`` lives (:data:`_BY_LOOP`), so that
+    :func:`jaxnc.montecarlo.run_batched` and ``jax.jit`` / ``jax.eval_shape`` reuse its
+    traces and compilations."""
+    try:
+        ref = weakref.ref(loop)
+    except TypeError:                 # not weak-referenceable: a function for this call alone
+        return build(lambda: loop)
+    store = _BY_LOOP.get(id(loop))
+    if store is None or store[0]() is not loop:
+        store = _BY_LOOP[id(loop)] = (ref, {})
+        weakref.finalize(loop, _BY_LOOP.pop, id(loop), None)
+    if key not in store[1]:
+        store[1][key] = build(ref)
+    return store[1][key]
+
+
+def _shared(loop, spec: _Spec, what: str, extra: tuple, build: Callable) -> Callable:
+    """:func:`_per_loop` keyed by ``what``, ``spec``'s user objective and run, its
+    parameters and constraints, and ``extra``."""
+    return _per_loop(loop, (what, spec.parts or spec.objective, spec.run, tuple(spec.paths.items()),
+                            tuple(spec.constraints.items()), extra), build)
+
+
+def _flat_program(loop, spec: _Spec, shapes: dict) -> Callable:
+    """``f(theta, key, temperature)``: the user's objective (a scalar or a (smooth, jump)
+    pair) of one run of ``loop`` with the tuned parameters set from the flat raw ``theta``
+    (``shapes``: each parameter's shape); one function per loop object, objective, run,
+    parameters and shapes (:func:`_shared`)."""
+    paths, cons, run = spec.paths, spec.constraints, spec.run
     objective = spec.parts or spec.objective
 
-    def flat_objective(theta, key, temp):
-        lp = with_temperature(_set(loop, spec, constrain(unravel(theta), spec.constraints)), temp)
-        return objective(spec.run(lp, key))
-    return np.asarray(flat0), unravel, flat_objective
+    def build(loop_ref):
+        unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
+
+        def f(theta, key, temp):
+            lp = with_temperature(set_paths(loop_ref(), {p: v for n, v in constrain(unravel(theta), cons).items()
+                                                         for p in paths[n]}), temp)
+            return objective(run(lp, key))
+        return f
+    return _shared(loop, spec, "flat", tuple(sorted((n, tuple(v)) for n, v in shapes.items())), build)
+
+
+# _hard_program's jitted function per user objective and run (weakly: it must not keep its
+# own keys alive), then per parameters and constraints
+_HARD: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _hard_batched(spec: _Spec) -> Callable:
+    """``jit(vmap(one))(keys, scales, lp)`` of :func:`_hard_program`, one per user objective,
+    run, parameters and constraints, kept while the objective and run live."""
+    paths, cons = spec.paths, spec.constraints
+    obj = spec.parts or spec.objective
+    key = (tuple(paths.items()), tuple(cons.items()))
+    try:
+        cache = _HARD.setdefault(obj, weakref.WeakKeyDictionary()).setdefault(spec.run, {})
+        obj_ref, run_ref = weakref.ref(obj), weakref.ref(spec.run)
+    except TypeError:                 # not weak-referenceable: a program for this call alone
+        cache, obj_ref, run_ref = {}, (lambda: obj), (lambda: spec.run)
+    if key in cache:
+        return cache[key]
+
+    def one(key, scale, lp):
+        vals = {n: jnp.asarray(get_path(lp, g[0]), jnp.float32) for n, g in paths.items()}
+        flat, unravel = ravel_pytree({n: cons[n].raw(v) for n, v in vals.items()})
+        e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
+        moved = constrain(unravel(flat + scale * e), cons)
+        point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
+        lp = with_temperature(set_paths(lp, {p: point[n] for n in point for p in paths[n]}), jnp.float32(0.0))
+        return objective_total(obj_ref()(run_ref()(lp, key))), e
+
+    cache[key] = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+    return cache[key]
 
 
 def _hard_program(spec: _Spec, chunk: int) -> Callable:
@@ -463,18 +573,9 @@ def _hard_program(spec: _Spec, chunk: int) -> Callable:
     One compiled program (``lp`` is an argument) runs, in chunks of ``chunk`` keys (the
     last padded), both the evaluation (scales 0) and the score function's antithetic pairs
     (the same key at +s and -s, as :func:`jaxnc.tune.estimators.score_grad`): a loop of the
-    same structure and dtypes reuses it."""
-    cons = spec.constraints
-
-    def one(key, scale, lp):
-        vals = {n: jnp.asarray(get_path(lp, g[0]), jnp.float32) for n, g in spec.paths.items()}
-        flat, unravel = ravel_pytree({n: cons[n].raw(v) for n, v in vals.items()})
-        e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
-        moved = constrain(unravel(flat + scale * e), cons)
-        point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
-        return spec.objective(spec.run(with_temperature(_set(lp, spec, point), jnp.float32(0.0)), key)), e
-
-    batched = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+    same structure and dtypes reuses it, and so does every call with the same objective
+    and run (the same function objects), parameters and constraints (:data:`_HARD`)."""
+    batched = _hard_batched(spec)
 
     def hard(lp, keys, scales):
         keys, scales = np.asarray(keys), np.asarray(scales, np.float32)
@@ -520,24 +621,34 @@ def _stage(stages: dict, name: str):
         stages[name] = (w0 + time.perf_counter() - t, c0 + dc.seconds, n0 + dc.compilations)
 
 
-def _corrected(loop, spec: _Spec, unravel):
+def _corrected(loop, spec: _Spec):
     """``corrected(theta, key) -> (value, grad)`` in the flat raw coordinates
     (:func:`jaxnc.tune.jump.corrected_grad` on the hard loop), or None when ``loop`` does not
-    support it (:func:`jaxnc.tune.jump.corrected_supported`)."""
+    support it (:func:`jaxnc.tune.jump.corrected_supported`); one function per loop object,
+    objective, run, parameters and shapes (:func:`_shared`)."""
     from jaxnc.tune.jump import corrected_grad, corrected_supported
     if corrected_supported(loop):
         return None
+    paths, cons, run, objective = spec.paths, spec.constraints, spec.run, spec.objective
+    shapes = {n: tuple(np.shape(get_path(loop, g[0]))) for n, g in paths.items()}
 
-    def loop_of(t):
-        return with_temperature(_set(loop, spec, constrain(unravel(t), spec.constraints)), jnp.float32(0.0))
+    def build(loop_ref):
+        unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
 
-    cost = lambda lp, key: spec.objective(spec.run(lp, key))
-    return lambda t, key: corrected_grad(loop_of, cost, t, key)
+        def corrected(t, key):
+            def loop_of(u):
+                return with_temperature(set_paths(loop_ref(), {p: v for n, v in constrain(unravel(u), cons).items()
+                                                               for p in paths[n]}), jnp.float32(0.0))
+            cost = lambda lp, k: objective(run(lp, k))
+            return corrected_grad(loop_of, cost, t, key)
+        return corrected
+    return _shared(loop, spec, "corrected", tuple(sorted(shapes.items())), build)
 
 
-def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, loop=None,
+def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, seed: int, loop,
            corrected: bool = False, **kw) -> GradientCheck:
-    """:func:`gradient_check` of the flat objective on seeds ``seed_keys(seed, seeds)``
+    """:func:`gradient_check` of the flat objective (:func:`_flat` on ``loop``) on seeds
+    ``seed_keys(seed, seeds)``
     (doubling up to ``max_seeds``), labelled, with each coordinate's value and slope
     d value / d theta so that its table is in the user's units; with the corrected
     estimator where asked (``corrected``) and ``loop`` supports it."""
@@ -548,8 +659,7 @@ def _check(spec: _Spec, flat0, unravel, fobj, *, seeds: int, max_seeds: int, see
     return gradient_check(fobj, flat0, montecarlo.seed_keys(seed, seeds), names=_labels(unravel, flat0.size),
                           max_seeds=max_seeds, more_keys=lambda start, count: montecarlo.seed_keys(seed, count, start),
                           values=np.asarray(vals), dvalue_dtheta=np.asarray(slope),
-                          corrected=_corrected(loop, spec, unravel) if corrected and loop is not None else None,
-                          **kw)
+                          corrected=_corrected(loop, spec) if corrected else None, **kw)
 
 
 def _labels(unravel, size: int) -> tuple:
@@ -659,6 +769,10 @@ def check_loop(loop, params: dict | list | tuple, objective: Callable | None = N
     smoothed objective to second order. Their common smoothing bias is measured and, where
     resolved, removed by the extrapolated estimators (``"richardson"``,
     :mod:`jaxnc.tune.check`).
+
+    Compiled programs: one per loop object, objective and run (the same function objects),
+    parameters and settings: another point (``at``) or a second call on the same loop
+    traces and compiles nothing; the numbers are those of a check compiled for that point.
 
     Returns:
       :class:`jaxnc.tune.check.GradientCheck`: ``names`` the coordinates' labels (in the
@@ -795,7 +909,10 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
     tuned point, and every step, reuse it); the check compiles one (its chunks and seed
     doublings reuse it); a pathwise estimator's step compiles one (reused by every step:
     the temperature and the point are arguments); the search one per distinct static
-    value (its rounds share a chunk size). None of these grows with ``steps``.
+    value (its rounds share a chunk size). None of these grows with ``steps``. A second
+    call with the same objective and run (the same function objects) reuses the hard
+    program, and on the same loop object the search's programs and the check's too
+    (:func:`check_loop`).
 
     Raises:
       ValueError: a path that does not exist, names a part (a configuration object) or a
@@ -891,7 +1008,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         spent = time.perf_counter() - t0 - stages.get("evaluation", (0.0,))[0]
         return max(max_seconds - spent, 1e-3)
 
-    per_seed = point_objective(loop, objective, run)
+    per_seed = point_objective(loop, spec.parts or objective, run)
 
     # the start's evaluation first (fresh seeds, so its values are those it would have at the
     # end): an objective that is NaN at the start is refused before the budget is spent
@@ -917,7 +1034,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         points = [{p: search[n][i] for n, i in zip(names, combo) for p in search_paths[n]} for combo in combos]
         schedule = halving_schedule(len(points), budget)     # budget: set and checked with the arguments
         keys = montecarlo.seed_keys(seed + 1, sum(s for _, s in schedule))
-        search_seed = lambda p, k: per_seed(p, k)      # one function: the search and its refinement share programs
+        search_seed = per_seed      # one function: the search and its refinement (and every call) share programs
         search_chunk = schedule[0][1]
         with _stage(stages, "search"):
             result_search = successive_halving(search_seed, points, keys, budget=budget, static=static,
@@ -972,7 +1089,7 @@ def tune_loop(loop, params: dict | list | tuple = (), objective: Callable | None
         reason += "; its budget refined the search's finalists"
     elif spec.paths and used != "none":
         loss_of = spec.parts if used == "hybrid" else objective
-        corr = _corrected(loop1, spec, _flat(loop1, spec)[1]) if used == "corrected" else None
+        corr = _corrected(loop1, spec) if used == "corrected" else None
         # the score function's steps run in the evaluation's program (the hard objective)
         grads = []
         host = _score_step(hard, loop1, spec, batch // 2, score_scale, grads) if used == "score" else None
