@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import inspect
 import os
 import pathlib
@@ -344,6 +345,10 @@ def main(argv: list[str] | None = None) -> int:
     It never returns normally (the ``-> int`` is for ``sys.exit(main())`` wrappers, which
     therefore also get the right code).
     """
+    # a process that traces large programs: Python's collector at its defaults (700, 10, 10)
+    # spent a fifth to two fifths of each loop's tracing in full collections
+    # (benchmarks/RESULTS.md, "Helper tr"); the library itself leaves the collector alone
+    gc.set_threshold(100_000, 50, 100)
     try:
         code = run_cli(argv)
     except KeyboardInterrupt:                   # Ctrl-C during argument parsing / imports

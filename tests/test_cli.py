@@ -112,6 +112,22 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"jaxnc {__import__('jaxnc').__version__}"
 
 
+def test_the_command_sets_the_collectors_thresholds_for_a_tracing_process(monkeypatch, capsys):
+    """At Python's default thresholds (700, 10, 10) full collections took a fifth to two
+    fifths of each loop's trace; ``jaxnc`` (the console script) raises them for its own
+    process (the library leaves them alone)."""
+    import gc
+    before = gc.get_threshold()
+    try:
+        gc.set_threshold(700, 10, 10)
+        with pytest.raises(SystemExit) as stop:
+            cli.main(["--version"])
+        assert stop.value.code == 0 and gc.get_threshold() == (100_000, 50, 100)
+    finally:
+        gc.set_threshold(*before)
+    capsys.readouterr()
+
+
 def test_list(capsys):
     assert run(["list"]) == 0
     out = capsys.readouterr().out
