@@ -366,6 +366,11 @@ def test_check_loop_shares_one_program_across_points_and_calls():
             np.testing.assert_array_equal(c.estimates[name][1], se)
     assert not np.array_equal(checks[0].estimates["score"][0], first.estimates["score"][0])   # another point
     assert all(np.array_equal(checks[1].estimates[k][0], first.estimates[k][0]) for k in first.estimates)
+    # bounds given as JAX scalars (unhashable constraints) give the check of the same bounds
+    jb = {"b": Interval(jnp.float32(0.0), jnp.float32(2.0)), "a": Interval(jnp.float32(0.0), jnp.float32(2.0))}
+    nb = {"b": Interval(0.0, 2.0), "a": Interval(0.0, 2.0)}
+    c_j, c_n = (check_loop(cfg, p, obj, run=run, seeds=8) for p in (jb, nb))
+    assert c_j.value == c_n.value and all(np.array_equal(c_j.estimates[k][0], c_n.estimates[k][0]) for k in c_n.estimates)
 
 
 @jax.tree_util.register_dataclass
@@ -479,6 +484,10 @@ def test_gradient_check_args_are_arguments_of_one_program():
         np.testing.assert_array_equal(c.estimates[name][1], se)
     with pytest.raises(ValueError, match="args must be a tuple"):
         gradient_check(scaled, np.zeros(2, np.float32), keys, args=[w])
+    # steps, temperature and scale given as JAX scalars (unhashable) reach the same program
+    j = gradient_check(scaled, np.full(2, 0.3, np.float32), keys, args=(w,), fd_step=jnp.float32(0.05),
+                       temperature=jnp.float32(1e-3), score_scale=jnp.asarray(0.05, jnp.float32))
+    assert j.value == c.value and all(np.array_equal(j.estimates[n][0], c.estimates[n][0]) for n in c.estimates)
 
 
 def test_tune_loops_check_doubles_its_seeds_until_conclusive():

@@ -401,7 +401,8 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         from scipy.stats import norm
         z = float(norm.ppf(1.0 - 0.025 / d))
     check_positive("z", z)
-    per_seed = _per_seed_program(objective, corrected, (estimators, pair, d, fd_step, temperature, score_scale))
+    per_seed = _per_seed_program(objective, corrected, (estimators, pair, d, float(fd_step), float(temperature),
+                                                        float(score_scale)))
 
     # one chunk size for every block (no chunk larger than the first block's seeds:
     # run_batched pads the last chunk), so a doubled check's seeds are those of one run

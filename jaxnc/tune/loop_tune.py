@@ -510,7 +510,20 @@ def _shared(loop, spec: _Spec, what: str, extra: tuple, build: Callable) -> Call
     """:func:`_per_loop` keyed by ``what``, ``spec``'s user objective and run, its
     parameters and constraints, and ``extra``."""
     return _per_loop(loop, (what, spec.parts or spec.objective, spec.run, tuple(spec.paths.items()),
-                            tuple(spec.constraints.items()), extra), build)
+                            _constraints_key(spec.constraints), extra), build)
+
+
+def _constraints_key(cons: dict) -> tuple:
+    """The constraints as a key of the program caches: each constraint itself where it can be
+    hashed, else its type and its fields' values by their bytes (bounds given as JAX arrays)."""
+    def key(c):
+        try:
+            hash(c)
+            return c
+        except TypeError:
+            fields = (getattr(c, f.name) for f in dataclasses.fields(c))
+            return (type(c), tuple((np.asarray(v).dtype.str, np.shape(v), np.asarray(v).tobytes()) for v in fields))
+    return tuple((n, key(c)) for n, c in cons.items())
 
 
 def _flat_program(loop, spec: _Spec, shapes: dict) -> Callable:
@@ -542,7 +555,7 @@ def _hard_batched(spec: _Spec) -> Callable:
     run, parameters and constraints, kept while the objective and run live."""
     paths, cons = spec.paths, spec.constraints
     obj = spec.parts or spec.objective
-    key = (tuple(paths.items()), tuple(cons.items()))
+    key = (tuple(paths.items()), _constraints_key(cons))
     try:
         cache = _HARD.setdefault(obj, weakref.WeakKeyDictionary()).setdefault(spec.run, {})
         obj_ref, run_ref = weakref.ref(obj), weakref.ref(spec.run)
