@@ -454,7 +454,20 @@ def _prepare(fn_name: str, loop, params, objective, run) -> _Spec:
 
 def _set(loop, spec: _Spec, values: dict):
     """``loop`` with each named value written at all of its paths."""
-    return set_paths(loop, {p: values[n] for n in values for p in spec.paths[n]})
+    return _write(loop, spec.paths, values)
+
+
+def _write(loop, paths: dict, values: dict):
+    """``loop`` with each named value written at all of its paths (``paths``: name -> paths)."""
+    return set_paths(loop, {p: values[n] for n in values for p in paths[n]})
+
+
+def _theta_writer(paths: dict, cons: dict, shapes: dict) -> Callable:
+    """``write(loop, theta)``: ``loop`` with the parameters of the flat raw ``theta``
+    (``shapes``: each parameter's shape, in sorted-name order) constrained and written at
+    their paths."""
+    unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
+    return lambda loop, theta: _write(loop, paths, constrain(unravel(theta), cons))
 
 
 def _flat(loop, spec: _Spec, at: dict | None = None):
@@ -535,12 +548,10 @@ def _flat_program(loop, spec: _Spec, shapes: dict) -> Callable:
     objective = spec.parts or spec.objective
 
     def build(loop_ref):
-        unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
+        write = _theta_writer(paths, cons, shapes)
 
         def f(theta, key, temp):
-            lp = with_temperature(set_paths(loop_ref(), {p: v for n, v in constrain(unravel(theta), cons).items()
-                                                         for p in paths[n]}), temp)
-            return objective(run(lp, key))
+            return objective(run(with_temperature(write(loop_ref(), theta), temp), key))
         return f
     return _shared(loop, spec, "flat", tuple(sorted((n, tuple(v)) for n, v in shapes.items())), build)
 
@@ -570,7 +581,7 @@ def _hard_batched(spec: _Spec) -> Callable:
         e = jax.random.normal(jax.random.fold_in(key, 7919), flat.shape, jnp.float32)
         moved = constrain(unravel(flat + scale * e), cons)
         point = {n: jnp.where(scale == 0, vals[n], moved[n]) for n in vals}
-        lp = with_temperature(set_paths(lp, {p: point[n] for n in point for p in paths[n]}), jnp.float32(0.0))
+        lp = with_temperature(_write(lp, paths, point), jnp.float32(0.0))
         return objective_total(obj_ref()(run_ref()(lp, key))), e
 
     cache[key] = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
@@ -646,12 +657,11 @@ def _corrected(loop, spec: _Spec):
     shapes = {n: tuple(np.shape(get_path(loop, g[0]))) for n, g in paths.items()}
 
     def build(loop_ref):
-        unravel = ravel_pytree({n: np.zeros(shapes[n], np.float32) for n in shapes})[1]
+        write = _theta_writer(paths, cons, shapes)
 
         def corrected(t, key):
             def loop_of(u):
-                return with_temperature(set_paths(loop_ref(), {p: v for n, v in constrain(unravel(u), cons).items()
-                                                               for p in paths[n]}), jnp.float32(0.0))
+                return with_temperature(write(loop_ref(), u), jnp.float32(0.0))
             cost = lambda lp, k: objective(run(lp, k))
             return corrected_grad(loop_of, cost, t, key)
         return corrected
