@@ -482,7 +482,8 @@ def _run_local(batched, keys, args, chunk_size: int, progress: bool, desc: str, 
         return jax.tree_util.tree_map(lambda s: np.zeros((0, *s.shape[1:]), s.dtype), shapes)
 
     size, keys, args, chunk_at = _chunks(keys, args, chunk_size, out_bytes)
-    _wait_in_flight(_signature(batched, chunk_at(0), args))     # its program, if precompile is compiling it
+    if _IN_FLIGHT:                         # its program, if precompile is compiling it
+        _wait_in_flight(_signature(batched, chunk_at(0), args))
     pieces = []
     pending = None                         # (device output, number of valid rows)
     with tqdm(total=n, desc=desc, unit="seed", disable=not progress, dynamic_ncols=True) as bar:
