@@ -14,7 +14,7 @@ import os
 import pathlib
 from typing import NamedTuple
 
-__all__ = ["default_cache_dir", "enable_cache", "cache_beside", "allow_cache_beside", "CompileClock",
+__all__ = ["default_cache_dir", "user_cache_root", "enable_cache", "cache_beside", "allow_cache_beside", "CompileClock",
            "compile_clock"]
 
 _BESIDE = [True]
@@ -61,8 +61,15 @@ def default_cache_dir() -> pathlib.Path:
     """The cache folder (module docstring)."""
     if os.environ.get("JAXNC_CACHE_DIR"):
         return pathlib.Path(os.environ["JAXNC_CACHE_DIR"]).expanduser()
+    return user_cache_root() / "xla"
+
+
+def user_cache_root() -> pathlib.Path:
+    """jaxnc's folder of the user's cache: ``$XDG_CACHE_HOME/jaxnc``, else ``~/.cache/jaxnc``
+    (the compilation cache's default ``xla`` and :func:`jaxnc.sweep.code_fingerprint`'s
+    ``code`` lie in it)."""
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return pathlib.Path(base) / "jaxnc" / "xla"
+    return pathlib.Path(base) / "jaxnc"
 
 
 def enable_cache(path=None, *, min_compile_time_s: float = 0.0) -> pathlib.Path:

@@ -140,7 +140,8 @@ def code_fingerprint() -> str:
     raw = hashlib.sha256(f"{sys.version_info[:2]}\0".encode() + versions)
     for name, source in _IMPORTED_SOURCES:
         raw.update(name.encode() + b"\0" + hashlib.sha256(source).digest())
-    memo = _memo_folder() / raw.hexdigest()[:32]
+    from jaxnc.cache import user_cache_root
+    memo = user_cache_root() / "code" / raw.hexdigest()[:32]
     try:
         known = memo.read_text().strip()
         if len(known) == 16 and all(c in "0123456789abcdef" for c in known):
@@ -169,13 +170,6 @@ def _dist_version(dist: str) -> str:
         return metadata.version(dist)
     except metadata.PackageNotFoundError:
         return "none"
-
-
-def _memo_folder() -> pathlib.Path:
-    """Where :func:`code_fingerprint` keeps its digests: ``$XDG_CACHE_HOME/jaxnc/code``, else
-    ``~/.cache/jaxnc/code``."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return pathlib.Path(base) / "jaxnc" / "code"
 
 
 def _code_text(source: bytes) -> bytes:
