@@ -485,6 +485,16 @@ EKF_ARGS = [
     # the unscented form with n + kappa <= 0 or a singular cov0 ran and estimated NaN
     (dict(form="unscented", sigma_points=(1.0, 2.0, -2.0)), "EKF.sigma_points' kappa must be > -n = -2"),
     (dict(form="unscented", cov0=np.zeros((2, 2))), "EKF.cov0 must be positive definite with form='unscented'"),
+    # the options seed 000's NUDREKF needs (form="sequential", weight="slot", output="weighted", keep_means)
+    (dict(form="kalman"), "EKF.form must be one of joseph, sqrt, unscented, sequential"),
+    (dict(weight="arrival"), "EKF.weight must be one of stamp, slot"),
+    (dict(output="tuple"), "EKF.output must be one of mean, weighted"),
+    (dict(jacobian_grad=1), "EKF.jacobian_grad must be True or False"),
+    (dict(structure="sparse"), "EKF.structure must be None or an EKFStructure"),
+    (dict(jacobian_grad=False), "EKF.structure and EKF.jacobian_grad=False need form='sequential'"),
+    (dict(weight="slot", buffer=1), "need buffer=0 (one measurement per instant), got buffer=1"),
+    (dict(form="sequential", R=[0.0]), "EKF.R's variances must be > 0"),
+    (dict(form="sequential", R=[1.0, 1.0]), "EKF.R must be 1x1 (the model's output_dim) or a vector of 1 variances"),
 ]
 
 

@@ -14,7 +14,7 @@ from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay
                              AbstractLoss, AbstractMonitor, AbstractPlant, AbstractTrigger, AbstractWrappedPlant, Inbox,
                              Packet, blend, pytree_dataclass, static_field)
 from jaxnc.loop.controllers import Function, Predictive, StateFeedback
-from jaxnc.loop.estimators import EKF, EKFState, Passthrough
+from jaxnc.loop.estimators import EKF, EKFState, Passthrough, WeightedEstimate, period_means, period_means_finite
 from jaxnc.loop.lead import LeadFeedback
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
                               ShiftedExponential, TraceDelay, TraceLoss, TruncatedExponential, WifiModel,
@@ -47,7 +47,7 @@ __all__ = [
     "TruncatedExponential", "PmfDelay", "TraceDelay", "WifiModel", "truncated_exponential",
     "draw_link", "link_delay_bounds",
     "Periodic", "Petc", "PetcState", "petc_decide", "petc_gap", "petc_update",
-    "EKF", "EKFState", "Passthrough",
+    "EKF", "EKFState", "Passthrough", "WeightedEstimate", "period_means", "period_means_finite",
     "StateFeedback", "Function", "Predictive",
     "PID", "PIDState", "pid_update",
     "LinearController",

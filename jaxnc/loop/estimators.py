@@ -11,7 +11,8 @@ buffered Kalman filter, extended to a nonlinear model and to N fast periods a sl
 measurement older than the window is lost. ``buffer=0`` is the plain intermittent filter:
 only a measurement stamped now is used. ``rate="slow"`` predicts once per slow period with
 the plant's lifted model instead (:class:`~jaxnc.loop.AbstractLiftedPlant`, seed 004
-eq. 8-13; :func:`jaxnc.loop.PeriodEKF`).
+eq. 8-13; :func:`jaxnc.loop.PeriodEKF`). Seed 000's remote NUDREKF (section 3.3.1) is
+``EKF(form="sequential", weight="slot", output="weighted", keep_means=True)``.
 
 :class:`Passthrough` uses the newest delivered measurement as the estimate and holds it
 (eq. 5 of seed 001, no model): for controllers that act on the output.
@@ -26,13 +27,16 @@ import numpy as np
 
 from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
                              psd_rounding)
-from jaxnc.estimators.ekf import Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_sqrt
+from jaxnc.estimators.ekf import (Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_diag,
+                                  ekf_update_sqrt)
+from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.estimators.ukf import ukf_predict, ukf_update
 from jaxnc.loop.base import AbstractEstimator, AbstractLiftedPlant, AbstractPlant, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
-__all__ = ["EKF", "EKFState", "Passthrough", "PassthroughState"]
+__all__ = ["EKF", "EKFState", "Passthrough", "PassthroughState", "WeightedEstimate", "period_means",
+           "period_means_finite"]
 
 
 class EKFState(NamedTuple):
@@ -42,9 +46,34 @@ class EKFState(NamedTuple):
     u: jax.Array        # float[buffer, N, m] inputs of the window's periods
     post: Gaussian      # posterior at the current instant (the estimate)
     next_base: Gaussian  # prior at k - buffer + 1 (becomes base after predict)
+    means: Any = None   # float[N, n] with keep_means: the mean after each fast period of the last prediction
 
 
-def _recomputed_predict(f, g: Gaussian, u, Q, noise_dim: int) -> Gaussian:
+class WeightedEstimate(NamedTuple):
+    """The estimate of ``EKF(output="weighted")``.
+
+    ``mean`` float[n] is the posterior mean had the measurement of now been used (computed
+    whether or not one arrived); ``weight`` the 0/1 float "the measurement of now arrived and
+    was used" (with the trigger's gradient). A controller that acts only on a new measurement
+    (seed 000's :class:`~jaxnc.estimators.nudrekf.ChainController`) blends by it."""
+
+    mean: jax.Array
+    weight: jax.Array
+
+
+def period_means(estimator, state: EKFState):
+    """float[N, n]: the means after each fast period of the last prediction of an
+    ``EKF(keep_means=True)`` (a :class:`jaxnc.loop.Record` function of the estimator)."""
+    return state.means
+
+
+def period_means_finite(estimator, state: EKFState):
+    """bool: the means of :func:`period_means` are all finite (a cheaper Record function)."""
+    return jnp.all(jnp.isfinite(state.means))
+
+
+def _recomputed_predict(f, g: Gaussian, u, Q, noise_dim: int, jacobian_grad: bool = True,
+                        structure=None) -> Gaussian:
     """:func:`~jaxnc.estimators.ekf.ekf_predict` under ``jax.checkpoint`` (nothing saved):
     the same values, and a program without differentiation is unchanged (bit for bit), but
     reverse mode recomputes the prediction from (g, u, Q) instead of storing the
@@ -52,7 +81,8 @@ def _recomputed_predict(f, g: Gaussian, u, Q, noise_dim: int) -> Gaussian:
     (docs/design_notes.md, "The exact gradient: hard decisions, a recomputed prediction")."""
     # prevent_cse=False: it is always called inside a scan (:meth:`EKF._predict_period`'s),
     # which keeps XLA from merging the recomputation with the forward pass (JAX's advice)
-    return jax.checkpoint(lambda g, u, Q: ekf_predict(f, g, u, Q, noise_dim),
+    return jax.checkpoint(lambda g, u, Q: ekf_predict(f, g, u, Q, noise_dim, jacobian_grad=jacobian_grad,
+                                                      structure=structure),
                           policy=jax.checkpoint_policies.nothing_saveable, prevent_cse=False)(g, u, Q)
 
 
@@ -71,7 +101,8 @@ class EKF(AbstractEstimator):
         per fast period, added where it enters: every fast period, or every ``noise_period``
         of a model that declares one (t = 0, P, 2P, ... over the run, as the runner draws it)
         (``rate="slow"``: q = n, the lifted model's additive noise per slow period).
-      R: float[p, p], measurement noise covariance of v.
+      R: float[p, p], measurement noise covariance of v (``form="sequential"``: or float[p],
+        the variances of a diagonal one).
       mean0: float[n]; cov0: float[n, n], the prior at t = 0.
       buffer: static int >= 0, slow periods a measurement may be late.
       inputs: static, ``"believed"`` (the actions of the controller's own packets, what a
@@ -84,11 +115,33 @@ class EKF(AbstractEstimator):
         :class:`~jaxnc.estimators.ekf.SqrtGaussian`) or ``"unscented"`` (the unscented
         Kalman filter: :func:`~jaxnc.estimators.ukf.ukf_predict` and
         :func:`~jaxnc.estimators.ukf.ukf_update` with Merwe's sigma points, the same window
-        of late measurements; :func:`jaxnc.loop.UKF` builds it).
+        of late measurements; :func:`jaxnc.loop.UKF` builds it) or ``"sequential"`` (the
+        Joseph-form prediction, and the correction processed one scalar measurement at a time (:func:`~jaxnc.estimators.ekf.ekf_update_diag`; the same
+        posterior in exact arithmetic, no factorisation): R must be diagonal (a vector of p
+        variances or a diagonal matrix); the form of seed 000's NUDREKF).
       sigma_points: static (alpha, beta, kappa) of the unscented form's sigma points.
       rate: static, ``"fast"`` (predict every fast period with the model's ``dynamics``) or
         ``"slow"`` (once per slow period with its lifted ``period(x, us, w)``: the model must
         be an :class:`~jaxnc.loop.AbstractLiftedPlant`).
+      structure: static :class:`~jaxnc.estimators.sparsity.EKFStructure` or None, the
+        model's Jacobian sparsity (:func:`~jaxnc.estimators.sparsity.detect_structure`):
+        products with structural zeros skipped (``form="sequential"`` only).
+      jacobian_grad: static bool; False holds the Jacobians constant under differentiation
+        (an approximate, cheaper gradient, as in :func:`~jaxnc.estimators.ekf.ekf_predict`;
+        ``form="sequential"`` only).
+      weight: static, how the measurement of slow instant k is weighed: ``"stamp"`` (the
+        packet stamped kN if it has arrived, else a constant 0) or ``"slot"`` (the weight of
+        the uplink's ring slot k mod C unless the packet there was sent and has not arrived:
+        the same value with a hard trigger, and the trigger's gradient, straight-through or
+        relaxed, also flows where the sensor stays silent; a relaxed trigger's β weighs the
+        correction also where β <= 1/2 and nothing is sent; ``buffer=0`` only). Seed 000's
+        NUDREKF uses ``"slot"``: tuning σ and δ by the straight-through gradient needs it.
+      output: static, ``"mean"`` (the estimate is the posterior mean float[n]) or
+        ``"weighted"`` (a :class:`WeightedEstimate`: the mean had the measurement of now been
+        used, and its weight; ``buffer=0`` only).
+      keep_means: static bool, keep the mean after each fast period of the last prediction
+        in the state (``EKFState.means``, for :func:`period_means`; ``rate="fast"``,
+        ``buffer=0`` only).
     """
 
     by_stamp = True
@@ -103,6 +156,11 @@ class EKF(AbstractEstimator):
     form: str = _static("joseph")
     sigma_points: tuple = _static((1.0, 2.0, 0.0))
     rate: str = _static("fast")
+    structure: Any = _static(None)
+    jacobian_grad: bool = _static(True)
+    weight: str = _static("stamp")
+    output: str = _static("mean")
+    keep_means: bool = _static(False)
 
     def __post_init__(self):
         check_instance("EKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
@@ -118,8 +176,25 @@ class EKF(AbstractEstimator):
         check_int("EKF.buffer", self.buffer, 0, 10_000)
         if self.inputs not in ("believed", "applied"):
             raise ValueError(f"EKF.inputs must be one of believed, applied, got {self.inputs!r}")
-        if self.form not in ("joseph", "sqrt", "unscented"):
-            raise ValueError(f"EKF.form must be one of joseph, sqrt, unscented, got {self.form!r}")
+        if self.form not in ("joseph", "sqrt", "unscented", "sequential"):
+            raise ValueError(f"EKF.form must be one of joseph, sqrt, unscented, sequential, got {self.form!r}")
+        if self.weight not in ("stamp", "slot"):
+            raise ValueError(f"EKF.weight must be one of stamp, slot, got {self.weight!r}")
+        if self.output not in ("mean", "weighted"):
+            raise ValueError(f"EKF.output must be one of mean, weighted, got {self.output!r}")
+        for name in ("jacobian_grad", "keep_means"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"EKF.{name} must be True or False, got {getattr(self, name)!r}")
+        if self.structure is not None and not isinstance(self.structure, EKFStructure):
+            raise ValueError(f"EKF.structure must be None or an EKFStructure (jaxnc.estimators.sparsity."
+                             f"detect_structure), got {type(self.structure).__name__}")
+        if (self.structure is not None or not self.jacobian_grad) and self.form != "sequential":
+            raise ValueError(f"EKF.structure and EKF.jacobian_grad=False need form='sequential', got form={self.form!r}")
+        if self.buffer and (self.weight, self.output, self.keep_means) != ("stamp", "mean", False):
+            raise ValueError(f"EKF.weight='slot', output='weighted' and keep_means=True need buffer=0 (one "
+                             f"measurement per instant), got buffer={self.buffer}")
+        if self.keep_means and self.rate != "fast":
+            raise ValueError("EKF.keep_means=True needs rate='fast' (the means after each fast period)")
         sp = self.sigma_points
         if not (isinstance(sp, tuple) and len(sp) == 3 and all(isinstance(v, (int, float)) for v in sp)
                 and np.all(np.isfinite(sp)) and sp[0] > 0):
@@ -144,8 +219,18 @@ class EKF(AbstractEstimator):
             what = "the state's, per slow period" if self.rate == "slow" else "the model's noise_dim"
             raise ValueError(f"EKF.Q must be {q}x{q} or a vector of {q} variances ({what}), got shape {Q.shape}")
         R = np.asarray(self.R, np.float32)
+        if self.form == "sequential":
+            if R.shape == (p,):
+                if not R.min() > 0:
+                    raise ValueError("EKF.R's variances must be > 0")
+                R = np.diag(R)
+            elif R.shape == (p, p) and np.any(R != np.diag(np.diag(R))):
+                raise ValueError("EKF.R must be diagonal with form='sequential' (a vector of variances or a "
+                                 "diagonal matrix)")
         if R.shape != (p, p):
-            raise ValueError(f"EKF.R must be {p}x{p} (the model's output_dim), got shape {R.shape}")
+            raise ValueError(f"EKF.R must be {p}x{p} (the model's output_dim)"
+                             + (f" or a vector of {p} variances" if self.form == "sequential" else "")
+                             + f", got shape {R.shape}")
         for name, M in (("cov0", P0), ("R", R)) + ((("Q", Q),) if Q.ndim == 2 else ()):
             if not np.allclose(M, M.T, atol=1e-6 * max(1.0, float(np.abs(M).max()))):
                 raise ValueError(f"EKF.{name} must be symmetric")
@@ -158,6 +243,8 @@ class EKF(AbstractEstimator):
                              "Cholesky factor)")
         if Q.ndim == 1 and Q.min() < 0:
             raise ValueError("EKF.Q's variances must be >= 0")
+        if self.form == "sequential":
+            R = np.diag(R).copy()        # the variances
         for name, M in (("Q", Q), ("R", R), ("mean0", m0), ("cov0", P0)):   # the state's dtype, also under x64
             object.__setattr__(self, name, M)
 
@@ -181,7 +268,8 @@ class EKF(AbstractEstimator):
         if self.form == "sqrt":
             g = SqrtGaussian.of(g)
         u = jnp.zeros((self.buffer, ctx.N, ctx.input_dim), jnp.float32)
-        return EKFState(g, u, g, g)
+        means = jnp.zeros((ctx.N, g.mean.shape[0]), jnp.float32) if self.keep_means else None
+        return EKFState(g, u, g, g, means)
 
     def _sigma(self):
         return dict(zip(("alpha", "beta", "kappa"), self.sigma_points))
@@ -189,12 +277,14 @@ class EKF(AbstractEstimator):
     def _predict_period(self, g: Gaussian, us, s):
         """Propagate over slow period s (actions us [N, m]). At the fast rate the model's w
         enters at the fast instants t = sN + j with t % noise_period == 0 (where the runner
-        draws it, :func:`jaxnc.loop.draw`): Q there, none at the others."""
+        draws it, :func:`jaxnc.loop.draw`): Q there, none at the others. Returns (the
+        Gaussian, the means after each fast period float[N, n] with ``keep_means``, else
+        None)."""
         if self.rate == "slow":          # one step of the lifted model over the period's actions us [N, m]
             n = self.model.state_dim
             if self.form == "unscented":
-                return ukf_predict(self.model.period, g, us, self.Q, n, **self._sigma())
-            return (ekf_predict_sqrt if self.form == "sqrt" else ekf_predict)(self.model.period, g, us, self.Q, n)
+                return ukf_predict(self.model.period, g, us, self.Q, n, **self._sigma()), None
+            return (ekf_predict_sqrt if self.form == "sqrt" else ekf_predict)(self.model.period, g, us, self.Q, n), None
 
         P = int(self.model.noise_period)
         N = us.shape[0]
@@ -202,33 +292,46 @@ class EKF(AbstractEstimator):
         def body(g, xs):
             u, Q = xs if P != 1 else (xs, self.Q)
             if self.form == "unscented":
-                return ukf_predict(self.model.dynamics, g, u, Q, self.model.noise_dim, **self._sigma()), None
-            if self.form == "sqrt":
-                return ekf_predict_sqrt(self.model.dynamics, g, u, Q, self.model.noise_dim), None
-            return _recomputed_predict(self.model.dynamics, g, u, Q, self.model.noise_dim), None
+                g = ukf_predict(self.model.dynamics, g, u, Q, self.model.noise_dim, **self._sigma())
+            elif self.form == "sqrt":
+                g = ekf_predict_sqrt(self.model.dynamics, g, u, Q, self.model.noise_dim)
+            else:
+                g = _recomputed_predict(self.model.dynamics, g, u, Q, self.model.noise_dim, self.jacobian_grad,
+                                        self.structure)
+            return g, (g.mean if self.keep_means else None)
         if P == 1:                       # every fast period (the same program as without noise_period)
-            g, _ = jax.lax.scan(body, g, us)
-            return g
+            return jax.lax.scan(body, g, us)
         Q = jnp.asarray(self.Q)
         enters = ((s * N + jnp.arange(N)) % P == 0).astype(Q.dtype)          # [N]
-        g, _ = jax.lax.scan(body, g, (us, enters.reshape((N,) + (1,) * Q.ndim) * Q[None]))
-        return g
+        return jax.lax.scan(body, g, (us, enters.reshape((N,) + (1,) * Q.ndim) * Q[None]))
 
     def _correct_at(self, g: Gaussian, inbox: Inbox, s, N):
-        """Correct with the measurement of slow instant s (stamp sN), if it has arrived."""
-        z, w = inbox.packet(s, s * N)
+        """Correct with the measurement of slow instant s (stamp sN), if it has arrived.
+        Returns (the posterior, the corrected Gaussian had the measurement been used, its
+        weight)."""
+        if self.weight == "slot":        # slot s mod C: the weight, unless sent and not delivered yet
+            slot = jnp.mod(s, inbox.stamp.shape[0])
+            late = (inbox.stamp[slot] >= 0) & ~inbox.arrived[slot]
+            z, w = jax.tree.map(lambda a: a[slot], inbox.data), jnp.where(late, 0.0, inbox.weight[slot])
+        else:
+            z, w = inbox.packet(s, s * N)
+        p = self.model.output_dim
         if self.form == "unscented":
-            post = ukf_update(self.model.measure, g, z, self.R, self.model.output_dim, **self._sigma())
-            return blend(w, post, g)
-        update = ekf_update_sqrt if self.form == "sqrt" else ekf_update
-        return blend(w, update(self.model.measure, g, z, self.R, self.model.output_dim), g)
+            post = ukf_update(self.model.measure, g, z, self.R, p, **self._sigma())
+        elif self.form == "sequential":
+            r = jnp.diagonal(self.R) if jnp.ndim(self.R) == 2 else self.R
+            post = ekf_update_diag(self.model.measure, g, z, r, p, jacobian_grad=self.jacobian_grad,
+                                   structure=self.structure)
+        else:
+            post = (ekf_update_sqrt if self.form == "sqrt" else ekf_update)(self.model.measure, g, z, self.R, p)
+        return blend(w, post, g), post, w
 
     def correct(self, state: EKFState, inbox: Inbox, k) -> tuple[EKFState, jax.Array]:
         """Re-run the window k - D .. k - 1 (D = ``buffer``) from ``state.base``, correcting
         at each instant whose measurement has arrived, then correct at k.
 
         Returns (the state with the posterior at k and the next window's base, the
-        posterior mean float[n]). The window is a ``lax.scan`` over its D instants, not D
+        posterior mean float[n], or with ``output="weighted"`` a :class:`WeightedEstimate`). The window is a ``lax.scan`` over its D instants, not D
         unrolled copies (docs/design_notes.md, "The buffered EKF's window as a scan")."""
         N = state.u.shape[1]                             # fast periods per slow period
         D = self.buffer
@@ -237,7 +340,7 @@ class EKF(AbstractEstimator):
             g, next_base = carry
             i, us = xs
             s = k - D + i
-            g1 = self._predict_period(self._correct_at(g, inbox, s, N), us, s)
+            g1, _ = self._predict_period(self._correct_at(g, inbox, s, N)[0], us, s)
             g = blend((s >= 0).astype(jnp.float32), g1, g)
             next_base = jax.tree.map(lambda a, b: jnp.where(i == 0, a, b), g, next_base)   # prior at k - D + 1
             return (g, next_base), None
@@ -245,14 +348,15 @@ class EKF(AbstractEstimator):
         g = next_base = state.base
         if D:
             (g, next_base), _ = jax.lax.scan(instant, (g, next_base), (jnp.arange(D), state.u))
-        post = self._correct_at(g, inbox, k, N)
-        return state._replace(post=post, next_base=next_base), post.mean
+        post, corrected, w = self._correct_at(g, inbox, k, N)
+        out = WeightedEstimate(corrected.mean, w) if self.output == "weighted" else post.mean
+        return state._replace(post=post, next_base=next_base), out
 
     def predict(self, state: EKFState, u_applied, u_believed, k) -> EKFState:
         us = u_believed if self.inputs == "believed" else u_applied
         if self.buffer == 0:
-            g = self._predict_period(state.post, us, k)
-            return state._replace(base=g, next_base=g)
+            g, means = self._predict_period(state.post, us, k)
+            return state._replace(base=g, next_base=g, means=means)
         u = jnp.concatenate([state.u[1:], us[None]], axis=0)
         return state._replace(base=state.next_base, u=u)
 

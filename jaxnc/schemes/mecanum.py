@@ -3,8 +3,8 @@
 :func:`mecanum_loop` returns a :class:`jaxnc.loop.Loop`: the robot
 (:class:`~jaxnc.plants.mecanum.Mecanum`, eq. 1-2, or another true plant such as
 :class:`~jaxnc.plants.mecanum_mjx.MjxMecanum`), the sensor's PETC (:class:`~jaxnc.loop.Petc`,
-eq. 3-4), an uplink with Bernoulli(p_sc) losses (eq. 5), the remote NUDREKF
-(:class:`~jaxnc.estimators.nudrekf.NudrekfEstimator`, eq. 11-16) and controller
+eq. 3-4), an uplink with Bernoulli(p_sc) losses (eq. 5), the remote NUDREKF (a
+:class:`~jaxnc.loop.EKF`, eq. 11-16) and controller
 (:class:`~jaxnc.estimators.nudrekf.ChainController`, section 3.3.1), a downlink with
 Bernoulli(p_ca) losses and the lumped round-trip delay (:class:`~jaxnc.loop.RoundTrip`,
 eq. 6-7; packets later than tau_max, default NT, discarded, so never out of order), the
@@ -39,7 +39,7 @@ import numpy as np
 from jaxnc import loop as nc
 from jaxnc._validate import check_choice, check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
-from jaxnc.estimators.nudrekf import ChainActuator, ChainController, NudrekfEstimator, belief_finite, belief_means
+from jaxnc.estimators.nudrekf import ChainActuator, ChainController
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2
 from jaxnc.paths import Path, get_path
@@ -60,11 +60,11 @@ MAX_DEV, END_TOL = 0.5, 0.1                      # m: the path tube, and complet
 TRACK_WINDOW = 32   # path points searched per period: the robot moves at most 10 (omega_max R T = 0.1 m)
 
 #: what a Monte-Carlo run records: what :func:`metrics` reads
-METRICS_RECORD = nc.Record(signals=("sent_sc", "recv_sc"), monitor=nc.path_distance, estimator=belief_finite)
+METRICS_RECORD = nc.Record(signals=("sent_sc", "recv_sc"), monitor=nc.path_distance, estimator=nc.period_means_finite)
 #: ... and the true states x, actions u and the belief's means after each fast period
 #: (``parts["estimator"]`` [S, N, 6]): figures and the stability pass (``full=True``)
 FULL_RECORD = nc.Record(signals=("x", "u", "sent_sc", "recv_sc"), monitor=nc.path_distance,
-                        estimator=belief_means)
+                        estimator=nc.period_means)
 
 
 def default_h(case: str, N: int, dp: float, n_slow: int) -> int:
@@ -159,11 +159,10 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     Ts = np.float32(N * T if single else T)              # the controller's period
     hold = np.int32(N if single else 1)                  # fast periods each action of a packet is held
     # the remote side and the actuator, built as one block (the sender's packet copy lives here)
-    estimator = NudrekfEstimator(
-        model=plant, Q=np.square(np.asarray(filter_noise.process_std())),
-        R=np.square(np.asarray(filter_noise.measurement_std())), mean0=x0,
-        cov0=np.diag(np.square(np.asarray(P0_STD, np.float32))), noise_dim=PROCESS_NOISE_DIM,
-        jacobian_grad=bool(jacobian_grad), structure=ekf_structure(plant) if sparse else None)
+    estimator = nc.EKF(plant, np.square(filter_noise.process_std()), np.square(filter_noise.measurement_std()), x0,
+                       np.diag(np.square(np.asarray(P0_STD, np.float32))), form="sequential", weight="slot",
+                       output="weighted", keep_means=True, jacobian_grad=bool(jacobian_grad),
+                       structure=ekf_structure(plant) if sparse else None)
     actuator = ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
     controller = ChainController(actuator)               # keeps its copy of the packets it sent
     return nc.Loop(
