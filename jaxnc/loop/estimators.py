@@ -63,7 +63,9 @@ class WeightedEstimate(NamedTuple):
 
 def period_means(estimator, state: EKFState):
     """float[N, n]: the means after each fast period of the last prediction of an
-    ``EKF(keep_means=True)`` (a :class:`jaxnc.loop.Record` function of the estimator)."""
+    ``EKF(keep_means=True)`` (a :class:`jaxnc.loop.Record` function of the estimator): after
+    slow period k, entry j is the predicted mean of the state at fast instant kN + j + 1
+    (recorded over a run: [steps / N, N, n], flattened it lags ``Trajectory.x`` by one)."""
     return state.means
 
 
