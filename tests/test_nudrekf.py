@@ -14,7 +14,7 @@ from jaxnc import loop as nc
 from jaxnc.controllers.path_following import PathFollower
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update
 from jaxnc.controllers.prediction import advance_chain, exhausted_chain, predict_periods, start_chain
-from jaxnc.estimators.nudrekf import ChainActuator, ChainController
+from jaxnc.loop import ChainActuator, ChainController
 from jaxnc.paths import get_path
 from jaxnc.plants.mecanum import PROCESS_NOISE_DIM, Mecanum
 

@@ -35,6 +35,7 @@ from jaxnc.loop.multirate import AbstractLiftedPlant, PeriodEKF
 from jaxnc.loop.vehicles import DiffDrive, lifted_wheel_var
 from jaxnc.loop.pursuit import PursuitPI, PursuitState
 from jaxnc.loop.arrival import ArrivalActuator, ArrivalState
+from jaxnc.loop.chains import ChainActuator, ChainActuatorState, ChainController, ChainCopy, ChainPacket
 
 __all__ = [
     "Loop", "Record", "simulate", "run", "run_seed", "evaluate", "live_periods", "draw", "Draws", "Trajectory", "Metrics", "Monitor",
@@ -63,6 +64,7 @@ __all__ = [
     "DiffDrive", "lifted_wheel_var",
     "PursuitPI", "PursuitState",
     "ArrivalActuator", "ArrivalState",
+    "ChainActuator", "ChainActuatorState", "ChainController", "ChainCopy", "ChainPacket",
     "DirtyDerivative", "DirtyDerivativeState",
     "ArrivalHold",
     "LeadFeedback",

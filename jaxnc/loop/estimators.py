@@ -55,7 +55,7 @@ class WeightedEstimate(NamedTuple):
     ``mean`` float[n] is the posterior mean had the measurement of now been used (computed
     whether or not one arrived); ``weight`` the 0/1 float "the measurement of now arrived and
     was used" (with the trigger's gradient). A controller that acts only on a new measurement
-    (seed 000's :class:`~jaxnc.estimators.nudrekf.ChainController`) blends by it."""
+    (seed 000's :class:`~jaxnc.loop.ChainController`) blends by it."""
 
     mean: jax.Array
     weight: jax.Array

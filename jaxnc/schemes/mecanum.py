@@ -5,10 +5,10 @@
 :class:`~jaxnc.plants.mecanum_mjx.MjxMecanum`), the sensor's PETC (:class:`~jaxnc.loop.Petc`,
 eq. 3-4), an uplink with Bernoulli(p_sc) losses (eq. 5), the remote NUDREKF (a
 :class:`~jaxnc.loop.EKF`, eq. 11-16) and controller
-(:class:`~jaxnc.estimators.nudrekf.ChainController`, section 3.3.1), a downlink with
+(:class:`~jaxnc.loop.ChainController`, section 3.3.1), a downlink with
 Bernoulli(p_ca) losses and the lumped round-trip delay (:class:`~jaxnc.loop.RoundTrip`,
 eq. 6-7; packets later than tau_max, default NT, discarded, so never out of order), the
-actuator (:class:`~jaxnc.estimators.nudrekf.ChainActuator`, section 2.4: packets are
+actuator (:class:`~jaxnc.loop.ChainActuator`, section 2.4: packets are
 prediction chains of h*N actions, the last held beyond) and the path tube
 (:class:`~jaxnc.loop.PathMonitor`). The first exchange of both links is delivered.
 
@@ -39,7 +39,6 @@ import numpy as np
 from jaxnc import loop as nc
 from jaxnc._validate import check_choice, check_int, check_range
 from jaxnc.controllers.path_following import PathFollower
-from jaxnc.estimators.nudrekf import ChainActuator, ChainController
 from jaxnc.estimators.sparsity import EKFStructure, detect_structure
 from jaxnc.metrics import J1, J2
 from jaxnc.paths import Path, get_path
@@ -163,8 +162,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
                        np.diag(np.square(np.asarray(P0_STD, np.float32))), form="sequential", weight="slot",
                        output="weighted", keep_means=True, jacobian_grad=bool(jacobian_grad),
                        structure=ekf_structure(plant) if sparse else None)
-    actuator = ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
-    controller = ChainController(actuator)               # keeps its copy of the packets it sent
+    actuator = nc.ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
+    controller = nc.ChainController(actuator)            # keeps its copy of the packets it sent
     return nc.Loop(
         plant=robot,
         trigger=nc.Petc(sigma=thresholds["sigma"], delta=thresholds["delta"], temperature=trigger_temperature,
