@@ -343,3 +343,35 @@ def test_weighted_output_is_the_corrected_mean_and_the_packets_weight():
         used = w if arrived else 0.0
         assert float(out.weight) == used
         np.testing.assert_allclose(s1.post.mean, ref.mean if used else st.post.mean, rtol=1e-5, atol=1e-6)
+
+
+def test_slot_weight_makes_a_relaxed_petc_loop_smooth_and_its_exact_gradient_match_differences():
+    # A relaxed PETC's link sends only where beta > 1/2, so with weight="stamp" the filter's
+    # weight jumps 0 -> 1/2 where a beta crosses 1/2 and the exact gradient misses the jumps; with
+    # weight="slot" the filter blends by beta at every instant (no delay on the uplink), the
+    # objective is smooth and the exact gradient equals central differences (float32: the
+    # differences' rounding is ~1e-7 * cost / step, 1e-6 of the derivative here)
+    T = 0.02
+
+    def f(x, u, w):
+        return jnp.stack([x[0] + T * x[1], x[1] + T * (-9.81 * jnp.sin(x[0]) - 0.2 * x[1] + u[0]) + w[0]])
+
+    pend = nc.Discrete(x0=[0.3, 0.0], x0_std=[0.05, 0.05], w_std=[0.02], v_std=[0.01, 0.05], f=f,
+                       h=lambda x, v: x + v, input_dim=1, noise_dim=1, output_dim=2)
+    keys = jax.random.split(jax.random.PRNGKey(1), 64)
+    ekf = nc.EKF(pend, Q=[0.02 ** 2], R=[0.01 ** 2, 0.05 ** 2], mean0=[0.3, 0.0], cov0=0.01 * np.eye(2),
+                 form="sequential", weight="slot")
+
+    def cost(d):
+        lp = nc.Loop(plant=pend, trigger=nc.Petc(delta=d, temperature=0.02, relaxed=True),
+                     uplink=nc.Link(nc.Bernoulli(0.2)), estimator=ekf, controller=nc.StateFeedback([[8.0, 2.0]]),
+                     downlink=nc.Link(), actuator=nc.HoldLast(), N=4, steps=120, T=T, record=nc.Record(signals=("x",)))
+        return jnp.mean(jnp.square(jax.vmap(lambda k: nc.simulate(lp, k).x)(keys)))
+
+    c, g = jax.jit(cost), jax.jit(jax.grad(cost))
+    d0, e = jnp.float32(0.025), 2e-3
+    vals = np.array([float(c(jnp.float32(d))) for d in np.linspace(0.02, 0.03, 11)])
+    d2, d3 = np.abs(np.diff(vals, 2)), np.abs(np.diff(vals, 3))
+    assert d3.max() < 0.2 * d2.max(), (d2, d3)      # the curvature varies smoothly: no jumps
+    fd = (float(c(d0 + e)) - float(c(d0 - e))) / (2 * e)
+    assert abs(float(g(d0)) - fd) <= 0.01 * abs(fd), (float(g(d0)), fd)
