@@ -134,6 +134,16 @@ class Inbox(NamedTuple):
         ok = (self.stamp[slot] == stamp) & self.arrived[slot] & (stamp >= 0)
         return jax.tree.map(lambda a: a[slot], self.data), jnp.where(ok, self.weight[slot], 0.0)
 
+    def slot(self, k):
+        """(data, weight) of slot k mod C, where the sender put its packet of slot instant k:
+        the slot's weight (a silent instant's is 0 but carries the send decision's gradient,
+        a relaxed trigger's β unsent), 0 for a packet sent and not arrived yet. Equal to
+        :meth:`packet` ``(k, kN)`` in value whenever the slot holds instant k's packet and the
+        decision is hard."""
+        i = jnp.mod(k, self.stamp.shape[0])
+        late = (self.stamp[i] >= 0) & ~self.arrived[i]
+        return jax.tree.map(lambda a: a[i], self.data), jnp.where(late, 0.0, self.weight[i])
+
     def newest(self):
         """(data, stamp, weight) of the newest delivered packet by time stamp; weight 0 when
         nothing was delivered."""

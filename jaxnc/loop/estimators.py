@@ -311,12 +311,7 @@ class EKF(AbstractEstimator):
         """Correct with the measurement of slow instant s (stamp sN), if it has arrived.
         Returns (the posterior, the corrected Gaussian had the measurement been used, its
         weight)."""
-        if self.weight == "slot":        # slot s mod C: the weight, unless sent and not delivered yet
-            slot = jnp.mod(s, inbox.stamp.shape[0])
-            late = (inbox.stamp[slot] >= 0) & ~inbox.arrived[slot]
-            z, w = jax.tree.map(lambda a: a[slot], inbox.data), jnp.where(late, 0.0, inbox.weight[slot])
-        else:
-            z, w = inbox.packet(s, s * N)
+        z, w = inbox.slot(s) if self.weight == "slot" else inbox.packet(s, s * N)
         p = self.model.output_dim
         if self.form == "unscented":
             post = ukf_update(self.model.measure, g, z, self.R, p, **self._sigma())
