@@ -226,6 +226,9 @@ PYTHON_API = [
     (lambda: dlqe(np.eye(2) * 0.9, np.eye(2), np.eye(2), np.eye(2), [[1.0, 0.5], [-0.5, 1.0]]), "dlqe: R must be symmetric"),
     (lambda: nc.SteadyStateKF(_PLANT_DETECTABLE, Q=[[1.0, 0.5], [-0.5, 1.0]], R=np.eye(1)),
      "SteadyStateKF.Q must be symmetric"),
+    (lambda: nc.SteadyStateKF(_PLANT_DETECTABLE, Q=np.eye(2), R=np.eye(1), weight="newest"),
+     "SteadyStateKF.weight must be one of stamp, slot"),
+    (lambda: nc.Luenberger(_PLANT_DETECTABLE, L=[[0.5], [0.1]], weight="all"), "Luenberger.weight must be one of stamp, slot"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), -np.ones(1), 1), "ekf_update_diag: r must be positive definite"),
     # the batched filter took a negative variance and returned a negative covariance (-0.67) without an error
     (lambda: ekf_filter(lambda x, u, w: x + w, lambda x, v: x + v, Gaussian(jnp.zeros((2, 1)), jnp.ones((2, 1, 1))),
@@ -492,7 +495,8 @@ EKF_ARGS = [
     (dict(jacobian_grad=1), "EKF.jacobian_grad must be True or False"),
     (dict(structure="sparse"), "EKF.structure must be None or an EKFStructure"),
     (dict(jacobian_grad=False), "EKF.structure and EKF.jacobian_grad=False need form='sequential'"),
-    (dict(weight="slot", buffer=1), "need buffer=0 (one measurement per instant), got buffer=1"),
+    (dict(weight="slot", buffer=1), "EKF.weight='slot' needs buffer=0 (one measurement per instant), got buffer=1"),
+    (dict(output="weighted", buffer=1), "EKF.output='weighted' and keep_means=True need buffer=0"),
     (dict(form="sequential", R=[0.0]), "EKF.R's variances must be > 0"),
     (dict(form="sequential", R=[1.0, 1.0]), "EKF.R must be 1x1 (the model's output_dim) or a vector of 1 variances"),
 ]

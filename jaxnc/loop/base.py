@@ -144,12 +144,27 @@ class Inbox(NamedTuple):
         late = (self.stamp[i] >= 0) & ~self.arrived[i]
         return jax.tree.map(lambda a: a[i], self.data), jnp.where(late, 0.0, self.weight[i])
 
+    def measurement(self, k, stamp, weight: str = "stamp"):
+        """An estimator's read of slow instant k: :meth:`packet` ``(k, stamp)`` for ``weight``
+        ``"stamp"``, :meth:`slot` ``(k)`` for ``"slot"`` (the estimators' ``weight`` option,
+        :func:`check_weight`)."""
+        return self.slot(k) if weight == "slot" else self.packet(k, stamp)
+
     def newest(self):
         """(data, stamp, weight) of the newest delivered packet by time stamp; weight 0 when
         nothing was delivered."""
         key = jnp.where(self.new > 0, self.stamp, -(2**30))
         i = jnp.argmax(key)
         return jax.tree.map(lambda a: a[i], self.data), self.stamp[i], self.new[i]
+
+
+def check_weight(owner: str, weight, buffer: int = 0) -> None:
+    """ValueError unless an estimator's ``weight`` option is ``"stamp"`` or ``"slot"``
+    (:meth:`Inbox.measurement`); ``"slot"`` reads one instant's slot, so it needs ``buffer=0``."""
+    if weight not in ("stamp", "slot"):
+        raise ValueError(f"{owner}.weight must be one of stamp, slot, got {weight!r}")
+    if weight == "slot" and buffer:
+        raise ValueError(f"{owner}.weight='slot' needs buffer=0 (one measurement per instant), got buffer={buffer}")
 
 
 def blend(w, new, old):

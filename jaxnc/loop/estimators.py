@@ -31,7 +31,7 @@ from jaxnc.estimators.ekf import (Gaussian, SqrtGaussian, ekf_predict, ekf_predi
                                   ekf_update_sqrt)
 from jaxnc.estimators.sparsity import EKFStructure
 from jaxnc.estimators.ukf import ukf_predict, ukf_update
-from jaxnc.loop.base import AbstractEstimator, AbstractLiftedPlant, AbstractPlant, Inbox, blend
+from jaxnc.loop.base import AbstractEstimator, AbstractLiftedPlant, AbstractPlant, Inbox, blend, check_weight
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
@@ -180,8 +180,7 @@ class EKF(AbstractEstimator):
             raise ValueError(f"EKF.inputs must be one of believed, applied, got {self.inputs!r}")
         if self.form not in ("joseph", "sqrt", "unscented", "sequential"):
             raise ValueError(f"EKF.form must be one of joseph, sqrt, unscented, sequential, got {self.form!r}")
-        if self.weight not in ("stamp", "slot"):
-            raise ValueError(f"EKF.weight must be one of stamp, slot, got {self.weight!r}")
+        check_weight("EKF", self.weight, self.buffer)
         if self.output not in ("mean", "weighted"):
             raise ValueError(f"EKF.output must be one of mean, weighted, got {self.output!r}")
         for name in ("jacobian_grad", "keep_means"):
@@ -192,9 +191,9 @@ class EKF(AbstractEstimator):
                              f"detect_structure), got {type(self.structure).__name__}")
         if (self.structure is not None or not self.jacobian_grad) and self.form != "sequential":
             raise ValueError(f"EKF.structure and EKF.jacobian_grad=False need form='sequential', got form={self.form!r}")
-        if self.buffer and (self.weight, self.output, self.keep_means) != ("stamp", "mean", False):
-            raise ValueError(f"EKF.weight='slot', output='weighted' and keep_means=True need buffer=0 (one "
-                             f"measurement per instant), got buffer={self.buffer}")
+        if self.buffer and (self.output, self.keep_means) != ("mean", False):
+            raise ValueError(f"EKF.output='weighted' and keep_means=True need buffer=0 (one measurement per "
+                             f"instant), got buffer={self.buffer}")
         if self.keep_means and self.rate != "fast":
             raise ValueError("EKF.keep_means=True needs rate='fast' (the means after each fast period)")
         sp = self.sigma_points
@@ -311,7 +310,7 @@ class EKF(AbstractEstimator):
         """Correct with the measurement of slow instant s (stamp sN), if it has arrived.
         Returns (the posterior, the corrected Gaussian had the measurement been used, its
         weight)."""
-        z, w = inbox.slot(s) if self.weight == "slot" else inbox.packet(s, s * N)
+        z, w = inbox.measurement(s, s * N, self.weight)
         p = self.model.output_dim
         if self.form == "unscented":
             post = ukf_update(self.model.measure, g, z, self.R, p, **self._sigma())

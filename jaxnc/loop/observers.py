@@ -42,7 +42,7 @@ from jaxnc._validate import (array_fields, check_finite, check_given, check_inst
                              fields_concrete, psd_rounding)
 from jaxnc.estimators.ekf import Gaussian
 from jaxnc.estimators.steady_state import _SCHUR_MARGIN, dlqe, luenberger_step
-from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend
+from jaxnc.loop.base import AbstractEstimator, AbstractPlant, Inbox, blend, check_weight
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.estimators import EKF
@@ -122,9 +122,12 @@ class Luenberger(AbstractEstimator):
         for N = 1, of (A, C)).
       mean0: float[n], x̂_0 (default 0).
       inputs: static, ``"believed"`` (the controller's own packets) or ``"applied"``.
+      weight: static, ``"stamp"`` or ``"slot"``: how a measurement is weighed, as
+        :class:`~jaxnc.loop.EKF`'s ``weight`` (``"slot"``: the trigger's gradient also where
+        the sensor is silent; a relaxed trigger's β everywhere).
 
     Raises: ValueError naming the field for a model that is not an LTI, a non-finite or
-    mis-shaped L or mean0, or an unknown ``inputs``.
+    mis-shaped L or mean0, or an unknown ``inputs`` or ``weight``.
     """
 
     by_stamp = True
@@ -133,9 +136,11 @@ class Luenberger(AbstractEstimator):
     L: Any
     mean0: Any = None
     inputs: str = _static("believed")
+    weight: str = _static("stamp")
 
     def __post_init__(self):
         _check_linear("Luenberger", self)
+        check_weight("Luenberger", self.weight)
         n, p = self.model.state_dim, self.model.output_dim
         check_given("Luenberger.L", self.L, "a gain matrix (n x p)")
         check_finite("Luenberger.L", self.L)
@@ -164,7 +169,7 @@ class Luenberger(AbstractEstimator):
         return LuenbergerState(x, jnp.asarray(self.model.C, jnp.float32) @ x, jnp.zeros((), jnp.int32))
 
     def correct(self, state: LuenbergerState, inbox: Inbox, k):
-        z, gamma = inbox.packet(k, state.t)
+        z, gamma = inbox.measurement(k, state.t, self.weight)
         z = blend(gamma, jnp.asarray(z, jnp.float32), jnp.asarray(self.model.C, jnp.float32) @ state.xhat)
         return state._replace(z=z), state.xhat
 
@@ -218,8 +223,9 @@ class SteadyStateKF(AbstractEstimator):
       R: float[p, p], covariance of v.
       mean0: float[n], the prior mean at k = 0 (default 0).
       inputs: static, ``"believed"`` or ``"applied"``.
+      weight: static, ``"stamp"`` or ``"slot"``, as :class:`~jaxnc.loop.EKF`'s.
 
-    Raises: ValueError naming the field for a loop's N that is not a multiple of the model's
+    Raises: ValueError naming the field for an unknown ``weight``, a loop's N that is not a multiple of the model's
     ``noise_period``, a model that is not an LTI, Q, R of the wrong
     shape, Q not PSD or R not PD, a mis-shaped mean0, or no stabilising Riccati solution
     (from :func:`~jaxnc.estimators.steady_state.dlqe`; checked at N = 1 when built and at
@@ -233,9 +239,11 @@ class SteadyStateKF(AbstractEstimator):
     R: Any
     mean0: Any = None
     inputs: str = _static("believed")
+    weight: str = _static("stamp")
 
     def __post_init__(self):
         _check_linear("SteadyStateKF", self)
+        check_weight("SteadyStateKF", self.weight)
         n = self.model.state_dim
         array_fields(self, "Q", "R", "mean0")
         _check_covariances("SteadyStateKF", self.model, self.Q, self.R)
@@ -265,7 +273,7 @@ class SteadyStateKF(AbstractEstimator):
                                   jnp.zeros((), jnp.int32))
 
     def correct(self, state: SteadyStateKFState, inbox: Inbox, k):
-        z, gamma = inbox.packet(k, state.t)
+        z, gamma = inbox.measurement(k, state.t, self.weight)
         C = jnp.asarray(self.model.C, jnp.float32)
         post = state.mean + gamma * (state.gain @ (jnp.asarray(z, jnp.float32) - C @ state.mean))
         return state._replace(mean=post), post
