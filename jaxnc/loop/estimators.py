@@ -118,9 +118,10 @@ class EKF(AbstractEstimator):
         Kalman filter: :func:`~jaxnc.estimators.ukf.ukf_predict` and
         :func:`~jaxnc.estimators.ukf.ukf_update` with Merwe's sigma points, the same window
         of late measurements; :func:`jaxnc.loop.UKF` builds it) or ``"sequential"`` (the
-        Joseph-form prediction, and the correction processed one scalar measurement at a time (:func:`~jaxnc.estimators.ekf.ekf_update_diag`; the same
-        posterior in exact arithmetic, no factorisation): R must be diagonal (a vector of p
-        variances or a diagonal matrix); the form of seed 000's NUDREKF).
+        Joseph-form prediction, and the correction processed one scalar measurement at a
+        time, :func:`~jaxnc.estimators.ekf.ekf_update_diag`: the same posterior in exact
+        arithmetic, no factorisation; R must be diagonal, a vector of p variances or a
+        diagonal matrix; the form of seed 000's NUDREKF).
       sigma_points: static (alpha, beta, kappa) of the unscented form's sigma points.
       rate: static, ``"fast"`` (predict every fast period with the model's ``dynamics``) or
         ``"slow"`` (once per slow period with its lifted ``period(x, us, w)``: the model must
@@ -327,8 +328,8 @@ class EKF(AbstractEstimator):
         at each instant whose measurement has arrived, then correct at k.
 
         Returns (the state with the posterior at k and the next window's base, the
-        posterior mean float[n], or with ``output="weighted"`` a :class:`WeightedEstimate`). The window is a ``lax.scan`` over its D instants, not D
-        unrolled copies (docs/design_notes.md, "The buffered EKF's window as a scan")."""
+        posterior mean float[n], or with ``output="weighted"`` a :class:`WeightedEstimate`).
+        The window is a ``lax.scan`` over its D instants, not D unrolled copies (docs/design_notes.md, "The buffered EKF's window as a scan")."""
         N = state.u.shape[1]                             # fast periods per slow period
         D = self.buffer
 
