@@ -15,12 +15,17 @@ from jaxnc.schemes import mecanum as mec
 lp = mec.mecanum_loop("DRHE", 10, 0.3, trigger_temperature=1e-2)
 keys = jax.random.split(jax.random.PRNGKey(3), 64)
 def f(sd):
-    l = dataclasses.replace(lp, trigger=dataclasses.replace(lp.trigger, sigma=sd[0] * jnp.ones(9), delta=sd[1] * jnp.ones(9)))
+    trig = dataclasses.replace(lp.trigger, sigma=sd[0] * jnp.ones(9), delta=sd[1] * jnp.ones(9))
+    l = dataclasses.replace(lp, trigger=trig)
     return jnp.mean(jax.vmap(lambda k: mec.tracking_cost(l, k))(keys))
 x = jnp.array([1e-3, 1e-2], jnp.float32)
 c0 = time.process_time(); fg = jax.jit(jax.value_and_grad(f)).lower(x).compile(); cg = time.process_time() - c0
 c0 = time.process_time(); ff = jax.jit(f).lower(x).compile(); cf = time.process_time() - c0
 best = {}
 for name, p in (("fwd", ff), ("grad", fg), ("grad", fg), ("fwd", ff)) * 2:
-    jax.block_until_ready(p(x)); c0 = time.process_time(); jax.block_until_ready(p(x)); best[name] = min(best.get(name, 9e9), time.process_time() - c0)
-print(tree, f"compile fwd {cf:.1f} grad {cg:.1f}  run fwd {best['fwd']:.3f} grad {best['grad']:.3f} ratio {best['grad']/best['fwd']:.2f}")
+    jax.block_until_ready(p(x))
+    c0 = time.process_time()
+    jax.block_until_ready(p(x))
+    best[name] = min(best.get(name, 9e9), time.process_time() - c0)
+print(tree, f"compile fwd {cf:.1f} grad {cg:.1f}  run fwd {best['fwd']:.3f} grad {best['grad']:.3f} "
+      f"ratio {best['grad'] / best['fwd']:.2f}")

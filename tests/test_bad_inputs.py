@@ -228,7 +228,8 @@ PYTHON_API = [
      "SteadyStateKF.Q must be symmetric"),
     (lambda: nc.SteadyStateKF(_PLANT_DETECTABLE, Q=np.eye(2), R=np.eye(1), weight="newest"),
      "SteadyStateKF.weight must be one of stamp, slot"),
-    (lambda: nc.Luenberger(_PLANT_DETECTABLE, L=[[0.5], [0.1]], weight="all"), "Luenberger.weight must be one of stamp, slot"),
+    (lambda: nc.Luenberger(_PLANT_DETECTABLE, L=[[0.5], [0.1]], weight="all"),
+     "Luenberger.weight must be one of stamp, slot"),
     (lambda: ekf_update_diag(_H, _G, jnp.zeros(1), -np.ones(1), 1), "ekf_update_diag: r must be positive definite"),
     # the batched filter took a negative variance and returned a negative covariance (-0.67) without an error
     (lambda: ekf_filter(lambda x, u, w: x + w, lambda x, v: x + v, Gaussian(jnp.zeros((2, 1)), jnp.ones((2, 1, 1))),

@@ -289,7 +289,8 @@ def _ekf2(plant, **kw):
 def _loop2(estimator, trigger=None, steps=60):
     return nc.Loop(plant=estimator.model, trigger=trigger or nc.Periodic(), uplink=nc.Link(nc.Bernoulli(0.3)),
                    estimator=estimator, controller=nc.StateFeedback([[2.0, 1.0]]), downlink=nc.Link(),
-                   actuator=nc.HoldLast(), N=2, steps=steps, T=0.1, record=nc.Record(signals=("x", "u", "xhat", "sent_sc")))
+                   actuator=nc.HoldLast(), N=2, steps=steps, T=0.1,
+                   record=nc.Record(signals=("x", "u", "xhat", "sent_sc")))
 
 
 def test_sequential_form_is_the_joseph_form_up_to_rounding():
@@ -383,8 +384,10 @@ def test_slot_weight_of_the_linear_observers_makes_a_relaxed_petc_loop_smooth(ma
     # temperature of 0.1 (at 0.02 this 80-step loop's relaxed objective varies faster than differences
     # of 1e-3 resolve, with or without the slot: exact 10.3 against 0.35-0.71)
     plant = nc.LTI(_A2, _B2, _C2, x0=[1.0, -0.5], x0_std=[0.3, 0.3], w_std=[0.05, 0.05], v_std=[0.1, 0.2], T=0.1)
-    est = (nc.SteadyStateKF(plant, Q=[0.05 ** 2] * 2, R=np.diag([0.1 ** 2, 0.2 ** 2]), mean0=[1.0, -0.5], weight="slot")
-           if make == "SteadyStateKF" else nc.Luenberger(plant, L=[[0.5, 0.0], [0.0, 0.3]], mean0=[1.0, -0.5], weight="slot"))
+    if make == "SteadyStateKF":
+        est = nc.SteadyStateKF(plant, Q=[0.05 ** 2] * 2, R=np.diag([0.1 ** 2, 0.2 ** 2]), mean0=[1.0, -0.5], weight="slot")
+    else:
+        est = nc.Luenberger(plant, L=[[0.5, 0.0], [0.0, 0.3]], mean0=[1.0, -0.5], weight="slot")
     keys = jax.random.split(jax.random.PRNGKey(2), 64)
 
     def cost(d):

@@ -191,7 +191,8 @@ class EKF(AbstractEstimator):
             raise ValueError(f"EKF.structure must be None or an EKFStructure (jaxnc.estimators.sparsity."
                              f"detect_structure), got {type(self.structure).__name__}")
         if (self.structure is not None or not self.jacobian_grad) and self.form != "sequential":
-            raise ValueError(f"EKF.structure and EKF.jacobian_grad=False need form='sequential', got form={self.form!r}")
+            raise ValueError(f"EKF.structure and EKF.jacobian_grad=False need form='sequential', "
+                             f"got form={self.form!r}")
         if self.buffer and (self.output, self.keep_means) != ("mean", False):
             raise ValueError(f"EKF.output='weighted' and keep_means=True need buffer=0 (one measurement per "
                              f"instant), got buffer={self.buffer}")
@@ -329,7 +330,8 @@ class EKF(AbstractEstimator):
 
         Returns (the state with the posterior at k and the next window's base, the
         posterior mean float[n], or with ``output="weighted"`` a :class:`WeightedEstimate`).
-        The window is a ``lax.scan`` over its D instants, not D unrolled copies (docs/design_notes.md, "The buffered EKF's window as a scan")."""
+        The window is a ``lax.scan`` over its D instants, not D unrolled copies
+        (docs/design_notes.md, "The buffered EKF's window as a scan")."""
         N = state.u.shape[1]                             # fast periods per slow period
         D = self.buffer
 
