@@ -496,7 +496,6 @@ EKF_ARGS = [
     (dict(jacobian_grad=1), "EKF.jacobian_grad must be True or False"),
     (dict(structure="sparse"), "EKF.structure must be None or an EKFStructure"),
     (dict(jacobian_grad=False), "EKF.structure and EKF.jacobian_grad=False need form='sequential'"),
-    (dict(weight="slot", buffer=1), "EKF.weight='slot' needs buffer=0 (one measurement per instant), got buffer=1"),
     (dict(output="weighted", buffer=1), "EKF.output='weighted' and keep_means=True need buffer=0"),
     (dict(form="sequential", R=[0.0]), "EKF.R's variances must be > 0"),
     (dict(form="sequential", R=[1.0, 1.0]), "EKF.R must be 1x1 (the model's output_dim) or a vector of 1 variances"),

@@ -158,13 +158,11 @@ class Inbox(NamedTuple):
         return jax.tree.map(lambda a: a[i], self.data), self.stamp[i], self.new[i]
 
 
-def check_weight(owner: str, weight, buffer: int = 0) -> None:
+def check_weight(owner: str, weight) -> None:
     """ValueError unless an estimator's ``weight`` option is ``"stamp"`` or ``"slot"``
-    (:meth:`Inbox.measurement`); ``"slot"`` reads one instant's slot, so it needs ``buffer=0``."""
+    (:meth:`Inbox.measurement`)."""
     if weight not in ("stamp", "slot"):
         raise ValueError(f"{owner}.weight must be one of stamp, slot, got {weight!r}")
-    if weight == "slot" and buffer:
-        raise ValueError(f"{owner}.weight='slot' needs buffer=0 (one measurement per instant), got buffer={buffer}")
 
 
 def blend(w, new, old):

@@ -137,8 +137,11 @@ class EKF(AbstractEstimator):
         the uplink's ring slot k mod C unless the packet there was sent and has not arrived:
         the same value with a hard trigger, and the trigger's gradient, straight-through or
         relaxed, also flows where the sensor stays silent; a relaxed trigger's β weighs the
-        correction also where β <= 1/2 and nothing is sent; ``buffer=0`` only). Seed 000's
-        NUDREKF uses ``"slot"``: tuning σ and δ by the straight-through gradient needs it.
+        correction also where β <= 1/2 and nothing is sent, at once, where a sent packet
+        waits for its delay). Seed 000's NUDREKF uses ``"slot"``: tuning σ and δ by the
+        straight-through gradient needs it. With ``buffer`` D the window's instants read
+        their slots too (the Loop sizes the ring to C > D, so slot s mod C still holds
+        instant s's packet).
       output: static, ``"mean"`` (the estimate is the posterior mean float[n]) or
         ``"weighted"`` (a :class:`WeightedEstimate`: the mean had the measurement of now been
         used, and its weight; ``buffer=0`` only).
@@ -181,7 +184,7 @@ class EKF(AbstractEstimator):
             raise ValueError(f"EKF.inputs must be one of believed, applied, got {self.inputs!r}")
         if self.form not in ("joseph", "sqrt", "unscented", "sequential"):
             raise ValueError(f"EKF.form must be one of joseph, sqrt, unscented, sequential, got {self.form!r}")
-        check_weight("EKF", self.weight, self.buffer)
+        check_weight("EKF", self.weight)
         if self.output not in ("mean", "weighted"):
             raise ValueError(f"EKF.output must be one of mean, weighted, got {self.output!r}")
         for name in ("jacobian_grad", "keep_means"):
