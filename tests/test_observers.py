@@ -285,11 +285,14 @@ def test_the_exact_gradient_through_an_ekf_with_late_measurements_equals_float64
     np.testing.assert_allclose(th0 * np.asarray(grad), th0 * fd, rtol=2e-5, atol=1e-6 * float(cost32))
 
 
-def test_a_relaxed_petc_sends_only_soft_decisions_above_one_half_and_its_gradient_is_exact_between_them():
+@pytest.mark.parametrize("weight", ["stamp", "slot"])
+def test_a_relaxed_petc_sends_only_soft_decisions_above_one_half_and_its_gradient_is_exact_between_them(weight):
     """docs/tuning.md, "Limitation": with `Petc(relaxed=True)` z̄ is blended by the soft decision
     β, and the link sends the packet, with weight β, only where β > 1/2. A SteadyStateKF servo
     over a 30 %-lossy uplink equals a NumPy loop written so (float64), and its gradient in δ and
-    K equals that loop's central differences (steps that move no β across 1/2)."""
+    K equals that loop's central differences (steps that move no β across 1/2). With
+    ``weight="slot"`` (the default) the filter blends by β also where β <= 1/2 (nothing sent):
+    the reference without the gate."""
     import control
     import scipy.linalg as sl
     from jaxnc import montecarlo
@@ -302,7 +305,7 @@ def test_a_relaxed_petc_sends_only_soft_decisions_above_one_half_and_its_gradien
 
     def loop_of(th):
         return nc.Loop(plant=plant, trigger=nc.Petc(delta=th[0], temperature=tau, relaxed=True),
-                       uplink=nc.Link(nc.Bernoulli(0.3)), estimator=nc.SteadyStateKF(plant, Q=Q, R=[[R]]),
+                       uplink=nc.Link(nc.Bernoulli(0.3)), estimator=nc.SteadyStateKF(plant, Q=Q, R=[[R]], weight=weight),
                        controller=nc.StateFeedback(jnp.reshape(th[1:], (1, 3))), downlink=nc.Link(),
                        actuator=nc.HoldLast(), cost=nc.Quadratic(Q=[1.0, 0.1, 0.0], R=[0.01]), T=T, N=N, steps=steps)
 
@@ -330,7 +333,8 @@ def test_a_relaxed_petc_sends_only_soft_decisions_above_one_half_and_its_gradien
                 beta = 1.0 if k == 0 else 1.0 / (1.0 + np.exp(-((zbar - z) ** 2 - delta) / tau))
                 gates_here.append((beta > 0.5, 0.01 < beta < 0.99))
                 zbar = beta * z + (1 - beta) * zbar
-                xh = xh + (beta * M * (z - xh[0]) if beta > 0.5 and arrived[s, k] else 0.0)
+                gate = beta > 0.5 if weight == "stamp" else True
+                xh = xh + (beta * M * (z - xh[0]) if gate and arrived[s, k] else 0.0)
                 u = -K @ xh
                 for j in range(N):
                     total += x[0] ** 2 + 0.1 * x[1] ** 2 + 0.01 * u ** 2

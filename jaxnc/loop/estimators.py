@@ -164,7 +164,7 @@ class EKF(AbstractEstimator):
     rate: str = _static("fast")
     structure: Any = _static(None)
     jacobian_grad: bool = _static(True)
-    weight: str = _static("stamp")
+    weight: str = _static("slot")
     output: str = _static("mean")
     keep_means: bool = _static(False)
 

@@ -136,7 +136,7 @@ class Luenberger(AbstractEstimator):
     L: Any
     mean0: Any = None
     inputs: str = _static("believed")
-    weight: str = _static("stamp")
+    weight: str = _static("slot")
 
     def __post_init__(self):
         _check_linear("Luenberger", self)
@@ -239,7 +239,7 @@ class SteadyStateKF(AbstractEstimator):
     R: Any
     mean0: Any = None
     inputs: str = _static("believed")
-    weight: str = _static("stamp")
+    weight: str = _static("slot")
 
     def __post_init__(self):
         _check_linear("SteadyStateKF", self)
