@@ -34,7 +34,8 @@ from jaxnc import montecarlo  # noqa: E402
 
 def loops():
     """name -> (per-seed function (key, loop), loop, steps)."""
-    from experiments.mecanum import run_seed, uniform_dtypes
+    from experiments.mecanum import run_seed
+    from jaxnc.montecarlo import uniform_dtypes
     from jaxnc.schemes import mecanum as mec
     out = {}
     for N in (10, 1):
