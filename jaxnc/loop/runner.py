@@ -777,17 +777,16 @@ def _half_normal(key, size: int):
     return jax.lax.erf_inv(jax.random.uniform(key, (size,), jnp.float32, lo, np.float32(1.0)))
 
 
-def _scaled_noise(plant, zw, zv, t0, N: int):
-    """(w float[N, q], v float[M p] flat): the standard normals ``zw`` float[N q] of the N fast
-    periods from instant ``t0`` and ``zv`` float[M p] (M slow instants) times the plant's
-    standard deviations, w zero where the noise does not enter (``noise_period``)."""
-    q = plant.noise_dim
+def _scaled_noise(plant, zw, zv, t0, N: int, M: int):
+    """(w float[N, q], v float[M p] flat): ``zw`` float[N q] of the N fast periods from instant
+    ``t0`` and ``zv`` float[M p] of M slow instants (:func:`_half_normal`) times sqrt(2) and the
+    plant's standard deviations, w zero where the noise does not enter (``noise_period``)."""
     w_std, v_std = (jnp.asarray(a, jnp.float32) * _SQRT2 for a in (plant.w_std, plant.v_std))
-    w = (zw * jnp.tile(w_std, zw.shape[0] // q)).reshape(-1, q)
+    w = (zw * jnp.tile(w_std, N)).reshape(N, plant.noise_dim)
     if plant.noise_period != 1:
         t = t0 + jnp.arange(N)
         w = jnp.where((t % plant.noise_period == 0)[:, None], w, 0.0)
-    v = zv * jnp.tile(v_std, zv.shape[0] // v_std.shape[0])
+    v = zv * jnp.tile(v_std, M)
     # each product rounded before a plant adds it (no fused multiply-add) or scales it again (no
     # constants merged), as when the noise was read from memory: the select is the identity,
     # but XLA:CPU neither contracts nor reassociates across it
@@ -807,7 +806,7 @@ def draw(loop: Loop, key) -> Draws:
     One compiled program when called on concrete values (:func:`jit_when_eager`)."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
     raw = _normals(loop, key)
-    w, v = _scaled_noise(p, raw.w, raw.v, jnp.int32(0), S * N)
+    w, v = _scaled_noise(p, raw.w, raw.v, jnp.int32(0), S * N, S)
     return Draws(w.reshape(S, N, p.noise_dim), v.reshape(S, p.output_dim), raw.uplink, raw.downlink, raw.init_key)
 
 
@@ -917,7 +916,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         k, w_k, v_k, d_up, d_down = inp
         if draws is None:
             w_k, v_k = _scaled_noise(plant, jax.lax.dynamic_slice_in_dim(d.w, k * (N * plant.noise_dim), N * plant.noise_dim),
-                                     jax.lax.dynamic_slice_in_dim(d.v, k * plant.output_dim, plant.output_dim), k * N, N)
+                                     jax.lax.dynamic_slice_in_dim(d.v, k * plant.output_dim, plant.output_dim), k * N, N, 1)
         t0 = k * N
         # 1-2. sensor and trigger
         z = plant.measure(c.x, v_k)
