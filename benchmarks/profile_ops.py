@@ -34,7 +34,8 @@ from jaxnc import montecarlo  # noqa: E402
 
 def loops():
     """name -> (per-seed function (key, loop), loop, steps)."""
-    from experiments.mecanum import run_seed, uniform_dtypes
+    from experiments.mecanum import run_seed
+    from jaxnc.montecarlo import uniform_dtypes
     from jaxnc.schemes import mecanum as mec
     out = {}
     for N in (10, 1):
@@ -185,6 +186,12 @@ def main():
         by_src[idx[k][1]] += v
     print(f"\nby source line (innermost frame < the runner's line):")
     for k, v in by_src.most_common(a.top):
+        print(f"  {v / 1e9:7.3f} s {100 * v / total:5.1f} %  {k}")
+    by_file = collections.Counter()
+    for k, v in known.items():
+        by_file[idx[k][1].split(":")[0] or "(no source)"] += v
+    print("\nby source file (innermost frame):")
+    for k, v in by_file.most_common():
         print(f"  {v / 1e9:7.3f} s {100 * v / total:5.1f} %  {k}")
     other = {k: v for k, v in dur.items() if k not in idx}
     print("\nother events:", ", ".join(f"{k[:50]} {v / 1e9:.3f} s" for k, v in collections.Counter(other).most_common(6)))

@@ -479,6 +479,29 @@ def test_run_applies_a_metrics_function_and_every_scheme_run_is_it():
         assert scheme.run.args == () and scheme.run.keywords == {"metrics": scheme.metrics}
 
 
+@pytest.mark.parametrize("which", ["lti", "mecanum", "diffdrive"])
+def test_a_run_is_the_run_given_its_own_draws_bit_for_bit(which):
+    """simulate(loop, key) slices the flat standard draws per slow period and scales them there
+    (the runner's fast path); simulate(loop, key, draw(loop, key)) reads the scaled draws: the
+    same trajectory bit for bit, under jit and vmap as the Monte-Carlo engine runs it; the
+    differential drive's noise enters every ``noise_period`` = 10 fast periods, the Mecanum
+    loop's plant noise has q = 7 entries (the draws the fast path is for), and the LTI loop's
+    noise is added to the state and the measurement (no fused multiply-add may take the
+    scaling's product)."""
+    from jaxnc.schemes import diffdrive, mecanum
+    loop = {"lti": lambda: _lti_loop(N=2, steps=40, uplink=nc.Link(nc.Bernoulli(0.3))),
+            "mecanum": lambda: mecanum.mecanum_loop("DRHE", 10, 0.5, horizon_s=8.0),
+            "diffdrive": lambda: diffdrive.diffdrive_loop("e", horizon_s=4.0)}[which]()
+    if which == "diffdrive":
+        assert loop.plant.noise_period > 1
+    keys = montecarlo.seed_keys(3, 16)
+    own = jax.jit(jax.vmap(lambda k, lp: nc.simulate(lp, k), in_axes=(0, None)))(keys, loop)
+    given = jax.jit(jax.vmap(lambda k, lp: nc.simulate(lp, k, nc.draw(lp, k)), in_axes=(0, None)))(keys, loop)
+    assert float(jnp.max(jnp.abs(nc.draw(loop, keys[0]).w))) > 0.0
+    for a, b in zip(jax.tree.leaves(own), jax.tree.leaves(given)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_remat_keeps_the_forward_run_and_the_gradient():
     """Loop(remat=True): the same run bit for bit, the same gradient up to rounding, and the
     slow period is a checkpoint in the program's jaxpr (one more than without it: the EKF's

@@ -737,6 +737,66 @@ class Draws(NamedTuple):
     init_key: jax.Array   # key for the plant's initial state
 
 
+class _Normals(NamedTuple):
+    """A run's draws with the plant's noise unscaled and flat (what :func:`simulate` slices per
+    slow period): ``w`` float[S N q] and ``v`` float[S p] in :class:`Draws`' row-major order,
+    the standard normals over sqrt(2) (:func:`_half_normal`); the links' draws and the initial
+    key as in Draws."""
+
+    w: jax.Array
+    v: jax.Array
+    uplink: LinkDraws
+    downlink: LinkDraws
+    init_key: jax.Array
+
+
+def _normals(loop: Loop, key) -> _Normals:
+    """:func:`draw`'s streams, the noise unscaled and flat: a draw with a long minor axis is one
+    vectorised loop on XLA:CPU, where [S, N, q] with a short q (7 for seed 000's robot) is a
+    scalar loop several times slower (benchmarks/RESULTS.md, helper dr)."""
+    S, N, p = loop.steps // loop.N, loop.N, loop.plant
+    # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
+    fast = unrolled(key)
+    ks = jax.vmap(lambda i: jax.random.fold_in(fast, i))(jnp.arange(len(STREAMS), dtype=jnp.uint32))
+    k = {name: ks[i] for i, name in enumerate(STREAMS)}
+    return _Normals(_half_normal(k["process"], S * N * p.noise_dim), _half_normal(k["measurement"], S * p.output_dim),
+                    draw_link(loop.uplink, k["uplink"], S, loop.T), draw_link(loop.downlink, k["downlink"], S, loop.T),
+                    _as_key_of(k["plant_init"], key))
+
+
+#: jax.random.normal's factor: normal = sqrt(2) erfinv(u), u uniform on (-1, 1)
+_SQRT2 = np.float32(np.sqrt(2))
+
+
+def _half_normal(key, size: int):
+    """float[size]: ``jax.random.normal(key, (size,)) / sqrt(2)``, i.e. erfinv(u) of its
+    uniform u (:data:`_SQRT2`); :func:`_scaled_noise` multiplies by sqrt(2) times the standard
+    deviation, what XLA:CPU makes of ``normal(...) * std`` (the constant moved onto the
+    smaller operand), so that the noise is the same bits as that product."""
+    lo = np.nextafter(np.float32(-1.0), np.float32(0.0))
+    return jax.lax.erf_inv(jax.random.uniform(key, (size,), jnp.float32, lo, np.float32(1.0)))
+
+
+def _scaled_noise(plant, zw, zv, t0, N: int, M: int):
+    """(w float[N, q], v float[M p] flat): ``zw`` float[N q] of the N fast periods from instant
+    ``t0`` and ``zv`` float[M p] of M slow instants (:func:`_half_normal`) times sqrt(2) and the
+    plant's standard deviations, w zero where the noise does not enter (``noise_period``)."""
+    w_std, v_std = (jnp.asarray(a, jnp.float32) * _SQRT2 for a in (plant.w_std, plant.v_std))
+    w = (zw * jnp.tile(w_std, N)).reshape(N, plant.noise_dim)
+    if plant.noise_period != 1:
+        t = t0 + jnp.arange(N)
+        w = jnp.where((t % plant.noise_period == 0)[:, None], w, 0.0)
+    v = zv * jnp.tile(v_std, M)
+    # each product rounded before a plant adds it (no fused multiply-add) or scales it again (no
+    # constants merged), as when the noise was read from memory: the select is the identity,
+    # but XLA:CPU neither contracts nor reassociates across it
+    return _rounded(w), _rounded(v)
+
+
+def _rounded(a):
+    return jnp.where(a != a, jnp.float32(np.nan), a)
+
+
 @jit_when_eager
 def draw(loop: Loop, key) -> Draws:
     """All of a run's random draws, one stream per purpose (:data:`STREAMS`). Every draw
@@ -745,18 +805,9 @@ def draw(loop: Loop, key) -> Draws:
     instead of a loop of several kernels); the plant's initial key keeps ``key``'s kind.
     One compiled program when called on concrete values (:func:`jit_when_eager`)."""
     S, N, p = loop.steps // loop.N, loop.N, loop.plant
-    # the streams' keys by one fold_in over their indices (one hash for all: the same keys)
-    fast = unrolled(key)
-    ks = jax.vmap(lambda i: jax.random.fold_in(fast, i))(jnp.arange(len(STREAMS), dtype=jnp.uint32))
-    k = {name: ks[i] for i, name in enumerate(STREAMS)}
-    w_std, v_std = jnp.asarray(p.w_std, jnp.float32), jnp.asarray(p.v_std, jnp.float32)
-    w = jax.random.normal(k["process"], (S, N, p.noise_dim), jnp.float32) * w_std[None, None, :]
-    if p.noise_period != 1:
-        t = np.arange(S * N).reshape(S, N)
-        w = jnp.where(jnp.asarray(t % p.noise_period == 0)[:, :, None], w, 0.0)
-    v = jax.random.normal(k["measurement"], (S, p.output_dim), jnp.float32) * v_std[None, :]
-    return Draws(w, v, draw_link(loop.uplink, k["uplink"], S, loop.T), draw_link(loop.downlink, k["downlink"], S, loop.T),
-                 _as_key_of(k["plant_init"], key))
+    raw = _normals(loop, key)
+    w, v = _scaled_noise(p, raw.w, raw.v, jnp.int32(0), S * N, S)
+    return Draws(w.reshape(S, N, p.noise_dim), v.reshape(S, p.output_dim), raw.uplink, raw.downlink, raw.init_key)
 
 
 def _as_key_of(k, like):
@@ -826,7 +877,10 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     actuator role fed the controller's packets at once."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
-    d = draw(loop, key) if draws is None else draws
+    # the noise of each slow period is sliced from the flat standard draws and scaled there: no
+    # [S, N, q] array with a short minor axis (a slow scalar loop), and the scan carries no
+    # cotangent of the whole noise when a gradient reaches the standard deviations
+    d = _normals(loop, key) if draws is None else draws
     plant, act_role = loop.plant, loop.actuator
     x0 = plant.init(d.init_key)
     z0 = plant.measure(x0, jnp.zeros((ctx.output_dim,), jnp.float32))
@@ -860,6 +914,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
 
     def slow(c: _Carry, inp):
         k, w_k, v_k, d_up, d_down = inp
+        if draws is None:
+            w_k, v_k = _scaled_noise(plant, jax.lax.dynamic_slice_in_dim(d.w, k * (N * plant.noise_dim), N * plant.noise_dim),
+                                     jax.lax.dynamic_slice_in_dim(d.v, k * plant.output_dim, plant.output_dim), k * N, N, 1)
         t0 = k * N
         # 1-2. sensor and trigger
         z = plant.measure(c.x, v_k)
@@ -935,7 +992,8 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
                     controller=rec.controller(loop.controller, ctrl) if rec.controller is not None else ())
         return c, outs
 
-    xs_in = (jnp.arange(S, dtype=jnp.int32), d.w, d.v, d.uplink.delay, d.downlink.delay)
+    noise = (jnp.zeros((S, 0), jnp.float32),) * 2 if draws is None else (d.w, d.v)
+    xs_in = (jnp.arange(S, dtype=jnp.int32), *noise, d.uplink.delay, d.downlink.delay)
     body = jax.checkpoint(slow, policy=jax.checkpoint_policies.nothing_saveable) if loop.remat else slow
     final, o = jax.lax.scan(body, carry0, xs_in)
     K = loop.steps
