@@ -103,13 +103,14 @@ def landscape(loop: str, n: int):
               f"Cochran asks {montecarlo.seeds_for_paired_interval(v, vals[ref])}", flush=True)
 
 
-def check_lref(n: int):
-    """``check_loop`` of DRHE's L_ref alone (tied pair) at tune-loops' tuned point on ``n`` seeds."""
+def check_lref(n: int, sigma: float = 1e-4, both: bool = False):
+    """``check_loop`` of DRHE's L_ref alone (tied pair; with K_psi if ``both``) at tune-loops'
+    tuned delta and ``sigma`` on ``n`` seeds."""
     from jaxnc.tune import check_loop, set_paths
     pb = tl._drhe({"w_drhe": 30.0})
-    loop = set_paths(pb.loop, {"trigger.delta": 0.009587315, "trigger.sigma": 1e-4})
+    loop = set_paths(pb.loop, {"trigger.delta": 0.009587315, "trigger.sigma": sigma})
     t0 = time.perf_counter()
-    chk = check_loop(loop, {GAIN_PATHS["L_ref"]: Positive()}, pb.objective, run=pb.run, seeds=n, max_seeds=n,
+    chk = check_loop(loop, {GAIN_PATHS[g]: Positive() for g in (("L_ref", "K_psi") if both else ("L_ref",))}, pb.objective, run=pb.run, seeds=n, max_seeds=n,
                      seed=11, fd_step=0.2, score_scale=tl._score_scale(pb))
     print(chk.table())
     for k, (m, se) in chk.estimates.items():   # raw (log) coordinate
@@ -138,9 +139,11 @@ def main():
                          "which stay there (the equal-budget search still searches all four leaves)")
     ap.add_argument("--landscape", type=int, default=0, help="only evaluate fixed points on this many seeds")
     ap.add_argument("--check-lref", type=int, default=0, help="only check DRHE's L_ref gradient on this many seeds")
+    ap.add_argument("--check-sigma", type=float, default=1e-4, help="--check-lref: the trigger's sigma")
+    ap.add_argument("--check-both", action="store_true", help="--check-lref: L_ref and K_psi")
     a = ap.parse_args()
     if a.check_lref:
-        return check_lref(a.check_lref)
+        return check_lref(a.check_lref, a.check_sigma, a.check_both)
     if a.landscape:
         return landscape(a.loop, a.landscape)
     pb = problem(a.sigma0) if a.loop == "cartpole" else drhe_problem()
