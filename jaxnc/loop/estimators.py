@@ -12,7 +12,7 @@ measurement older than the window is lost. ``buffer=0`` is the plain intermitten
 only a measurement stamped now is used. ``rate="slow"`` predicts once per slow period with
 the plant's lifted model instead (:class:`~jaxnc.loop.AbstractLiftedPlant`, seed 004
 eq. 8-13; :func:`jaxnc.loop.PeriodEKF`). Seed 000's remote NUDREKF (section 3.3.1) is
-``EKF(form="sequential", weight="slot", output="weighted", keep_means=True)``.
+``EKF(form="sequential", output="weighted", keep_means=True)``.
 
 :class:`Passthrough` uses the newest delivered measurement as the estimate and holds it
 (eq. 5 of seed 001, no model): for controllers that act on the output.
@@ -132,16 +132,17 @@ class EKF(AbstractEstimator):
       jacobian_grad: static bool; False holds the Jacobians constant under differentiation
         (an approximate, cheaper gradient, as in :func:`~jaxnc.estimators.ekf.ekf_predict`;
         ``form="sequential"`` only).
-      weight: static, how the measurement of slow instant k is weighed: ``"stamp"`` (the
-        packet stamped kN if it has arrived, else a constant 0) or ``"slot"`` (the weight of
-        the uplink's ring slot k mod C unless the packet there was sent and has not arrived:
-        the same value with a hard trigger, and the trigger's gradient, straight-through or
-        relaxed, also flows where the sensor stays silent; a relaxed trigger's β weighs the
-        correction also where β <= 1/2 and nothing is sent, at once, where a sent packet
-        waits for its delay). Seed 000's NUDREKF uses ``"slot"``: tuning σ and δ by the
-        straight-through gradient needs it. With ``buffer`` D the window's instants read
-        their slots too (the Loop sizes the ring to C > D, so slot s mod C still holds
-        instant s's packet).
+      weight: static, how the measurement of slow instant k is weighed: ``"slot"`` (the
+        default: the weight of the uplink's ring slot k mod C unless the packet there was
+        sent and has not arrived yet: with a hard trigger the sent packet's, and at an
+        instant where the sensor stays silent a 0 that carries the trigger's gradient,
+        straight-through or relaxed; a relaxed trigger's β weighs the correction also where
+        β <= 1/2 and nothing is sent, at once, where a sent packet waits for its delay) or
+        ``"stamp"`` (the packet stamped kN if it has arrived, else a constant 0: the same
+        runs with a hard trigger, but a silent instant's gradient is cut, which gave the
+        straight-through d/dδ of a servo the wrong sign, docs/tuning.md). With ``buffer`` D
+        the window's instants read their slots too (the Loop sizes the ring to C > D, so
+        slot s mod C still holds instant s's packet).
       output: static, ``"mean"`` (the estimate is the posterior mean float[n]) or
         ``"weighted"`` (a :class:`WeightedEstimate`: the mean had the measurement of now been
         used, and its weight; ``buffer=0`` only).

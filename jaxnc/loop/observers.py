@@ -122,9 +122,9 @@ class Luenberger(AbstractEstimator):
         for N = 1, of (A, C)).
       mean0: float[n], x̂_0 (default 0).
       inputs: static, ``"believed"`` (the controller's own packets) or ``"applied"``.
-      weight: static, ``"stamp"`` or ``"slot"``: how a measurement is weighed, as
-        :class:`~jaxnc.loop.EKF`'s ``weight`` (``"slot"``: the trigger's gradient also where
-        the sensor is silent; a relaxed trigger's β everywhere).
+      weight: static, ``"slot"`` (the default) or ``"stamp"``: how a measurement is weighed,
+        as :class:`~jaxnc.loop.EKF`'s ``weight`` (``"slot"``: the trigger's gradient also
+        where the sensor is silent; a relaxed trigger's β everywhere).
 
     Raises: ValueError naming the field for a model that is not an LTI, a non-finite or
     mis-shaped L or mean0, or an unknown ``inputs`` or ``weight``.
@@ -223,7 +223,7 @@ class SteadyStateKF(AbstractEstimator):
       R: float[p, p], covariance of v.
       mean0: float[n], the prior mean at k = 0 (default 0).
       inputs: static, ``"believed"`` or ``"applied"``.
-      weight: static, ``"stamp"`` or ``"slot"``, as :class:`~jaxnc.loop.EKF`'s.
+      weight: static, ``"slot"`` (the default) or ``"stamp"``, as :class:`~jaxnc.loop.EKF`'s.
 
     Raises: ValueError naming the field for an unknown ``weight``, a loop's N that is not a multiple of the model's
     ``noise_period``, a model that is not an LTI, Q, R of the wrong
