@@ -144,7 +144,7 @@ class Inbox(NamedTuple):
         late = (self.stamp[i] >= 0) & ~self.arrived[i]
         return jax.tree.map(lambda a: a[i], self.data), jnp.where(late, 0.0, self.weight[i])
 
-    def measurement(self, k, stamp, weight: str = "stamp"):
+    def measurement(self, k, stamp, weight: str):
         """An estimator's read of slow instant k: :meth:`packet` ``(k, stamp)`` for ``weight``
         ``"stamp"``, :meth:`slot` ``(k)`` for ``"slot"`` (the estimators' ``weight`` option,
         :func:`check_weight`)."""

@@ -25,8 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import (array_fields, check_finite, check_given, check_instance, check_int, concrete,
-                             psd_rounding)
+from jaxnc._validate import (array_fields, check_bool, check_finite, check_given, check_instance, check_int,
+                             concrete, psd_rounding)
 from jaxnc.estimators.ekf import (Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_diag,
                                   ekf_update_sqrt)
 from jaxnc.estimators.sparsity import EKFStructure
@@ -188,9 +188,8 @@ class EKF(AbstractEstimator):
         check_weight("EKF", self.weight)
         if self.output not in ("mean", "weighted"):
             raise ValueError(f"EKF.output must be one of mean, weighted, got {self.output!r}")
-        for name in ("jacobian_grad", "keep_means"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"EKF.{name} must be True or False, got {getattr(self, name)!r}")
+        check_bool("EKF.jacobian_grad", self.jacobian_grad)
+        check_bool("EKF.keep_means", self.keep_means)
         if self.structure is not None and not isinstance(self.structure, EKFStructure):
             raise ValueError(f"EKF.structure must be None or an EKFStructure (jaxnc.estimators.sparsity."
                              f"detect_structure), got {type(self.structure).__name__}")

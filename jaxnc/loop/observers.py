@@ -225,8 +225,8 @@ class SteadyStateKF(AbstractEstimator):
       inputs: static, ``"believed"`` or ``"applied"``.
       weight: static, ``"slot"`` (the default) or ``"stamp"``, as :class:`~jaxnc.loop.EKF`'s.
 
-    Raises: ValueError naming the field for an unknown ``weight``, a loop's N that is not a multiple of the model's
-    ``noise_period``, a model that is not an LTI, Q, R of the wrong
+    Raises: ValueError naming the field for an unknown ``weight``, a loop's N that is not a
+    multiple of the model's ``noise_period``, a model that is not an LTI, Q, R of the wrong
     shape, Q not PSD or R not PD, a mis-shaped mean0, or no stabilising Riccati solution
     (from :func:`~jaxnc.estimators.steady_state.dlqe`; checked at N = 1 when built and at
     the loop's N when a ``Loop`` is built, :meth:`init`).
