@@ -164,6 +164,10 @@ PYTHON_API = [
     (lambda: nc.PacketActuator(late="keep"), "PacketActuator.late must be one of drop, apply"),
     (lambda: nc.PacketActuator(span="slow"), "PacketActuator.span must be one of fast, period"),
     (lambda: nc.PacketActuator(on_exhausted="zero", late="apply"), "PacketActuator.late='apply' needs on_exhausted='hold'"),
+    (lambda: nc.HoldLast(initial=np.nan), "PacketActuator.initial must be finite"),
+    (lambda: nc.PacketActuator(on_exhausted="zero", initial=1.0),
+     "PacketActuator.initial is held only with on_exhausted='hold'"),
+    (lambda: nc.PID(Kp=1.0, u_bias=np.inf), "PID.u_bias must be finite"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0, 0.0]]), "LTI.C must have 2 columns"),
     (lambda: nc.LTI(A=np.ones((2, 3)), B=[[0.0], [1.0]], C=[[1.0, 0.0]]), "LTI.A must be square"),
     (lambda: nc.LTI(A=np.eye(2), B=[[0.0], [1.0]], C=[[1.0, 0.0]], x0=[1.0]), "LTI.x0 must have 2 entries"),
@@ -939,6 +943,7 @@ LOOP_FIT = [
     (lambda: _fit_loop(plant=nc.Continuous(x0=[0.0, 0.0], w_std=0.0, v_std=0.0, f=_fit_f, h=_fit_h, input_dim=1, noise_dim=2,
                                        output_dim=1, T=0.02)), "must equal the plant's step period"),
     # a zero strategy whose packets do not cover the slow period: u = 0 between its actions
+    (lambda: _fit_loop(actuator=nc.HoldLast(initial=[0.0, 1.0])), "Loop.actuator.initial has shape (2,)"),
     (lambda: _fit_loop(actuator=nc.PacketActuator(on_exhausted="zero"), N=2, steps=100),
      "Loop.actuator: on_exhausted='zero' with span='fast' plays a packet's 1 action(s) for 1 fast period(s)"),
     (lambda: _fit_loop(actuator=nc.LimitedActuator(nc.PacketActuator(on_exhausted="zero"), nc.Saturation(-1.0, 1.0)),

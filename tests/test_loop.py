@@ -560,13 +560,13 @@ def test_a_loop_built_under_x64_from_float64_numbers_runs_as_in_float32(build):
     np.testing.assert_array_equal(np.asarray(tr.x), np.asarray(ref.x))
 
 
-def _actuator_reference(loop, d, K, zero: bool):
+def _actuator_reference(loop, d, K, zero: bool, initial: float = 0.0):
     """A float64 actuator of one-action packets written from the docstrings: at each fast
     instant the newest packet by stamp among those arriving now (newer than every one
     delivered before: the link's order "newest") becomes current. Hold-last
     (``zero=False``) applies the current action from then on; the zero strategy
     (``zero=True``, ZeroOrder) applies it while its stamp kN <= t < (k + 1) N, zero
-    otherwise. 0 before the first."""
+    otherwise. ``initial`` (hold-last) or 0 before the first."""
     A, B, C = (np.asarray(m, float) for m in (loop.plant.A, loop.plant.B, loop.plant.C))
     N, S = loop.N, loop.steps // loop.N
     w, v, dd = np.asarray(d.w, float), np.asarray(d.v, float), np.asarray(d.downlink.delay)
@@ -583,14 +583,14 @@ def _actuator_reference(loop, d, K, zero: bool):
                 _, s, a = max(now, key=lambda p: p[1])
                 cur = (s, a)
             due = cur is not None and (not zero or t < cur[0] + N)
-            u = cur[1] if due else np.zeros(1)
+            u = cur[1] if due else np.full(1, 0.0 if zero else initial)
             xs.append(x.copy())
             us.append(u.copy())
             x = A @ x + B @ u + w[k, j]
     return np.array(xs), np.array(us)
 
 
-def _downlink_run(actuator, N, pmf, seed, zero):
+def _downlink_run(actuator, N, pmf, seed, zero, initial=0.0):
     """A 2-state servo under StateFeedback over a lossy (20 %) downlink delaying by ``pmf``
     fast periods: the run and the float64 reference's (x, u)."""
     K = np.array([[2.0]])
@@ -599,7 +599,7 @@ def _downlink_run(actuator, N, pmf, seed, zero):
                    controller=nc.StateFeedback(K), downlink=nc.Link(nc.Bernoulli(0.2), nc.PmfDelay(pmf)),
                    actuator=actuator, N=N, steps=60 * N, T=0.1)
     key = jax.random.PRNGKey(seed)
-    return loop, key, nc.simulate(loop, key), _actuator_reference(loop, nc.draw(loop, key), K, zero)
+    return loop, key, nc.simulate(loop, key), _actuator_reference(loop, nc.draw(loop, key), K, zero, initial)
 
 
 @pytest.mark.parametrize("N, pmf", [(1, [0.0, 1.0]), (2, [0.4, 0.3, 0.3]), (3, [0.2, 0.2, 0.2, 0.2, 0.2])])
@@ -608,6 +608,16 @@ def test_hold_last_applies_a_delayed_action_on_arrival(N, pmf):
     # downlink delaying every packet the plant got u = 0 throughout while recv_ca counted them
     _, _, tr, (xs, us) = _downlink_run(nc.HoldLast(), N, pmf, 11, zero=False)
     assert np.abs(us).max() > 0.5
+    np.testing.assert_allclose(np.asarray(tr.u), us, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)
+
+
+def test_hold_last_applies_its_initial_action_until_the_first_packet_arrives():
+    # before 2026-12-04 an actuator applied 0 until its first packet: a lift whose controller
+    # carries the hover thrust as its bias (PID.u_bias) fell until the first measurement arrived
+    _, _, tr, (xs, us) = _downlink_run(nc.HoldLast(initial=-0.7), 2, [0.0, 0.0, 0.0, 1.0], 11, zero=False,
+                                       initial=-0.7)
+    assert np.all(us[:3] == -0.7) and np.abs(us + 0.7).max() > 0.5
     np.testing.assert_allclose(np.asarray(tr.u), us, atol=1e-5)
     np.testing.assert_allclose(np.asarray(tr.x), xs, atol=1e-5)
 

@@ -131,11 +131,11 @@ def test_gains_are_differentiable_leaves():
     with jax.enable_x64(True):
         r = jnp.ones(30, jnp.float64)
 
-        def f(kp, ki, kd, tf):
-            pid = nc.PID(Kp=kp, Ki=ki, Kd=kd, Tf=tf, b=jnp.ones(1), c=jnp.ones(1), Kb=jnp.ones(1),
+        def f(kp, ki, kd, tf, ub):
+            pid = nc.PID(Kp=kp, Ki=ki, Kd=kd, Tf=tf, b=jnp.ones(1), c=jnp.ones(1), Kb=jnp.ones(1), u_bias=ub,
                          anti_windup="none")
             return jnp.sum((_closed_loop(pid, r) - 1.0) ** 2)
-        check_grads(f, tuple(jnp.asarray([v], jnp.float64) for v in (1.0, 0.8, 0.05, 0.1)), order=1,
+        check_grads(f, tuple(jnp.asarray([v], jnp.float64) for v in (1.0, 0.8, 0.05, 0.1, 0.3)), order=1,
                     modes=("rev",), eps=1e-5)
 
 
@@ -144,6 +144,7 @@ def test_gains_are_differentiable_leaves():
     (dict(index=-1), "PID.index"), (dict(index=(0, 0)), "PID.index"), (dict(anti_windup="clip"), "PID.anti_windup"),
     (dict(reference=1.0), "PID.reference"), (dict(Kp=[1.0, 2.0]), "PID.Kp"), (dict(Kb=-1.0), "PID.Kb"),
     (dict(reference=refs.Step([1.0, 2.0, 3.0]), index=(0, 1)), "PID.reference"),
+    (dict(u_bias=np.inf), "PID.u_bias"), (dict(u_bias=[1.0, 2.0]), "PID.u_bias"),
 ])
 def test_bad_parameters_name_the_field(kwargs, field):
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):
@@ -205,17 +206,17 @@ def test_a_pid_with_more_channels_than_plant_inputs_is_refused_by_the_loop():
                 downlink=nc.Link(), actuator=nc.HoldLast())
 
 
-def _pid_reference(z, fresh, r, h, *, Kp, Ki, Kd, Tf, b, c, u_min, u_max, Kb, anti_windup):
+def _pid_reference(z, fresh, r, h, *, Kp, Ki, Kd, Tf, b, c, u_min, u_max, Kb, anti_windup, u_bias=0.0):
     """The module docstring's equations in plain float64 Python, one slow instant at a time:
     the output u_k from the measurements z_k, arrivals fresh_k and reference r_k (hold=True)."""
     I = D = 0.0
-    ed_prev, last, u, us = None, None, min(max(0.0, u_min), u_max), []
+    ed_prev, last, u, us = None, None, min(max(u_bias, u_min), u_max), []
     for k in range(len(z)):
         if fresh[k]:
             hk = h if last is None else (k - last) * h
             e, ep, ed = r[k] - z[k], b * r[k] - z[k], c * r[k] - z[k]
             D = (Tf * D + Kd * (ed - (ed if ed_prev is None else ed_prev))) / (Tf + hk)
-            v = Kp * ep + I + D
+            v = u_bias + Kp * ep + I + D
             u = min(max(v, u_min), u_max)
             g = Ki * e
             if anti_windup == "clamping" and ((v > u_max and g > 0) or (v < u_min and g < 0)):
@@ -227,8 +228,9 @@ def _pid_reference(z, fresh, r, h, *, Kp, Ki, Kd, Tf, b, c, u_min, u_max, Kb, an
     return np.asarray(us)
 
 
-@pytest.mark.parametrize("anti_windup", ["none", "clamping", "back_calculation"])
-def test_a_float64_pid_in_a_lossy_saturated_loop_equals_the_documented_equations(anti_windup):
+@pytest.mark.parametrize("anti_windup, u_bias", [("none", 0.0), ("clamping", 0.0), ("back_calculation", 0.0),
+                                                  ("clamping", 12.0), ("back_calculation", -6.0)])
+def test_a_float64_pid_in_a_lossy_saturated_loop_equals_the_documented_equations(anti_windup, u_bias):
     """A heated chamber 0.8 / (20 s + 1) (exact ZOH, T = 0.5 s) under a PID with filtered
     derivative, setpoint weights, heater limits 0..45 and a 30-degree step at 5 s, over an
     uplink losing 40 % at N = 2 (hold: h_k spans the silent periods): the actions equal the
@@ -238,13 +240,14 @@ def test_a_float64_pid_in_a_lossy_saturated_loop_equals_the_documented_equations
     zeros, its computations float64)."""
     T, N, steps = 0.5, 2, 160
     a = float(np.exp(-T / 20.0))
-    gains = dict(Kp=5.0, Ki=0.3, Kd=1.0, Tf=1.0, b=0.7, c=0.3, u_min=0.0, u_max=45.0, Kb=0.5)
+    gains = dict(Kp=5.0, Ki=0.3, Kd=1.0, Tf=1.0, b=0.7, c=0.3, u_min=0.0, u_max=45.0, Kb=0.5, u_bias=u_bias)
     with jax.enable_x64(True):
         sp = refs.Step(np.array([30.0]), time=np.array([5.0]))
         pid = nc.PID(**{k: np.array([v]) for k, v in gains.items()}, reference=sp, anti_windup=anti_windup)
         loop = nc.Loop(plant=nc.LTI(A=[[a]], B=[[0.8 * (1.0 - a)]], C=[[1.0]], x0=[0.0], T=T), trigger=nc.Periodic(),
                        uplink=nc.Link(nc.Bernoulli(0.4)), estimator=nc.Passthrough(), controller=pid,
-                       downlink=nc.Link(), actuator=nc.HoldLast(), T=T, N=N, steps=steps)
+                       downlink=nc.Link(), actuator=nc.HoldLast(initial=min(max(u_bias, 0.0), 45.0)), T=T, N=N,
+                       steps=steps)
         tr = jax.device_get(jax.jit(nc.simulate)(loop, jax.random.PRNGKey(3)))
         r = np.asarray(refs.evaluate(sp, steps, T))[::N, 0]
     fresh = np.asarray(tr.recv_sc) > 0.5
@@ -354,3 +357,23 @@ def test_the_exact_gradient_of_a_held_pid_over_a_lossy_link_equals_float64_diffe
 
     fd = np.array([(cost(th0 + e) - cost(th0 - e)) / (2 * e[i]) for i, e in enumerate(np.diag(1e-5 * th0))])
     np.testing.assert_allclose(grad, fd, rtol=2e-5)       # float32 gradient; measured within 5e-7 at 60 steps
+
+
+@pytest.mark.parametrize("u_bias", [0.0, 4.905, 9.81])
+def test_a_pd_with_a_bias_holds_a_lift_at_the_closed_form_steady_state(u_bias):
+    """A lift z'' = u - g (a quadcopter's altitude, exact ZOH at T = 0.01 s, no noise) under a
+    PD (Kp = 4, Kd = 3) with the bias u_b, every measurement, a 1 m step: it settles where
+    Kp (r - z) + u_b = g, z = r - (g - u_b) / Kp: 1 m with the hover thrust as the bias,
+    1 - 9.81 / 4 = -1.45 m without one (it falls below the setpoint: a PD has no integrator).
+    Before the first computation the packet carries the bias (the lift hovers from t = 0)."""
+    g, T, Kp = 9.81, 0.01, 4.0
+    lift = nc.Discrete(x0=[0.0, 0.0], w_std=[0.0], v_std=[0.0], f=lambda x, u, w: jnp.stack([x[0] + T * x[1] + 0.5 * T * T * (u[0] - g),
+                                                                  x[1] + T * (u[0] - g)]),
+                       h=lambda x, v: x[:1], input_dim=1, noise_dim=1, output_dim=1)
+    pid = nc.PID(Kp=Kp, Kd=3.0, u_bias=u_bias, reference=refs.Step(1.0))
+    assert float(pid.init(_ctx()).u[0]) == np.float32(u_bias)
+    loop = nc.Loop(plant=lift, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(), controller=pid,
+                   downlink=nc.Link(), actuator=nc.HoldLast(), T=T, steps=3000)
+    z = np.asarray(jax.jit(nc.simulate)(loop, jax.random.PRNGKey(0)).x[:, 0])
+    np.testing.assert_allclose(z[-1], 1.0 - (g - u_bias) / Kp, atol=2e-4)
+    assert np.ptp(z[-200:]) < 1e-4                                  # settled

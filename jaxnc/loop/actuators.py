@@ -14,7 +14,10 @@ applied from its arrival and held. A packet of one action (H = 1) stamped with t
 instant it is sent, ``late="apply"``, makes the plain hold-last actuator
 (:func:`HoldLast`: the newest action received, applied on arrival, however late); a packet of H future actions is
 packet-based control (seeds 000, 003, 004); a capacity > 1 keeps packets stamped for the
-future (seed 001's commands stamped k + lead) until their time comes.
+future (seed 001's commands stamped k + lead) until their time comes. Before the first
+packet's action is due, a holding actuator applies its ``initial`` action (0 by default: an
+operating point's input, e.g. a lift's hover thrust, the same as the controller's bias
+:attr:`jaxnc.loop.PID.u_bias`, keeps the plant there until the first packet arrives).
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import check_int
+from jaxnc._validate import check_given, check_int, check_range
 from jaxnc.loop.base import AbstractActuator, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -65,13 +68,24 @@ class PacketActuator(AbstractActuator):
         ``on_exhausted="hold"``).
       span: static, how long each action lasts: ``"fast"`` (one fast period) or
         ``"period"`` (the loop's period, N fast periods: ``Context.N``).
+      initial: float or float[m], the action held before the first packet's action is due
+        (``on_exhausted="hold"``; 0 by default).
+
+    Raises:
+      ValueError: naming the field, for a horizon or capacity out of range, an unknown
+        option, ``late="apply"`` without ``on_exhausted="hold"``, a non-finite ``initial`` or
+        a nonzero one with ``on_exhausted="zero"`` (it would never be applied); when a
+        ``Loop`` is built, an ``initial`` whose size is not 1 or the plant's input_dim.
     """
+
+    field_shapes = {"initial": ((), ("input",))}
 
     horizon: int = _static(1)
     capacity: int = _static(1)
     on_exhausted: str = _static("hold")
     late: str = _static("drop")
     span: str = _static("fast")
+    initial: Any = 0.0
 
     def __post_init__(self):
         check_int("PacketActuator.horizon", self.horizon, 1, 1_000_000)
@@ -85,11 +99,18 @@ class PacketActuator(AbstractActuator):
                              "is held)")
         if self.span not in ("fast", "period"):
             raise ValueError(f"PacketActuator.span must be one of fast, period, got {self.span!r}")
+        check_given("PacketActuator.initial", self.initial)
+        check_range("PacketActuator.initial", self.initial)
+        if (self.on_exhausted == "zero" and not isinstance(self.initial, jax.Array)
+                and jnp.any(jnp.asarray(self.initial) != 0)):
+            raise ValueError("PacketActuator.initial is held only with on_exhausted='hold' (with 'zero' the actuator "
+                             f"applies 0 when it has no action due), got {self.initial!r}")
 
     def init(self, ctx) -> ActuatorState:
         m = ctx.input_dim
         return ActuatorState(jnp.zeros((self.capacity, self.horizon, m), jnp.float32),
-                             jnp.full((self.capacity,), _EMPTY, jnp.int32), jnp.zeros((m,), jnp.float32),
+                             jnp.full((self.capacity,), _EMPTY, jnp.int32),
+                             jnp.broadcast_to(jnp.asarray(self.initial, jnp.float32), (m,)),
                              jnp.asarray(ctx.N, jnp.int32) if self.span == "period" else ())
 
     def receive(self, state: ActuatorState, inbox: Inbox) -> ActuatorState:
@@ -114,10 +135,11 @@ class PacketActuator(AbstractActuator):
         return state._replace(last=u), u
 
 
-def HoldLast(capacity: int = 1) -> PacketActuator:
+def HoldLast(capacity: int = 1, initial: Any = 0.0) -> PacketActuator:
     """Applies the newest received action (by time stamp) from its arrival, however late,
-    and holds it (packets of one action; ``late="apply"``)."""
-    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="hold", late="apply")
+    and holds it (packets of one action; ``late="apply"``); ``initial`` (float or float[m])
+    before the first arrives."""
+    return PacketActuator(horizon=1, capacity=capacity, on_exhausted="hold", late="apply", initial=initial)
 
 
 def ZeroOrder(capacity: int = 1) -> PacketActuator:

@@ -17,7 +17,7 @@ event-based sampling interval):
     e = r - y,  e_p = b r - y,  e_d = c_w r - y                         (setpoint weights b, c)
     P_k = Kp e_p
     D_k = (Tf D_prev + Kd (e_d - e_d,prev)) / (Tf + h_k)               (first-order filter, Tf >= 0)
-    v_k = P_k + I + D_k,   u_k = clip(v_k, u_min, u_max)
+    v_k = u_b + P_k + I + D_k,   u_k = clip(v_k, u_min, u_max)         (u_b: the bias, u_bias)
     I <- I + h_k Ki e                                                   (anti_windup="none")
        = I + h_k Ki e, unless v_k > u_max and Ki e > 0
                        or v_k < u_min and Ki e < 0 (then I)            ("clamping")
@@ -27,6 +27,10 @@ event-based sampling interval):
 (I is updated after u_k is computed: u_k uses the integral of the errors before k.) A channel
 without integral action (Ki = 0) keeps I = 0 in every mode: back-calculation feeds the
 integrator, and there is none. The first computation takes e_d,prev = e_d (no derivative kick at start-up).
+The bias u_b (``u_bias``, 0 by default; Åström and Hägglund's reset, the operating point's input: a
+lift's hover thrust, a heater's base load) is the output at zero error: a PD with the right bias
+holds the setpoint against a constant load without integral action, and a PI starts from it
+instead of winding its integrator up to it.
 
 No measurement (``hold=True``, the default): at an instant where ``fresh == 0`` (the
 estimator received nothing) the controller does not compute: its state (integral,
@@ -87,6 +91,8 @@ class PID(AbstractController):
         u_min = -inf and u_max = inf are unbounded too (u_min = +inf or u_max = -inf is refused).
       Kb: float or float[c] >= 0, back-calculation gain (1/s), used with
         ``anti_windup="back_calculation"`` on the channels with Ki != 0.
+      u_bias: float or float[c], the output's bias u_b (its value at zero error and zero
+        integral: the operating point's input, e.g. a lift's hover thrust); 0 by default.
       reference: a :class:`jaxnc.references.AbstractReference` with 1 or c channels; None: 0.
       index: static int or tuple of c distinct ints >= 0, the estimator-output components
         measured.
@@ -119,6 +125,7 @@ class PID(AbstractController):
     index: Any = _static(0)
     anti_windup: str = _static("clamping")
     hold: bool = _static(True)
+    u_bias: Any = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "index", index_tuple("PID.index", self.index, "the estimator-output components measured"))
@@ -129,7 +136,7 @@ class PID(AbstractController):
             check_instance("PID.reference", self.reference, AbstractReference,
                            "a jaxnc.references object (Step, Ramp, Sine, PiecewiseLinear, Recorded) or None")
         n = len(self.index)
-        for name in ("Kp", "Ki", "Kd", "Tf", "b", "c", "Kb", "u_min", "u_max"):
+        for name in ("Kp", "Ki", "Kd", "Tf", "b", "c", "Kb", "u_bias", "u_min", "u_max"):
             v = getattr(self, name)
             if name in ("u_min", "u_max"):
                 check_range(f"PID.{name}", v, finite=False)            # None or +-inf: unbounded
@@ -167,13 +174,14 @@ class PID(AbstractController):
     def dtype(self):
         """The dtype it computes in: that of its gains, weights, limits and reference
         (float32 unless one of them is a float64 array and x64 is on)."""
-        leaves = [getattr(self, n) for n in ("Kp", "Ki", "Kd", "Tf", "b", "c", "u_min", "u_max", "Kb")]
+        leaves = [getattr(self, n) for n in ("Kp", "Ki", "Kd", "Tf", "b", "c", "u_min", "u_max", "Kb", "u_bias")]
         leaves = [v for v in leaves + jax.tree.leaves(self.reference) if v is not None]
         return jnp.result_type(jnp.float32, *leaves)
 
     def init(self, ctx) -> PIDState:
         z = jnp.zeros((self.channels,), self.dtype)
-        u0 = jnp.clip(z, self.u_min, self.u_max) if self._limited else z
+        ub = jnp.broadcast_to(jnp.asarray(self.u_bias, self.dtype), z.shape)
+        u0 = jnp.clip(ub, self.u_min, self.u_max) if self._limited else ub
         return PIDState(z, z, z, u0, jnp.zeros((), jnp.float32), jnp.zeros((), jnp.int32))
 
     @property
@@ -205,7 +213,7 @@ def pid_update(pid: PID, state: PIDState, y, r, h) -> tuple[PIDState, jax.Array]
     e, ep, ed = r - y, pid.b * r - y, pid.c * r - y
     ed_prev = jnp.where(state.started > 0.5, state.e_d, ed)
     D = (pid.Tf * state.deriv + pid.Kd * (ed - ed_prev)) / (pid.Tf + h)
-    v = pid.Kp * ep + state.integral + D
+    v = pid.Kp * ep + state.integral + D + pid.u_bias
     u = jnp.clip(v, pid.u_min, pid.u_max) if pid._limited else v
     gain = pid.Ki * e
     if pid.anti_windup == "clamping" and pid._limited:
