@@ -622,7 +622,9 @@ def describe(metrics, run_ndim: int = 0) -> str:
     of runs where it holds. A field with no run to average (every run unstable, or its value
     not finite in the others) shows no mean: ``inf`` where its value is +inf in every run (a
     divergent cost, ``Metrics.cost`` of failed runs: the papers' ∞), else ``–``, with how many
-    runs failed and how many were not finite (:func:`summarize`'s mean there: inf or nan). One run: the
+    runs failed and how many were not finite (:func:`summarize`'s mean there: inf or nan), and,
+    where the tuple's class says what a nan in every run that did not fail means (a class
+    attribute ``NAN_MEANS = {field: text}``: ``Metrics.cost`` of a loop without a cost), that. One run: the
     values. Anything else (traced values inside
     ``jit``, other shapes): the tuple's plain repr. A field whose stable runs are too skewed
     for their normal interval (:func:`seeds_for_normal_interval` above their count and above
@@ -665,6 +667,9 @@ def describe(metrics, run_ndim: int = 0) -> str:
                 failed = int(np.count_nonzero(bad))
                 why = (f"no stable run: all {n} failed" if failed == n
                        else f"no run to average: {failed} failed, {n - failed} not finite")
+                hint = getattr(type(metrics), "NAN_MEANS", {}).get(k)
+                if hint and failed < n and np.all(np.isnan(a[~bad])):
+                    why += f"; {hint}"
                 shown = "inf" if np.all(np.isposinf(a)) else "\u2013"
                 lines.append(f"  {label:<{w}}  {shown} ({why})")
                 continue

@@ -274,7 +274,7 @@ def test_describe_shows_no_mean_where_every_run_failed():
     """A batch where every run failed: the cost (inf in every failed run) prints inf, the
     transmission rates and a finite cost_raw print a dash with the count of failed runs,
     not summarize's inf (a rate no run had); a loop without a cost (nan, no failure) is
-    counted as not finite."""
+    counted as not finite, and the line says the loop has no cost."""
     from jaxnc.loop.runner import Metrics
     n = 64
     m = Metrics(jnp.full(n, jnp.inf), jnp.linspace(1.0, 2.0, n), jnp.full(n, 0.5), jnp.full(n, 0.25),
@@ -288,7 +288,9 @@ def test_describe_shows_no_mean_where_every_run_failed():
                    jnp.arange(n) < 10)
     lines = repr(half).splitlines()
     assert lines[1].split() == ["cost", "\u2013", "(no", "run", "to", "average:", "10", "failed,", "54", "not",
-                                "finite)"]
+                                "finite;", "the", "loop", "has", "no", "cost", "(Loop(cost=...)))"]
+    other = Metrics(jnp.full(n, jnp.nan).at[20].set(jnp.inf), *half[1:])     # not nan in every stable run: no hint
+    assert "has no cost" not in repr(other).splitlines()[1]
     assert lines[3].split()[:2] == ["rate_sc", "0.5"] and "(10 left out" in lines[3]
 
 

@@ -1030,6 +1030,8 @@ class Metrics(NamedTuple):
     #: units of the fields the library knows (the cost's are the user's Q and R's), for
     #: :func:`jaxnc.results.save_per_seed` and the Dataset of :func:`jaxnc.load`
     UNITS = {"rate_sc": "transmissions per slow period", "rate_ca": "transmissions per slow period"}
+    #: what a field that is nan in every run that did not fail means (:func:`jaxnc.montecarlo.describe`)
+    NAN_MEANS = {"cost": "the loop has no cost (Loop(cost=...))", "cost_raw": "the loop has no cost (Loop(cost=...))"}
 
     def __repr__(self) -> str:
         from jaxnc.montecarlo import describe
