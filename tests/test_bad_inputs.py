@@ -500,6 +500,8 @@ EKF_ARGS = [
     (dict(jacobian_grad=1), "EKF.jacobian_grad must be True or False"),
     (dict(structure="sparse"), "EKF.structure must be None or an EKFStructure"),
     (dict(jacobian_grad=False), "EKF.structure and EKF.jacobian_grad=False need form='sequential'"),
+    (dict(batch_last=1), "EKF.batch_last must be True or False"),
+    (dict(batch_last=True), "EKF.batch_last=True needs form='sequential'"),
     (dict(output="weighted", buffer=1), "EKF.output='weighted' and keep_means=True need buffer=0"),
     (dict(form="sequential", R=[0.0]), "EKF.R's variances must be > 0"),
     (dict(form="sequential", R=[1.0, 1.0]), "EKF.R must be 1x1 (the model's output_dim) or a vector of 1 variances"),

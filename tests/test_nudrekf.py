@@ -454,3 +454,44 @@ def test_straight_through_gradient_through_a_filter_needs_the_silent_instants():
     st = {w: float(jax.jit(jax.grad(lambda d: per_seed(d, w, 0.05).mean()))(jnp.float32(d0))) for w in ("slot", "stamp")}
     assert abs(st["slot"] - fd) < 3 * se, (st, fd, se)
     assert st["stamp"] < 0, (st, fd, se)
+
+
+def test_batch_last_ekf_is_the_default_up_to_rounding_values_and_gradients():
+    # EKF(batch_last=True) runs the sequential form's covariance arithmetic with the seed axis
+    # last under vmap (ekf_batched's drop-ins): the same filter, its estimates and the loop's
+    # trajectory equal to the default's up to float32 rounding, and so is the exact gradient
+    # of a relaxed PETC loop's cost (through the kernels' custom_vjp) with respect to the
+    # trigger's threshold and the filter's process noise
+    T = 0.02
+
+    def f(x, u, w):
+        return jnp.stack([x[0] + T * x[1], x[1] + T * (-9.81 * jnp.sin(x[0]) - 0.2 * x[1] + u[0]) + w[0]])
+
+    pend = nc.Discrete(x0=[0.3, 0.0], x0_std=[0.05, 0.05], w_std=[0.02], v_std=[0.01, 0.05, 0.05], f=f,
+                       h=lambda x, v: jnp.stack([x[0], x[1], jnp.sin(x[0]) * x[1]]) + v, input_dim=1, noise_dim=1,
+                       output_dim=3)
+    keys = jax.random.split(jax.random.PRNGKey(5), 16)
+
+    def run(d, q, batch_last):
+        ekf = nc.EKF(pend, Q=q, R=[0.01 ** 2, 0.05 ** 2, 0.05 ** 2], mean0=[0.3, 0.0], cov0=0.01 * np.eye(2),
+                     form="sequential", weight="slot", batch_last=batch_last)
+        lp = nc.Loop(plant=pend, trigger=nc.Petc(delta=d, temperature=0.02, relaxed=True),
+                     uplink=nc.Link(nc.Bernoulli(0.2)), estimator=ekf, controller=nc.StateFeedback([[8.0, 2.0]]),
+                     downlink=nc.Link(), actuator=nc.HoldLast(), N=4, steps=120, T=T,
+                     record=nc.Record(signals=("x", "xhat")))
+        return jax.vmap(lambda k: nc.simulate(lp, k))(keys)
+
+    def cost(d, q, batch_last):
+        return jnp.mean(jnp.square(run(d, q, batch_last).x))
+
+    d, q = jnp.float32(0.025), jnp.array([0.02 ** 2], jnp.float32)
+    ta, tb = (jax.jit(run, static_argnums=2)(d, q, b) for b in (False, True))
+    np.testing.assert_allclose(tb.xhat, ta.xhat, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(tb.x, ta.x, rtol=1e-4, atol=1e-5)
+    ga, gb = (jax.jit(jax.grad(cost, argnums=(0, 1)), static_argnums=2)(d, q, b) for b in (False, True))
+    assert float(ga[0]) != 0.0 and float(ga[1][0]) != 0.0
+    np.testing.assert_allclose(gb[0], ga[0], rtol=1e-3)
+    np.testing.assert_allclose(gb[1], ga[1], rtol=1e-3)
+    # the batch-last kernels are what runs: the program differs from the default's
+    texts = [jax.jit(run, static_argnums=2).lower(d, q, b).as_text(debug_info=False) for b in (False, True)]
+    assert texts[0] != texts[1]

@@ -144,6 +144,20 @@ def test_sparse_and_dense_closed_loops_agree():
     assert mec.mecanum_loop("DRHE", 5, 0.3, sparse=False).estimator.structure is None
 
 
+def test_batch_last_and_reduction_corrections_close_the_same_loop():
+    """DRHE's EKF correcting with the seed axis last (the builder's default) and with the
+    reductions (``batch_last=False``, the numbers stored before): the same packets are sent
+    and the trajectories and estimates agree to float32 rounding."""
+    from tests.test_mecanum_loop import short_runs
+    keys = montecarlo.seed_keys(6, 8)
+    assert mec.mecanum_loop("DRHE", 4, 0.3).estimator.batch_last
+    a = short_runs("DRHE", keys, dp=0.3)
+    b = short_runs("DRHE", keys, dp=0.3, batch_last=False)
+    np.testing.assert_array_equal(a.sent_sc, b.sent_sc)
+    assert np.max(np.abs(np.asarray(a.x - b.x))) < 1e-4
+    assert np.max(np.abs(np.asarray(a.parts["estimator"] - b.parts["estimator"]))) < 1e-4
+
+
 def test_saved_configuration_shows_the_structure():
     import json
 
@@ -171,3 +185,40 @@ def test_a_structure_of_the_wrong_shape_is_refused():
         ekf_update_diag(Mecanum().measure, b, jnp.zeros(9), jnp.ones(9), 9,
                         structure=EKFStructure(st.A, st.L, Pattern.dense(8, 6)))
 
+
+
+@pytest.mark.parametrize("sparse", [True, False])
+def test_batch_last_drop_ins_equal_the_per_seed_steps_float64(sparse):
+    """ekf_batched's ekf_predict / ekf_update_diag with and without the Mecanum structure
+    (with it, what ``EKF(batch_last=True)`` runs in DRHE's loop), vmapped over seeds with a
+    diagonal Q (a vector of variances, which the batch-last kernel once read as a matrix once
+    the seed axis was appended), against ekf's: values and gradients (through the kernels'
+    custom_vjp) to float64 rounding."""
+    from jaxnc.estimators import ekf_batched as batched
+    with jax.enable_x64(True):
+        plant, st = Mecanum(), (mec.ekf_structure(Mecanum()) if sparse else None)
+        b = _beliefs(jax.random.key(5), STATE_DIM)
+        u = 4.0 + jax.random.normal(jax.random.key(6), (4, INPUT_DIM))
+        z = jax.random.normal(jax.random.key(7), (4, OUTPUT_DIM))
+        q = MecanumNoise().process_std().astype(jnp.float64) ** 2
+        r = MecanumNoise().measurement_std().astype(jnp.float64) ** 2
+
+        def step(predict, update):
+            def one(b, u, z, q):
+                b = predict(plant.dynamics, b, u, q, PROCESS_NOISE_DIM, structure=st)
+                return update(plant.measure, b, z, r, OUTPUT_DIM, structure=st)
+            return one
+
+        def loss(fns):
+            return lambda b, q: jnp.sum(jnp.sin(jax.vmap(step(*fns), in_axes=(0, 0, 0, None))(b, u, z, q).cov))
+        fns = {"last": (batched.ekf_predict, batched.ekf_update_diag), "ref": (ekf_predict, ekf_update_diag)}
+        out = {k: jax.jit(jax.vmap(step(*f), in_axes=(0, 0, 0, None)))(b, u, z, q) for k, f in fns.items()}
+        # summation order only (the update's sums unrolled): float64 rounding, amplified by the
+        # correction of these wide random beliefs to ~1e-11 relative
+        np.testing.assert_allclose(out["last"].mean, out["ref"].mean, rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(out["last"].cov, out["ref"].cov, rtol=1e-9, atol=1e-11)
+        assert np.max(np.abs(np.asarray(out["ref"].mean - b.mean))) > 1e-3
+        (gb, gq), (gb_ref, gq_ref) = (jax.jit(jax.grad(loss(f), argnums=(0, 1)))(b, q) for f in fns.values())
+        for a, c in ((gb.mean, gb_ref.mean), (gb.cov, gb_ref.cov), (gq, gq_ref)):
+            assert np.max(np.abs(np.asarray(c))) > 0
+            np.testing.assert_allclose(a, c, rtol=1e-9, atol=1e-11)

@@ -56,10 +56,12 @@ def _sym_entries(P):
     return E
 
 
-def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None):
+def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None, *, diagonal: bool | None = None):
     """Covariance prediction, seed 000 eq. (12): A P A' + L Q L', batch-last.
 
-    ``Q`` is (nw, nw) or a vector of variances (diagonal); ``pa``, ``pl`` (static) the
+    ``Q`` is (nw, nw) or a vector of variances (diagonal), either with the batch axes of
+    the other arguments trailing or with none; ``diagonal`` (static) says which, None: Q is
+    diagonal when it is 1-D (Q with batch axes needs it). ``pa``, ``pl`` (static) the
     patterns of A and L (None: dense): products with their structural zeros are skipped.
     Matrices are handled as Python lists of their entries (each an array of the batch
     shape); only the upper triangle is computed, and entry (j, i) is the same array as
@@ -72,7 +74,7 @@ def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None
     # AP = A P on the rows A can be nonzero in
     AP = {i: [_sum(A[i, k] * Pe[k][j] for k in np.flatnonzero(ma[i])) for j in range(n)]
           for i in range(n) if ma[i].any()}
-    if Q.ndim == 1:
+    if (Q.ndim == 1) if diagonal is None else diagonal:
         LQ = {i: {k: L[i, k] * Q[k] for k in np.flatnonzero(ml[i])} for i in range(n)}
         LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[i] & ml[j])]
     else:

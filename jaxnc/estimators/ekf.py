@@ -204,6 +204,16 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
 
     Raises ValueError (at trace time) when ``noise_dim`` is not an integer >= 1 or ``Q`` is
     not (noise_dim, noise_dim) / (noise_dim,), or (a concrete Q) not PSD."""
+    return predict_with(None, f, belief, u, Q, noise_dim, jacobian_grad=jacobian_grad, structure=structure)
+
+
+def predict_with(kernel: Callable | None, f: Callable, belief: Gaussian, u, Q, noise_dim: int, *,
+                 jacobian_grad: bool = True, structure: EKFStructure | None = None) -> Gaussian:
+    """:func:`ekf_predict` with its covariance computed by ``kernel(P, A, L, Q, pa, pl)``
+    (``predict_cov``'s signature, the patterns dense without ``structure``; e.g. the
+    batch-last kernel of :mod:`jaxnc.estimators.ekf_batched`). ``None``: as
+    :func:`ekf_predict` (:func:`~jaxnc.estimators.covariance.predict_cov` with a
+    ``structure``, matrix products without)."""
     noise_dim = _noise_dim("ekf_predict", noise_dim)
     _check_cov("ekf_predict", "Q", Q, noise_dim, form="either", definite=False)
     n = belief.mean.shape[0]
@@ -218,11 +228,11 @@ def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian
     J = jacobian_columns(lambda xw: f(xw[:n], u0, xw[n:]), jnp.concatenate([x0, w0]),
                          ca + tuple(n + j for j in cl))
     Q = jnp.asarray(Q, belief.cov.dtype)
-    if structure is not None:
+    if structure is not None or kernel is not None:
         # entry by entry, structural zeros skipped (elementwise under vmap; docs/design_notes.md)
         A = embed(J[:, :len(ca)], ca, n, axis=1)
         L = embed(J[:, len(ca):], cl, noise_dim, axis=1)
-        return Gaussian(mean, predict_cov(belief.cov, A, L, Q, pa, pl))
+        return Gaussian(mean, (kernel or predict_cov)(belief.cov, A, L, Q, pa, pl))
     A, L = J[:, :n], J[:, n:]                               # dense: every direction is live
     if Q.ndim == 1:
         LQL = _mm(L * Q[None, :], L.T)
@@ -285,6 +295,16 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     ValueError (at trace time) when ``r`` is not (p,) with p = len(z) = noise_dim, or (a
     concrete r) has an entry <= 0.
     """
+    return update_diag_with(None, h, belief, z, r, noise_dim, jacobian_grad=jacobian_grad, structure=structure)
+
+
+def update_diag_with(kernel: Callable | None, h: Callable, belief: Gaussian, z, r, noise_dim: int, *,
+                     jacobian_grad: bool = True, structure: EKFStructure | None = None) -> Gaussian:
+    """:func:`ekf_update_diag` with its covariance arithmetic computed by
+    ``kernel(P, H, innovation, r, ph)`` (``update_diag``'s signature, returning (delta, P);
+    e.g. the batch-last kernel of :mod:`jaxnc.estimators.ekf_batched`). ``None``: as
+    :func:`ekf_update_diag` (:func:`~jaxnc.estimators.covariance.update_diag`, its sums as
+    reductions)."""
     noise_dim = _noise_dim("ekf_update_diag", noise_dim)
     _check_cov("ekf_update_diag", "r", r, noise_dim, form="vector", definite=True)
     n = belief.mean.shape[0]
@@ -295,7 +315,11 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
     ph = Pattern.dense(z.shape[0], n) if structure is None else structure.H
     check_shape("ekf_update_diag", "H", ph, (z.shape[0], n))
     H = jacobian_columns(lambda x: h(x, v0), _at(belief.mean, jacobian_grad), ph.cols)   # H[:, cols]
-    delta, P = update_diag(belief.cov, embed(H, ph.cols, n, axis=1), innovation, jnp.asarray(r), ph, unroll=False)
+    H = embed(H, ph.cols, n, axis=1)
+    if kernel is None:
+        delta, P = update_diag(belief.cov, H, innovation, jnp.asarray(r), ph, unroll=False)
+    else:
+        delta, P = kernel(belief.cov, H, innovation, jnp.asarray(r, belief.cov.dtype), ph)
     return Gaussian(belief.mean + delta, P)
 
 

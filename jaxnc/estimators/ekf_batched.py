@@ -14,9 +14,12 @@ axes (``x`` of shape (n, B)), as :class:`jaxnc.plants.mecanum.Mecanum`'s do; it 
 that before tracing.
 
 Drop-in replacements for :func:`jaxnc.estimators.ekf.ekf_predict` and
-:func:`jaxnc.estimators.ekf.ekf_update_diag` (same signatures, same results up to
-float32 summation order; seed 000 eq. 11-16). Callers keep writing per-seed code and
-``jax.vmap`` it; only the covariance arithmetic changes how it is batched.
+:func:`jaxnc.estimators.ekf.ekf_update_diag` (same signatures, ``structure`` and
+``jacobian_grad`` included, same results up to float32 summation order; seed 000 eq.
+11-16). Callers keep writing per-seed code and ``jax.vmap`` it; only the covariance
+arithmetic changes how it is batched. The loop's ``EKF(form="sequential",
+batch_last=True)`` corrects with :func:`ekf_update_diag` (the prediction's drop-in measured
+no faster in a closed loop: benchmarks/RESULTS.md, "Helper lay").
 
 How: each kernel is wrapped by :func:`_batch_last`:
 
@@ -39,9 +42,9 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-from jaxnc.estimators.ekf import Gaussian, _check_cov
 from jaxnc.estimators.covariance import predict_cov, update_diag
-from jaxnc.estimators.sparsity import EKFStructure, check_shape, embed, jacobian_columns
+from jaxnc.estimators.ekf import Gaussian, _check_cov, predict_with, update_diag_with
+from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns
 
 __all__ = ["Gaussian", "ekf_filter", "ekf_predict", "ekf_update_diag", "predict_cov", "update_diag"]
 
@@ -119,39 +122,63 @@ def _predict_cov_compact(P, A, L, Q):
 _update_diag_compact = functools.partial(update_diag, unroll=False)
 
 
-_predict_cov = _batch_last(predict_cov, _predict_cov_compact)
-_update_diag = _batch_last(update_diag, _update_diag_compact)
+@functools.cache
+def _predict_last(pa: Pattern | None, pl: Pattern | None, diagonal: bool, dense: bool) -> Callable:
+    kernel = functools.partial(predict_cov, pa=pa, pl=pl, diagonal=diagonal)   # Q may gain the batch axis
+    return _batch_last(kernel, _predict_cov_compact if dense else kernel)
+
+
+@functools.cache
+def _update_last(ph: Pattern | None) -> Callable:
+    return _batch_last(functools.partial(update_diag, ph=ph), functools.partial(update_diag, ph=ph, unroll=False))
+
+
+def predict_kernel(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None):
+    """:func:`predict_cov` (the same arguments; the patterns static) run batch-last under
+    ``vmap`` (:func:`_batch_last`): the kernel of :func:`ekf_predict` with a ``structure``,
+    for :func:`jaxnc.estimators.ekf.predict_with`. Per seed it is ``predict_cov`` itself,
+    and its backward pass is ``predict_cov``'s per-seed ``vjp``, as for
+    :func:`jaxnc.estimators.ekf.ekf_predict` with the structure."""
+    return _predict_last(pa, pl, jnp.ndim(Q) == 1, False)(P, A, L, Q)
+
+
+def _predict_kernel_dense(P, A, L, Q, pa=None, pl=None):
+    """:func:`predict_kernel` without a structure (the patterns are dense): its backward pass
+    is the ``vjp`` of the dense matrix form, as for :func:`jaxnc.estimators.ekf.ekf_predict`
+    without one (whose gradient with respect to a full ``Q`` is symmetric)."""
+    return _predict_last(pa, pl, jnp.ndim(Q) == 1, True)(P, A, L, Q)
+
+
+def update_kernel(P, H, innovation, r, ph: Pattern | None = None):
+    """:func:`update_diag` (the same arguments; the pattern static) run batch-last under
+    ``vmap``, its sums unrolled: the kernel of :func:`ekf_update_diag`, for
+    :func:`jaxnc.estimators.ekf.update_diag_with`. Its backward pass is the per-seed
+    ``vjp`` of the reduction form, the one :func:`jaxnc.estimators.ekf.ekf_update_diag` runs."""
+    return _update_last(ph)(P, H, innovation, r)
 
 
 # -- drop-in EKF steps ------------------------------------------------------------------
-def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int) -> Gaussian:
+def ekf_predict(f: Callable, belief: Gaussian, u, Q, noise_dim: int, *, jacobian_grad: bool = True,
+                structure: EKFStructure | None = None) -> Gaussian:
     """One prediction step, eq. (11)-(12): mean = f(mean, u, 0), P = A P A' + L Q L'.
 
-    Same as ``ekf.ekf_predict``; the covariance is computed by the batch-last kernel
-    :func:`predict_cov`, and A = df/dxi, L = df/dn1 come from one ``jacfwd`` over the
-    stacked (xi, n1).
+    Same as ``ekf.ekf_predict`` (the same arguments), the covariance computed by the
+    batch-last kernel :func:`predict_cov` (:func:`predict_kernel`).
     """
-    n = belief.mean.shape[0]
-    w0 = jnp.zeros((noise_dim,), belief.mean.dtype)
-    mean = f(belief.mean, u, w0)
-    J = jax.jacfwd(lambda xw: f(xw[:n], u, xw[n:]))(jnp.concatenate([belief.mean, w0]))
-    Q = jnp.asarray(Q, belief.cov.dtype)
-    return Gaussian(mean, _predict_cov(belief.cov, J[:, :n], J[:, n:], Q))
+    kernel = _predict_kernel_dense if structure is None else predict_kernel
+    return predict_with(kernel, f, belief, u, Q, noise_dim, jacobian_grad=jacobian_grad, structure=structure)
 
 
-def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int) -> Gaussian:
+def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jacobian_grad: bool = True,
+                    structure: EKFStructure | None = None) -> Gaussian:
     """Correction for additive measurement noise with covariance ``diag(r)``, eq. (13)-(16).
 
-    Same as ``ekf.ekf_update_diag`` (sequential scalar updates, all linearised at the
-    prior mean); the covariance arithmetic runs in the batch-last kernel
-    :func:`update_diag`.
+    Same as ``ekf.ekf_update_diag`` (the same arguments; sequential scalar updates, all
+    linearised at the prior mean); the covariance arithmetic runs in the batch-last kernel
+    :func:`update_diag` (:func:`update_kernel`).
     """
-    v0 = jnp.zeros((noise_dim,), belief.mean.dtype)
-    innovation = z - h(belief.mean, v0)
-    H = jax.jacfwd(h, argnums=0)(belief.mean, v0)
-    r = jnp.asarray(r, belief.cov.dtype)
-    delta, P = _update_diag(belief.cov, H, innovation, r)
-    return Gaussian(belief.mean + delta, P)
+    return update_diag_with(update_kernel, h, belief, z, r, noise_dim,
+                            jacobian_grad=jacobian_grad, structure=structure)
 
 
 # -- the whole filter, batch-last ---------------------------------------------------------

@@ -27,6 +27,7 @@ import numpy as np
 
 from jaxnc._validate import (array_fields, check_bool, check_finite, check_given, check_instance, check_int,
                              concrete, psd_rounding)
+from jaxnc.estimators import ekf_batched as batched
 from jaxnc.estimators.ekf import (Gaussian, SqrtGaussian, ekf_predict, ekf_predict_sqrt, ekf_update, ekf_update_diag,
                                   ekf_update_sqrt)
 from jaxnc.estimators.sparsity import EKFStructure
@@ -149,6 +150,14 @@ class EKF(AbstractEstimator):
       keep_means: static bool, keep the mean after each fast period of the last prediction
         in the state (``EKFState.means``, for :func:`period_means`; ``rate="fast"``,
         ``buffer=0`` only).
+      batch_last: static bool; True runs the correction's covariance arithmetic with the
+        seed axis last where the loop is ``vmap``-ped over seeds
+        (:func:`jaxnc.estimators.ekf_batched.ekf_update_diag`, its sums unrolled; alone, one
+        seed, it runs the unrolled form too): the same filter, its values and gradients equal
+        to the default's up to float32 summation order, not bit for bit; faster where the
+        correction weighs (benchmarks/RESULTS.md, "Helper lay"). Forward-mode
+        differentiation (``jvp``) through it is not supported (a ``custom_vjp``).
+        ``form="sequential"`` only.
     """
 
     by_stamp = True
@@ -168,6 +177,7 @@ class EKF(AbstractEstimator):
     weight: str = _static("slot")
     output: str = _static("mean")
     keep_means: bool = _static(False)
+    batch_last: bool = _static(False)
 
     def __post_init__(self):
         check_instance("EKF.model", self.model, AbstractPlant, "a plant (a jaxnc.loop.AbstractPlant: LTI, Discrete, ...)")
@@ -190,11 +200,15 @@ class EKF(AbstractEstimator):
             raise ValueError(f"EKF.output must be one of mean, weighted, got {self.output!r}")
         check_bool("EKF.jacobian_grad", self.jacobian_grad)
         check_bool("EKF.keep_means", self.keep_means)
+        check_bool("EKF.batch_last", self.batch_last)
         if self.structure is not None and not isinstance(self.structure, EKFStructure):
             raise ValueError(f"EKF.structure must be None or an EKFStructure (jaxnc.estimators.sparsity."
                              f"detect_structure), got {type(self.structure).__name__}")
         if (self.structure is not None or not self.jacobian_grad) and self.form != "sequential":
             raise ValueError(f"EKF.structure and EKF.jacobian_grad=False need form='sequential', "
+                             f"got form={self.form!r}")
+        if self.batch_last and self.form != "sequential":
+            raise ValueError(f"EKF.batch_last=True needs form='sequential' (the diagonal update), "
                              f"got form={self.form!r}")
         if self.buffer and (self.output, self.keep_means) != ("mean", False):
             raise ValueError(f"EKF.output='weighted' and keep_means=True need buffer=0 (one measurement per "
@@ -321,8 +335,8 @@ class EKF(AbstractEstimator):
             post = ukf_update(self.model.measure, g, z, self.R, p, **self._sigma())
         elif self.form == "sequential":
             r = jnp.diagonal(self.R) if jnp.ndim(self.R) == 2 else self.R
-            post = ekf_update_diag(self.model.measure, g, z, r, p, jacobian_grad=self.jacobian_grad,
-                                   structure=self.structure)
+            update = batched.ekf_update_diag if self.batch_last else ekf_update_diag
+            post = update(self.model.measure, g, z, r, p, jacobian_grad=self.jacobian_grad, structure=self.structure)
         else:
             post = (ekf_update_sqrt if self.form == "sqrt" else ekf_update)(self.model.measure, g, z, self.R, p)
         return blend(w, post, g), post, w

@@ -88,7 +88,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
                  filter_noise: MecanumNoise | None = None, plant: Mecanum | None = None,
                  follower_kw: dict | None = None, trigger_temperature: float = 0.0, horizon_s: float | None = None,
                  max_silence: int = 0, truth=None, jacobian_grad: bool = True, sparse: bool = True,
-                 full: bool = False) -> nc.Loop:
+                 batch_last: bool = True, full: bool = False) -> nc.Loop:
     """Case ``case`` at multiplicity N and dropout probability DP = p_sc = p_ca = ``dp`` as a
     :class:`jaxnc.loop.Loop`, the paper's defaults (section 4.1).
 
@@ -109,6 +109,9 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         a time-triggered safety condition like seed 003 eq. 7, not in seed 000).
       jacobian_grad: False holds the EKF's Jacobians constant in gradients (same values).
       sparse: the EKF skips the model's structural zeros (:func:`ekf_structure`).
+      batch_last: the EKF's correction runs with the seed axis last under ``vmap``
+        (``EKF(batch_last=True)``: equal up to float32 rounding, faster; False: the
+        correction as reductions, the numbers stored before 2026-12-04's session 52).
       full: record x, u and the belief means too (:data:`FULL_RECORD`), else only what
         :func:`metrics` needs (:data:`METRICS_RECORD`).
 
@@ -161,7 +164,7 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
     estimator = nc.EKF(plant, np.square(filter_noise.process_std()), np.square(filter_noise.measurement_std()), x0,
                        np.diag(np.square(np.asarray(P0_STD, np.float32))), form="sequential", weight="slot",
                        output="weighted", keep_means=True, jacobian_grad=bool(jacobian_grad),
-                       structure=ekf_structure(plant) if sparse else None)
+                       structure=ekf_structure(plant) if sparse else None, batch_last=batch_last)
     actuator = nc.ChainActuator(plant, follower, Ts, np.int32(h * N), hold, x0, noise_dim=PROCESS_NOISE_DIM)
     controller = nc.ChainController(actuator)            # keeps its copy of the packets it sent
     return nc.Loop(
