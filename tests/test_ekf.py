@@ -246,3 +246,44 @@ def test_small_products_equal_matmul():
         x = rng.standard_normal(k).astype(np.float32)
         np.testing.assert_allclose(np.asarray(jax.jit(_mm)(a, b)), a @ b, atol=1e-5)
         np.testing.assert_allclose(np.asarray(jax.jit(matvec)(a, x)), a @ x, atol=1e-5)
+
+
+@pytest.mark.parametrize("form", ["joseph", "sequential"])
+def test_the_loops_ekf_recomputes_a_periods_predictions_in_reverse_mode(form, capsys):
+    """``EKF._predict_period`` (N fast predictions): the values and the gradient of the
+    prediction written as a plain loop of ``ekf_predict`` (float64, 1e-12), and reverse mode
+    stores no per-fast-period intermediate (the N predictions are recomputed from the
+    period's first Gaussian: no residual with a leading axis of N but the actions given)."""
+    from jaxnc.estimators.sparsity import Pattern
+    from jaxnc.loop import EKF
+    N = 5
+    with jax.enable_x64(True):
+        plant = Mecanum()
+        x, P, _, rng = _data(4)
+        us = jnp.asarray(rng.normal(size=(N, 4)) * 2)
+        Q = np.asarray(MecanumNoise().Q(), np.float64)
+        est = EKF(plant, Q, np.diag(np.full(9, 0.01)), x, P, form=form)
+        G = jnp.asarray(rng.normal(size=(6, 6)))
+
+        def loss(pred):
+            return lambda m, P, us: (jnp.sum(G * pred(Gaussian(m, P), us).cov)
+                                     + jnp.sum(jnp.sin(pred(Gaussian(m, P), us).mean)))
+
+        def plain(b, us):
+            for j in range(N):
+                b = ekf_predict(plant.dynamics, b, us[j], jnp.asarray(est.Q, jnp.float64), 7)
+            return b
+        ours = lambda b, us: est._predict_period(b, us, jnp.int32(0))[0]
+        m, P = jnp.asarray(x), jnp.asarray(P)
+        for a, b in zip(jax.jit(ours)(Gaussian(m, P), us), jax.jit(plain)(Gaussian(m, P), us)):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+        got = jax.jit(jax.grad(loss(ours), argnums=(0, 1)))(m, P, us)
+        want = jax.jit(jax.grad(loss(plain), argnums=(0, 1)))(m, P, us)
+        for a, b in zip(got, want):
+            assert np.max(np.abs(b)) > 1e-3
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.max(np.abs(b)))
+        from jax.ad_checkpoint import print_saved_residuals
+        capsys.readouterr()
+        print_saved_residuals(loss(ours), m, P, us)
+        saved = capsys.readouterr().out.splitlines()
+        assert saved and not [s for s in saved if s.split(" ")[0].startswith(f"f64[{N},") and "argument" not in s], saved
