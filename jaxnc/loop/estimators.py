@@ -74,23 +74,18 @@ def period_means_finite(estimator, state: EKFState):
     return jnp.all(jnp.isfinite(state.means))
 
 
-def _recomputed(fn):
-    """``fn`` under ``jax.checkpoint``, nothing saved: the same values, and a program without
-    differentiation is unchanged (bit for bit), but reverse mode recomputes what ``fn``
-    computes from its arguments instead of storing its intermediates for every step of the run
-    (docs/design_notes.md, "The exact gradient: hard decisions, a recomputed prediction")."""
-    # prevent_cse=False: it is always called inside a scan (the runner's, the window's),
-    # which keeps XLA from merging the recomputation with the forward pass (JAX's advice)
-    return jax.checkpoint(fn, policy=jax.checkpoint_policies.nothing_saveable, prevent_cse=False)
-
-
 def _recomputed_predict(f, g: Gaussian, u, Q, noise_dim: int, jacobian_grad: bool = True,
                         structure=None) -> Gaussian:
-    """:func:`~jaxnc.estimators.ekf.ekf_predict` under :func:`_recomputed`: reverse mode
-    recomputes the prediction from (g, u, Q) instead of storing the intermediates of its
-    Jacobian's forward-mode products."""
-    return _recomputed(lambda g, u, Q: ekf_predict(f, g, u, Q, noise_dim, jacobian_grad=jacobian_grad,
-                                                   structure=structure))(g, u, Q)
+    """:func:`~jaxnc.estimators.ekf.ekf_predict` under ``jax.checkpoint`` (nothing saved):
+    the same values, and a program without differentiation is unchanged (bit for bit), but
+    reverse mode recomputes the prediction from (g, u, Q) instead of storing the
+    intermediates of its Jacobian's forward-mode products for every step of the run
+    (docs/design_notes.md, "The exact gradient: hard decisions, a recomputed prediction")."""
+    # prevent_cse=False: it is always called inside a scan (:meth:`EKF._predict_period`'s),
+    # which keeps XLA from merging the recomputation with the forward pass (JAX's advice)
+    return jax.checkpoint(lambda g, u, Q: ekf_predict(f, g, u, Q, noise_dim, jacobian_grad=jacobian_grad,
+                                                      structure=structure),
+                          policy=jax.checkpoint_policies.nothing_saveable, prevent_cse=False)(g, u, Q)
 
 
 class PassthroughState(NamedTuple):
@@ -290,9 +285,7 @@ class EKF(AbstractEstimator):
         enters at the fast instants t = sN + j with t % noise_period == 0 (where the runner
         draws it, :func:`jaxnc.loop.draw`): Q there, none at the others. Returns (the
         Gaussian, the means after each fast period float[N, n] with ``keep_means``, else
-        None). The Joseph-form and sequential forms' fast-rate scan is under
-        :func:`_recomputed`: reverse mode stores the Gaussian at the period's start only
-        and recomputes the N predictions from it."""
+        None)."""
         if self.rate == "slow":          # one step of the lifted model over the period's actions us [N, m]
             n = self.model.state_dim
             if self.form == "unscented":
@@ -312,14 +305,11 @@ class EKF(AbstractEstimator):
                 g = _recomputed_predict(self.model.dynamics, g, u, Q, self.model.noise_dim, self.jacobian_grad,
                                         self.structure)
             return g, (g.mean if self.keep_means else None)
-        scan = lambda g, xs: jax.lax.scan(body, g, xs)
-        if self.form in ("joseph", "sequential"):
-            scan = _recomputed(scan)
         if P == 1:                       # every fast period (the same program as without noise_period)
-            return scan(g, us)
+            return jax.lax.scan(body, g, us)
         Q = jnp.asarray(self.Q)
         enters = ((s * N + jnp.arange(N)) % P == 0).astype(Q.dtype)          # [N]
-        return scan(g, (us, enters.reshape((N,) + (1,) * Q.ndim) * Q[None]))
+        return jax.lax.scan(body, g, (us, enters.reshape((N,) + (1,) * Q.ndim) * Q[None]))
 
     def _correct_at(self, g: Gaussian, inbox: Inbox, s, N):
         """Correct with the measurement of slow instant s (stamp sN), if it has arrived.
