@@ -1,19 +1,22 @@
 """The DRHE tracking cost's straight-through gradient in (sigma, delta), one checkout per process.
 
-Run:  JAXNC_NO_CACHE=1 .venv/bin/python benchmarks/bench_grad_drhe_trees.py TREE    (A B B A over two trees)
+Run:  JAXNC_NO_CACHE=1 .venv/bin/python benchmarks/bench_grad_drhe_trees.py TREE [N] [SEEDS]   (A B B A over two trees)
 
-Builds seed 000's DRHE loop (N = 10, p = 0.3, PETC temperature 1e-2) from the checkout TREE,
-compiles ``jit(f)`` and ``jit(value_and_grad(f))`` of the mean tracking cost over 64 seeds
-(process CPU seconds of each compilation) and runs each four times in the order f g g f
-(best process CPU seconds of each), printing one line.
+Builds seed 000's DRHE loop (N = 10 unless given, p = 0.3, PETC temperature 1e-2) from the
+checkout TREE, compiles ``jit(f)`` and ``jit(value_and_grad(f))`` of the mean tracking cost over
+64 seeds (or SEEDS; process CPU seconds of each compilation) and runs each four times in the
+order f g g f (best process CPU seconds of each), printing one line with the forward value and
+the gradient (full precision, to compare trees).
 """
 import sys, time, numpy as np
 tree = sys.argv[1]
 sys.path.insert(0, tree)
 import jax, jax.numpy as jnp, dataclasses
 from jaxnc.schemes import mecanum as mec
-lp = mec.mecanum_loop("DRHE", 10, 0.3, trigger_temperature=1e-2)
-keys = jax.random.split(jax.random.PRNGKey(3), 64)
+N = int(sys.argv[2]) if len(sys.argv) > 2 else 10
+seeds = int(sys.argv[3]) if len(sys.argv) > 3 else 64
+lp = mec.mecanum_loop("DRHE", N, 0.3, trigger_temperature=1e-2)
+keys = jax.random.split(jax.random.PRNGKey(3), seeds)
 def f(sd):
     trig = dataclasses.replace(lp.trigger, sigma=sd[0] * jnp.ones(9), delta=sd[1] * jnp.ones(9))
     l = dataclasses.replace(lp, trigger=trig)
@@ -27,5 +30,5 @@ for name, p in (("fwd", ff), ("grad", fg), ("grad", fg), ("fwd", ff)) * 2:
     c0 = time.process_time()
     jax.block_until_ready(p(x))
     best[name] = min(best.get(name, 9e9), time.process_time() - c0)
-print(tree, f"compile fwd {cf:.1f} grad {cg:.1f}  run fwd {best['fwd']:.3f} grad {best['grad']:.3f} "
-      f"ratio {best['grad'] / best['fwd']:.2f}")
+print(tree, f"N={N} seeds={seeds} compile fwd {cf:.1f} grad {cg:.1f}  run fwd {best['fwd']:.3f} grad {best['grad']:.3f} "
+      f"ratio {best['grad'] / best['fwd']:.2f}  forward {float(ff(x))!r} gradient {np.asarray(fg(x)[1]).tolist()}")

@@ -81,3 +81,45 @@ def test_predict_cov_is_APA_plus_LQL(diag_q):
         got = jax.jit(lambda *a: predict_cov(*a, Pattern.of(A), Pattern.of(L)))(P, A, L, Q)
         np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=TOL * np.abs(want).max())
         assert np.array_equal(np.asarray(got), np.asarray(got).T)
+
+
+def _prediction_problem():
+    rng = np.random.default_rng(3)
+    P, _, _, _ = _problem(3)
+    A, L = rng.normal(size=(N, N)), rng.normal(size=(N, 2))
+    A[0, 1:] = 0.0
+    L[3] = 0.0
+    return P, A, L, rng.uniform(0.1, 1.0, size=2), rng.normal(size=(N, N))
+
+
+def test_predict_cov_gradient_is_the_matrix_formulas():
+    """Reverse mode through the entry-by-entry prediction equals that of A P A' + L Q L' in
+    float64: for A and L on their patterns' entries (the others are structural zeros, never
+    read: gradient 0), for Q, and for P along symmetric directions."""
+    with jax.enable_x64(True):
+        P, A, L, Q, C = _prediction_problem()
+        pa, pl = Pattern.of(A), Pattern.of(L)
+        sym = lambda S: 0.5 * (S + S.T)
+        entries = lambda S, A, L, Q: jnp.sum(C * predict_cov(sym(S), A, L, Q, pa, pl))
+        dense = lambda S, A, L, Q: jnp.sum(C * (A @ sym(S) @ A.T + (L * Q[None, :]) @ L.T))
+        got = jax.grad(entries, argnums=(0, 1, 2, 3))(P, A, L, Q)
+        want = jax.grad(dense, argnums=(0, 1, 2, 3))(P, A, L, Q)
+        masks = (np.ones((N, N), bool), pa.array, pl.array, np.ones(2, bool))
+        for name, g, w, m in zip("PALQ", got, want, masks):
+            g, w = np.asarray(g), np.asarray(w)
+            np.testing.assert_allclose(g[m], w[m], rtol=0, atol=TOL * np.abs(w).max(), err_msg=name)
+            assert np.all(g[~m] == 0.0), name
+        assert np.abs(np.asarray(got[1])).max() > 1e-3         # a gradient that could be wrong
+
+
+def test_predict_cov_reverse_mode_pads_no_entry():
+    """Reverse mode stacks the entries' cotangents back into the matrices (``lax.unstack``'s
+    transpose): no entry's cotangent is padded to a whole matrix and summed, which under
+    ``vmap`` made one loop fusion of every entry, quadratic in the entries, the largest
+    single cost of DRHE's exact gradient (benchmarks/RESULTS.md, helper grad 2026-12-04)."""
+    P, A, L, Q, C = (jnp.asarray(a, jnp.float32) for a in _prediction_problem())
+    pa, pl = Pattern.of(np.asarray(A)), Pattern.of(np.asarray(L))
+    f = lambda P, A, L, Q: jnp.sum(C * predict_cov(P, A, L, Q, pa, pl))
+    jaxpr = jax.make_jaxpr(jax.vmap(jax.grad(f, argnums=(0, 1, 2, 3))))(*(jnp.stack([a, a]) for a in (P, A, L, Q)))
+    prims = [e.primitive.name for e in jaxpr.jaxpr.eqns]
+    assert "stack" in prims and prims.count("pad") == 0, sorted(set(prims))

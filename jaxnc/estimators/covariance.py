@@ -22,6 +22,7 @@ either unrolled into slices (batch-last: no reduction over a non-minor axis) or 
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -46,13 +47,24 @@ def _stack(rows):
     return jnp.stack([jnp.stack(r) for r in rows])
 
 
+def _entries(M):
+    """``M`` (two leading matrix indices) as a list of rows, each a list of its entries.
+
+    Unstacked (``lax.unstack``), not indexed entry by entry: the forward pass is the same
+    slices, but reverse mode stacks the entries' cotangents back in one concatenation,
+    where an indexed entry's cotangent is padded to the whole matrix and the pads summed
+    (work quadratic in the entries, docs/design_notes.md)."""
+    return [list(jax.lax.unstack(row)) for row in jax.lax.unstack(M)]
+
+
 def _sym_entries(P):
     """Entries of symmetric ``P``, the lower triangle referring to the upper one."""
     n = P.shape[0]
+    Pe = _entries(P)
     E = [[None] * n for _ in range(n)]
     for i in range(n):
         for j in range(i, n):
-            E[i][j] = E[j][i] = P[i, j]
+            E[i][j] = E[j][i] = Pe[i][j]
     return E
 
 
@@ -70,21 +82,24 @@ def predict_cov(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = None
     n, nw = P.shape[0], L.shape[1]
     ma, ml = _mask(pa, (n, n)), _mask(pl, (n, nw))
     Pe = _sym_entries(P)
+    A, L = _entries(A), _entries(L)
+    diagonal = (Q.ndim == 1) if diagonal is None else diagonal
+    Q = list(jax.lax.unstack(Q)) if diagonal else _entries(Q)
     zero = jnp.zeros(P.shape[2:], P.dtype)
     # AP = A P on the rows A can be nonzero in
-    AP = {i: [_sum(A[i, k] * Pe[k][j] for k in np.flatnonzero(ma[i])) for j in range(n)]
+    AP = {i: [_sum(A[i][k] * Pe[k][j] for k in np.flatnonzero(ma[i])) for j in range(n)]
           for i in range(n) if ma[i].any()}
-    if (Q.ndim == 1) if diagonal is None else diagonal:
-        LQ = {i: {k: L[i, k] * Q[k] for k in np.flatnonzero(ml[i])} for i in range(n)}
-        LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[i] & ml[j])]
+    if diagonal:
+        LQ = {i: {k: L[i][k] * Q[k] for k in np.flatnonzero(ml[i])} for i in range(n)}
+        LQL = lambda i, j: [LQ[i][k] * L[j][k] for k in np.flatnonzero(ml[i] & ml[j])]
     else:
-        LQ = {i: [_sum(L[i, k] * Q[k, l] for k in np.flatnonzero(ml[i])) for l in range(nw)]
+        LQ = {i: [_sum(L[i][k] * Q[k][l] for k in np.flatnonzero(ml[i])) for l in range(nw)]
               for i in range(n) if ml[i].any()}
-        LQL = lambda i, j: [LQ[i][k] * L[j, k] for k in np.flatnonzero(ml[j])] if i in LQ else []
+        LQL = lambda i, j: [LQ[i][k] * L[j][k] for k in np.flatnonzero(ml[j])] if i in LQ else []
     C = [[None] * n for _ in range(n)]
     for i in range(n):
         for j in range(i, n):
-            terms = [AP[i][l] * A[j, l] for l in np.flatnonzero(ma[j])] if i in AP else []
+            terms = [AP[i][l] * A[j][l] for l in np.flatnonzero(ma[j])] if i in AP else []
             terms += LQL(i, j)
             C[i][j] = C[j][i] = _sum(terms) if terms else zero
     return _stack(C)
