@@ -200,7 +200,7 @@ def test_a_non_finite_or_heavy_tailed_estimate_says_on_how_many_seeds():
     c = gradient_check(_rare(jnp.nan), np.array([1.0]), keys, estimators=("straight_through",))
     assert c.reason["straight_through"] == f"non-finite values on {hits} of 256 seeds", c.table()
     c = gradient_check(_rare(1e6), np.array([1.0]), keys, estimators=("straight_through",))
-    assert "heavy-tailed: its normal interval needs about" in c.reason["straight_through"], c.table()
+    assert "heavy-tailed on theta[0]: its normal interval needs about" in c.reason["straight_through"], c.table()
     c = gradient_check(_noisy, np.array([1.0]), keys, estimators=("straight_through",))     # normal, not skewed
     assert c.reason["straight_through"].startswith("too noisy"), c.table()
     assert "heavy-tailed" not in c.reason["straight_through"], c.table()

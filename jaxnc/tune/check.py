@@ -217,17 +217,18 @@ def _seeds_str(n) -> str:
     return "inf" if not np.isfinite(n) else f"{int(n)}"
 
 
-def _heavy_tail(diff: np.ndarray) -> str:
+def _heavy_tail(diff: np.ndarray, slope: np.ndarray, names: tuple) -> str:
     """"; heavy-tailed: ..." when the per-seed differences ``diff`` [n, d] (an estimator
     minus its finite differences) are too skewed on some coordinate for the normal interval
     of their mean over n seeds, by Cochran's rule
-    (:func:`jaxnc.montecarlo.seeds_for_normal_interval`), else ""."""
-    n = diff.shape[0]
-    need = max(montecarlo.seeds_for_normal_interval(diff[:, j]) for j in range(diff.shape[1]))
-    if need <= n:
+    (:func:`jaxnc.montecarlo.seeds_for_normal_interval`), else "". The worst coordinate's
+    median difference is quoted divided by ``slope`` (the user's units)."""
+    need = [montecarlo.seeds_for_normal_interval(diff[:, j]) for j in range(diff.shape[1])]
+    j = int(np.argmax(need))
+    if need[j] <= diff.shape[0]:
         return ""
-    return (f"; heavy-tailed: its normal interval needs about {need} seeds by Cochran's rule "
-            f"(median {np.median(diff):.3g} from the finite differences)")
+    return (f"; heavy-tailed on {names[j]}: its normal interval needs about {need[j]} seeds by Cochran's rule "
+            f"(median difference to the finite differences {np.median(diff[:, j]) / slope[j]:.3g})")
 
 
 def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol: float, names: tuple,
@@ -263,10 +264,11 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
             bad = int(np.sum(~np.all(np.isfinite(g.reshape(n, -1)), axis=1)))
             reason = f"non-finite values on {bad} of {n} seeds"
         elif not np.all((np.abs(zz) <= z) | ((np.abs(diff.mean(0)) <= margin) & (np.abs(diff.mean(0)) <= size))):
-            reason = f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}" + _heavy_tail(diff)
+            reason = (f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
+                      + _heavy_tail(diff, slope, names))
         elif np.any(estimates[name][1] > max_noise * np.maximum(estimates[ref][1], 1e-30)):
             ratio = float(np.max(estimates[name][1] / np.maximum(estimates[ref][1], 1e-30)))
-            reason = f"too noisy, std err {ratio:.3g}x the finite differences'" + _heavy_tail(diff)
+            reason = f"too noisy, std err {ratio:.3g}x the finite differences'" + _heavy_tail(diff, slope, names)
         elif not np.all(resolved):
             reason = "inconclusive on " + "; ".join(
                 f"{names[j]} (resolves {resolution[j] / slope[j]:.3g}, gradient {size[j] / slope[j]:.3g}: about "
