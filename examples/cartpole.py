@@ -36,7 +36,8 @@ def cartpole(delta=1e-3, p_loss=0.3, temperature=0.0):
     A, B = (np.asarray(jax.jacfwd(plant.dynamics, i)(*zero)) for i in (0, 1))
     K = dlqr(A, B, np.diag([1.0, 10.0, 0.1, 0.1]), np.eye(1) * 0.1)[0]
     ekf = nc.EKF(plant, Q=np.asarray(plant.w_std) ** 2 * T, R=np.diag(np.asarray(plant.v_std) ** 2),
-                 mean0=np.zeros(4), cov0=np.eye(4) * 0.01, buffer=5)   # measurements up to 5 periods late
+                 mean0=np.zeros(4), cov0=np.eye(4) * 0.01, buffer=5,  # measurements up to 5 periods late
+                 form="sqrt")   # stays positive definite in float32 through seconds of silence
     sensor_link = nc.Link(nc.Bernoulli(p_loss), nc.ShiftedExponential(eta=0.01, phi=0.02), tau_max=0.1,
                           order="all", capacity=6)
     return nc.Loop(plant=plant, trigger=nc.Petc(delta=delta, temperature=temperature), uplink=sensor_link,

@@ -169,3 +169,38 @@ def test_a_derivative_of_the_wrong_sign_is_not_agreement_within_rel_tol():
     assert g[1] < 0 < fd[1] and abs(g[1] - fd[1]) < 0.02 * abs(fd[0]) and c.resolved["straight_through"].all()
     assert not c.consistent["straight_through"] and c.recommended is None, c.table()
     assert "differs from finite differences" in c.reason["straight_through"]
+
+
+def _rare(value):
+    """theta_0 with a straight-through derivative of ``value`` on the seeds whose uniform
+    draw is below 0.02 and 1 elsewhere (at temperature 0, the finite differences' hard
+    objective, the derivative is 1 on every seed)."""
+    def objective(theta, key, temperature):
+        r = jnp.where(jax.random.uniform(key) < 0.02, value, 1.0)
+        soft = theta[0] * jnp.where(temperature > 0, r, 1.0)
+        return theta[0] + soft - jax.lax.stop_gradient(soft)
+    return objective
+
+
+def _noisy(theta, key, temperature):
+    """theta_0 whose straight-through derivative is 1 + 100 N(0, 1) per seed."""
+    soft = theta[0] * jnp.where(temperature > 0, 100.0 * jax.random.normal(key), 0.0)
+    return theta[0] + soft - jax.lax.stop_gradient(soft)
+
+
+def test_a_non_finite_or_heavy_tailed_estimate_says_on_how_many_seeds():
+    """The reasons the check gives an estimator say how many seeds were non-finite (it said
+    only "non-finite values": one NaN seed and all NaN read alike) and whether the per-seed
+    differences are too skewed for the normal interval the verdict rests on ("heavy-tailed",
+    Cochran's rule; the cart-pole's straight-through gradient, docs/tuning_loops.md); a
+    normal, merely noisy estimate is not called heavy-tailed."""
+    keys = montecarlo.seed_keys(0, 256)
+    hits = int(np.sum(np.asarray(jax.vmap(jax.random.uniform)(keys)) < 0.02))
+    assert 1 <= hits <= 12
+    c = gradient_check(_rare(jnp.nan), np.array([1.0]), keys, estimators=("straight_through",))
+    assert c.reason["straight_through"] == f"non-finite values on {hits} of 256 seeds", c.table()
+    c = gradient_check(_rare(1e6), np.array([1.0]), keys, estimators=("straight_through",))
+    assert "heavy-tailed on theta[0]: its normal interval needs about" in c.reason["straight_through"], c.table()
+    c = gradient_check(_noisy, np.array([1.0]), keys, estimators=("straight_through",))     # normal, not skewed
+    assert c.reason["straight_through"].startswith("too noisy"), c.table()
+    assert "heavy-tailed" not in c.reason["straight_through"], c.table()

@@ -49,7 +49,11 @@ with the finite differences when
    beside the largest component);
 2. its standard error is at most ``max_noise`` (10) times the finite differences' (an
    estimator so noisy that it agrees with anything, e.g. a straight-through gradient
-   through a very sharp sigmoid, is flagged as too noisy, not passed);
+   through a very sharp sigmoid, is flagged as too noisy, not passed). A reason "differs"
+   or "too noisy" adds "heavy-tailed" when the per-seed differences to the finite
+   differences are too skewed for a normal interval on these seeds (Cochran's rule,
+   :func:`jaxnc.montecarlo.seeds_for_normal_interval`: neither verdict is then to be
+   trusted as a test), and "non-finite values" says on how many seeds;
 3. **every coordinate is resolved**: coordinate j is resolved when the check could have
    seen a disagreement as large as the gradient on that coordinate,
    ``z * SE_j <= max(|estimate_j|, |finite difference_j|)`` with SE_j the standard error
@@ -213,6 +217,20 @@ def _seeds_str(n) -> str:
     return "inf" if not np.isfinite(n) else f"{int(n)}"
 
 
+def _heavy_tail(diff: np.ndarray, slope: np.ndarray, names: tuple) -> str:
+    """"; heavy-tailed: ..." when the per-seed differences ``diff`` [n, d] (an estimator
+    minus its finite differences) are too skewed on some coordinate for the normal interval
+    of their mean over n seeds, by Cochran's rule
+    (:func:`jaxnc.montecarlo.seeds_for_normal_interval`), else "". The worst coordinate's
+    median difference is quoted divided by ``slope`` (the user's units)."""
+    need = [montecarlo.seeds_for_normal_interval(diff[:, j]) for j in range(diff.shape[1])]
+    j = int(np.argmax(need))
+    if need[j] <= diff.shape[0]:
+        return ""
+    return (f"; heavy-tailed on {names[j]}: its normal interval needs about {need[j]} seeds by Cochran's rule "
+            f"(median difference to the finite differences {np.median(diff[:, j]) / slope[j]:.3g})")
+
+
 def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol: float, names: tuple,
               slope: np.ndarray):
     """The check's statistics and verdicts from the per-seed values ``res`` (module
@@ -243,12 +261,14 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
         out["paired"][name], out["diff_se"][name] = zz, s
         out["resolution"][name], out["resolved"][name], out["needed"][name] = resolution, resolved, needed
         if not np.all(np.isfinite(g)):
-            reason = "non-finite values"
+            bad = int(np.sum(~np.all(np.isfinite(g.reshape(n, -1)), axis=1)))
+            reason = f"non-finite values on {bad} of {n} seeds"
         elif not np.all((np.abs(zz) <= z) | ((np.abs(diff.mean(0)) <= margin) & (np.abs(diff.mean(0)) <= size))):
-            reason = f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
+            reason = (f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
+                      + _heavy_tail(diff, slope, names))
         elif np.any(estimates[name][1] > max_noise * np.maximum(estimates[ref][1], 1e-30)):
             ratio = float(np.max(estimates[name][1] / np.maximum(estimates[ref][1], 1e-30)))
-            reason = f"too noisy, std err {ratio:.3g}x the finite differences'"
+            reason = f"too noisy, std err {ratio:.3g}x the finite differences'" + _heavy_tail(diff, slope, names)
         elif not np.all(resolved):
             reason = "inconclusive on " + "; ".join(
                 f"{names[j]} (resolves {resolution[j] / slope[j]:.3g}, gradient {size[j] / slope[j]:.3g}: about "
