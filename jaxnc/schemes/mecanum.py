@@ -109,9 +109,8 @@ def mecanum_loop(case: str = "DRHE", N: int = 10, dp: float = 0.0, path: str | P
         a time-triggered safety condition like seed 003 eq. 7, not in seed 000).
       jacobian_grad: False holds the EKF's Jacobians constant in gradients (same values).
       sparse: the EKF skips the model's structural zeros (:func:`ekf_structure`).
-      batch_last: the EKF's correction runs with the seed axis last under ``vmap``
-        (``EKF(batch_last=True)``: equal up to float32 rounding, faster; False: the
-        correction as reductions, the numbers stored before 2026-12-04's session 52).
+      batch_last: ``EKF(batch_last=True)``, the correction with the seed axis last (faster; equal
+        up to float32 rounding; False: as reductions, the numbers stored before 2026-12-04).
       full: record x, u and the belief means too (:data:`FULL_RECORD`), else only what
         :func:`metrics` needs (:data:`METRICS_RECORD`).
 
