@@ -492,6 +492,10 @@ def test_batch_last_ekf_is_the_default_up_to_rounding_values_and_gradients():
     assert float(ga[0]) != 0.0 and float(ga[1][0]) != 0.0
     np.testing.assert_allclose(gb[0], ga[0], rtol=1e-3)
     np.testing.assert_allclose(gb[1], ga[1], rtol=1e-3)
+    # forward mode too (the kernels' derivative is a custom_jvp; a custom_vjp refused jacfwd)
+    fa, fb = (jax.jit(jax.jacfwd(cost), static_argnums=2)(d, q, b) for b in (False, True))
+    np.testing.assert_allclose(fb, fa, rtol=1e-3)
+    np.testing.assert_allclose(fb, gb[0], rtol=1e-3)
     # the batch-last kernels are what runs: the program differs from the default's
     texts = [jax.jit(run, static_argnums=2).lower(d, q, b).as_text(debug_info=False) for b in (False, True)]
     assert texts[0] != texts[1]

@@ -27,11 +27,12 @@ How: each kernel is wrapped by :func:`_batch_last`:
   arrays (batch shape ``()``). Batched, its rule receives the batch-first operands,
   moves the batch axis last (unbatched operands are broadcast), runs the *same*
   kernel and moves the axis back.
-* ``jax.custom_vjp`` on the outside (``custom_vmap`` alone supports no reverse mode):
-  the residuals are the inputs and the backward pass is ``jax.vjp`` of the same
-  function written per seed with array operations (as in ``ekf``), batched by plain
-  ``vmap``. Forward mode (``jax.jvp``/``jacfwd`` through these functions) does not
-  work (``custom_vjp``).
+* ``jax.custom_jvp`` on the outside (``custom_vmap`` alone supports no differentiation):
+  the derivative is ``jax.jvp`` of the same function written per seed with array
+  operations (as in ``ekf``), batched by plain ``vmap``; forward mode (``jax.jvp``,
+  ``jacfwd``) uses it as it is and reverse mode transposes it. (Until 2026-12-04 a
+  ``custom_vjp``, which refused forward mode: the seed-000 loop, whose filter uses these
+  kernels by default since then, would have refused ``jacfwd``.)
 """
 from __future__ import annotations
 
@@ -67,14 +68,14 @@ def _from_last(x):
 
 
 def _batch_last(kernel: Callable, compact: Callable) -> Callable:
-    """``kernel(*arrays)`` made batch-last under ``vmap`` and reverse-differentiable.
+    """``kernel(*arrays)`` made batch-last under ``vmap``, and differentiable.
 
     ``kernel`` must accept arrays with any number of trailing batch axes (the same on
     every argument) and return a pytree of arrays with those trailing axes.
     ``compact`` computes the same function per seed with array operations; the
-    backward pass is its ``jax.vjp`` (batched by plain ``vmap``): differentiating the
-    unrolled kernel instead gives the same numbers but an expression graph that took
-    ~7x longer to compile.
+    derivatives are its ``jax.jvp`` (batched by plain ``vmap``; reverse mode transposes
+    it): differentiating the unrolled kernel instead gives the same numbers but an
+    expression graph that took ~7x longer to compile.
     """
 
     @custom_vmap
@@ -91,19 +92,21 @@ def _batch_last(kernel: Callable, compact: Callable) -> Callable:
 
 
 def _backward_by(forward: Callable, backward_of: Callable) -> Callable:
-    """``forward`` whose reverse-mode derivative is the ``vjp`` of ``backward_of``, the
-    same function written with array operations (the inputs are the residuals)."""
-    @jax.custom_vjp
+    """``forward`` whose derivatives are those of ``backward_of``, the same function written
+    with array operations: its ``jvp`` (a ``custom_jvp``), so forward mode (``jax.jvp``,
+    ``jacfwd``) works, and reverse mode transposes it."""
+    @jax.custom_jvp
     def fn(*args):
         return forward(*args)
 
-    def fn_fwd(*args):
-        return forward(*args), args
+    # under a checkpoint, reverse mode recomputes backward_of's primal in its backward pass
+    # instead of storing its intermediates at every step (as the custom_vjp this replaced did)
+    tangent = jax.checkpoint(lambda p, t: jax.jvp(backward_of, p, t)[1])
 
-    def fn_bwd(args, ct):
-        return tuple(jax.vjp(backward_of, *args)[1](ct))
+    @fn.defjvp
+    def _fn_jvp(primals, tangents):
+        return forward(*primals), tangent(primals, tangents)
 
-    fn.defvjp(fn_fwd, fn_bwd)
     return fn
 
 

@@ -155,9 +155,8 @@ class EKF(AbstractEstimator):
         (:func:`jaxnc.estimators.ekf_batched.ekf_update_diag`, its sums unrolled; alone, one
         seed, it runs the unrolled form too): the same filter, its values and gradients equal
         to the default's up to float32 summation order, not bit for bit; faster where the
-        correction weighs (benchmarks/RESULTS.md, "Helper lay"). Forward-mode
-        differentiation (``jvp``) through it is not supported (a ``custom_vjp``).
-        ``form="sequential"`` only.
+        correction weighs (benchmarks/RESULTS.md, "Helper lay"); both modes of
+        differentiation. ``form="sequential"`` only.
     """
 
     by_stamp = True
