@@ -57,7 +57,10 @@ def servo_ekf(seeds):
             print(f"servo + EKF, straight-through tau={tau:g} weight={w}: {float(g):.4f}")
 
 
-def pendulum_relaxed():
+def relaxed_pendulum_cost(weight: str, keys, steps: int):
+    """cost(δ): the mean squared state over ``keys`` of a pendulum with two sensors under a relaxed
+    PETC (τ = 0.02), an ``EKF(form="sequential", weight=weight)``, 20 % loss and N = 4, ``steps``
+    fast periods (item 2 above; tests/test_nudrekf.py checks its smoothness and gradient)."""
     Tp = 0.02
 
     def f(x, u, w):
@@ -65,18 +68,22 @@ def pendulum_relaxed():
 
     pend = nc.Discrete(x0=[0.3, 0.0], x0_std=[0.05, 0.05], w_std=[0.02], v_std=[0.01, 0.05], f=f,
                        h=lambda x, v: x + v, input_dim=1, noise_dim=1, output_dim=2)
+    ekf = nc.EKF(pend, Q=[0.02 ** 2], R=[0.01 ** 2, 0.05 ** 2], mean0=[0.3, 0.0], cov0=0.01 * np.eye(2),
+                 form="sequential", weight=weight)
+
+    def cost(d):
+        lp = nc.Loop(plant=pend, trigger=nc.Petc(delta=d, temperature=0.02, relaxed=True),
+                     uplink=nc.Link(nc.Bernoulli(0.2)), estimator=ekf, controller=nc.StateFeedback([[8.0, 2.0]]),
+                     downlink=nc.Link(), actuator=nc.HoldLast(), N=4, steps=steps, T=Tp,
+                     record=nc.Record(signals=("x",)))
+        return jnp.mean(jnp.square(jax.vmap(lambda k: nc.simulate(lp, k).x)(keys)))
+    return cost
+
+
+def pendulum_relaxed():
     keys = jax.random.split(jax.random.PRNGKey(1), 256)
     for weight in ("stamp", "slot"):
-        ekf = nc.EKF(pend, Q=[0.02 ** 2], R=[0.01 ** 2, 0.05 ** 2], mean0=[0.3, 0.0], cov0=0.01 * np.eye(2),
-                     form="sequential", weight=weight)
-
-        def cost(d):
-            lp = nc.Loop(plant=pend, trigger=nc.Petc(delta=d, temperature=0.02, relaxed=True),
-                         uplink=nc.Link(nc.Bernoulli(0.2)), estimator=ekf, controller=nc.StateFeedback([[8.0, 2.0]]),
-                         downlink=nc.Link(), actuator=nc.HoldLast(), N=4, steps=200, T=Tp,
-                         record=nc.Record(signals=("x",)))
-            return jnp.mean(jnp.square(jax.vmap(lambda k: nc.simulate(lp, k).x)(keys)))
-
+        cost = relaxed_pendulum_cost(weight, keys, 200)
         c, g = jax.jit(cost), jax.jit(jax.grad(cost))
         vals = np.array([float(c(jnp.float32(d))) for d in np.linspace(0.02, 0.03, 41)])
         fd = (float(c(jnp.float32(0.027))) - float(c(jnp.float32(0.023)))) / 4e-3

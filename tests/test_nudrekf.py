@@ -352,22 +352,8 @@ def test_slot_weight_makes_a_relaxed_petc_loop_smooth_and_its_exact_gradient_mat
     # weight="slot" the filter blends by beta at every instant (no delay on the uplink), the
     # objective is smooth and the exact gradient equals central differences (float32: the
     # differences' rounding is ~1e-7 * cost / step, 1e-6 of the derivative here)
-    T = 0.02
-
-    def f(x, u, w):
-        return jnp.stack([x[0] + T * x[1], x[1] + T * (-9.81 * jnp.sin(x[0]) - 0.2 * x[1] + u[0]) + w[0]])
-
-    pend = nc.Discrete(x0=[0.3, 0.0], x0_std=[0.05, 0.05], w_std=[0.02], v_std=[0.01, 0.05], f=f,
-                       h=lambda x, v: x + v, input_dim=1, noise_dim=1, output_dim=2)
-    keys = jax.random.split(jax.random.PRNGKey(1), 64)
-    ekf = nc.EKF(pend, Q=[0.02 ** 2], R=[0.01 ** 2, 0.05 ** 2], mean0=[0.3, 0.0], cov0=0.01 * np.eye(2),
-                 form="sequential", weight="slot")
-
-    def cost(d):
-        lp = nc.Loop(plant=pend, trigger=nc.Petc(delta=d, temperature=0.02, relaxed=True),
-                     uplink=nc.Link(nc.Bernoulli(0.2)), estimator=ekf, controller=nc.StateFeedback([[8.0, 2.0]]),
-                     downlink=nc.Link(), actuator=nc.HoldLast(), N=4, steps=120, T=T, record=nc.Record(signals=("x",)))
-        return jnp.mean(jnp.square(jax.vmap(lambda k: nc.simulate(lp, k).x)(keys)))
+    from benchmarks.silent_instants import relaxed_pendulum_cost
+    cost = relaxed_pendulum_cost("slot", jax.random.split(jax.random.PRNGKey(1), 64), 120)
 
     c, g = jax.jit(cost), jax.jit(jax.grad(cost))
     d0, e = jnp.float32(0.025), 2e-3

@@ -88,20 +88,20 @@ def _batch_last(kernel: Callable, compact: Callable) -> Callable:
         out = jax.tree.map(_from_last, out)
         return out, jax.tree.map(lambda _: True, out)
 
-    return _backward_by(forward, compact)
+    return _derivatives_by(forward, compact)
 
 
-def _backward_by(forward: Callable, backward_of: Callable) -> Callable:
-    """``forward`` whose derivatives are those of ``backward_of``, the same function written
+def _derivatives_by(forward: Callable, reference: Callable) -> Callable:
+    """``forward`` whose derivatives are those of ``reference``, the same function written
     with array operations: its ``jvp`` (a ``custom_jvp``), so forward mode (``jax.jvp``,
     ``jacfwd``) works, and reverse mode transposes it."""
     @jax.custom_jvp
     def fn(*args):
         return forward(*args)
 
-    # under a checkpoint, reverse mode recomputes backward_of's primal in its backward pass
+    # under a checkpoint, reverse mode recomputes reference's primal in its backward pass
     # instead of storing its intermediates at every step (as the custom_vjp this replaced did)
-    tangent = jax.checkpoint(lambda p, t: jax.jvp(backward_of, p, t)[1])
+    tangent = jax.checkpoint(lambda p, t: jax.jvp(reference, p, t)[1])
 
     @fn.defjvp
     def _fn_jvp(primals, tangents):
@@ -110,7 +110,7 @@ def _backward_by(forward: Callable, backward_of: Callable) -> Callable:
     return fn
 
 
-# -- the same functions per seed with array operations (for the backward pass) ---------
+# -- the same functions per seed with array operations (for the derivatives) -----------
 def _mm_compact(a, b):
     return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
@@ -121,7 +121,7 @@ def _predict_cov_compact(P, A, L, Q):
     return 0.5 * (C + C.T)
 
 
-#: the sequential update per seed, its sums as reductions (the backward pass's form)
+#: the sequential update per seed, its sums as reductions (the derivatives' form)
 _update_diag_compact = functools.partial(update_diag, unroll=False)
 
 
@@ -140,14 +140,14 @@ def predict_kernel(P, A, L, Q, pa: Pattern | None = None, pl: Pattern | None = N
     """:func:`predict_cov` (the same arguments; the patterns static) run batch-last under
     ``vmap`` (:func:`_batch_last`): the kernel of :func:`ekf_predict` with a ``structure``,
     for :func:`jaxnc.estimators.ekf.predict_with`. Per seed it is ``predict_cov`` itself,
-    and its backward pass is ``predict_cov``'s per-seed ``vjp``, as for
+    and its derivative is ``predict_cov``'s per-seed one, as for
     :func:`jaxnc.estimators.ekf.ekf_predict` with the structure."""
     return _predict_last(pa, pl, jnp.ndim(Q) == 1, False)(P, A, L, Q)
 
 
 def _predict_kernel_dense(P, A, L, Q, pa=None, pl=None):
-    """:func:`predict_kernel` without a structure (the patterns are dense): its backward pass
-    is the ``vjp`` of the dense matrix form, as for :func:`jaxnc.estimators.ekf.ekf_predict`
+    """:func:`predict_kernel` without a structure (the patterns are dense): its derivative
+    is that of the dense matrix form, as for :func:`jaxnc.estimators.ekf.ekf_predict`
     without one (whose gradient with respect to a full ``Q`` is symmetric)."""
     return _predict_last(pa, pl, jnp.ndim(Q) == 1, True)(P, A, L, Q)
 
@@ -155,8 +155,8 @@ def _predict_kernel_dense(P, A, L, Q, pa=None, pl=None):
 def update_kernel(P, H, innovation, r, ph: Pattern | None = None):
     """:func:`update_diag` (the same arguments; the pattern static) run batch-last under
     ``vmap``, its sums unrolled: the kernel of :func:`ekf_update_diag`, for
-    :func:`jaxnc.estimators.ekf.update_diag_with`. Its backward pass is the per-seed
-    ``vjp`` of the reduction form, the one :func:`jaxnc.estimators.ekf.ekf_update_diag` runs."""
+    :func:`jaxnc.estimators.ekf.update_diag_with`. Its derivative is the per-seed one of
+    the reduction form, the one :func:`jaxnc.estimators.ekf.ekf_update_diag` runs."""
     return _update_last(ph)(P, H, innovation, r)
 
 
@@ -186,14 +186,14 @@ def ekf_update_diag(h: Callable, belief: Gaussian, z, r, noise_dim: int, *, jaco
 
 # -- the whole filter, batch-last ---------------------------------------------------------
 def _reverse_by_compact(kernel: Callable, compact: Callable, in_axes: tuple) -> Callable:
-    """``kernel`` on batch-last arrays, its backward pass the ``vjp`` of ``compact``.
+    """``kernel`` on batch-last arrays, its derivatives those of ``compact``.
 
     ``in_axes`` says, per argument, -1 (seed axis last) or None (shared by all seeds).
     Reverse mode through the unrolled kernels gives the same numbers but compiles
-    minutes instead of seconds (an expression graph of thousands of slices); this
-    backward pass is the per-seed array code under ``vmap``, as for ``ekf``.
+    minutes instead of seconds (an expression graph of thousands of slices); these
+    derivatives are the per-seed array code's under ``vmap``, as for ``ekf``.
     """
-    return _backward_by(kernel, jax.vmap(compact, in_axes=in_axes, out_axes=-1))
+    return _derivatives_by(kernel, jax.vmap(compact, in_axes=in_axes, out_axes=-1))
 
 
 def _jacobian(fn, x, cols=None):

@@ -1031,7 +1031,7 @@ class Metrics(NamedTuple):
     #: :func:`jaxnc.results.save_per_seed` and the Dataset of :func:`jaxnc.load`
     UNITS = {"rate_sc": "transmissions per slow period", "rate_ca": "transmissions per slow period"}
     #: what a field that is nan in every run that did not fail means (:func:`jaxnc.montecarlo.describe`)
-    NAN_MEANS = {"cost": "the loop has no cost (Loop(cost=...))", "cost_raw": "the loop has no cost (Loop(cost=...))"}
+    NAN_MEANS = dict.fromkeys(("cost", "cost_raw"), "the loop has no cost (Loop(cost=...))")
 
     def __repr__(self) -> str:
         from jaxnc.montecarlo import describe
