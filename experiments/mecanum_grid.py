@@ -15,8 +15,9 @@ cell (1000 by default), event parameters of section 4.1 and h by the rule of
   the cells were split.
 * **One compiled program per (path, N).** The scheme, h and DP are runtime arguments
   (``run_batched(..., args=(loop,))``), so the four cases and all DPs of an N share
-  one compilation; compiled programs are also cached on disk under
-  ``OUT/.xla_cache`` so a resumed run does not compile again.
+  one compilation; the next (path, N)'s program compiles in a thread while this one's
+  cells run (:func:`jaxnc.montecarlo.precompile`); compiled programs are also cached on
+  disk under ``OUT/.xla_cache`` so a resumed run does not compile again.
 * **Outputs** (rewritten from all cells at the end, so they are the same however many
   times the run was interrupted): ``tables_<path>.md`` / ``tables_<path>.csv`` in the
   paper's layout (rows DP x N in {1, 2, 6, 12}, columns SR/DR/DRH/DRHE, J1-J3
@@ -34,6 +35,7 @@ becomes non-finite, or it does not reach the end within 1.6 x the nominal time +
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import time
 from pathlib import Path
@@ -183,20 +185,28 @@ def run_grid(settings: dict, *, seeds: int, out: Path, progress: bool = True, st
     t0 = time.perf_counter()
     bar = tqdm(total=len(mine), initial=done_before, desc="cells" if shard is None else f"cells of shard {shard}",
                unit="cell", disable=not progress, dynamic_ncols=True)
+    chunk = min(settings["chunk"], seeds)
+    if stop_after is not None:
+        todo = todo[:max(stop_after, 0)]
+    # one compiled program per (path, N), the order of grid_cells: the next group's program is
+    # traced and handed to a compiling thread before this group's cells run
+    groups = [list(g) for _, g in itertools.groupby(todo, key=lambda t: t[0][:2])]
+    program = lambda group: (run_seed, (montecarlo.uniform_dtypes(loops[group[0][0]]),))
     try:
-        for cell, cfg in todo:
-            if stop_after is not None and computed >= stop_after:
-                break
-            p, N, case, dp = cell
-            bar.set_postfix_str(f"{p} N={N} {case} DP={dp:g}")
-            tc = time.perf_counter()
-            m = montecarlo.run_batched(run_seed, keys, args=(montecarlo.uniform_dtypes(loops[cell]),),
-                                       chunk_size=min(settings["chunk"], seeds), progress=False)
-            wall = time.perf_counter() - tc
-            sweep.save_cell(cell_file(out, cfg), {"config": cfg, "summary": _summary(m), "wall_time_s": wall},
-                            arrays={k: np.asarray(getattr(m, k)) for k in m._fields})
-            computed += 1
-            bar.update(1)
+        for g, group in enumerate(groups):
+            montecarlo.precompile([program(x) for x in groups[(g + 1 if g else 0):g + 2]], keys,
+                                  chunk_size=chunk, wait=False)
+            for cell, cfg in group:
+                p, N, case, dp = cell
+                bar.set_postfix_str(f"{p} N={N} {case} DP={dp:g}")
+                tc = time.perf_counter()
+                m = montecarlo.run_batched(run_seed, keys, args=(montecarlo.uniform_dtypes(loops[cell]),),
+                                           chunk_size=chunk, progress=False)
+                wall = time.perf_counter() - tc
+                sweep.save_cell(cell_file(out, cfg), {"config": cfg, "summary": _summary(m), "wall_time_s": wall},
+                                arrays={k: np.asarray(getattr(m, k)) for k in m._fields})
+                computed += 1
+                bar.update(1)
     except KeyboardInterrupt:
         bar.close()
         print(f"\ninterrupted: {done_before + computed} of {len(mine)} cells are saved in {out / 'cells'}; "

@@ -53,6 +53,36 @@ def test_interrupted_grid_resumes_and_gives_identical_tables(tmp_path):
     assert not list(a.rglob("*.tmp"))
 
 
+def test_each_groups_program_compiles_ahead_while_the_previous_group_runs(tmp_path, monkeypatch):
+    """run_grid hands the next (path, N) group's program to precompile (wait=False) before this
+    group's cells run, each group's once, in the cells' order; the runs themselves faked (no XLA)."""
+    from jaxnc.schemes import mecanum as mec
+    settings = dict(SETTINGS, path="all", N=(2, 3), dp=(0.0,), case="DRHE")
+    cells, loops, _ = mg.plan(settings, 4)
+    name = {(lp.steps, lp.N): cell[:2] for cell, lp in loops.items()}     # a path's horizon is its own
+    assert len(name) == len({c[:2] for c in cells})
+    events = []
+    monkeypatch.setattr(montecarlo, "precompile", lambda calls, keys, *, chunk_size, wait: events.append(
+        ("compile", [name[a[0].steps, a[0].N] for _, a in calls], chunk_size, wait)))
+
+    def fake_run(fn, keys, *, args, chunk_size, progress):
+        events.append(("run", *name[args[0].steps, args[0].N]))
+        z = np.ones(len(keys), np.float32)
+        return mec.Metrics(z, z, z, z, z, z, z < 0)
+    monkeypatch.setattr(montecarlo, "run_batched", fake_run)
+    mg.run_grid(settings, seeds=4, out=tmp_path, progress=False, stop_after=5)
+    groups = [c[:2] for c in cells[:5]]           # one cell per (path, N) here: the nominal SR cell at N = 1
+    assert len(set(groups)) == 5 and len({g[0] for g in groups}) == 2
+    compiles = [e for e in events if e[0] == "compile"]
+    assert [c[1] for c in compiles] == [groups[:2], [groups[2]], [groups[3]], [groups[4]], []]
+    assert {(c[2], c[3]) for c in compiles} == {(4, False)}
+    # a group's program is handed over before its first cell runs, the next one's before the group runs
+    order = [e[1:] if e[0] == "run" else ("compile", *e[1]) for e in events]
+    for g in groups:
+        assert min(i for i, e in enumerate(order) if e[0] == "compile" and g in e[1:]) < order.index(g)
+    assert [e for e in order if e[0] != "compile"] == groups     # stop_after=5: the first five cells
+
+
 def test_atomic_write_leaves_no_partial_file(tmp_path):
     target = tmp_path / "cell.json"
 
