@@ -1,4 +1,6 @@
 """The path monitor (jaxnc.loop.PathMonitor) against closed forms on a straight path."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -227,6 +229,38 @@ def test_a_failed_runs_transmissions_and_rates_stop_at_the_failure():
     assert not bool(ok.failed) and int(nc.live_periods(ok.failed, ok.fail_step, 2, 15)) == 15
     assert float(ok.tx_ca) == 15.0 and float(nc.evaluate(loop(1e6), ok).rate_ca) == 1.0
     assert float(nc.evaluate(loop(1e6), ok).rate_sc) == pytest.approx(float(np.sum(ok.sent_sc)) / 15)
+
+
+def _nan_beyond_half(params, xhat):
+    return jnp.where(jnp.abs(xhat[0]) > 0.5, jnp.nan, params * xhat[0])
+
+
+def test_the_run_tells_a_non_finite_action_from_the_plant_leaving_its_bounds():
+    """x+ = 1.2 x from 0.1, N = 1, Monitor(bounds=[1]): the plant leaves the bound after fast period
+    12 (fail_step 13). A controller that returns NaN once its estimate exceeds 0.5 (x_9 = 0.516, read
+    at k = 9 without delay) fails the run at 10 instead, by its action: Trajectory.fail_action and
+    Metrics.unstable_action say so (they used to look the same as the plant's divergence); the
+    controller that never breaks fails by the plant's state, fail_action False."""
+    plant = nc.LTI(A=[[1.2]], B=[[0.0]], C=[[1.0]], x0=[0.1], T=0.1)
+
+    def loop(fn):
+        return nc.Loop(plant=plant, trigger=nc.Periodic(), uplink=nc.Link(), estimator=nc.Passthrough(0.0),
+                       controller=nc.Function(params=0.0, fn=fn), downlink=nc.Link(), actuator=nc.HoldLast(),
+                       monitor=nc.Monitor(bounds=[1.0]), N=1, steps=30, T=0.1)
+
+    breaks, holds = loop(_nan_beyond_half), loop(lambda p, xhat: p * xhat[0])
+    run = jax.jit(jax.vmap(nc.simulate, in_axes=(None, 0)))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    for lp, step, by_action in ((breaks, 10, True), (holds, 13, False)):
+        tr = run(lp, keys)
+        np.testing.assert_array_equal(np.asarray(tr.fail_step), [step, step])
+        np.testing.assert_array_equal(np.asarray(tr.fail_action), [by_action] * 2)
+        m = jax.vmap(nc.evaluate, in_axes=(None, 0))(lp, tr)
+        np.testing.assert_array_equal(np.asarray(m.unstable), [True, True])
+        np.testing.assert_array_equal(np.asarray(m.unstable_action), [by_action] * 2)
+        assert f"unstable_action  {float(by_action):.4g} of the runs" in repr(m)
+    ok = jax.jit(nc.simulate)(dataclasses.replace(holds, monitor=nc.Monitor(bounds=[1e6])), keys[0])
+    assert not bool(ok.failed) and not bool(ok.fail_action)
 
 
 def test_a_path_monitor_reads_the_position_its_plant_declares():

@@ -85,7 +85,7 @@ def test_run_batched_progress_and_empty(capsys):
     assert empty["path"].shape == (0, 20)
     from jaxnc.loop import Metrics
     z = np.zeros((0,), np.float32)
-    assert repr(Metrics(z, z, z, z, z.astype(bool))) == "Metrics over 0 runs"    # printing no runs used to raise
+    assert repr(Metrics(z, z, z, z, z.astype(bool), z.astype(bool))) == "Metrics over 0 runs"    # printing no runs used to raise
     with pytest.raises(ValueError):
         mc.run_batched(_normal_sum, mc.seed_keys(0, 3), chunk_size=0, progress=False)
 
@@ -201,15 +201,16 @@ def test_metrics_print_as_a_summary_of_the_batch():
     other shapes keep the plain tuple repr."""
     from jaxnc.loop.runner import Metrics
     m = Metrics(jnp.array([1.0, 3.0, jnp.inf, 2.0]), jnp.array([1.0, 3.0, 9.0, 2.0]), jnp.full(4, 0.5),
-                jnp.ones(4), jnp.array([False, False, True, False]))
+                jnp.ones(4), jnp.array([False, False, True, False]), jnp.array([False, False, True, False]))
     lines = repr(m).splitlines()
     assert str(m) == repr(m) and lines[0] == "Metrics over 4 runs (mean +- 95 % over the stable runs)"
     s = mc.summarize(np.array([1.0, 3.0, np.inf, 2.0]), np.array([False, False, True, False]))
     assert lines[1].split() == ["cost", f"{s.mean:.6g}", "+-", f"{s.ci95:.2g}", "(1", "left", "out:", "unstable",
                                 "or", "not", "finite)"]
     assert lines[2].split()[:2] == ["cost_raw", "2"] and lines[5].split() == ["unstable", "0.25", "of", "the", "runs"]
+    assert lines[6].split() == ["unstable_action", "0.25", "of", "the", "runs"]
     one = jax.tree.map(lambda a: a[0], m)
-    assert repr(one) == "Metrics(cost=1, cost_raw=1, rate_sc=0.5, rate_ca=1, unstable=False)"
+    assert repr(one) == "Metrics(cost=1, cost_raw=1, rate_sc=0.5, rate_ca=1, unstable=False, unstable_action=False)"
     seen = []
     jax.jit(lambda t: seen.append(repr(t)) or t)(m)
     assert seen[0].startswith("Metrics(cost=") and "float32[4]" in seen[0]
@@ -262,7 +263,7 @@ def test_describe_flags_a_field_too_skewed_for_its_interval():
     cost[:3] = 100.0
     cost[3:] += np.linspace(-1, 1, n - 3)
     sym = np.linspace(0.0, 1.0, n)
-    m = Metrics(jnp.asarray(cost), jnp.asarray(sym), jnp.asarray(sym), jnp.asarray(sym), jnp.zeros(n, bool))
+    m = Metrics(jnp.asarray(cost), jnp.asarray(sym), jnp.asarray(sym), jnp.asarray(sym), jnp.zeros(n, bool), jnp.zeros(n, bool))
     lines = repr(m).splitlines()
     need = mc.seeds_for_normal_interval(cost)
     assert need > 2000
@@ -278,14 +279,14 @@ def test_describe_shows_no_mean_where_every_run_failed():
     from jaxnc.loop.runner import Metrics
     n = 64
     m = Metrics(jnp.full(n, jnp.inf), jnp.linspace(1.0, 2.0, n), jnp.full(n, 0.5), jnp.full(n, 0.25),
-                jnp.ones(n, bool))
+                jnp.ones(n, bool), jnp.zeros(n, bool))
     lines = repr(m).splitlines()
     assert lines[1].split() == ["cost", "inf", "(no", "stable", "run:", "all", "64", "failed)"]
     for ln, name in zip(lines[2:5], ("cost_raw", "rate_sc", "rate_ca")):
         assert ln.split() == [name, "\u2013", "(no", "stable", "run:", "all", "64", "failed)"]
     assert "inf" not in "".join(lines[2:5])
     half = Metrics(jnp.full(n, jnp.nan), jnp.full(n, jnp.nan), jnp.full(n, 0.5), jnp.full(n, 0.25),
-                   jnp.arange(n) < 10)
+                   jnp.arange(n) < 10, jnp.zeros(n, bool))
     lines = repr(half).splitlines()
     assert lines[1].split() == ["cost", "\u2013", "(no", "run", "to", "average:", "10", "failed,", "54", "not",
                                 "finite;", "the", "loop", "has", "no", "cost", "(Loop(cost=...)))"]

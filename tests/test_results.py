@@ -289,14 +289,15 @@ def test_a_run_killed_by_a_signal_after_its_per_seed_file_leaves_a_folder_load_r
 def test_units_reach_the_dataset_and_its_summary(tmp_path):
     from jaxnc import loop as nc
     m = nc.Metrics(cost=np.arange(4, dtype=np.float32), cost_raw=np.arange(4, dtype=np.float32),
-                   rate_sc=np.full(4, 0.5, np.float32), rate_ca=np.ones(4, np.float32), unstable=np.zeros(4, bool))
+                   rate_sc=np.full(4, 0.5, np.float32), rate_ca=np.ones(4, np.float32), unstable=np.zeros(4, bool),
+                   unstable_action=np.zeros(4, bool))
     results.save_per_seed(tmp_path, {"A": m}, units={"cost": "m^2"})          # the runner's rates: its own units
     montecarlo.save_results(tmp_path / "results.json", experiment="toy", config={"seeds": 4}, results={},
                             wall_time_s=0.0)
     ds = jaxnc.load(tmp_path)
     assert {k: v.attrs.get("units") for k, v in ds.data_vars.items()} == {
         "cost": "m^2", "cost_raw": None, "rate_sc": "transmissions per slow period",
-        "rate_ca": "transmissions per slow period", "unstable": None}
+        "rate_ca": "transmissions per slow period", "unstable": None, "unstable_action": None}
     s = ds.jaxnc.summary()
     assert [s[k].attrs.get("units") for k in ("cost", "cost_ci95", "cost_std", "cost_n_stable", "n")] == [
         "m^2", "m^2", "m^2", None, None]

@@ -11,7 +11,10 @@ seed's run does not depend on the batch it is in.
 A run *fails* when the true state or the action becomes non-finite, or the state leaves
 ``Monitor.bounds``; a non-finite action is replaced by zero and, from
 then on the plant is frozen at its last good state (``Monitor.freeze``), so divergence
-is data (inf in :class:`Metrics`), never an exception or a NaN in a batch.
+is data (inf in :class:`Metrics`), never an exception or a NaN in a batch. Which of the two
+ended a run is kept: ``Trajectory.fail_action`` / ``Metrics.unstable_action`` (a non-finite
+action: the controller, its estimate or the actuator broke down numerically, e.g. a
+covariance lost in float32) against the plant's state.
 """
 from __future__ import annotations
 
@@ -836,6 +839,8 @@ class Trajectory(NamedTuple):
     failed: jax.Array     # bool
     fail_step: jax.Array  # int32: first failed fast instant (K if never; K too for a failure in the last
     #                       fast period: count failures with `failed`, not fail_step < K)
+    fail_action: jax.Array   # bool: the run failed first by a non-finite action (NaN or inf from the controller,
+    #                          the estimate it used or the actuator: numerics, not the plant leaving its bounds)
     done: jax.Array       # bool: the monitor found the run complete
     done_step: jax.Array  # int32: first fast instant after which it was complete (K if never; see fail_step)
     tx_sc: jax.Array      # float: sensor transmissions in the whole run (sum of sent_sc, after a failure too:
@@ -865,6 +870,7 @@ class _Carry(NamedTuple):
     fail_step: jax.Array
     done: jax.Array
     done_step: jax.Array
+    fail_action: jax.Array
 
 
 def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
@@ -907,7 +913,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         up=loop.uplink.init(z0), est=est0, ctrl=ctrl0, ctrig=ctrig0,
         down=loop.downlink.init(pkt_zero.data), act=act0, bel=act0 if runner_copy else (), mon=loop.monitor.init(ctx),
         failed=jnp.zeros((), bool), fail_step=jnp.asarray(loop.steps, jnp.int32),
-        done=jnp.zeros((), bool), done_step=jnp.asarray(loop.steps, jnp.int32))
+        done=jnp.zeros((), bool), done_step=jnp.asarray(loop.steps, jnp.int32), fail_action=jnp.zeros((), bool))
 
     rec = loop.record
     want = lambda name: _wanted(rec, name)
@@ -943,7 +949,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             bel = act_role.receive(bel, own)
 
         def fast(fc, inp_j):
-            x, down, act, bel, mon, failed, fail_step, done, done_step = fc
+            x, down, act, bel, mon, failed, fail_step, done, done_step, fail_action = fc
             j, w_t = inp_j
             t = t0 + j
             box, down = loop.downlink.inbox(down, t)
@@ -962,6 +968,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
             else:
                 mon = mon_new
             bad = bad | ~u_ok
+            fail_action = jnp.where(bad & ~failed, ~u_ok, fail_action)
             fail_step = jnp.where(bad & ~failed, t + 1, fail_step)
             failed = failed | bad
             done_step = jnp.where(complete & ~done, t + 1, done_step)
@@ -973,18 +980,18 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
                    rec.actuator(act_role, act, t) if rec.actuator is not None else (),
                    rec.plant(plant, x_new) if rec.plant is not None else (),
                    rec.monitor(loop.monitor, mon) if rec.monitor is not None else ())
-            return (x_new, down, act, bel, mon, failed, fail_step, done, done_step), out
+            return (x_new, down, act, bel, mon, failed, fail_step, done, done_step, fail_action), out
 
-        fc0 = (c.x, down, c.act, bel, c.mon, c.failed, c.fail_step, c.done, c.done_step)
+        fc0 = (c.x, down, c.act, bel, c.mon, c.failed, c.fail_step, c.done, c.done_step, c.fail_action)
         fc, (xs, us, ubs, rca, arec, prec, mrec) = jax.lax.scan(fast, fc0, (jnp.arange(N, dtype=jnp.int32), w_k))
-        x, down, act, bel, mon, failed, fail_step, done, done_step = fc
+        x, down, act, bel, mon, failed, fail_step, done, done_step, fail_action = fc
         # 7. estimator prediction over the period
         if controller_copy:
             ubs = loop.controller.sent(ctrl)
         elif believed_needed and not runner_copy:
             ubs = us
         est = loop.estimator.predict(est, us, ubs if believed_needed else us, k)
-        c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, mon, failed, fail_step, done, done_step)
+        c = _Carry(x, trig, up, est, ctrl, ctrig, down, act, bel, mon, failed, fail_step, done, done_step, fail_action)
         outs = dict(x=xs, u=us if want("u") else (), z=z if want("z") else (), xhat=xhat if want("xhat") else (),
                     sent_sc=send_sc, recv_sc=inbox.fresh if want("recv_sc") else (), sent_ca=send_ca,
                     recv_ca=rca, actuator=arec, plant=prec, monitor=mrec,
@@ -1010,6 +1017,7 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         x=pick("x", True), u=pick("u", True), z=pick("z"), xhat=pick("xhat"), sent_sc=o["sent_sc"],
         recv_sc=pick("recv_sc"), sent_ca=o["sent_ca"], recv_ca=pick("recv_ca", True),
         failed=final.failed, fail_step=final.fail_step, done=final.done, done_step=final.done_step,
+        fail_action=final.fail_action,
         tx_sc=jnp.sum(o["sent_sc"]), tx_ca=jnp.sum(o["sent_ca"]),
         parts={r: fast_rows(o[r]) if r in ("plant", "actuator", "monitor") else o[r] for r in PARTS
                if getattr(rec, r) is not None},
@@ -1026,6 +1034,8 @@ class Metrics(NamedTuple):
     #                       up to its failure, live_periods)
     rate_ca: jax.Array    # controller transmissions per slow period (as rate_sc)
     unstable: jax.Array   # bool: the run failed
+    unstable_action: jax.Array   # bool: it failed first by a non-finite action (Trajectory.fail_action), not by the
+    #                              plant's state (non-finite or outside Monitor.bounds)
 
     #: units of the fields the library knows (the cost's are the user's Q and R's), for
     #: :func:`jaxnc.results.save_per_seed` and the Dataset of :func:`jaxnc.load`
@@ -1061,7 +1071,7 @@ def evaluate(loop: Loop, traj: Trajectory) -> Metrics:
     live = (jnp.arange(S, dtype=jnp.int32) < lived).astype(jnp.float32)
     lived = lived.astype(jnp.float32)
     return Metrics(cost, raw, jnp.sum(traj.sent_sc * live) / lived, jnp.sum(traj.sent_ca * live) / lived,
-                   traj.failed)
+                   traj.failed, traj.failed & traj.fail_action)
 
 
 def run(loop: Loop, key, *, metrics=evaluate, **context):
