@@ -69,7 +69,7 @@ def test_runs_1000_seeds_and_stays_up():
 def test_delta_gradient_agrees_with_finite_differences_and_straight_through_is_flagged():
     """The score-function estimate of d mean cost / d log delta agrees with central finite
     differences on the same 96 seeds (paired 95 % interval); the straight-through estimate
-    at a sharp temperature does not (issue: 6e5 ... 3e10 measured), and is flagged. (The
+    at a sharp temperature does not (issue: 6e5 ... 3e10 measured), and is not recommended. (The
     extrapolated score, richardson, is tested on closed forms in test_tune_smoothing.)"""
     loop = cp.cartpole()
     chk = gradient_check(cp.cost_of_log_delta(loop), [np.log(1e-3)], montecarlo.seed_keys(1, 96),
@@ -77,7 +77,9 @@ def test_delta_gradient_agrees_with_finite_differences_and_straight_through_is_f
     assert chk.consistent["score"], chk.table()
     assert chk.recommended == "score"
     assert not chk.consistent["straight_through"], chk.table()
-    assert chk.reason["straight_through"].startswith(("too noisy", "differs")), chk.table()
+    # unresolved: its standard error (2e6) is larger than any gradient it could be tested on (since the
+    # check's "too noisy" rule is off by default, 2026-12-05; it still reads so with max_noise=10)
+    assert chk.reason["straight_through"].startswith(("inconclusive", "differs")), chk.table()
 
 
 def test_cli_runs_the_example_and_rejects_a_bad_module(tmp_path, monkeypatch, capsys):

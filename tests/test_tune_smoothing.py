@@ -202,5 +202,29 @@ def test_a_non_finite_or_heavy_tailed_estimate_says_on_how_many_seeds():
     c = gradient_check(_rare(1e6), np.array([1.0]), keys, estimators=("straight_through",))
     assert "heavy-tailed on theta[0]: its normal interval needs about" in c.reason["straight_through"], c.table()
     c = gradient_check(_noisy, np.array([1.0]), keys, estimators=("straight_through",))     # normal, not skewed
-    assert c.reason["straight_through"].startswith("too noisy"), c.table()
+    assert c.reason["straight_through"].startswith("inconclusive on theta[0]"), c.table()
     assert "heavy-tailed" not in c.reason["straight_through"], c.table()
+    assert gradient_check(_noisy, np.array([1.0]), keys, estimators=("straight_through",),
+                          max_noise=10.0).reason["straight_through"].startswith("too noisy")   # the rule before 2026-12-05
+
+
+def _noisy10(theta, key, temperature):
+    """theta_0 whose straight-through derivative is 1 + 10 N(0, 1) per seed: unbiased (the finite
+    differences read exactly 1 on every seed), its standard error 10 / sqrt(n)."""
+    soft = theta[0] * jnp.where(temperature > 0, 10.0 * jax.random.normal(key), 0.0)
+    return theta[0] + soft - jax.lax.stop_gradient(soft)
+
+
+def test_an_unbiased_estimator_noisier_than_the_finite_differences_is_recommended_once_resolved():
+    """An unbiased estimator whose standard error is any multiple of the finite differences'
+    was refused as "too noisy" (more than 10x, here the finite differences have none) at every
+    seed count, so the check never recommended it. Now its agreement is a test once every
+    coordinate is resolved: z SE = 1.96 x 10 / sqrt(n) <= 1 from n = 385, so the check starting
+    at 256 seeds doubles to 512 and recommends it."""
+    more = lambda start, count: montecarlo.seed_keys(0, count, start)
+    keys = montecarlo.seed_keys(0, 256)
+    one = gradient_check(_noisy10, np.array([1.0]), keys, estimators=("straight_through",))
+    assert one.reason["straight_through"].startswith("inconclusive on theta[0]"), one.table()
+    c = gradient_check(_noisy10, np.array([1.0]), keys, estimators=("straight_through",), max_seeds=4096,
+                       more_keys=more)
+    assert c.seeds == 512 and c.recommended == "straight_through", c.table()

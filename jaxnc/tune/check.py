@@ -47,13 +47,18 @@ with the finite differences when
    |finite difference_j|): the two do not have opposite signs (a derivative read with the
    wrong sign on a small coordinate, seen at any |z|, is a disagreement however small
    beside the largest component);
-2. its standard error is at most ``max_noise`` (10) times the finite differences' (an
-   estimator so noisy that it agrees with anything, e.g. a straight-through gradient
-   through a very sharp sigmoid, is flagged as too noisy, not passed). A reason "differs"
-   or "too noisy" adds "heavy-tailed" when the per-seed differences to the finite
-   differences are too skewed for a normal interval on these seeds (Cochran's rule,
-   :func:`jaxnc.montecarlo.seeds_for_normal_interval`: neither verdict is then to be
-   trusted as a test), and "non-finite values" says on how many seeds;
+2. (optional, ``max_noise``) its standard error is at most ``max_noise`` times the finite
+   differences'. Until 2026-12-05 this rule was on, at 10, and refused as "too noisy" an
+   estimator whatever the seeds: an unbiased estimator noisier than the finite differences
+   (the score function on a smooth loop: 14x on a new user's quadruple tank,
+   docs/tuning_loops.md) was never recommended, though rules 1 and 3 make its agreement a
+   test (an estimator so noisy that it "agrees with anything", e.g. a straight-through
+   gradient through a very sharp sigmoid, is unresolved by rule 3 until the seeds make the
+   agreement mean something). A reason "differs" or "too noisy" adds "heavy-tailed" when the
+   per-seed differences to the finite differences are too skewed for a normal interval on
+   these seeds (Cochran's rule, :func:`jaxnc.montecarlo.seeds_for_normal_interval`: the
+   verdict is then not to be trusted as a test), and "non-finite values" says on how many
+   seeds;
 3. **every coordinate is resolved**: coordinate j is resolved when the check could have
    seen a disagreement as large as the gradient on that coordinate,
    ``z * SE_j <= max(|estimate_j|, |finite difference_j|)`` with SE_j the standard error
@@ -266,7 +271,7 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
         elif not np.all((np.abs(zz) <= z) | ((np.abs(diff.mean(0)) <= margin) & (np.abs(diff.mean(0)) <= size))):
             reason = (f"differs from finite differences, |z| = {float(np.max(np.abs(zz))):.1f}"
                       + _heavy_tail(diff, slope, names))
-        elif np.any(estimates[name][1] > max_noise * np.maximum(estimates[ref][1], 1e-30)):
+        elif max_noise is not None and np.any(estimates[name][1] > max_noise * np.maximum(estimates[ref][1], 1e-30)):
             ratio = float(np.max(estimates[name][1] / np.maximum(estimates[ref][1], 1e-30)))
             reason = f"too noisy, std err {ratio:.3g}x the finite differences'" + _heavy_tail(diff, slope, names)
         elif not np.all(resolved):
@@ -299,7 +304,7 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
 
 
 def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, temperature: float = 1e-3,
-                   score_scale: float = 0.05, z: float | None = None, max_noise: float = 10.0, rel_tol: float = 0.02,
+                   score_scale: float = 0.05, z: float | None = None, max_noise: float | None = None, rel_tol: float = 0.02,
                    estimators=None, chunk_size: int = 256, progress: bool = False, names=None,
                    max_seeds: int | None = None, more_keys: Callable | None = None, values=None,
                    dvalue_dtheta=None, corrected: Callable | None = None, args: tuple = ()) -> GradientCheck:
@@ -317,8 +322,9 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
         Phi^-1(1 - 0.025 / d) (1.96 for d = 1, 2.24 for d = 2): every coordinate is
         tested, so without it an unbiased estimator would be flagged in about d x 5 % of
         checks.
-      max_noise: the largest ratio of an estimator's standard error to the finite
-        differences' for it to count as consistent.
+      max_noise: None (default: no such rule), or the largest ratio of an estimator's
+        standard error to the finite differences' for it to count as consistent (10 until
+        2026-12-05; module docstring, rule 2).
       rel_tol: differences below this fraction of max_j |finite-difference mean_j| agree
         whatever their z (>= 0), unless estimate and finite difference have opposite signs
         on the coordinate.
@@ -392,6 +398,8 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
             raise ValueError(f"gradient_check: values and dvalue_dtheta must be float[{d}], the slopes finite and "
                              f"non-zero, got {values!r}, {dvalue_dtheta!r}")
     slope = np.ones(d) if dvalue_dtheta is None else np.abs(dvalue_dtheta)
+    if max_noise is not None:
+        check_positive("max_noise", max_noise)
     max_seeds = n if max_seeds is None else max_seeds
     check_int("max_seeds", max_seeds, n)
     if max_seeds > n and not callable(more_keys):
