@@ -1176,10 +1176,14 @@ def _tuning_cases():
         (lambda: check_loop(dataclasses.replace(_tune_loop_fixture(), trigger=nc.Petc(delta=1e-3, max_silence=3)),
                             {"trigger.max_silence": Positive()}, seeds=4),
          "'trigger.max_silence' holds int32 values, a count or a switch"),
+        # the check's optional noise rule (off by default since 2026-12-05)
+        (lambda: __import__("jaxnc.tune.check", fromlist=["gradient_check"]).gradient_check(
+            lambda th, key, t: th[0], np.array([1.0]), np.zeros((4, 2), np.uint32), max_noise=0.0),
+         "max_noise must be in (0, inf), got 0.0"),
     ]
 
 
-@pytest.mark.parametrize("i", range(12))
+@pytest.mark.parametrize("i", range(13))
 def test_tuning_inputs_are_refused_naming_the_parameter(i):
     call, fragment = _tuning_cases()[i]
     with pytest.raises(ValueError) as e:
