@@ -68,9 +68,37 @@ def _psd_sqrt(M):
     return V * jnp.sqrt(jnp.maximum(lam, 0.0))[None, :]
 
 
+@jax.custom_jvp
 def _tria(M):
-    """Lower-triangular T with T T' = M M' (M: float[n, k], k >= n), by QR of M'."""
+    """Lower-triangular T with T T' = M M' (M: float[n, k], k >= n), by QR of M'.
+
+    Its derivative (:func:`_tria_jvp`) is that of the triangular factor of S = M M' (the
+    Cholesky factor's, with QR's signs), dT = T Phi(T^-1 dS T^-T), dS = dM M' + M dM', Phi the
+    lower triangle with the diagonal halved, computed as T^-1 dM (T^-1 M)' + its transpose.
+    JAX's QR derivative divides by R's diagonal and gave NaN where the factor is singular in
+    the working precision (a covariance of 1e15 along one direction and 1e-5 along another in
+    float32: a filter after seconds without a measurement); here a diagonal entry below
+    ``eps`` times the largest is replaced by that floor in the solves (the derivative of such
+    a factor has no accuracy in that precision anyway), so it stays finite. Equal to QR's
+    derivative elsewhere (tested, float64)."""
     return jnp.linalg.qr(M.T, mode="r").T
+
+
+@_tria.defjvp
+def _tria_jvp(primals, tangents):
+    (M,), (dM,) = primals, tangents
+    T = _tria(M)
+    d = jnp.diagonal(T)
+    floor = jnp.finfo(T.dtype).eps * jnp.max(jnp.abs(d))
+    floor = jnp.maximum(floor, jnp.finfo(T.dtype).tiny)
+    safe = jnp.where(jnp.abs(d) < floor, jnp.where(d < 0, -floor, floor), d)
+    Ts = T + jnp.diag(safe - d)
+    Y = jsl.solve_triangular(Ts, M, lower=True)             # T^-1 M (Q' of M' = Q R)
+    X = jsl.solve_triangular(Ts, dM, lower=True)            # T^-1 dM
+    P = X @ Y.T
+    P = P + P.T
+    L = jnp.tril(P) - 0.5 * jnp.diag(jnp.diagonal(P))       # Phi
+    return T, T @ L
 
 
 def _noise_dim(where: str, noise_dim) -> int:
