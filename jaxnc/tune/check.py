@@ -47,18 +47,16 @@ with the finite differences when
    |finite difference_j|): the two do not have opposite signs (a derivative read with the
    wrong sign on a small coordinate, seen at any |z|, is a disagreement however small
    beside the largest component);
-2. (optional, ``max_noise``) its standard error is at most ``max_noise`` times the finite
-   differences'. Until 2026-12-05 this rule was on, at 10, and refused as "too noisy" an
-   estimator whatever the seeds: an unbiased estimator noisier than the finite differences
-   (the score function on a smooth loop: 14x on a new user's quadruple tank,
-   docs/tuning_loops.md) was never recommended, though rules 1 and 3 make its agreement a
-   test (an estimator so noisy that it "agrees with anything", e.g. a straight-through
-   gradient through a very sharp sigmoid, is unresolved by rule 3 until the seeds make the
-   agreement mean something). A reason "differs" or "too noisy" adds "heavy-tailed" when the
-   per-seed differences to the finite differences are too skewed for a normal interval on
-   these seeds (Cochran's rule, :func:`jaxnc.montecarlo.seeds_for_normal_interval`: the
-   verdict is then not to be trusted as a test), and "non-finite values" says on how many
-   seeds;
+2. (optional, ``max_noise``, off by default) its standard error is at most ``max_noise``
+   times the finite differences'. Rule 3 already makes agreement a test (an estimator so
+   noisy that it "agrees with anything" is unresolved until the seeds make the agreement
+   mean something), and the ratio does not change with the seeds, so with the rule on an
+   unbiased estimator noisier than the finite differences is never recommended (it was on,
+   at 10, until 2026-12-05: docs/tuning_loops.md, "No 'too noisy' rule by default"). A
+   reason "differs" or "too noisy" adds "heavy-tailed" when the per-seed differences to the
+   finite differences are too skewed for a normal interval on these seeds (Cochran's rule,
+   :func:`jaxnc.montecarlo.seeds_for_normal_interval`: the verdict is then not to be
+   trusted as a test), and "non-finite values" says on how many seeds;
 3. **every coordinate is resolved**: coordinate j is resolved when the check could have
    seen a disagreement as large as the gradient on that coordinate,
    ``z * SE_j <= max(|estimate_j|, |finite difference_j|)`` with SE_j the standard error
@@ -367,7 +365,7 @@ def gradient_check(objective: Callable, theta, keys, *, fd_step: float = 0.05, t
 
     Raises:
       ValueError: theta not a non-empty 1-D vector, fewer than 2 keys, a non-positive
-        step/scale/temperature, a chunk_size below 1, an unknown estimator, ``"hybrid"``
+        step/scale/temperature or max_noise, a chunk_size below 1, an unknown estimator, ``"hybrid"``
         for an objective that is not a pair, ``"corrected"`` without ``corrected``, an
         objective that returns neither a scalar
         nor a pair of scalars, args not a tuple, names not d strings, max_seeds below n, or max_seeds > n
