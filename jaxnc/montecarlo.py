@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import functools
 import io
 import json
 import math
@@ -120,14 +119,23 @@ def seed_keys(seed: int, n: int, start: int = 0) -> jax.Array:
     if start + n > 2**32:
         raise ValueError(f"seed_keys: seed indices must fit in uint32, got start+n={start + n}")
     check_seed_memory(n, KEY_BYTES, what="seed_keys: the keys of")
-    return _seed_keys(np.uint32(seed), np.uint32(start), n)
+    # whole blocks from one compiled program, joined and cut on the host: a program per n
+    # cost a compilation for every batch size a study used
+    blocks = [np.asarray(_key_block(np.uint32(seed), np.uint32(start + b))) for b in range(0, n, KEY_BLOCK)]
+    keys = np.concatenate(blocks)[:n] if blocks else np.zeros((0, 2), np.uint32)
+    return jax.device_put(keys)         # (jnp.asarray compiles a program per shape)
 
 
-@functools.partial(jax.jit, static_argnums=2)
-def _seed_keys(seed, start, n: int):
-    """seed_keys' keys as one compiled program per ``n`` (seed and start are arguments)."""
+#: seeds whose keys :func:`seed_keys` makes in one call of its compiled program
+KEY_BLOCK = 4096
+
+
+@jax.jit
+def _key_block(seed, start):
+    """The keys of seeds start .. start + KEY_BLOCK - 1 (uint32 arithmetic: past 2**32 they
+    wrap, and seed_keys never returns those)."""
     base = jax.random.PRNGKey(seed)
-    idx = start + jnp.arange(n, dtype=jnp.uint32)
+    idx = start + jnp.arange(KEY_BLOCK, dtype=jnp.uint32)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(idx)
 
 

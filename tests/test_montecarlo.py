@@ -26,6 +26,24 @@ def test_seed_keys_independent_of_batch():
     np.testing.assert_array_equal(k10[7], np.asarray(direct))
 
 
+def test_seed_keys_are_fold_in_across_blocks_and_compile_once_for_every_size():
+    """Seed i's key is fold_in(PRNGKey(seed), i) also across the blocks seed_keys makes them in
+    (KEY_BLOCK at a time) and near the top of the uint32 range; a new number of seeds compiles
+    nothing (it compiled a program per n: a compilation for every batch size a study used)."""
+    from jaxnc.cache import compile_clock
+    ref = lambda seed, n, start: np.asarray(jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(seed), i))(
+        jnp.arange(start, start + n, dtype=jnp.uint32)))
+    B = mc.KEY_BLOCK
+    for seed, n, start in ((7, B, 0), (3, B + 1, 10), (2**32 - 1, 2 * B + 5, 123), (0, 3, 2**32 - 3)):
+        k = mc.seed_keys(seed, n, start)
+        assert k.shape == (n, 2) and k.dtype == jnp.uint32
+        np.testing.assert_array_equal(np.asarray(k), ref(seed, n, start))
+    before = compile_clock()
+    for n in (17, 300, 1000, B + 7):
+        mc.seed_keys(5, n, start=n)
+    assert (compile_clock() - before).compilations == 0
+
+
 def test_seed_keys_distinct():
     k = np.asarray(mc.seed_keys(3, 50))
     assert len({tuple(r) for r in k}) == 50
