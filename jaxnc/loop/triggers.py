@@ -142,7 +142,9 @@ class Petc(AbstractTrigger):
     """Periodic event-triggered condition (module docstring).
 
     Attributes:
-      sigma, delta: float or float[p], >= 0 (relative and absolute thresholds).
+      sigma, delta: float or float[p], >= 0 (relative and absolute thresholds; the condition
+        is on squared norms, so delta is in the signal's units squared, summed over the
+        outputs with ``reading="sum"``: delta = 0.02 V^2 waits for a change of 0.14 V).
       temperature: >= 0; > 0 gives a straight-through (or, ``relaxed``, soft) decision.
       max_silence: int >= 0, the safety condition's k_max (0: off; 1: send every
         instant). A leaf, so loops differing only in it share one compiled program.
