@@ -1,12 +1,19 @@
 #!/bin/bash
-# A = a tree of the previous commit (git archive HEAD~ | tar -x -C /tmp/s53/A; ln -s ../experiments A/jaxnc/experiments), B = this tree
-# A B B A of a one-path grid, each run with an empty cache; $1 = path setting
-P=${1:-lissajous}
-for T in A B B A; do
-  if [ $T = A ]; then R=/tmp/s53/A; else R=/work/main; fi
+# A B B A of a one-path mecanum-grid, each run with an empty compilation cache, two CPU devices.
+#   bash benchmarks/grid_ahead_ab.sh [PATH [REV]]     (PATH: lissajous, lane_change or turn180; REV: the A tree, default HEAD~)
+# A = a checkout of REV (git archive), B = this working tree; prints each run's cell-loop time, user CPU and wall,
+# and whether the four runs' tables are byte for byte the same.
+set -e
+P=${1:-lissajous}; REV=${2:-HEAD~}
+ROOT=$(cd "$(dirname "$0")/.." && pwd); PY=${PY:-$ROOT/.venv/bin/python}
+A=$(mktemp -d); (cd "$ROOT" && git archive "$REV") | tar -x -C "$A"; ln -s ../experiments "$A/jaxnc/experiments"
+T=$(mktemp -d)
+for X in A B B A; do
+  if [ $X = A ]; then R=$A; else R=$ROOT; fi
   O=$(mktemp -d); C=$(mktemp -d)
-  s=$(date +%s.%N)
-  ( cd $R && PYTHONPATH=$R /usr/bin/time -f "%U user %S sys %e wall" /work/main/.venv/bin/python -c 'import sys; from jaxnc.cli import main; sys.exit(main())' run mecanum-grid -s path=$P --cpu-devices 2 --out $O --cache-dir $C --no-progress 2>&1 | tail -2 )
-  echo "$T $(date -u +%H:%M) load $(cut -d' ' -f1 /proc/loadavg)"
-  cp $O/tables_$P.csv /tmp/s53/tables_$T.csv
+  ( cd "$R" && PYTHONPATH="$R" /usr/bin/time -f "%U user %S sys %e wall" "$PY" -c 'import sys; from jaxnc.cli import main; sys.exit(main())' \
+      run mecanum-grid -s path="$P" --cpu-devices 2 --out "$O" --cache-dir "$C" --no-progress 2>&1 | tail -2 )
+  echo "$X $(date -u +%H:%M) load $(cut -d' ' -f1 /proc/loadavg)"
+  cp "$O/tables_$P.csv" "$T/tables_$X.csv"
 done
+cmp "$T/tables_A.csv" "$T/tables_B.csv" && echo "tables identical"
