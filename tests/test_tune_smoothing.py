@@ -228,3 +228,10 @@ def test_an_unbiased_estimator_noisier_than_the_finite_differences_is_recommende
     c = gradient_check(_noisy10, np.array([1.0]), keys, estimators=("straight_through",), max_seeds=4096,
                        more_keys=more)
     assert c.seeds == 512 and c.recommended == "straight_through", c.table()
+    # the seeds that would resolve it: n (z SE)^2 / g^2 with g^2 the squared mean less its noise. With
+    # max(|mean|, |fd|) as g, a noisy mean (-3.5 +- 12 for _noisy, whose g is 1) read "about 2759 seeds";
+    # the truth is 1.96^2 x 100^2 = 38 416
+    noisy = gradient_check(_noisy, np.array([1.0]), keys, estimators=("straight_through",))
+    need = float(noisy.seeds_needed["straight_through"][0])
+    assert 0.5 * 38416 < need < 2 * 38416, noisy.reason
+    assert f"about {int(need)} seeds would resolve it" in noisy.reason["straight_through"]

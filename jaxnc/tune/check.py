@@ -65,7 +65,10 @@ with the finite differences when
    tested (agreement within the noise proves nothing); a coordinate whose gradient is
    near zero (a flat direction) is resolved only with many seeds, and the check says so.
    An unresolved coordinate's report gives the seeds that would resolve it, estimated from
-   the standard error's 1/sqrt(n) scaling: ``n * (z * SE_j / max(|estimate_j|, |fd_j|))^2``.
+   the standard error's 1/sqrt(n) scaling: ``n * (z * SE_j)^2 / g_j^2`` with g_j^2 the larger
+   of ``estimate_j^2 - SE(estimate_j)^2`` and ``fd_j^2 - SE(fd_j)^2`` (the squared means less
+   their noise); where both are <= 0 (no gradient seen yet), ``g_j = max(|estimate_j|,
+   |fd_j|)`` and the report says "at least".
 
 **The smoothed estimator: plain or extrapolated, by the measured bias.** When the check
 has both ``"score"`` and ``"richardson"``, at most one of them is recommended. The plain
@@ -258,8 +261,14 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
         size = np.maximum(np.abs(g.mean(0)), np.abs(fd.mean(0)))       # a disagreement as large as the gradient
         resolution = z * s
         resolved = resolution <= size
+        # the seeds that would resolve a coordinate, from SE ~ 1/sqrt(n) and the gradient's size
+        # with the means' own noise taken out (E[mean^2] = g^2 + SE^2: a noisy estimator's |mean|
+        # overstates |g| and understates the seeds); where that leaves nothing, the noisy size, a
+        # lower bound ("at least")
+        true2 = np.maximum(g.mean(0) ** 2 - se(g) ** 2, fd.mean(0) ** 2 - se(fd) ** 2)
+        lower = true2 <= 0
         with np.errstate(divide="ignore", invalid="ignore"):
-            needed = np.where(resolved, n, np.ceil(n * (resolution / size) ** 2))
+            needed = np.where(resolved, n, np.ceil(n * resolution ** 2 / np.where(lower, size ** 2, true2)))
         needed = np.where(np.isnan(needed), np.inf, needed)
         out["paired"][name], out["diff_se"][name] = zz, s
         out["resolution"][name], out["resolved"][name], out["needed"][name] = resolution, resolved, needed
@@ -274,8 +283,9 @@ def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol:
             reason = f"too noisy, std err {ratio:.3g}x the finite differences'" + _heavy_tail(diff, slope, names)
         elif not np.all(resolved):
             reason = "inconclusive on " + "; ".join(
-                f"{names[j]} (resolves {resolution[j] / slope[j]:.3g}, gradient {size[j] / slope[j]:.3g}: about "
-                f"{_seeds_str(needed[j])} seeds would resolve it)" for j in np.flatnonzero(~resolved))
+                f"{names[j]} (resolves {resolution[j] / slope[j]:.3g}, gradient {size[j] / slope[j]:.3g}: "
+                f"{'at least' if lower[j] else 'about'} {_seeds_str(needed[j])} seeds would resolve it)"
+                for j in np.flatnonzero(~resolved))
         else:
             reason = ""
         out["reason"][name], out["consistent"][name] = reason, reason == ""
