@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_given, check_int, check_range
+from jaxnc._validate import check_given, check_int, check_range, concrete
 from jaxnc.loop.base import AbstractActuator, Inbox, blend
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
@@ -102,7 +102,7 @@ class PacketActuator(AbstractActuator):
             raise ValueError(f"PacketActuator.span must be one of fast, period, got {self.span!r}")
         check_given("PacketActuator.initial", self.initial)
         check_range("PacketActuator.initial", self.initial)
-        if self.on_exhausted == "zero" and not isinstance(self.initial, jax.Array) and np.any(np.asarray(self.initial)):
+        if self.on_exhausted == "zero" and concrete(self.initial) and np.any(np.asarray(self.initial)):
             raise ValueError("PacketActuator.initial is held only with on_exhausted='hold' (with 'zero' the actuator "
                              f"applies 0 when it has no action due), got {self.initial!r}")
 

@@ -237,7 +237,7 @@ def _heavy_tail(diff: np.ndarray, slope: np.ndarray, names: tuple) -> str:
             f"(median difference to the finite differences {np.median(diff[:, j]) / slope[j]:.3g})")
 
 
-def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float, rel_tol: float, names: tuple,
+def _verdicts(res: dict, estimators: tuple, z: float, max_noise: float | None, rel_tol: float, names: tuple,
               slope: np.ndarray):
     """The check's statistics and verdicts from the per-seed values ``res`` (module
     docstring); the reasons quote gradients and resolutions divided by ``|slope|`` (d value
