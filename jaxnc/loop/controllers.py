@@ -44,27 +44,31 @@ class _OneAction(AbstractController):
 
 @_dataclass
 class StateFeedback(_OneAction):
-    """u = clip(-K (xhat - x_ref), u_min, u_max).
+    """u = clip(u_ref - K (xhat - x_ref), u_min, u_max).
 
-    Attributes: K float[m, n]; x_ref float[n] (default 0); u_min, u_max float[m] or None.
+    Attributes: K float[m, n]; x_ref float[n] (default 0); u_min, u_max float[m] or None;
+    u_ref float[m] or None (the default: 0), the action at x_ref, e.g. the input of an
+    operating point (x_ref, u_ref) that ``LTI.linearize`` linearised a plant around.
     """
 
     field_shapes = {"K": (("input", "estimate"),), "x_ref": ((), ("estimate",)), "u_min": ((), ("input",)),
-                    "u_max": ((), ("input",))}
+                    "u_max": ((), ("input",)), "u_ref": ((), ("input",))}
 
     K: Any
     x_ref: Any = 0.0
     u_min: Any = None
     u_max: Any = None
+    u_ref: Any = None
 
     def __post_init__(self):
         check_given("StateFeedback.K", self.K, "a gain matrix (m x n)")
         check_finite("StateFeedback.K", self.K)
         check_given("StateFeedback.x_ref", self.x_ref)
         check_finite("StateFeedback.x_ref", self.x_ref)
+        check_finite("StateFeedback.u_ref", self.u_ref)
         for n in ("u_min", "u_max"):        # None or +-inf: unbounded
             check_range(f"StateFeedback.{n}", getattr(self, n), finite=False)
-        array_fields(self, "K", "x_ref", "u_min", "u_max")
+        array_fields(self, "K", "x_ref", "u_min", "u_max", "u_ref")
         if not fields_concrete(self):
             return
         K = np.atleast_2d(np.asarray(self.K, np.float32))
@@ -76,6 +80,8 @@ class StateFeedback(_OneAction):
 
     def action(self, xhat):
         u = -(jnp.asarray(self.K) @ (xhat - self.x_ref))
+        if self.u_ref is not None:
+            u = self.u_ref + u
         if self.u_min is not None or self.u_max is not None:
             u = jnp.clip(u, self.u_min, self.u_max)
         return u

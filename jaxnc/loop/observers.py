@@ -14,6 +14,11 @@ period h = N T):
     x_{k+1} = A_N x_k + B_N [u_kN; ...; u_kN+N-1] + w_N,   A_N = A^N,
     B_N = [A^{N-1} B, ..., A B, B],   Q_N = sum_{j<N} A^j G Q G' A^j'   (cov of w_N)
 
+A model with constant terms (``LTI(offset=c, z_offset=d)``, e.g. :meth:`~jaxnc.loop.LTI.linearize`
+of a nonlinear plant around its operating point) adds c_N = sum_{j<N} A^j c to each
+prediction and d to each predicted measurement: the observers then estimate the plant's own
+state, not its deviation from the operating point.
+
 * :class:`Luenberger` (predictor form, :func:`jaxnc.estimators.steady_state.luenberger_step`
   on that system): x̂_{k+1} = A_N x̂_k + B_N u + gamma_k L (z_k - C x̂_k), gamma_k = 1
   when z_k arrived; the controller uses x̂_k (from measurements up to k - 1). Without
@@ -81,6 +86,24 @@ def _slow_noise(A, G, Q, N: int, P: int = 1):
         if (N - 1 - j) % P == 0:
             cols.append(term)
     return jnp.concatenate(cols, axis=1), jax.scipy.linalg.block_diag(*([Q] * len(cols)))
+
+
+def _slow_offset(model, N: int):
+    """c_N = sum_{j<N} A^j c float[n], the constant term of the slow-period system of a model
+    with ``offset`` c (None for a model without)."""
+    if model.offset is None:
+        return None
+    A, c = jnp.asarray(model.A, jnp.float32), jnp.asarray(model.offset, jnp.float32)
+    total = c
+    for _ in range(N - 1):
+        total = A @ total + c
+    return total
+
+
+def _predicted_z(model, x):
+    """C x (+ the model's z_offset): the measurement the model predicts from x, noise-free."""
+    z = jnp.asarray(model.C, jnp.float32) @ x
+    return z if model.z_offset is None else z + jnp.asarray(model.z_offset, jnp.float32)
 
 
 def _check_linear(owner, obj):
@@ -166,19 +189,20 @@ class Luenberger(AbstractEstimator):
                                  f"estimate would not converge in float32; design L for "
                                  f"A_N (slow_system(A, B, N)), e.g. A_N M with M from stationary_gain")
         x = jnp.asarray(self.mean0, jnp.float32)
-        return LuenbergerState(x, jnp.asarray(self.model.C, jnp.float32) @ x, jnp.zeros((), jnp.int32))
+        return LuenbergerState(x, _predicted_z(self.model, x), jnp.zeros((), jnp.int32))
 
     def correct(self, state: LuenbergerState, inbox: Inbox, k):
         z, gamma = inbox.measurement(k, state.t, self.weight)
-        z = blend(gamma, jnp.asarray(z, jnp.float32), jnp.asarray(self.model.C, jnp.float32) @ state.xhat)
+        z = blend(gamma, jnp.asarray(z, jnp.float32), _predicted_z(self.model, state.xhat))
         return state._replace(z=z), state.xhat
 
     def predict(self, state: LuenbergerState, u_applied, u_believed, k) -> LuenbergerState:
         us = u_believed if self.inputs == "believed" else u_applied
         A_N, B_N = slow_system(self.model.A, self.model.B, us.shape[0])
-        x = luenberger_step(A_N, B_N, jnp.asarray(self.model.C), jnp.asarray(self.L), state.xhat, us.reshape(-1),
-                            state.z)
-        return state._replace(xhat=x, t=state.t + us.shape[0])
+        z = state.z if self.model.z_offset is None else state.z - jnp.asarray(self.model.z_offset, jnp.float32)
+        x = luenberger_step(A_N, B_N, jnp.asarray(self.model.C), jnp.asarray(self.L), state.xhat, us.reshape(-1), z)
+        c_N = _slow_offset(self.model, us.shape[0])
+        return state._replace(xhat=x if c_N is None else x + c_N, t=state.t + us.shape[0])
 
 
 
@@ -274,14 +298,15 @@ class SteadyStateKF(AbstractEstimator):
 
     def correct(self, state: SteadyStateKFState, inbox: Inbox, k):
         z, gamma = inbox.measurement(k, state.t, self.weight)
-        C = jnp.asarray(self.model.C, jnp.float32)
-        post = state.mean + gamma * (state.gain @ (jnp.asarray(z, jnp.float32) - C @ state.mean))
+        post = state.mean + gamma * (state.gain @ (jnp.asarray(z, jnp.float32) - _predicted_z(self.model, state.mean)))
         return state._replace(mean=post), post
 
     def predict(self, state: SteadyStateKFState, u_applied, u_believed, k) -> SteadyStateKFState:
         us = u_believed if self.inputs == "believed" else u_applied
         A_N, B_N = slow_system(self.model.A, self.model.B, us.shape[0])
-        return state._replace(mean=A_N @ state.mean + B_N @ us.reshape(-1), t=state.t + us.shape[0])
+        mean = A_N @ state.mean + B_N @ us.reshape(-1)
+        c_N = _slow_offset(self.model, us.shape[0])
+        return state._replace(mean=mean if c_N is None else mean + c_N, t=state.t + us.shape[0])
 
 
 def stationary_gain(kf: SteadyStateKF, N: int = 1):

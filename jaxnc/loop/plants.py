@@ -168,16 +168,20 @@ class Continuous(Discrete):
 
 @_dataclass
 class LTI(AbstractPlant):
-    """x+ = A x + B u + G w, z = C x + D u + v (discrete, period T).
+    """x+ = A x + B u + G w + offset, z = C x + D u + z_offset + v (discrete, period T).
 
     Attributes: A float[n, n], B float[n, m], C float[p, n], D float[p, m] (must be 0 or
     None: z is sampled before u is applied), G float[n, q] (default identity: w is
     additive state noise), x0 float[n], w_std float[q], v_std float[p], x0_std float[n] or
     None (a random initial state x0 + x0_std * N(0, I)), T seconds (the
     period it was sampled at, checked against the loop's; None: the loop's), state_names (static, optional): a tuple of n distinct names of the
-    states, e.g. carried from a python-control model (:meth:`from_control`). Raises
-    ValueError (naming the field) for shapes that do not match, a non-finite entry, a
-    nonzero D, negative stds, T <= 0 or state_names that are not n distinct strings.
+    states, e.g. carried from a python-control model (:meth:`from_control`); offset
+    float[n] and z_offset float[p] (default None: none), the constant terms of an affine
+    model, e.g. the linearisation of a nonlinear plant around an operating point
+    (:meth:`linearize`), so that the linear observers (``Luenberger``, ``SteadyStateKF``)
+    estimate the plant's own state, not its deviation. Raises ValueError (naming the field)
+    for shapes that do not match, a non-finite entry, a nonzero D, negative stds, T <= 0 or
+    state_names that are not n distinct strings.
     """
 
     A: Any
@@ -191,6 +195,8 @@ class LTI(AbstractPlant):
     T: Any = None
     state_names: Any = _static(None)
     x0_std: Any = None
+    offset: Any = None
+    z_offset: Any = None
 
     @property
     def step_period(self):
@@ -204,11 +210,11 @@ class LTI(AbstractPlant):
             if isinstance(names, str) or not all(isinstance(v, str) for v in names) or len(set(names)) != len(names):
                 raise ValueError(f"LTI.state_names must be None or a sequence of distinct strings, got {names!r}")
             object.__setattr__(self, "state_names", tuple(names))
-        for n in ("A", "B", "C", "D", "G", "x0"):
+        for n in ("A", "B", "C", "D", "G", "x0", "offset", "z_offset"):
             check_finite(f"LTI.{n}", getattr(self, n))
         for n in ("w_std", "v_std"):
             check_given(f"LTI.{n}", getattr(self, n))
-        array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std", "x0_std")
+        array_fields(self, "A", "B", "C", "D", "G", "x0", "w_std", "v_std", "x0_std", "offset", "z_offset")
         if not fields_concrete(self):
             return
         A = np.atleast_2d(np.asarray(self.A, np.float32))
@@ -245,6 +251,13 @@ class LTI(AbstractPlant):
         object.__setattr__(self, "v_std", _vec("LTI.v_std", self.v_std, p))
         if self.x0_std is not None:
             object.__setattr__(self, "x0_std", _vec("LTI.x0_std", self.x0_std, n))
+        for name, size, what in (("offset", n, "state"), ("z_offset", p, "output")):
+            v = getattr(self, name)
+            if v is not None:
+                v = np.asarray(v, np.float32)
+                if v.shape != (size,):
+                    raise ValueError(f"LTI.{name} must have {size} entries (one per {what}), got shape {v.shape}")
+                object.__setattr__(self, name, v)
 
     @property
     def state_dim(self) -> int:
@@ -263,11 +276,72 @@ class LTI(AbstractPlant):
         return int(self.G.shape[1])
 
     def dynamics(self, x, u, w):
-        return matvec(self.A, x) + matvec(self.B, u) + matvec(self.G, w)
+        x1 = matvec(self.A, x) + matvec(self.B, u) + matvec(self.G, w)
+        return x1 if self.offset is None else x1 + self.offset
 
     def measure(self, x, v):
         # D u is not known at sampling time in a networked loop: z = C x + v (D must be 0)
-        return matvec(self.C, x) + v
+        z = matvec(self.C, x)
+        return (z if self.z_offset is None else z + self.z_offset) + v
+
+    @classmethod
+    def linearize(cls, plant, x_op, u_op, **kw) -> "LTI":
+        """The first-order model of ``plant`` (a plant whose state is a vector: ``Discrete``,
+        ``Continuous``, an ``LTI``) around the operating point (x_op, u_op), w = 0, v = 0:
+
+            x+ = f(x_op, u_op, 0) + A (x - x_op) + B (u - u_op) + G w,
+            z  = h(x_op, 0) + C (x - x_op) + v,
+
+        A = df/dx, B = df/du, G = df/dw, C = dh/dx (``jax.jacfwd`` of the plant's own step over
+        its period, so a ``Continuous`` plant's integrator is linearised exactly, not its
+        vector field), as an affine :class:`LTI` (``offset`` = f(x_op, u_op, 0) - A x_op - B u_op,
+        ``z_offset`` = h(x_op, 0) - C x_op): exact at the operating point, which need not be an
+        equilibrium. The plant's noise stds, period and initial state are kept unless given in
+        ``kw`` (other keywords are :class:`LTI`'s).
+
+        Args:
+          plant: the plant model; x_op float[n], u_op float[m] (a scalar for m = 1).
+
+        Raises:
+          ValueError: naming ``x_op`` or ``u_op`` for a size other than the plant's state or
+            input, or a non-finite entry; for a plant whose state is not a vector of
+            ``state_dim`` numbers; for a model whose step or measurement is not finite there.
+        """
+        n, m = int(plant.state_dim), int(plant.input_dim)
+        x_op = np.asarray(x_op, np.float32).reshape(-1) if np.ndim(x_op) else np.full((1,), x_op, np.float32)
+        u_op = np.asarray(u_op, np.float32).reshape(-1) if np.ndim(u_op) else np.full((m,), u_op, np.float32)
+        for name, v, size, what in (("x_op", x_op, n, "state_dim"), ("u_op", u_op, m, "input_dim")):
+            if v.shape != (size,):
+                raise ValueError(f"LTI.linearize: {name} must have {size} entries (the plant's {what}), "
+                                 f"got {v.shape[0]}")
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"LTI.linearize: {name} must be finite, got {v}")
+        x0 = jax.eval_shape(lambda: plant.init(jax.random.PRNGKey(0)))
+        if not (isinstance(x0, jax.ShapeDtypeStruct) and x0.shape == (n,)):
+            raise ValueError(f"LTI.linearize: the plant's state must be a vector of its {n} numbers (a Discrete, "
+                             f"Continuous or LTI plant); {type(plant).__name__}'s is not")
+        q, p = int(plant.noise_dim), int(plant.output_dim)
+        w0, v0 = np.zeros(q, np.float32), np.zeros(p, np.float32)
+
+        @jax.jit
+        def terms(x, u):
+            f = lambda x, u, w: plant.dynamics(x, u, w)
+            A, B, G = jax.jacfwd(f, argnums=(0, 1, 2))(x, u, w0)
+            C = jax.jacfwd(lambda x: plant.measure(x, v0))(x)
+            return f(x, u, w0), plant.measure(x, v0), A, B, G, C
+
+        f_op, h_op, A, B, G, C = (np.asarray(a, np.float64) for a in terms(x_op, u_op))
+        for name, a in (("its step f(x_op, u_op, 0)", f_op), ("its measurement h(x_op, 0)", h_op),
+                        ("its Jacobians", np.concatenate([A.ravel(), B.ravel(), G.ravel(), C.ravel()]))):
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"LTI.linearize: the plant's {name} is not finite at x_op = {x_op}, u_op = {u_op}")
+        x_op64, u_op64 = x_op.astype(np.float64), u_op.astype(np.float64)
+        kw.setdefault("w_std", np.asarray(plant.w_std, np.float32))
+        kw.setdefault("v_std", np.asarray(plant.v_std, np.float32))
+        kw.setdefault("T", getattr(plant, "step_period", None))
+        if "x0" not in kw and getattr(plant, "x0", None) is not None and np.shape(plant.x0) == (n,):
+            kw["x0"] = np.asarray(plant.x0, np.float32)
+        return cls(A=A, B=B, C=C, G=G, offset=f_op - A @ x_op64 - B @ u_op64, z_offset=h_op - C @ x_op64, **kw)
 
     @classmethod
     def from_continuous(cls, A, B, C, T: float, **kw) -> "LTI":
