@@ -134,3 +134,15 @@ def test_state_feedback_u_ref_is_the_action_at_x_ref():
     np.testing.assert_allclose(sf.action(jnp.asarray([1.0, 2.0])), [0.25])
     np.testing.assert_allclose(sf.action(jnp.asarray([1.1, 2.0])), [0.25 - 0.2], rtol=1e-6)
     np.testing.assert_allclose(sf.action(jnp.asarray([3.0, 2.0])), [-1.0])            # clipped after u_ref
+
+
+@pytest.mark.parametrize("N", [1, 3])
+def test_slow_system_with_a_held_action_sums_the_per_period_inputs(N):
+    A_N, B_N = nc.slow_system(A, B, N)
+    A_h, B_h = nc.slow_system(A, B, N, hold=True)
+    np.testing.assert_allclose(A_h, A_N)
+    np.testing.assert_allclose(B_h, np.asarray(B_N) @ np.tile(np.eye(1), (N, 1)), rtol=1e-6)
+    x, u = np.array([0.3, -0.2]), np.array([0.7])        # N steps of the fast model with u held
+    for _ in range(N):
+        x = A @ x + B @ u
+    np.testing.assert_allclose(np.asarray(A_h) @ np.array([0.3, -0.2]) + np.asarray(B_h) @ u, x, rtol=1e-6)

@@ -57,15 +57,19 @@ __all__ = ["Luenberger", "LuenbergerState", "SteadyStateKF", "SteadyStateKFState
            "slow_system", "stationary_gain"]
 
 
-def slow_system(A, B, N: int):
+def slow_system(A, B, N: int, *, hold: bool = False):
     """(A_N float[n, n], B_N float[n, N m]): x_{k+1} = A_N x_k + B_N [u_0; ...; u_{N-1}]
     over N fast periods (N static, an integer >= 1: ValueError otherwise; N = 0 returned
-    A itself)."""
+    A itself). ``hold=True``: (A_N, sum_{j<N} A^j B float[n, m]), the system whose one action
+    is held over the N fast periods (a ``HoldLast`` actuator, or any zero-order hold at the
+    slow period): what an LQR gain for a ``StateFeedback`` at the slow instants is designed on."""
     check_int("slow_system: N", N, 1)
     A, B = jnp.asarray(A), jnp.asarray(B)
     powers = [jnp.eye(A.shape[0], dtype=A.dtype)]
     for _ in range(N - 1):
         powers.append(A @ powers[-1])
+    if hold:
+        return A @ powers[-1], sum(P @ B for P in powers)
     return A @ powers[-1], jnp.concatenate([P @ B for P in reversed(powers)], axis=1)
 
 
