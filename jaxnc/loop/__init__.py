@@ -13,7 +13,7 @@ from jaxnc.loop.unstamped import ArrivalHold, DirtyDerivative, DirtyDerivativeSt
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractDelay, AbstractEstimator, AbstractInitial,
                              AbstractLoss, AbstractMonitor, AbstractPlant, AbstractTrigger, AbstractWrappedPlant, Inbox,
                              Packet, blend, pytree_dataclass, static_field)
-from jaxnc.loop.controllers import Function, Predictive, StateFeedback
+from jaxnc.loop.controllers import Function, IntegralFeedback, IntegralFeedbackState, Predictive, StateFeedback
 from jaxnc.loop.estimators import EKF, EKFState, Passthrough, WeightedEstimate, period_means, period_means_finite
 from jaxnc.loop.lead import LeadFeedback
 from jaxnc.loop.links import (Bernoulli, GilbertElliott, Link, LinkDraws, NoDelay, NoLoss, PmfDelay,
@@ -49,7 +49,7 @@ __all__ = [
     "draw_link", "link_delay_bounds",
     "Periodic", "Petc", "PetcState", "petc_decide", "petc_gap", "petc_update",
     "EKF", "EKFState", "Passthrough", "WeightedEstimate", "period_means", "period_means_finite",
-    "StateFeedback", "Function", "Predictive",
+    "StateFeedback", "IntegralFeedback", "IntegralFeedbackState", "Function", "Predictive",
     "PID", "PIDState", "pid_update",
     "LinearController",
     "Tracking", "TrackingMetrics", "run_tracking",

@@ -2,6 +2,9 @@
 
 * :class:`StateFeedback`: u = -K (xhat - x_ref), saturated to [u_min, u_max] (gains from
   :func:`jaxnc.controllers.hold_lq.dlqr` or the hold-aware LQ gain);
+* :class:`IntegralFeedback`: state feedback with integral action on chosen outputs,
+  u = u_ref - K (xhat - x_ref) - Ki z, z <- z + C_int xhat - r (python-control's
+  ``dlqr(..., integral_action=C_int)`` law), with a reference and anti-windup;
 * :class:`Function`: u = fn(params, xhat) for any user law (``fn`` static, ``params``
   a pytree of leaves that can be tuned or differentiated);
 * :class:`Predictive`: a packet of ``horizon`` fast actions (seed 000 section 3.3.1,
@@ -13,7 +16,7 @@ A controller runs at every slow instant; its packet carries the stamp kN.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +29,7 @@ from jaxnc.loop.base import AbstractController, AbstractPlant, Packet
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 
-__all__ = ["StateFeedback", "Function", "Predictive"]
+__all__ = ["StateFeedback", "IntegralFeedback", "IntegralFeedbackState", "Function", "Predictive"]
 
 
 class _OneAction(AbstractController):
@@ -85,6 +88,113 @@ class StateFeedback(_OneAction):
         if self.u_min is not None or self.u_max is not None:
             u = jnp.clip(u, self.u_min, self.u_max)
         return u
+
+
+class IntegralFeedbackState(NamedTuple):
+    """z float[c], the integrated errors C_int x̂ - r of the slow instants before this one."""
+
+    z: jax.Array
+
+
+@_dataclass
+class IntegralFeedback(AbstractController):
+    """State feedback with integral action (LQI), at every slow instant k:
+
+        u_k = clip(u_ref - K (x̂_k - x_ref) - Ki z_k, u_min, u_max),
+        z_{k+1} = z_k + (C_int x̂_k - r_k),   z_0 = 0,
+
+    r_k = ``reference.at(kN, T)`` (a :mod:`jaxnc.references` object of 1 or c channels), or
+    C_int x_ref when ``reference`` is None (regulation at x_ref). This is python-control's
+    law for ``control.dlqr(A_h, B_h, Q, R, integral_action=C_int)``, whose gain is [K, Ki]
+    for the system augmented with z_{k+1} = z_k + C_int x_k (design it on the slow-period
+    system of the held action, :func:`~jaxnc.loop.slow_system` with ``hold=True``, in the
+    coordinates x - x_ref, u - u_ref). A constant load or a model error then leaves no
+    steady-state error in C_int x (where the closed loop settles). It computes at every slow
+    instant on the estimate, as :class:`StateFeedback`, and always sends.
+
+    Anti-windup (``anti_windup``, static): ``"conditional"`` (the default) does not integrate
+    at an instant where the clip changed the action (any entry: conditional integration; no
+    effect without limits), ``"none"`` always integrates.
+
+    Attributes: K float[m, n]; Ki float[m, c]; C_int float[c, n] (c >= 1 integrated outputs);
+    x_ref float[n] (default 0); u_ref float[m] or None (0); reference, as above, or None;
+    u_min, u_max float[m] or None; anti_windup as above. Every number is a differentiable leaf
+    (the clip has its a.e. derivative).
+
+    Raises: ValueError naming the field for a gain that is not given or not finite, Ki or
+    C_int whose shapes do not agree with K's (Ki m x c, C_int c x n), a reference that is not a
+    :mod:`jaxnc.references` object or has neither 1 nor c channels, u_min > u_max, or an
+    unknown ``anti_windup``; when a Loop is built, K, x_ref, u_ref or the limits that do not
+    fit the loop's estimate and input.
+    """
+
+    field_shapes = {"K": (("input", "estimate"),), "x_ref": ((), ("estimate",)), "u_min": ((), ("input",)),
+                    "u_max": ((), ("input",)), "u_ref": ((), ("input",))}
+    horizon = 1
+
+    K: Any
+    Ki: Any
+    C_int: Any
+    x_ref: Any = 0.0
+    u_ref: Any = None
+    reference: Any = None
+    u_min: Any = None
+    u_max: Any = None
+    anti_windup: str = _static("conditional")
+
+    def __post_init__(self):
+        from jaxnc._validate import check_choice
+        from jaxnc.references import AbstractReference, check_channels
+        for n, what in (("K", "a gain matrix (m x n)"), ("Ki", "an integral gain matrix (m x c)"),
+                        ("C_int", "the integrated outputs' matrix (c x n)")):
+            check_given(f"IntegralFeedback.{n}", getattr(self, n), what)
+            check_finite(f"IntegralFeedback.{n}", getattr(self, n))
+        check_given("IntegralFeedback.x_ref", self.x_ref)
+        check_finite("IntegralFeedback.x_ref", self.x_ref)
+        check_finite("IntegralFeedback.u_ref", self.u_ref)
+        for n in ("u_min", "u_max"):        # None or +-inf: unbounded
+            check_range(f"IntegralFeedback.{n}", getattr(self, n), finite=False)
+        object.__setattr__(self, "anti_windup", check_choice("IntegralFeedback.anti_windup", self.anti_windup,
+                                                             ("conditional", "none")))
+        if self.reference is not None:
+            check_instance("IntegralFeedback.reference", self.reference, AbstractReference,
+                           "a jaxnc.references object (Step, Ramp, Sine, PiecewiseLinear, Recorded) or None")
+        array_fields(self, "K", "Ki", "C_int", "x_ref", "u_min", "u_max", "u_ref")
+        if not fields_concrete(self):
+            return
+        K, Ki, C = (np.atleast_2d(np.asarray(getattr(self, n), np.float32)) for n in ("K", "Ki", "C_int"))
+        m, n = K.shape
+        c = C.shape[0]
+        if K.ndim != 2 or C.ndim != 2 or C.shape[1] != n:
+            raise ValueError(f"IntegralFeedback.C_int must have {n} columns (K's: the estimate's entries), "
+                             f"got shape {C.shape}")
+        if Ki.shape != (m, c):
+            raise ValueError(f"IntegralFeedback.Ki must be {m}x{c} (K's rows x C_int's rows), got shape {Ki.shape}")
+        check_channels("IntegralFeedback", self.reference, c)
+        for name, v in (("K", K), ("Ki", Ki), ("C_int", C)):
+            object.__setattr__(self, name, v)
+        if self.u_min is not None and self.u_max is not None and np.any(np.asarray(self.u_min) > np.asarray(self.u_max)):
+            raise ValueError("IntegralFeedback.u_min must be <= u_max")
+
+    def init(self, ctx) -> IntegralFeedbackState:
+        return IntegralFeedbackState(jnp.zeros((np.shape(self.C_int)[0],), jnp.float32))
+
+    def step(self, state: IntegralFeedbackState, xhat, fresh, k, ctx):
+        from jaxnc.references import at_channels
+        C = jnp.asarray(self.C_int, jnp.float32)
+        c = C.shape[0]
+        v = -(jnp.asarray(self.K) @ (xhat - self.x_ref)) - jnp.asarray(self.Ki) @ state.z
+        if self.u_ref is not None:
+            v = self.u_ref + v
+        u = v
+        if self.u_min is not None or self.u_max is not None:
+            u = jnp.clip(v, self.u_min, self.u_max)
+        r = (C @ jnp.broadcast_to(jnp.asarray(self.x_ref, jnp.float32), xhat.shape) if self.reference is None
+             else at_channels(self.reference, k * ctx.N, ctx.T, c).astype(jnp.float32))
+        z = state.z + (C @ xhat - r)
+        if self.anti_windup == "conditional" and (self.u_min is not None or self.u_max is not None):
+            z = jnp.where(jnp.any(u != v), state.z, z)
+        return IntegralFeedbackState(z), Packet(u[None, :], (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32)
 
 
 @_dataclass
