@@ -110,7 +110,10 @@ class IntegralFeedback(AbstractController):
     system of the held action, :func:`~jaxnc.loop.slow_system` with ``hold=True``, in the
     coordinates x - x_ref, u - u_ref). A constant load or a model error then leaves no
     steady-state error in C_int x (where the closed loop settles). It computes at every slow
-    instant on the estimate, as :class:`StateFeedback`, and always sends.
+    instant on the estimate, as :class:`StateFeedback`, and always sends; it integrates at every
+    slow instant too, so give it an estimator that predicts between measurements (an observer,
+    an ``EKF``): behind a ``Passthrough`` over a lossy uplink it would integrate the held
+    measurement (``PID(hold=True)`` skips such instants).
 
     Anti-windup (``anti_windup``, static): ``"conditional"`` (the default) does not integrate
     at an instant where the clip changed the action (any entry: conditional integration; no
