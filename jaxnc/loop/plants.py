@@ -349,7 +349,8 @@ class LTI(AbstractPlant):
 
         A float[n, n]; B float[n, m] (or n entries: one input); C float[p, n]; T > 0 seconds;
         other keywords are :class:`LTI`'s (``G``, ``w_std``, ``v_std`` describe the discrete
-        noise as given). Raises ValueError naming the argument for a non-square A, a B
+        noise as given, ``offset`` the discrete step's constant term as given: a continuous
+        model's constant input d enters as ``offset`` = int_0^T e^{A s} ds d). Raises ValueError naming the argument for a non-square A, a B
         without n rows, or T <= 0 (B of shape (m, n) was reshaped into n x m without an error,
         scrambling its entries)."""
         check_positive("T", T)
