@@ -98,3 +98,31 @@ def test_dlqe_float32():
     assert L.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(L), L_ref, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(P), P_ref, rtol=1e-5)
+
+
+def test_dlqe_on_concrete_matrices_compiles_once_per_shape_not_per_call():
+    """Called eagerly (a SteadyStateKF's gain when a Loop is built, at every tuner step) the
+    Riccati solve compiled its loop again on every call (a new body each time, 0.1 s each);
+    now a second call with other numbers of the same shapes compiles nothing. A Loop of one
+    structure with a steady-state KF, built again with a new trigger threshold, compiles
+    nothing either."""
+    from jaxnc import loop as nc
+    from jaxnc.cache import compile_clock
+    A = np.array([[1.0, 0.1], [0.0, 0.97]], np.float32)
+    G, C = np.eye(2, dtype=np.float32), np.array([[1.0, 0.0]], np.float32)
+    L1, _, _ = dlqe(A, G, C, np.eye(2, dtype=np.float32) * 0.01, np.eye(1, dtype=np.float32) * 0.1)
+    before = compile_clock()
+    L2, _, _ = dlqe(A * 0.99, G, C, np.eye(2, dtype=np.float32) * 0.02, np.eye(1, dtype=np.float32) * 0.1)
+    assert (compile_clock() - before).compilations == 0
+    assert not np.allclose(L1, L2)                           # other numbers, another gain
+    plant = nc.LTI(A=A, B=[[0.005], [0.1]], C=C, w_std=0.1, v_std=0.3, T=0.1)
+
+    def build(delta):
+        return nc.Loop(plant=plant, trigger=nc.Petc(delta=delta), uplink=nc.Link(),
+                       estimator=nc.SteadyStateKF(plant, Q=[0.01, 0.01], R=[[0.09]]), controller=nc.StateFeedback([[2.0, 1.0]]),
+                       downlink=nc.Link(), actuator=nc.HoldLast(), N=2, T=0.1, steps=20)
+
+    build(1e-3)
+    before = compile_clock()
+    build(2e-3)
+    assert (compile_clock() - before).compilations == 0
