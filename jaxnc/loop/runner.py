@@ -880,7 +880,20 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     is kept follows ``loop.record`` (a :class:`Record`). An estimator that takes the believed
     actions (``inputs="believed"``) is told those of the controller's copy of what it sent:
     its own (``controller.sent``) when it declares ``keeps_copy``, else the runner's, the
-    actuator role fed the controller's packets at once."""
+    actuator role fed the controller's packets at once.
+
+    Called on concrete values (outside jit, vmap or grad) it runs one compiled program per
+    loop structure, the loop an argument of it (as :func:`jaxnc.montecarlo.run_batched`
+    passes it): a second call, with the same loop or another of the same structure and new
+    numbers, compiles nothing (it compiled the whole run again on every call). Under a
+    trace it is traced as it is."""
+    if concrete(loop, key, draws):
+        return _simulate_compiled(loop, key, draws)
+    return _simulate(loop, key, draws)
+
+
+def _simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
+    """:func:`simulate`'s run, traced in the caller's trace."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
     # the noise of each slow period is sliced from the flat standard draws and scaled there: no
@@ -1022,6 +1035,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         parts={r: fast_rows(o[r]) if r in ("plant", "actuator", "monitor") else o[r] for r in PARTS
                if getattr(rec, r) is not None},
         final_plant=final.x)
+
+
+_simulate_compiled = jax.jit(_simulate)
 
 
 class Metrics(NamedTuple):
