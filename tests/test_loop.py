@@ -703,3 +703,21 @@ def test_eager_draw_and_tracking_metrics_are_one_program_each_and_leave_a_loops_
     got, want = nc.draw(plain, key), nc.draw.__wrapped__(arrays, key)
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_simulate_called_eagerly_compiles_once_per_loop_structure():
+    """``nc.simulate(loop, key)`` outside jit compiled the whole run again at every call (0.65 s
+    for a small loop); now a second call, and a call on a loop of the same structure with new
+    numbers, compile nothing, and the run is the one of the loop as a jit argument (as
+    run_batched passes it), bit for bit."""
+    from jaxnc.cache import compile_clock
+    loop = _lti_loop(N=2, steps=40, uplink=nc.Link(nc.Bernoulli(0.3)))
+    other = dataclasses.replace(loop, uplink=nc.Link(nc.Bernoulli(0.1)))        # new numbers, same structure
+    nc.simulate(loop, jax.random.PRNGKey(0))
+    before = compile_clock()
+    a = nc.simulate(loop, jax.random.PRNGKey(1))
+    nc.simulate(other, jax.random.PRNGKey(1))
+    assert (compile_clock() - before).compilations == 0
+    b = jax.jit(lambda lp, k: nc.simulate(lp, k))(loop, jax.random.PRNGKey(1))
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
