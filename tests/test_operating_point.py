@@ -51,6 +51,12 @@ def test_linearize_gives_the_closed_form_jacobians_and_constant_terms_at_a_point
     assert np.abs(exact - model).max() < 1e-4 < np.abs(exact - f_op).max()      # second order, not first
     np.testing.assert_allclose(lin.w_std, [0.01]) and np.testing.assert_allclose(lin.v_std, [0.02])
     np.testing.assert_allclose(lin.x0, [0.3, 0.0])
+    # gain scheduling: linearising the same plant at another point compiles nothing
+    from jaxnc.cache import compile_clock
+    before = compile_clock()
+    other = nc.LTI.linearize(plant, [0.8, 0.0], [0.0], T=T)
+    assert (compile_clock() - before).compilations == 0
+    np.testing.assert_allclose(other.A[1, 0], -T * 9.81 * np.cos(0.8), rtol=1e-5)
 
 
 def _loops(estimator_of, N):

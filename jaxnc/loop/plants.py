@@ -166,6 +166,17 @@ class Continuous(Discrete):
         return rk4(self.f, x, u, w, jnp.asarray(self.T, x.dtype), self.substeps)
 
 
+@jax.jit
+def _linear_terms(plant, x, u):
+    """(f(x, u, 0), h(x, 0), df/dx, df/du, df/dw, dh/dx) of ``plant`` (:meth:`LTI.linearize`):
+    one compiled program per plant structure, so linearising at many points compiles once."""
+    w0 = jnp.zeros((int(plant.noise_dim),), jnp.float32)
+    v0 = jnp.zeros((int(plant.output_dim),), jnp.float32)
+    A, B, G = jax.jacfwd(plant.dynamics, argnums=(0, 1, 2))(x, u, w0)
+    C = jax.jacfwd(lambda x: plant.measure(x, v0))(x)
+    return plant.dynamics(x, u, w0), plant.measure(x, v0), A, B, G, C
+
+
 @_dataclass
 class LTI(AbstractPlant):
     """x+ = A x + B u + G w + offset, z = C x + D u + z_offset + v (discrete, period T).
@@ -320,17 +331,7 @@ class LTI(AbstractPlant):
         if not (isinstance(x0, jax.ShapeDtypeStruct) and x0.shape == (n,)):
             raise ValueError(f"LTI.linearize: the plant's state must be a vector of its {n} numbers (a Discrete, "
                              f"Continuous or LTI plant); {type(plant).__name__}'s is not")
-        q, p = int(plant.noise_dim), int(plant.output_dim)
-        w0, v0 = np.zeros(q, np.float32), np.zeros(p, np.float32)
-
-        @jax.jit
-        def terms(x, u):
-            f = lambda x, u, w: plant.dynamics(x, u, w)
-            A, B, G = jax.jacfwd(f, argnums=(0, 1, 2))(x, u, w0)
-            C = jax.jacfwd(lambda x: plant.measure(x, v0))(x)
-            return f(x, u, w0), plant.measure(x, v0), A, B, G, C
-
-        f_op, h_op, A, B, G, C = (np.asarray(a, np.float64) for a in terms(x_op, u_op))
+        f_op, h_op, A, B, G, C = (np.asarray(a, np.float64) for a in _linear_terms(plant, x_op, u_op))
         for name, a in (("its step f(x_op, u_op, 0)", f_op), ("its measurement h(x_op, 0)", h_op),
                         ("its Jacobians", np.concatenate([A.ravel(), B.ravel(), G.ravel(), C.ravel()]))):
             if not np.all(np.isfinite(a)):
