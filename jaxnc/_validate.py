@@ -1,7 +1,8 @@
 """Validation helpers run in ``__post_init__`` (plain Python, before any tracing).
 
 Values that are JAX arrays (tracers inside jit/vmap, or batched leaves) are not
-checked: validation is for configurations a person writes.
+checked: validation is for configurations a person writes. :func:`concrete` also decides
+:func:`jit_when_eager`'s path (a function compiled once when called on concrete values).
 """
 from __future__ import annotations
 
@@ -167,6 +168,34 @@ def concrete(*values) -> bool:
         if not isinstance(leaf, (bool, int, float, complex, np.ndarray, np.generic, jax.Array)):
             return False
     return True
+
+
+def jit_when_eager(fn=None, *, static_argnums: tuple = ()):
+    """``fn`` compiled as one program (``jax.jit``, the positional arguments ``static_argnums``
+    static) when every leaf of its other arguments, keywords included, is a concrete number or
+    array (:func:`concrete`) and no static argument is a tracer, so that a call outside any
+    transformation neither dispatches its small operations one by one nor compiles its loops
+    again (an eager ``lax.scan`` or ``fori_loop`` whose body is a new closure is a new program
+    at every call); called as it is otherwise: under a trace (jit, vmap, grad), so that the
+    enclosing program is the same as without this wrapper, and with a leaf that ``jax.jit``
+    cannot take (a plain Python object a part holds). Usable as ``@jit_when_eager`` or
+    ``@jit_when_eager(static_argnums=(...))``."""
+    import functools
+
+    import jax
+    if fn is None:
+        return functools.partial(jit_when_eager, static_argnums=static_argnums)
+    static = tuple(static_argnums)
+    jitted = jax.jit(fn, static_argnums=static)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        dynamic = [a for i, a in enumerate(args) if i not in static]
+        eager = concrete(*dynamic, *kwargs.values()) and not any(
+            isinstance(args[i], jax.core.Tracer) for i in static if i < len(args))
+        return jitted(*args, **kwargs) if eager else fn(*args, **kwargs)
+
+    return call
 
 
 def unbounded(limit) -> bool:

@@ -39,7 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, check_nonneg, check_positive, check_range, concrete, psd_rounding
+from jaxnc._validate import (check_int, check_nonneg, check_positive, check_range, concrete, jit_when_eager,
+                             psd_rounding)
 from jaxnc.estimators.ekf import Gaussian, ekf_predict, ekf_update_terms
 from jaxnc.loop.links import Bernoulli
 from jaxnc.loop.triggers import PetcState, petc_decide
@@ -451,11 +452,11 @@ def mare_iterate(A, C, Q, R, lam, steps: int, P0=None):
         check_int("mare_iterate: steps", steps, 1)
     lam = jnp.asarray(lam, Q.dtype)       # a float64 lam with float32 matrices under x64: one carry dtype
     P0 = jnp.zeros_like(Q) if P0 is None else _fit_p0("mare_iterate", P0, A.shape[0], Q.dtype)
-    if concrete(P0, A, C, Q, R, lam) and not isinstance(steps, jax.core.Tracer):
-        return _mare_iterate_compiled(P0, A, C, Q, R, lam, int(steps))
     return _mare_iterate_loop(P0, A, C, Q, R, lam, steps)
 
 
+# eagerly (a sweep over lam in a notebook) one program per shape and step count, not one per call
+@jit_when_eager(static_argnums=(6,))
 def _mare_iterate_loop(P0, A, C, Q, R, lam, steps):
     def body(_, c):
         P, _d = c
@@ -466,12 +467,6 @@ def _mare_iterate_loop(P0, A, C, Q, R, lam, steps):
         return Pn, jnp.max(jnp.abs(Pn - P)) / jnp.maximum(big, jnp.finfo(Pn.dtype).tiny)
 
     return jax.lax.fori_loop(0, steps, body, (P0, jnp.asarray(jnp.inf, Q.dtype)))
-
-
-# called eagerly, a loop whose body is a new function each time was compiled again on every call
-# (0.13 s: a sweep over lam in a notebook compiled once per value); on concrete values these are
-# one program per shape and step count, inlined as before under a trace
-_mare_iterate_compiled = jax.jit(_mare_iterate_loop, static_argnums=6)
 
 
 def _fit(fn: str, A, C=None, Q=None, R=None) -> None:
@@ -703,11 +698,10 @@ def random_riccati(key, A, C, Q, R, lam, steps: int, P0=None):
     _check_lam("random_riccati", lam)
     check_int("random_riccati: steps", steps, 1)
     P0 = Q if P0 is None else _fit_p0("random_riccati", P0, A.shape[0], Q.dtype)
-    if concrete(key, P0, A, C, Q, R, lam):
-        return _random_riccati_compiled(key, P0, A, C, Q, R, lam, steps)
     return _random_riccati_loop(key, P0, A, C, Q, R, lam, steps)
 
 
+@jit_when_eager(static_argnums=(7,))      # as _mare_iterate_loop
 def _random_riccati_loop(key, P0, A, C, Q, R, lam, steps):
     gam = (jax.random.uniform(key, (steps,)) < lam).astype(Q.dtype)
 
@@ -717,6 +711,3 @@ def _random_riccati_loop(key, P0, A, C, Q, R, lam, steps):
 
     _, tr = jax.lax.scan(body, P0, gam)
     return tr
-
-
-_random_riccati_compiled = jax.jit(_random_riccati_loop, static_argnums=7)     # as _mare_iterate_compiled

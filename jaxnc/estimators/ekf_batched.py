@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-from jaxnc._validate import concrete
+from jaxnc._validate import jit_when_eager
 from jaxnc.estimators.covariance import predict_cov, update_diag
 from jaxnc.estimators.ekf import Gaussian, _check_cov, predict_with, update_diag_with
 from jaxnc.estimators.sparsity import EKFStructure, Pattern, check_shape, embed, jacobian_columns
@@ -285,12 +285,10 @@ def ekf_filter(f: Callable, h: Callable, belief0: Gaussian, us, zs, valid, Q, r,
         for name, pat, want in zip("ALH", structure, ((n, n), (n, noise_dim), (m, n))):
             check_shape("ekf_filter", name, pat, want)
     _check_model(f, h, n, nu, noise_dim, m, dtype)
-    args = (mean0, cov0, us, zs, valid, Q, r)
-    if concrete(*args):     # called eagerly: one compiled program per model and shapes, not one per call
-        return _filter_compiled(f, h, noise_dim, return_means, structure, *args)
-    return _filter(f, h, noise_dim, return_means, structure, *args)
+    return _filter(f, h, noise_dim, return_means, structure, mean0, cov0, us, zs, valid, Q, r)
 
 
+@jit_when_eager(static_argnums=(0, 1, 2, 3, 4))     # eagerly one program per model and shapes, not one per call
 def _filter(f, h, noise_dim: int, return_means: bool, structure, mean0, cov0, us, zs, valid, Q, r):
     """:func:`ekf_filter`'s run on checked arguments (traced in the caller's trace)."""
     B, n = mean0.shape
@@ -321,7 +319,3 @@ def _filter(f, h, noise_dim: int, return_means: bool, structure, mean0, cov0, us
     (x, P), means = jax.lax.scan(step, (jnp.moveaxis(mean0, 0, -1), jnp.moveaxis(cov0, 0, -1)), xs)
     final = Gaussian(jnp.moveaxis(x, -1, 0), jnp.moveaxis(P, -1, 0))
     return (final, jnp.moveaxis(means, -1, 0)) if return_means else final
-
-
-# an eager lax.scan whose body is a new closure compiled again at every call (0.2 s for a small model)
-_filter_compiled = jax.jit(_filter, static_argnums=(0, 1, 2, 3, 4))

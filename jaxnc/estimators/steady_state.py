@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnc._validate import check_int, concrete
+from jaxnc._validate import check_int, concrete, jit_when_eager
 from jaxnc.estimators.ekf import _check_cov, _symmetrize
 
 __all__ = ["dlqe", "luenberger_step"]
@@ -31,6 +31,7 @@ def _matrix(name, M, rows=None, cols=None):
     return M
 
 
+@jit_when_eager(static_argnums=(3,))      # eagerly (SteadyStateKF.init at every loop built) one program per shape
 def _sda(A, G, H, iterations):
     """Structure-preserving doubling for the DARE
     X = A' X A - A' X B (R + B' X B)^-1 B' X A + Q given A, G = B R^-1 B', H = Q
@@ -46,17 +47,6 @@ def _sda(A, G, H, iterations):
         return A @ WA, _symmetrize(G + A @ WG @ A.T), _symmetrize(H + A.T @ H @ WA)
 
     return jax.lax.fori_loop(0, iterations, body, (A, G, H))[2]
-
-
-_sda_compiled = jax.jit(_sda, static_argnums=3)
-
-
-def _sda_solve(A, G, H, iterations):
-    """:func:`_sda`; on concrete matrices one compiled program per shape and ``iterations``
-    (called eagerly, the loop's body is a new function each time, and JAX compiled it again on
-    every call: 0.1 s per solve, once per tuner step for a loop with a ``SteadyStateKF``);
-    inlined under a trace, as before."""
-    return _sda_compiled(A, G, H, iterations) if concrete(A, G, H) else _sda(A, G, H, iterations)
 
 
 #: the margin below 1 of a Schur spectral radius (:func:`dlqe`): float32 rounding moves a mode on the unit circle
@@ -111,7 +101,7 @@ def dlqe(A, G, C, Q, R, *, iterations: int = 60):
     A, G, C = A.astype(dtype), G.astype(dtype), C.astype(dtype)
     Q, R = Q.astype(dtype), R.astype(dtype)
     # the filter DARE is the control DARE of (A', C'): X = P
-    P = _sda_solve(A.T, C.T @ jnp.linalg.solve(R, C), G @ Q @ G.T, iterations)
+    P = _sda(A.T, C.T @ jnp.linalg.solve(R, C), G @ Q @ G.T, iterations)
     S = C @ P @ C.T + R
     L = jnp.linalg.solve(S, C @ P @ A.T).T                 # A P C' S^-1 (S symmetric)
     E = jnp.linalg.eigvals(A - L @ C)

@@ -46,13 +46,12 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-import functools
 from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxnc._validate import checked_pytree, concrete
+from jaxnc._validate import checked_pytree
 
 __all__ = ["Packet", "Inbox", "blend", "static_field", "pytree_dataclass", "AbstractPlant", "AbstractInitial",
            "AbstractWrappedPlant", "AbstractLiftedPlant", "AbstractTrigger", "AbstractEstimator", "AbstractController", "AbstractActuator",
@@ -64,21 +63,6 @@ def static_field(default=dataclasses.MISSING):
     string or function that selects code): part of the compiled program, not a leaf."""
     return dataclasses.field(default=default, metadata=dict(static=True))
 
-
-def jit_when_eager(fn):
-    """``fn`` compiled as one program (``jax.jit``) when every leaf of its arguments is a
-    concrete number or array (:func:`jaxnc._validate.concrete`), so that a call outside any
-    transformation does not dispatch its small operations one by one; called as it is
-    otherwise: under a trace (jit, vmap, grad), so that the enclosing program is the same as
-    without this wrapper, and with a leaf that ``jax.jit`` cannot take (a plain Python object
-    a part holds)."""
-    jitted = jax.jit(fn)
-
-    @functools.wraps(fn)
-    def call(*args):
-        return jitted(*args) if concrete(*args) else fn(*args)
-
-    return call
 
 
 def pytree_dataclass(cls):

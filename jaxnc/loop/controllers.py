@@ -45,6 +45,37 @@ class _OneAction(AbstractController):
         return state, Packet(u[None, :], (k * ctx.N).astype(jnp.int32)), jnp.ones((), jnp.float32)
 
 
+def _check_feedback(owner: str, part) -> None:
+    """The checks a state feedback law's K, x_ref, u_ref and limits get (``StateFeedback``,
+    ``IntegralFeedback``), naming ``owner``'s field: given and finite; limits None or in
+    [-inf, inf]."""
+    check_given(f"{owner}.K", part.K, "a gain matrix (m x n)")
+    check_finite(f"{owner}.K", part.K)
+    check_given(f"{owner}.x_ref", part.x_ref)
+    check_finite(f"{owner}.x_ref", part.x_ref)
+    check_finite(f"{owner}.u_ref", part.u_ref)
+    for n in ("u_min", "u_max"):        # None or +-inf: unbounded
+        check_range(f"{owner}.{n}", getattr(part, n), finite=False)
+
+
+def _check_limit_order(owner: str, part) -> None:
+    if part.u_min is not None and part.u_max is not None and np.any(np.asarray(part.u_min) > np.asarray(part.u_max)):
+        raise ValueError(f"{owner}.u_min must be <= u_max")
+
+
+def _feedback(part, xhat, extra=None):
+    """(v, u): v = u_ref - K (xhat - x_ref) - extra (extra None: none), u = v clipped to
+    [u_min, u_max] (v itself without limits)."""
+    v = -(jnp.asarray(part.K) @ (xhat - part.x_ref))
+    if extra is not None:
+        v = v - extra
+    if part.u_ref is not None:
+        v = part.u_ref + v
+    if part.u_min is None and part.u_max is None:
+        return v, v
+    return v, jnp.clip(v, part.u_min, part.u_max)
+
+
 @_dataclass
 class StateFeedback(_OneAction):
     """u = clip(u_ref - K (xhat - x_ref), u_min, u_max).
@@ -64,13 +95,7 @@ class StateFeedback(_OneAction):
     u_ref: Any = None
 
     def __post_init__(self):
-        check_given("StateFeedback.K", self.K, "a gain matrix (m x n)")
-        check_finite("StateFeedback.K", self.K)
-        check_given("StateFeedback.x_ref", self.x_ref)
-        check_finite("StateFeedback.x_ref", self.x_ref)
-        check_finite("StateFeedback.u_ref", self.u_ref)
-        for n in ("u_min", "u_max"):        # None or +-inf: unbounded
-            check_range(f"StateFeedback.{n}", getattr(self, n), finite=False)
+        _check_feedback("StateFeedback", self)
         array_fields(self, "K", "x_ref", "u_min", "u_max", "u_ref")
         if not fields_concrete(self):
             return
@@ -78,16 +103,10 @@ class StateFeedback(_OneAction):
         object.__setattr__(self, "K", K)
         if not np.all(np.isfinite(K)):
             raise ValueError("StateFeedback.K must be finite")
-        if self.u_min is not None and self.u_max is not None and np.any(np.asarray(self.u_min) > np.asarray(self.u_max)):
-            raise ValueError("StateFeedback.u_min must be <= u_max")
+        _check_limit_order("StateFeedback", self)
 
     def action(self, xhat):
-        u = -(jnp.asarray(self.K) @ (xhat - self.x_ref))
-        if self.u_ref is not None:
-            u = self.u_ref + u
-        if self.u_min is not None or self.u_max is not None:
-            u = jnp.clip(u, self.u_min, self.u_max)
-        return u
+        return _feedback(self, xhat)[1]
 
 
 class IntegralFeedbackState(NamedTuple):
@@ -148,15 +167,10 @@ class IntegralFeedback(AbstractController):
     def __post_init__(self):
         from jaxnc._validate import check_choice
         from jaxnc.references import AbstractReference, check_channels
-        for n, what in (("K", "a gain matrix (m x n)"), ("Ki", "an integral gain matrix (m x c)"),
-                        ("C_int", "the integrated outputs' matrix (c x n)")):
+        _check_feedback("IntegralFeedback", self)
+        for n, what in (("Ki", "an integral gain matrix (m x c)"), ("C_int", "the integrated outputs' matrix (c x n)")):
             check_given(f"IntegralFeedback.{n}", getattr(self, n), what)
             check_finite(f"IntegralFeedback.{n}", getattr(self, n))
-        check_given("IntegralFeedback.x_ref", self.x_ref)
-        check_finite("IntegralFeedback.x_ref", self.x_ref)
-        check_finite("IntegralFeedback.u_ref", self.u_ref)
-        for n in ("u_min", "u_max"):        # None or +-inf: unbounded
-            check_range(f"IntegralFeedback.{n}", getattr(self, n), finite=False)
         object.__setattr__(self, "anti_windup", check_choice("IntegralFeedback.anti_windup", self.anti_windup,
                                                              ("conditional", "none")))
         if self.reference is not None:
@@ -176,8 +190,7 @@ class IntegralFeedback(AbstractController):
         check_channels("IntegralFeedback", self.reference, c)
         for name, v in (("K", K), ("Ki", Ki), ("C_int", C)):
             object.__setattr__(self, name, v)
-        if self.u_min is not None and self.u_max is not None and np.any(np.asarray(self.u_min) > np.asarray(self.u_max)):
-            raise ValueError("IntegralFeedback.u_min must be <= u_max")
+        _check_limit_order("IntegralFeedback", self)
 
     def init(self, ctx) -> IntegralFeedbackState:
         return IntegralFeedbackState(jnp.zeros((np.shape(self.C_int)[0],), jnp.float32))
@@ -186,12 +199,7 @@ class IntegralFeedback(AbstractController):
         from jaxnc.references import at_channels
         C = jnp.asarray(self.C_int, jnp.float32)
         c = C.shape[0]
-        v = -(jnp.asarray(self.K) @ (xhat - self.x_ref)) - jnp.asarray(self.Ki) @ state.z
-        if self.u_ref is not None:
-            v = self.u_ref + v
-        u = v
-        if self.u_min is not None or self.u_max is not None:
-            u = jnp.clip(v, self.u_min, self.u_max)
+        v, u = _feedback(self, xhat, jnp.asarray(self.Ki) @ state.z)
         r = (C @ jnp.broadcast_to(jnp.asarray(self.x_ref, jnp.float32), xhat.shape) if self.reference is None
              else at_channels(self.reference, k * ctx.N, ctx.T, c).astype(jnp.float32))
         z = state.z + (C @ xhat - r)

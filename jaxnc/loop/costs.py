@@ -45,7 +45,7 @@ import jax.numpy as jnp
 
 from jaxnc import tracking as _tr
 from jaxnc._validate import check_components, check_instance, check_int, check_range, index_tuple
-from jaxnc.loop.base import jit_when_eager
+from jaxnc._validate import jit_when_eager
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop import runner as _runner
@@ -123,7 +123,7 @@ class Tracking:
         """:class:`TrackingMetrics` of x float[K, n] sampled at period T (module docstring).
 
         One compiled program when called on concrete values
-        (:func:`jaxnc.loop.base.jit_when_eager`)."""
+        (:func:`jaxnc._validate.jit_when_eager`)."""
         return _tracking_metrics(self, x, T)
 
     def _metrics(self, x, T) -> TrackingMetrics:

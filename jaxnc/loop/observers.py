@@ -97,11 +97,8 @@ def _slow_offset(model, N: int):
     with ``offset`` c (None for a model without)."""
     if model.offset is None:
         return None
-    A, c = jnp.asarray(model.A, jnp.float32), jnp.asarray(model.offset, jnp.float32)
-    total = c
-    for _ in range(N - 1):
-        total = A @ total + c
-    return total
+    c = jnp.asarray(model.offset, jnp.float32)
+    return slow_system(jnp.asarray(model.A, jnp.float32), c[:, None], N, hold=True)[1][:, 0]   # c held as an input
 
 
 def _predicted_z(model, x):

@@ -30,11 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnc._validate import (array_fields, check_bool, check_callable, check_finite, check_given, check_instance,
-                             check_int, check_range, concrete)
+                             check_int, check_range, concrete, jit_when_eager)
 from jaxnc.loop.actuators import PacketActuator
 from jaxnc.loop.base import (AbstractActuator, AbstractController, AbstractEstimator, AbstractMonitor, AbstractPlant,
                              AbstractTrigger, Inbox, Packet)
-from jaxnc.loop.base import jit_when_eager
 from jaxnc.loop.base import pytree_dataclass as _dataclass
 from jaxnc.loop.base import static_field as _static
 from jaxnc.loop.limits import LimitedActuator
@@ -873,6 +872,7 @@ class _Carry(NamedTuple):
     fail_action: jax.Array
 
 
+@jit_when_eager
 def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
     """One closed-loop run; a pure function of (loop, key), to vmap over keys.
 
@@ -884,16 +884,9 @@ def simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
 
     Called on concrete values (outside jit, vmap or grad) it runs one compiled program per
     loop structure, the loop an argument of it (as :func:`jaxnc.montecarlo.run_batched`
-    passes it): a second call, with the same loop or another of the same structure and new
-    numbers, compiles nothing (it compiled the whole run again on every call). Under a
-    trace it is traced as it is."""
-    if concrete(loop, key, draws):
-        return _simulate_compiled(loop, key, draws)
-    return _simulate(loop, key, draws)
-
-
-def _simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
-    """:func:`simulate`'s run, traced in the caller's trace."""
+    passes it; :func:`jit_when_eager`): a second call, with the same loop or another of the
+    same structure and new numbers, compiles nothing (it compiled the whole run again on every
+    call). Under a trace it is traced as it is."""
     ctx = loop.ctx
     N, S = loop.N, loop.steps // loop.N
     # the noise of each slow period is sliced from the flat standard draws and scaled there: no
@@ -1035,9 +1028,6 @@ def _simulate(loop: Loop, key, draws: Draws | None = None) -> Trajectory:
         parts={r: fast_rows(o[r]) if r in ("plant", "actuator", "monitor") else o[r] for r in PARTS
                if getattr(rec, r) is not None},
         final_plant=final.x)
-
-
-_simulate_compiled = jax.jit(_simulate)
 
 
 class Metrics(NamedTuple):
